@@ -1,0 +1,5 @@
+"""CHIC design: a parametric, printable CHIC fiducial from a YAML spec."""
+
+from chic_register import __version__
+
+__all__ = ["__version__"]

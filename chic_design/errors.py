@@ -1,0 +1,35 @@
+"""Domain exceptions of the design pipeline, in one place.
+
+The CLI prints ``str(exc)`` as one line and exits with ``exit_code``.
+"""
+
+from __future__ import annotations
+
+
+class ChicDesignError(Exception):
+    """Base class: a failure the user can act on."""
+
+    exit_code = 2
+
+
+class SpecError(ChicDesignError):
+    """A spec that is missing, not YAML, or has an unknown, wrong or contradictory value."""
+
+
+class InfeasibleDesign(ChicDesignError):
+    """The feasibility checks found violations (``build`` refuses unless ``--force``)."""
+
+    exit_code = 4
+
+    def __init__(self, spec_path, violations):
+        self.violations = list(violations)
+        names = "; ".join(f"{v.code} ({v.where}): {v.message}" for v in self.violations)
+        super().__init__(
+            f"{spec_path}: design is infeasible: {names}. Fix the spec or build anyway with --force"
+        )
+
+
+class BuildCheckError(ChicDesignError):
+    """The build's own output checks failed; nothing was written over an earlier export."""
+
+    exit_code = 5

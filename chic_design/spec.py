@@ -1,0 +1,276 @@
+"""The design spec: a YAML file with the paper's parameters, validated before any CAD work.
+
+All lengths are millimetres, angles degrees. Unknown keys, wrong types,
+out-of-range and contradictory values are rejected by :func:`load_spec` with a
+one-line :class:`~chic_design.errors.SpecError` naming the file, the key path
+and what is allowed. ``chic-design schema`` prints :func:`json_schema`.
+
+pydantic does the type and range checking (and produces the JSON Schema);
+the cross-field rules live in ``model_validator`` methods below.
+"""
+
+from __future__ import annotations
+
+import hashlib
+import json
+from pathlib import Path
+from typing import Annotated
+
+import yaml
+from pydantic import BaseModel, ConfigDict, Field, ValidationError, model_validator
+
+from .errors import SpecError
+
+PositiveMM = Annotated[float, Field(gt=0)]
+
+
+class _Strict(BaseModel):
+    model_config = ConfigDict(extra="forbid", frozen=True)
+
+
+class BodySpec(_Strict):
+    """The annular body that mounts coaxially on the tool."""
+
+    length: PositiveMM = Field(description="Body length along the axis (mm).")
+    outer_diameter: PositiveMM = Field(description="Outer diameter (mm).")
+    inner_diameter: PositiveMM = Field(description="Diameter of the central bore for the tool (mm).")
+
+    @model_validator(mode="after")
+    def _wall(self):
+        if self.inner_diameter >= self.outer_diameter:
+            raise ValueError(
+                f"inner_diameter ({self.inner_diameter:g}) must be smaller than "
+                f"outer_diameter ({self.outer_diameter:g})"
+            )
+        return self
+
+    @property
+    def wall(self) -> float:
+        return (self.outer_diameter - self.inner_diameter) / 2
+
+
+class ChannelSpec(_Strict):
+    """The fluid channels (tubes) in the wall."""
+
+    diameter: PositiveMM = Field(description="Channel diameter (mm).")
+    circle_diameter: PositiveMM | None = Field(
+        None,
+        description="Diameter of the circle the channel centrelines lie on (mm); "
+        "default: the middle of the wall.",
+    )
+
+
+class HelixSpec(_Strict):
+    """The three depth-encoding helices (the paper's omega and angular offset phi)."""
+
+    offset_deg: float = Field(
+        10.0, ge=0, lt=45, description="Angular offset of each helix from its quadrant's "
+        "diametric tube at the bottom end (deg)."
+    )
+    offset_top_deg: float | None = Field(
+        None, ge=0, lt=45, description="Angular offset at the top end (deg); default: offset_deg. "
+        "Ignored when pitch_deg_per_mm is given (then the pitch fixes the top angle)."
+    )
+    pitch_deg_per_mm: float | None = Field(
+        None, description="Helix pitch d(theta)/dz (deg/mm), sign = direction; default: each "
+        "helix runs from offset_deg at the bottom to (quadrant - offset_top_deg) at the top."
+    )
+
+    @model_validator(mode="after")
+    def _pitch(self):
+        if self.pitch_deg_per_mm is not None:
+            if self.pitch_deg_per_mm == 0:
+                raise ValueError("pitch_deg_per_mm must not be 0 (a helix must turn)")
+            if self.offset_top_deg is not None:
+                raise ValueError(
+                    "give either pitch_deg_per_mm or offset_top_deg, not both: the pitch fixes "
+                    "the top offset"
+                )
+        return self
+
+
+class MarkerSpec(_Strict):
+    """Marker layout (paper Fig. 1): four diametric tubes, three helices, orientation tubes."""
+
+    diametric_deg: tuple[float, float, float, float] = Field(
+        (0.0, 90.0, 180.0, 270.0),
+        description="Angles of the four straight diametric tubes D0..D3 (deg, increasing, "
+        "D0 at 0: it defines +x of the fiducial frame).",
+    )
+    helix_quadrants: tuple[int, int, int] = Field(
+        (0, 1, 2), description="Quadrants that hold helices H0..H2; quadrant q lies between "
+        "diametric tubes Dq and D(q+1)."
+    )
+    orientation_deg: tuple[float, ...] = Field(
+        (295.0, 315.0), min_length=1, max_length=3,
+        description="Angles of the straight orientation tubes O0.. (deg); they must lie in "
+        "the quadrant without a helix, placed asymmetrically so the pattern fixes twist.",
+    )
+
+    @model_validator(mode="after")
+    def _layout(self):
+        d = self.diametric_deg
+        if d[0] != 0:
+            raise ValueError("diametric_deg[0] must be 0: D0 defines the +x axis of frame F")
+        if not all(0 <= a < 360 for a in d) or not all(a < b for a, b in zip(d, d[1:])):
+            raise ValueError(f"diametric_deg must increase within [0, 360), got {list(d)}")
+        q = self.helix_quadrants
+        if len(set(q)) != 3 or not all(0 <= i <= 3 for i in q):
+            raise ValueError(f"helix_quadrants must be 3 different quadrants from 0..3, got {list(q)}")
+        free = ({0, 1, 2, 3} - set(q)).pop()
+        lo, hi = quadrant_bounds_deg(d, free)
+        for a in self.orientation_deg:
+            a_un = a if a >= lo else a + 360
+            if not lo < a_un < hi:
+                raise ValueError(
+                    f"orientation tube at {a:g} deg is outside the free quadrant {free} "
+                    f"({lo:g}..{hi:g} deg); allowed: strictly between its diametric tubes"
+                )
+        return self
+
+    @property
+    def free_quadrant(self) -> int:
+        return ({0, 1, 2, 3} - set(self.helix_quadrants)).pop()
+
+
+class CapSpec(_Strict):
+    """The two caps that seal the channels (see README: filling)."""
+
+    thickness: PositiveMM = Field(2.0, description="Thickness of the cap plate over the end face (mm).")
+    clearance: float = Field(
+        0.2, ge=0, le=1.0, description="Radial fit clearance between cap skirt and body (mm)."
+    )
+    skirt_height: PositiveMM = Field(4.0, description="How far the cap's skirt reaches down the body (mm).")
+    skirt_wall: PositiveMM = Field(1.6, description="Wall thickness of the cap's skirt (mm).")
+    fill_port_diameter: float = Field(
+        1.2, ge=0, description="Diameter of the fill port over each channel in the top cap (mm); "
+        "0 gives a top cap without ports (fill before capping).",
+    )
+
+
+class PrintSpec(_Strict):
+    """Printer limits the design is checked against."""
+
+    min_wall: PositiveMM = Field(0.8, description="Thinnest wall the printer makes watertight (mm).")
+    max_overhang_deg: float = Field(
+        45.0, gt=0, lt=90, description="Steepest overhang from the build direction (the axis) (deg)."
+    )
+
+
+class ImagingSpec(_Strict):
+    """The imaging protocol the feasibility checks assume."""
+
+    pixel_size: float = Field(0.5, ge=0, description="In-plane pixel size (mm); 0 = ideal.")
+    slice_thickness: float = Field(2.0, ge=0, description="Slice thickness (mm); 0 = ideal.")
+
+
+class Spec(_Strict):
+    """A CHIC fiducial design."""
+
+    name: str = Field(pattern=r"^[A-Za-z0-9][A-Za-z0-9_.-]*$", description="Design name: the export folder.")
+    description: str = ""
+    body: BodySpec
+    channels: ChannelSpec
+    helix: HelixSpec = Field(default_factory=HelixSpec)
+    markers: MarkerSpec = Field(default_factory=MarkerSpec)
+    caps: CapSpec = Field(default_factory=CapSpec)
+    print: PrintSpec = Field(default_factory=PrintSpec)
+    imaging: ImagingSpec = Field(default_factory=ImagingSpec)
+
+    @model_validator(mode="after")
+    def _fits(self):
+        r_in, r_out = self.body.inner_diameter / 2, self.body.outer_diameter / 2
+        rc = self.channel_radius
+        a = self.channels.diameter / 2
+        if not r_in < rc - a or not rc + a < r_out:
+            raise ValueError(
+                f"channels of diameter {self.channels.diameter:g} on a circle of diameter "
+                f"{2 * rc:g} do not fit in the wall ({2 * r_in:g}..{2 * r_out:g}); "
+                "allowed: circle_diameter - diameter > inner_diameter and "
+                "circle_diameter + diameter < outer_diameter"
+            )
+        if self.caps.fill_port_diameter >= self.channels.diameter:
+            raise ValueError(
+                f"caps.fill_port_diameter ({self.caps.fill_port_diameter:g}) must be smaller "
+                f"than channels.diameter ({self.channels.diameter:g})"
+            )
+        return self
+
+    @property
+    def channel_radius(self) -> float:
+        """Radius of the circle the channel centrelines lie on (mm)."""
+        if self.channels.circle_diameter is not None:
+            return self.channels.circle_diameter / 2
+        return (self.body.inner_diameter + self.body.outer_diameter) / 4
+
+
+def quadrant_bounds_deg(diametric_deg, q: int) -> tuple[float, float]:
+    """Angular bounds (lo, hi) of quadrant ``q``; hi may exceed 360 for the last one."""
+    lo = diametric_deg[q]
+    hi = diametric_deg[(q + 1) % 4] + (360 if q == 3 else 0)
+    return float(lo), float(hi)
+
+
+def json_schema() -> dict:
+    """JSON Schema of the spec (for editors)."""
+    schema = Spec.model_json_schema()
+    schema["$schema"] = "https://json-schema.org/draft/2020-12/schema"
+    schema["title"] = "CHIC fiducial design spec"
+    return schema
+
+
+def _format_error(path: Path, err: dict) -> str:
+    loc = ".".join(str(p) for p in err["loc"]) or "(top level)"
+    msg = err["msg"].removeprefix("Value error, ")
+    kind = err["type"]
+    if kind == "extra_forbidden":
+        parent = err["loc"][:-1]
+        model = Spec
+        for part in parent:
+            field = model.model_fields.get(str(part))
+            model = field.annotation if field is not None else None
+            if not isinstance(model, type) or not issubclass(model, BaseModel):
+                model = None
+                break
+        allowed = ", ".join(model.model_fields) if model is not None else "see `chic-design schema`"
+        return f"{path}: unknown key '{loc}'; allowed keys here: {allowed}"
+    if kind == "missing":
+        return f"{path}: missing key '{loc}'"
+    shown = err.get("input")
+    if isinstance(shown, (dict, list)) or kind.startswith("value_error"):
+        return f"{path}: {loc}: {msg}"
+    return f"{path}: {loc}: {msg} (got {shown!r})"
+
+
+def parse_spec(data, path="<spec>") -> Spec:
+    """Validate parsed YAML ``data`` into a :class:`Spec`; raises :class:`SpecError`."""
+    path = Path(path)
+    if not isinstance(data, dict):
+        raise SpecError(f"{path}: the spec must be a YAML mapping of keys, got {type(data).__name__}")
+    try:
+        return Spec.model_validate(data)
+    except ValidationError as exc:
+        raise SpecError(_format_error(path, exc.errors()[0])) from None
+
+
+def load_spec(path) -> Spec:
+    """Read and validate a spec file; raises :class:`SpecError` with a one-line message."""
+    path = Path(path)
+    if not path.is_file():
+        raise SpecError(f"{path}: no such spec file")
+    try:
+        data = yaml.safe_load(path.read_text(encoding="utf-8"))
+    except (yaml.YAMLError, UnicodeDecodeError) as exc:
+        mark = getattr(exc, "problem_mark", None)
+        where = f" at line {mark.line + 1}" if mark is not None else ""
+        raise SpecError(f"{path}: not valid YAML{where} ({getattr(exc, 'problem', exc)})") from None
+    return parse_spec(data, path)
+
+
+def spec_sha256(path) -> str:
+    """SHA-256 of the spec file's bytes (recorded in the geometry file's ``source``)."""
+    return hashlib.sha256(Path(path).read_bytes()).hexdigest()
+
+
+def spec_to_json(spec: Spec) -> str:
+    return json.dumps(spec.model_dump(), indent=2)

@@ -1,0 +1,40 @@
+"""Domain exceptions of the registration solver, in one place.
+
+Every exception here is a user-facing failure: the CLI prints ``str(exc)`` as
+one line and exits with ``exit_code``; no traceback is shown for them.
+"""
+
+from __future__ import annotations
+
+
+class ChicRegisterError(Exception):
+    """Base class: a failure the user can act on."""
+
+    exit_code = 2
+
+
+class GeometryFileError(ChicRegisterError):
+    """A geometry file that is missing, malformed, of a wrong format/version or fails its hash."""
+
+    def __init__(self, path, message: str):
+        self.path = str(path)
+        super().__init__(f"{self.path}: {message}")
+
+
+class ImageReadError(ChicRegisterError):
+    """An image file that is missing, unreadable, truncated or not an image."""
+
+    def __init__(self, path, message: str):
+        self.path = str(path)
+        super().__init__(f"{self.path}: {message}")
+
+
+class NoLock(ChicRegisterError):
+    """No trustworthy pose: the solver refuses rather than guess (exit 3)."""
+
+    exit_code = 3
+
+    def __init__(self, reason: str, detail: dict | None = None):
+        self.reason = reason
+        self.detail = detail or {}
+        super().__init__(reason)

@@ -1,0 +1,467 @@
+"""The fiducial's geometry: tube centrelines in the fiducial frame F, and the geometry file.
+
+This module is the single source of truth shared by the CAD model (which sweeps
+its channels along these objects), the geometry file (written from them) and the
+solver (which predicts image points from them).
+
+Frame F (CONTRACT.md section 1): millimetres, origin on the cylinder axis in the
+bottom end face, +z along the axis to the top face, +x toward tube ``D0``;
+angles counter-clockwise about +z from +x.
+
+Geometry file (CONTRACT.md section 2): YAML with ``format: chic-geometry``,
+``version: 1``, ``name``, ``units``, ``body``, ``tubes``, ``source`` and
+``sha256``. The hash is the SHA-256 of the canonical JSON of every other key
+(see :func:`content_sha256`).
+"""
+
+from __future__ import annotations
+
+import hashlib
+import json
+import math
+import os
+import tempfile
+from dataclasses import dataclass, field
+from pathlib import Path
+
+import numpy as np
+import yaml
+from scipy.optimize import brentq
+
+from .errors import GeometryFileError
+
+FORMAT = "chic-geometry"
+VERSION = 1
+ROLES = ("diametric", "helix", "orientation", "other")
+
+
+def _vec3(values) -> tuple[float, float, float]:
+    a = np.asarray(values, dtype=float).reshape(3)
+    return (float(a[0]), float(a[1]), float(a[2]))
+
+
+@dataclass(frozen=True)
+class Body:
+    """The annular body: ``length`` along z from 0, outer and inner diameters (mm)."""
+
+    length: float
+    outer_diameter: float
+    inner_diameter: float
+
+    def to_dict(self) -> dict:
+        return {
+            "length": float(self.length),
+            "outer_diameter": float(self.outer_diameter),
+            "inner_diameter": float(self.inner_diameter),
+        }
+
+
+@dataclass(frozen=True)
+class LineTube:
+    """A straight channel: centreline from ``p0`` to ``p1`` (mm, frame F)."""
+
+    id: str
+    role: str
+    p0: tuple[float, float, float]
+    p1: tuple[float, float, float]
+    diameter: float
+    kind: str = field(default="line", init=False)
+
+    def __post_init__(self):
+        object.__setattr__(self, "p0", _vec3(self.p0))
+        object.__setattr__(self, "p1", _vec3(self.p1))
+
+    @property
+    def direction(self) -> np.ndarray:
+        """Unit vector from p0 to p1, shape (3,)."""
+        d = np.subtract(self.p1, self.p0)
+        return d / np.linalg.norm(d)
+
+    @property
+    def length_mm(self) -> float:
+        return float(np.linalg.norm(np.subtract(self.p1, self.p0)))
+
+    @property
+    def z_range(self) -> tuple[float, float]:
+        return (min(self.p0[2], self.p1[2]), max(self.p0[2], self.p1[2]))
+
+    def points(self, t) -> np.ndarray:
+        """Centreline points at parameters ``t`` in [0, 1]; shape (N, 3)."""
+        t = np.atleast_1d(np.asarray(t, dtype=float))[:, None]
+        return np.asarray(self.p0) + t * np.subtract(self.p1, self.p0)
+
+    def tangents(self, t) -> np.ndarray:
+        """Unit tangents at parameters ``t``; shape (N, 3)."""
+        t = np.atleast_1d(np.asarray(t, dtype=float))
+        return np.tile(self.direction, (t.size, 1))
+
+    def point_at_z(self, z_mm) -> np.ndarray:
+        """Centreline points at heights ``z_mm`` (the line must not be horizontal); shape (N, 3)."""
+        dz = self.p1[2] - self.p0[2]
+        if abs(dz) < 1e-12:
+            raise ValueError(f"tube {self.id} is horizontal: no unique point at a given z")
+        return self.points((np.atleast_1d(z_mm) - self.p0[2]) / dz)
+
+    def intersect_plane(self, origin, normal) -> np.ndarray:
+        """Where the centreline crosses the plane through ``origin`` with ``normal``.
+
+        Returns shape (K, 3), K = 0 or 1: empty when the crossing lies outside
+        the tube's extent or the line is parallel to the plane.
+        """
+        n = np.asarray(normal, dtype=float)
+        p0 = np.asarray(self.p0)
+        d = np.subtract(self.p1, self.p0)
+        denom = float(n @ d)
+        if abs(denom) < 1e-12:
+            return np.empty((0, 3))
+        t = float(n @ (np.asarray(origin, dtype=float) - p0)) / denom
+        if t < -1e-12 or t > 1 + 1e-12:
+            return np.empty((0, 3))
+        return (p0 + t * d)[None, :]
+
+    def to_dict(self) -> dict:
+        return {
+            "id": self.id,
+            "role": self.role,
+            "kind": "line",
+            "p0": list(self.p0),
+            "p1": list(self.p1),
+            "diameter": float(self.diameter),
+        }
+
+
+@dataclass(frozen=True)
+class HelixTube:
+    """A helical channel about the z axis of F.
+
+    The centreline at height z (``z0 <= z <= z1``) is at angle
+    ``theta0_deg + pitch_deg_per_mm * (z - z0)`` and distance ``radius`` from the axis.
+    """
+
+    id: str
+    role: str
+    radius: float
+    theta0_deg: float
+    pitch_deg_per_mm: float
+    z0: float
+    z1: float
+    diameter: float
+    kind: str = field(default="helix", init=False)
+
+    @property
+    def z_range(self) -> tuple[float, float]:
+        return (self.z0, self.z1)
+
+    @property
+    def length_mm(self) -> float:
+        """Arc length of the centreline."""
+        slope = self.radius * math.radians(self.pitch_deg_per_mm)
+        return (self.z1 - self.z0) * math.hypot(1.0, slope)
+
+    @property
+    def theta1_deg(self) -> float:
+        """Angle of the centreline at ``z1``."""
+        return self.angle_deg_at(self.z1)
+
+    def angle_deg_at(self, z_mm):
+        """Centreline angle (degrees, unwrapped) at height ``z_mm``."""
+        return self.theta0_deg + self.pitch_deg_per_mm * (np.asarray(z_mm, dtype=float) - self.z0)
+
+    def z_at_angle(self, theta_deg):
+        """Inverse of :meth:`angle_deg_at`: the height where the centreline has angle ``theta_deg``."""
+        return self.z0 + (np.asarray(theta_deg, dtype=float) - self.theta0_deg) / self.pitch_deg_per_mm
+
+    def point_at_z(self, z_mm) -> np.ndarray:
+        """Centreline points at heights ``z_mm``; shape (N, 3)."""
+        z = np.atleast_1d(np.asarray(z_mm, dtype=float))
+        th = np.radians(self.angle_deg_at(z))
+        return np.stack([self.radius * np.cos(th), self.radius * np.sin(th), z], axis=1)
+
+    def points(self, t) -> np.ndarray:
+        """Centreline points at parameters ``t`` in [0, 1] (z = z0 + t (z1 - z0)); shape (N, 3)."""
+        t = np.atleast_1d(np.asarray(t, dtype=float))
+        return self.point_at_z(self.z0 + t * (self.z1 - self.z0))
+
+    def tangents(self, t) -> np.ndarray:
+        """Unit tangents (pointing toward increasing z) at parameters ``t``; shape (N, 3)."""
+        t = np.atleast_1d(np.asarray(t, dtype=float))
+        th = np.radians(self.angle_deg_at(self.z0 + t * (self.z1 - self.z0)))
+        w = math.radians(self.pitch_deg_per_mm) * self.radius
+        v = np.stack([-w * np.sin(th), w * np.cos(th), np.ones_like(th)], axis=1)
+        return v / np.linalg.norm(v, axis=1, keepdims=True)
+
+    def intersect_plane(self, origin, normal) -> np.ndarray:
+        """Every crossing of the centreline with the plane through ``origin`` with ``normal``.
+
+        Returns shape (K, 3), sorted by z. A helix can cross a steep plane
+        more than once; all crossings inside ``[z0, z1]`` are returned.
+        """
+        n = np.asarray(normal, dtype=float)
+        o = np.asarray(origin, dtype=float)
+
+        def f(z):
+            return float(n @ (self.point_at_z(z)[0] - o))
+
+        turns = abs(self.pitch_deg_per_mm) * (self.z1 - self.z0) / 360.0
+        zs = np.linspace(self.z0, self.z1, int(64 * max(1.0, turns)) + 2)
+        vals = (self.point_at_z(zs) - o) @ n
+        roots = []
+        for i in range(len(zs) - 1):
+            a, b = vals[i], vals[i + 1]
+            if a == 0.0:
+                roots.append(zs[i])
+            elif a * b < 0:
+                roots.append(brentq(f, zs[i], zs[i + 1], xtol=1e-12))
+        if vals[-1] == 0.0:
+            roots.append(zs[-1])
+        if not roots:
+            return np.empty((0, 3))
+        return self.point_at_z(np.array(roots))
+
+    def to_dict(self) -> dict:
+        return {
+            "id": self.id,
+            "role": self.role,
+            "kind": "helix",
+            "radius": float(self.radius),
+            "theta0_deg": float(self.theta0_deg),
+            "pitch_deg_per_mm": float(self.pitch_deg_per_mm),
+            "z0": float(self.z0),
+            "z1": float(self.z1),
+            "diameter": float(self.diameter),
+        }
+
+
+Tube = LineTube | HelixTube
+
+
+@dataclass(frozen=True)
+class FiducialGeometry:
+    """Everything the solver knows about a fiducial: its body and its tube centrelines."""
+
+    name: str
+    body: Body
+    tubes: tuple[Tube, ...]
+    source: dict | None = None
+    units: str = "mm"
+
+    def __post_init__(self):
+        object.__setattr__(self, "tubes", tuple(self.tubes))
+        ids = [t.id for t in self.tubes]
+        dupes = sorted({i for i in ids if ids.count(i) > 1})
+        if dupes:
+            raise ValueError(f"duplicate tube ids: {', '.join(dupes)}")
+
+    @property
+    def ids(self) -> tuple[str, ...]:
+        return tuple(t.id for t in self.tubes)
+
+    def tube(self, tube_id: str) -> Tube:
+        for t in self.tubes:
+            if t.id == tube_id:
+                return t
+        raise KeyError(tube_id)
+
+    def by_role(self, role: str) -> tuple[Tube, ...]:
+        return tuple(t for t in self.tubes if t.role == role)
+
+    def intersect_plane(self, origin, normal) -> dict[str, np.ndarray]:
+        """Crossings of every tube centreline with a plane: ``{id: (K, 3) array}``."""
+        return {t.id: t.intersect_plane(origin, normal) for t in self.tubes}
+
+    def content(self) -> dict:
+        """The file content without ``sha256`` (what the hash covers)."""
+        out = {
+            "format": FORMAT,
+            "version": VERSION,
+            "name": self.name,
+            "units": self.units,
+            "body": self.body.to_dict(),
+            "tubes": [t.to_dict() for t in self.tubes],
+        }
+        if self.source is not None:
+            out["source"] = dict(self.source)
+        return out
+
+    def to_dict(self) -> dict:
+        content = self.content()
+        content["sha256"] = content_sha256(content)
+        return content
+
+
+def _canonical(obj, key: str | None = None):
+    """Numbers as floats (except ``version``), so that ``50`` and ``50.0`` hash alike."""
+    if isinstance(obj, dict):
+        return {str(k): _canonical(v, str(k)) for k, v in obj.items()}
+    if isinstance(obj, (list, tuple)):
+        return [_canonical(v, key) for v in obj]
+    if isinstance(obj, bool) or obj is None or isinstance(obj, str):
+        return obj
+    if isinstance(obj, (int, float, np.integer, np.floating)):
+        return int(obj) if key == "version" else float(obj)
+    return obj
+
+
+def content_sha256(content: dict) -> str:
+    """SHA-256 (hex) of a geometry file's content, ``sha256`` key excluded.
+
+    Canonical form: JSON with sorted keys, no whitespace, UTF-8, every number
+    except ``version`` written as a float.
+    """
+    body = {k: v for k, v in content.items() if k != "sha256"}
+    text = json.dumps(_canonical(body), sort_keys=True, separators=(",", ":"), ensure_ascii=False)
+    return hashlib.sha256(text.encode("utf-8")).hexdigest()
+
+
+class _GeometryDumper(yaml.SafeDumper):
+    """Block style, except that lists of numbers (points) stay on one line."""
+
+
+def _represent_list(dumper, data):
+    flow = all(isinstance(v, (int, float)) for v in data)
+    return dumper.represent_sequence("tag:yaml.org,2002:seq", data, flow_style=flow)
+
+
+_GeometryDumper.add_representer(list, _represent_list)
+
+
+def geometry_to_yaml(geom: FiducialGeometry) -> str:
+    """The geometry file's text (keys in the contract's order)."""
+    return yaml.dump(geom.to_dict(), Dumper=_GeometryDumper, sort_keys=False, width=100)
+
+
+def write_geometry(geom: FiducialGeometry, path) -> Path:
+    """Write ``geom`` to ``path`` atomically (temporary file, then rename)."""
+    path = Path(path)
+    path.parent.mkdir(parents=True, exist_ok=True)
+    fd, tmp = tempfile.mkstemp(prefix=".geometry-", suffix=".tmp", dir=path.parent)
+    try:
+        with os.fdopen(fd, "w", encoding="utf-8") as fh:
+            fh.write(geometry_to_yaml(geom))
+        os.replace(tmp, path)
+    except BaseException:
+        Path(tmp).unlink(missing_ok=True)
+        raise
+    return path
+
+
+def _number(path, where: str, value) -> float:
+    if isinstance(value, bool) or not isinstance(value, (int, float)) or not math.isfinite(value):
+        raise GeometryFileError(path, f"{where} must be a finite number, got {value!r}")
+    return float(value)
+
+
+def _positive(path, where: str, value) -> float:
+    v = _number(path, where, value)
+    if v <= 0:
+        raise GeometryFileError(path, f"{where} must be > 0, got {value!r}")
+    return v
+
+
+def _point(path, where: str, value) -> tuple[float, float, float]:
+    if not isinstance(value, (list, tuple)) or len(value) != 3:
+        raise GeometryFileError(path, f"{where} must be a list of 3 numbers, got {value!r}")
+    return tuple(_number(path, f"{where}[{i}]", v) for i, v in enumerate(value))
+
+
+def _require(path, mapping: dict, key: str, where: str):
+    if key not in mapping:
+        raise GeometryFileError(path, f"missing key '{where}{key}'")
+    return mapping[key]
+
+
+def tube_from_dict(data: dict, path="<geometry>", where: str = "tubes[?]") -> Tube:
+    """Parse one ``tubes`` entry; raises :class:`GeometryFileError` naming the key."""
+    if not isinstance(data, dict):
+        raise GeometryFileError(path, f"{where} must be a mapping, got {type(data).__name__}")
+    tid = _require(path, data, "id", where + ".")
+    if not isinstance(tid, str) or not tid:
+        raise GeometryFileError(path, f"{where}.id must be a non-empty string, got {tid!r}")
+    role = _require(path, data, "role", where + ".")
+    if role not in ROLES:
+        raise GeometryFileError(path, f"{where}.role is {role!r}; allowed: {', '.join(ROLES)}")
+    kind = _require(path, data, "kind", where + ".")
+    diameter = _positive(path, f"{where}.diameter", _require(path, data, "diameter", where + "."))
+    if kind == "line":
+        p0 = _point(path, f"{where}.p0", _require(path, data, "p0", where + "."))
+        p1 = _point(path, f"{where}.p1", _require(path, data, "p1", where + "."))
+        if np.allclose(p0, p1):
+            raise GeometryFileError(path, f"{where}: p0 and p1 are the same point")
+        return LineTube(tid, role, p0, p1, diameter)
+    if kind == "helix":
+        vals = {
+            k: _number(path, f"{where}.{k}", _require(path, data, k, where + "."))
+            for k in ("radius", "theta0_deg", "pitch_deg_per_mm", "z0", "z1")
+        }
+        if vals["radius"] <= 0:
+            raise GeometryFileError(path, f"{where}.radius must be > 0")
+        if vals["z1"] <= vals["z0"]:
+            raise GeometryFileError(path, f"{where}: z1 must be greater than z0")
+        if vals["pitch_deg_per_mm"] == 0:
+            raise GeometryFileError(path, f"{where}.pitch_deg_per_mm must not be 0 (use a line)")
+        return HelixTube(tid, role, diameter=diameter, **vals)
+    raise GeometryFileError(path, f"{where}.kind is {kind!r}; allowed: line, helix")
+
+
+def geometry_from_dict(data, path="<geometry>", check_hash: bool = True) -> FiducialGeometry:
+    """Validate a parsed geometry file and build the :class:`FiducialGeometry`."""
+    if not isinstance(data, dict):
+        raise GeometryFileError(path, "not a chic-geometry file (top level is not a mapping)")
+    if data.get("format") != FORMAT:
+        raise GeometryFileError(path, f"format is {data.get('format')!r}; expected '{FORMAT}'")
+    if data.get("version") != VERSION:
+        raise GeometryFileError(
+            path, f"version is {data.get('version')!r}; this solver reads version {VERSION}"
+        )
+    if check_hash:
+        stored = data.get("sha256")
+        if not isinstance(stored, str):
+            raise GeometryFileError(path, "missing key 'sha256' (the content hash)")
+        if stored != content_sha256(data):
+            raise GeometryFileError(
+                path, "sha256 does not match the content: the file was edited or damaged; rebuild it"
+            )
+    name = _require(path, data, "name", "")
+    units = data.get("units", "mm")
+    if units != "mm":
+        raise GeometryFileError(path, f"units is {units!r}; allowed: mm")
+    b = _require(path, data, "body", "")
+    if not isinstance(b, dict):
+        raise GeometryFileError(path, "body must be a mapping")
+    body = Body(
+        _positive(path, "body.length", _require(path, b, "length", "body.")),
+        _positive(path, "body.outer_diameter", _require(path, b, "outer_diameter", "body.")),
+        _positive(path, "body.inner_diameter", _require(path, b, "inner_diameter", "body.")),
+    )
+    tubes_raw = _require(path, data, "tubes", "")
+    if not isinstance(tubes_raw, list) or not tubes_raw:
+        raise GeometryFileError(path, "tubes must be a non-empty list")
+    tubes = [tube_from_dict(t, path, f"tubes[{i}]") for i, t in enumerate(tubes_raw)]
+    try:
+        return FiducialGeometry(str(name), body, tuple(tubes), data.get("source"), units)
+    except ValueError as exc:
+        raise GeometryFileError(path, str(exc)) from None
+
+
+def load_geometry(path, check_hash: bool = True) -> FiducialGeometry:
+    """Load and check a geometry file (format, version, sha256, every key).
+
+    Raises :class:`GeometryFileError` with a one-line message naming the file
+    and the fault.
+    """
+    p = Path(path)
+    if not p.is_file():
+        raise GeometryFileError(p, "no such geometry file")
+    try:
+        data = yaml.safe_load(p.read_text(encoding="utf-8"))
+    except (yaml.YAMLError, UnicodeDecodeError) as exc:
+        first = str(exc).strip().splitlines()[0] if str(exc).strip() else type(exc).__name__
+        raise GeometryFileError(p, f"not valid YAML ({first})") from None
+    return geometry_from_dict(data, p, check_hash=check_hash)
+
+
+def sample_centreline(tube: Tube, step_mm: float = 0.5) -> np.ndarray:
+    """Centreline polyline with points no more than ``step_mm`` apart; shape (N, 3)."""
+    n = max(2, int(math.ceil(tube.length_mm / step_mm)) + 1)
+    return tube.points(np.linspace(0.0, 1.0, n))
+
