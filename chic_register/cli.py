@@ -43,8 +43,21 @@ def _parser() -> argparse.ArgumentParser:
     return p
 
 
+def _run_solve(args) -> int:
+    raise ChicRegisterError("'solve' is not implemented yet")
+
+
+def _run_simulate(args) -> int:
+    raise ChicRegisterError("'simulate' is not implemented yet")
+
+
+def _run_evaluate(args) -> int:
+    raise ChicRegisterError("'evaluate' is not implemented yet")
+
+
 def _run(args) -> int:
-    raise ChicRegisterError(f"'{args.command}' is not implemented yet")
+    commands = {"solve": _run_solve, "simulate": _run_simulate, "evaluate": _run_evaluate}
+    return commands[args.command](args)
 
 
 def main(argv=None) -> int:
