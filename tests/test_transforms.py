@@ -1,0 +1,55 @@
+"""ITK transform files: SimpleITK reads back the registration, in the documented direction."""
+
+from __future__ import annotations
+
+import numpy as np
+import pytest
+import SimpleITK as sitk
+
+from chic_register.errors import ChicRegisterError
+from chic_register.pose import apply, invert, rigid, rot_y, rot_z
+from chic_register.transforms import read_tfm, sitk_to_matrix, write_tfm
+
+
+def _pose():
+    return rigid(rot_z(-20.0) @ rot_y(35.0) @ rot_z(70.0), (-3.0, 55.5, 120.0))
+
+
+@pytest.mark.parametrize("suffix", [".tfm", ".txt", ".h5"])
+def test_round_trip_through_simpleitk(tmp_path, suffix):
+    T = _pose()
+    path = write_tfm(T, tmp_path / f"reg{suffix}")
+    tx = sitk.ReadTransform(str(path))
+    # The file holds T_fiducial_from_scanner (ITK resampling convention: fixed = scanner, moving = F).
+    np.testing.assert_allclose(sitk_to_matrix(tx), invert(T), atol=1e-9)
+    np.testing.assert_allclose(sitk_to_matrix(tx.GetInverse()), T, atol=1e-9)
+    np.testing.assert_allclose(read_tfm(path), T, atol=1e-9)
+
+
+def test_file_maps_scanner_points_to_fiducial_points(tmp_path):
+    T = _pose()
+    tx = sitk.ReadTransform(str(write_tfm(T, tmp_path / "reg.tfm")))
+    p_F = np.array([12.5, 0.0, 25.0])  # on the centreline of D0 at mid-depth
+    p_scanner = apply(T, p_F)
+    np.testing.assert_allclose(tx.TransformPoint(tuple(p_scanner)), p_F, atol=1e-9)
+
+
+def test_text_file_is_an_affine_transform(tmp_path):
+    text = write_tfm(_pose(), tmp_path / "reg.tfm").read_text()
+    assert text.startswith("#Insight Transform File V1.0")
+    assert "AffineTransform_double_3_3" in text
+
+
+def test_rejects_bad_suffix_and_non_rigid(tmp_path):
+    with pytest.raises(ChicRegisterError, match=r"reg\.json: transform file must end in"):
+        write_tfm(_pose(), tmp_path / "reg.json")
+    with pytest.raises(ValueError):
+        write_tfm(np.diag([2.0, 1.0, 1.0, 1.0]), tmp_path / "reg.tfm")
+    assert list(tmp_path.iterdir()) == []
+
+
+def test_read_rejects_non_transform(tmp_path):
+    bad = tmp_path / "bad.tfm"
+    bad.write_text("hello\n")
+    with pytest.raises(ChicRegisterError, match="bad.tfm: not an ITK transform file"):
+        read_tfm(bad)
