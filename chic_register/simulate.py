@@ -1,0 +1,520 @@
+"""Synthetic MRI slices of a fiducial at a known pose, with partial volume and noise.
+
+The image of a slice is the fluid fraction of each voxel: the share of the
+pixel's area, averaged over the slice thickness, that lies inside a tube
+(a point within ``diameter / 2`` of a tube centreline, inside the tube's
+extent). It is rendered tube crossing by tube crossing, only in a bounding box
+around each crossing:
+
+- the slice thickness is sampled by ``thickness_samples`` sub-planes;
+- in each sub-plane, every crossing of a tube centreline is found exactly
+  (``intersect_plane`` of the geometry objects) and each pixel is
+  ``supersample x supersample`` sampled; a sample's distance to the centreline
+  is measured to the tangent line at the nearest centreline point (one exact
+  re-projection for helices), and its coverage is a linear ramp across the
+  sample's footprint, so edges are anti-aliased and blob centroids are
+  unbiased to a few thousandths of a pixel.
+
+Pixel (row i, col j) has its centre at slice-frame coordinates
+``x = (j - cc) * col_spacing``, ``y = (i - rc) * row_spacing`` with
+``(rc, cc) = center_px``; the slice frame S is given by ``T_F_from_S``
+(see :func:`chic_register.pose.slice_frame`).
+"""
+
+from __future__ import annotations
+
+import math
+from dataclasses import dataclass, field
+
+import numpy as np
+
+from .geometry import FiducialGeometry, HelixTube, LineTube
+from .pose import SliceAngles, apply, invert, rigid, slice_angles, slice_frame
+from .slices import Slice
+
+NOISE_KINDS = ("none", "uniform", "rician")
+
+
+# --------------------------------------------------------------------------- rendering
+
+
+def _sample_offsets(n: int) -> np.ndarray:
+    """Sub-sample centres within a unit pixel, relative to its centre; shape (n,)."""
+    return (np.arange(n) + 0.5) / n - 0.5
+
+
+def _plane_offsets_mm(thickness_mm: float, n: int) -> np.ndarray:
+    """Midpoint-rule sub-plane offsets along the slice normal; shape (K,)."""
+    if thickness_mm <= 0 or n <= 1:
+        return np.zeros(1)
+    return _sample_offsets(n) * thickness_mm
+
+
+def _crossing_params(tube, origin_F: np.ndarray, normal_F: np.ndarray, margin_mm: float) -> np.ndarray:
+    """Centreline parameters u (0..1 inside the tube) where the plane cuts the centreline.
+
+    The centreline is extended by ``margin_mm`` at both ends so that a plane
+    cutting the tube's end near its face still renders the cut part (the
+    per-sample extent test trims it). Shape (K,).
+    """
+    length = tube.length_mm
+    mu = margin_mm / length
+    if isinstance(tube, LineTube):
+        p0 = np.asarray(tube.p0)
+        d = np.subtract(tube.p1, tube.p0)
+        denom = float(normal_F @ d)
+        if abs(denom) < 1e-12:
+            return np.empty(0)
+        u = float(normal_F @ (origin_F - p0)) / denom
+        return np.array([u]) if -mu <= u <= 1 + mu else np.empty(0)
+    if isinstance(tube, HelixTube):
+        dz = margin_mm * (tube.z1 - tube.z0) / length
+        ext = HelixTube(
+            tube.id, tube.role, tube.radius, float(tube.angle_deg_at(tube.z0 - dz)),
+            tube.pitch_deg_per_mm, tube.z0 - dz, tube.z1 + dz, tube.diameter,
+        )
+        pts = ext.intersect_plane(origin_F, normal_F)
+        return (pts[:, 2] - tube.z0) / (tube.z1 - tube.z0)
+    raise TypeError(f"cannot render tube kind {getattr(tube, 'kind', type(tube).__name__)!r}")
+
+
+@dataclass(frozen=True)
+class _Grid:
+    """Pixel grid of the image in the slice frame."""
+
+    shape: tuple[int, int]
+    spacing: tuple[float, float]  # (row, col) mm
+    center: tuple[float, float]  # (rc, cc) pixel coordinates of the S origin
+    sub: np.ndarray  # (s,) sub-sample offsets in pixels
+
+    def box(self, x_mm: float, y_mm: float, hx_mm: float, hy_mm: float):
+        """Pixel index ranges (i0, i1, j0, j1) (inclusive) covering a rectangle, clipped; None if empty."""
+        rs, cs = self.spacing
+        rc, cc = self.center
+        j0 = max(0, int(math.floor((x_mm - hx_mm) / cs + cc)) - 1)
+        j1 = min(self.shape[1] - 1, int(math.ceil((x_mm + hx_mm) / cs + cc)) + 1)
+        i0 = max(0, int(math.floor((y_mm - hy_mm) / rs + rc)) - 1)
+        i1 = min(self.shape[0] - 1, int(math.ceil((y_mm + hy_mm) / rs + rc)) + 1)
+        if j0 > j1 or i0 > i1:
+            return None
+        return i0, i1, j0, j1
+
+    def samples(self, i0, i1, j0, j1, z_mm: float) -> np.ndarray:
+        """Sample points in S for the pixel box; shape (ni, nj, s*s, 3)."""
+        rs, cs = self.spacing
+        rc, cc = self.center
+        s = self.sub.size
+        ys = ((np.arange(i0, i1 + 1)[:, None] + self.sub[None, :]) - rc) * rs  # (ni, s)
+        xs = ((np.arange(j0, j1 + 1)[:, None] + self.sub[None, :]) - cc) * cs  # (nj, s)
+        ni, nj = ys.shape[0], xs.shape[0]
+        pts = np.empty((ni, nj, s, s, 3))
+        pts[..., 0] = xs[None, :, None, :]
+        pts[..., 1] = ys[:, None, :, None]
+        pts[..., 2] = z_mm
+        return pts.reshape(ni, nj, s * s, 3)
+
+
+def _render_crossing(tube, u_c: float, T_F_from_S: np.ndarray, z_mm: float, grid: _Grid, layer: np.ndarray):
+    """Fluid fraction of one tube crossing in the sub-plane ``z = z_mm`` of S, max-composited into ``layer``."""
+    R = T_F_from_S[:3, :3]
+    tF = T_F_from_S[:3, 3]
+    c = (tube.points(u_c)[0] - tF) @ R
+    t = tube.tangents(u_c)[0] @ R
+    r = 0.5 * tube.diameter
+    length = tube.length_mm
+    # in-plane section: ellipse with semi-axes a (along the tangent's projection) and r
+    a = min(r / max(abs(t[2]), 1e-6), length + r)
+    txy = math.hypot(t[0], t[1])
+    ux, uy = (t[0] / txy, t[1] / txy) if txy > 1e-12 else (1.0, 0.0)
+    margin = 2.0 * max(grid.spacing)
+    hx = math.sqrt((a * ux) ** 2 + (r * uy) ** 2) + margin
+    hy = math.sqrt((a * uy) ** 2 + (r * ux) ** 2) + margin
+    box = grid.box(c[0], c[1], hx, hy)
+    if box is None:
+        return
+    i0, i1, j0, j1 = box
+    p = grid.samples(i0, i1, j0, j1, z_mm)
+    s0 = (p - c) @ t  # arc length along the tangent line
+    u = u_c + s0 / length
+    if isinstance(tube, HelixTube):
+        # re-project on the exact centreline: the nearest point to second order
+        q = (tube.points(u.ravel()) - tF) @ R
+        tq = tube.tangents(u.ravel()) @ R
+        d = p.reshape(-1, 3) - q
+        along = np.einsum("ij,ij->i", d, tq)
+        perp = (d - along[:, None] * tq).reshape(p.shape)
+        u = u + along.reshape(u.shape) / length
+    else:
+        perp = (p - c) - s0[..., None] * t
+    dist = np.linalg.norm(perp, axis=-1)
+    rs, cs = grid.spacing
+    hs_x, hs_y = cs / grid.sub.size, rs / grid.sub.size
+    with np.errstate(invalid="ignore", divide="ignore"):
+        gx = np.abs(perp[..., 0]) / dist
+        gy = np.abs(perp[..., 1]) / dist
+    w_r = np.nan_to_num(hs_x * gx + hs_y * gy, nan=0.0)
+    cov = np.clip(0.5 + (r - dist) / np.maximum(w_r, 1e-12), 0.0, 1.0)
+    inside_mm = np.minimum(u, 1.0 - u) * length
+    w_e = hs_x * abs(t[0]) + hs_y * abs(t[1])
+    cov *= np.clip(0.5 + inside_mm / max(w_e, 1e-12), 0.0, 1.0)
+    frac = cov.mean(axis=-1)
+    region = layer[i0 : i1 + 1, j0 : j1 + 1]
+    np.maximum(region, frac, out=region)
+
+
+def _check_grid(shape, pixel_spacing_mm, center_px, supersample, thickness_samples, slice_thickness_mm):
+    rows, cols = (int(v) for v in shape)
+    if rows < 1 or cols < 1:
+        raise ValueError(f"shape must be positive, got {tuple(shape)}")
+    rs, cs = (float(v) for v in pixel_spacing_mm)
+    if not (rs > 0 and cs > 0 and math.isfinite(rs) and math.isfinite(cs)):
+        raise ValueError(f"pixel_spacing_mm must be two positive numbers, got {tuple(pixel_spacing_mm)}")
+    if int(supersample) < 1 or int(thickness_samples) < 1:
+        raise ValueError("supersample and thickness_samples must be >= 1")
+    if not (slice_thickness_mm >= 0 and math.isfinite(slice_thickness_mm)):
+        raise ValueError(f"slice_thickness_mm must be >= 0, got {slice_thickness_mm}")
+    if center_px is None:
+        center_px = ((rows - 1) / 2.0, (cols - 1) / 2.0)
+    return (rows, cols), (rs, cs), (float(center_px[0]), float(center_px[1]))
+
+
+def render_tubes(
+    tubes,
+    T_F_from_S: np.ndarray,
+    shape=(256, 256),
+    pixel_spacing_mm=(0.5, 0.5),
+    slice_thickness_mm: float = 0.0,
+    center_px=None,
+    supersample: int = 4,
+    thickness_samples: int = 5,
+) -> np.ndarray:
+    """Fluid fraction image of any tubes (``LineTube`` / ``HelixTube`` in F); shape (rows, cols), in [0, 1]."""
+    shape, spacing, center = _check_grid(
+        shape, pixel_spacing_mm, center_px, supersample, thickness_samples, slice_thickness_mm
+    )
+    T = np.asarray(T_F_from_S, dtype=float)
+    grid = _Grid(shape, spacing, center, _sample_offsets(int(supersample)))
+    offsets = _plane_offsets_mm(float(slice_thickness_mm), int(thickness_samples))
+    normal = T[:3, 2]
+    image = np.zeros(shape)
+    layer = np.empty(shape)
+    for dz in offsets:
+        layer.fill(0.0)
+        origin = T[:3, 3] + dz * normal
+        for tube in tubes:
+            margin = 4.0 * tube.diameter + 0.5 * float(slice_thickness_mm)
+            for u_c in _crossing_params(tube, origin, normal, margin):
+                _render_crossing(tube, float(u_c), T, float(dz), grid, layer)
+        image += layer
+    image /= offsets.size
+    return np.clip(image, 0.0, 1.0)
+
+
+def render_slice(
+    geom: FiducialGeometry,
+    T_F_from_S: np.ndarray,
+    shape=(256, 256),
+    pixel_spacing_mm=(0.5, 0.5),
+    slice_thickness_mm: float = 0.0,
+    center_px=None,
+    supersample: int = 4,
+    thickness_samples: int = 5,
+) -> np.ndarray:
+    """Fluid fraction of each voxel of a slice through ``geom``; shape (rows, cols), float64 in [0, 1].
+
+    ``T_F_from_S`` (4x4) places the slice frame S in F; the pixel (i, j)
+    centre is at S coordinates ``((j - cc) * col_spacing, (i - rc) * row_spacing, 0)``
+    with ``(rc, cc) = center_px`` (default: the image centre). Partial volume
+    covers the pixel area (``supersample``² samples) and the slice thickness
+    (``thickness_samples`` sub-planes over ``slice_thickness_mm``; one plane if 0).
+    """
+    return render_tubes(
+        geom.tubes, T_F_from_S, shape, pixel_spacing_mm, slice_thickness_mm,
+        center_px, supersample, thickness_samples,
+    )
+
+
+def crossings_px(geom: FiducialGeometry, T_F_from_S: np.ndarray, pixel_spacing_mm=(0.5, 0.5), center_px=(0.0, 0.0)):
+    """Analytic crossings of every tube centreline with the plane z = 0 of S, in pixels.
+
+    Returns ``{tube_id: (K, 2) array of (row, col)}`` (K = 0 when a tube misses
+    the plane), computed with the geometry's own ``intersect_plane``.
+    """
+    T = np.asarray(T_F_from_S, dtype=float)
+    T_S_from_F = invert(T)
+    rs, cs = (float(v) for v in pixel_spacing_mm)
+    out = {}
+    for tid, pts in geom.intersect_plane(T[:3, 3], T[:3, 2]).items():
+        if len(pts) == 0:
+            out[tid] = np.empty((0, 2))
+            continue
+        s = apply(T_S_from_F, pts)
+        out[tid] = np.stack([s[:, 1] / rs + center_px[0], s[:, 0] / cs + center_px[1]], axis=1)
+    return out
+
+
+# --------------------------------------------------------------------------- noise
+
+
+def add_uniform_noise(image: np.ndarray, amplitude: float, rng: np.random.Generator) -> np.ndarray:
+    """The paper's white noise: ``image + U(-amplitude, amplitude)``, clipped at 0 (a new array)."""
+    if not (amplitude >= 0 and math.isfinite(amplitude)):
+        raise ValueError(f"noise amplitude must be >= 0, got {amplitude}")
+    img = np.asarray(image, dtype=float)
+    return np.clip(img + rng.uniform(-amplitude, amplitude, img.shape), 0.0, None)
+
+
+def add_rician_noise(image: np.ndarray, snr: float, rng: np.random.Generator, signal: float = 1.0) -> np.ndarray:
+    """MRI magnitude noise: ``|signal * image + N(0, s) + i N(0, s)|`` with ``s = signal / snr``.
+
+    Fluid (image 1) then has SNR ``snr``; the background follows a Rayleigh
+    distribution of scale ``s``.
+    """
+    if not (snr > 0 and math.isfinite(snr)):
+        raise ValueError(f"snr must be > 0, got {snr}")
+    img = np.asarray(image, dtype=float)
+    s = signal / snr
+    return np.hypot(signal * img + rng.normal(0.0, s, img.shape), rng.normal(0.0, s, img.shape))
+
+
+# --------------------------------------------------------------------------- simulated slices
+
+
+@dataclass(frozen=True)
+class SliceTruth:
+    """The known pose of a simulated slice.
+
+    ``T_scanner_from_fiducial`` (4x4) maps F to the slice's scanner frame;
+    ``centres_px`` holds ``(row, col)`` of each visible tube's crossing (the
+    one nearest the axis crossing when a helix crosses more than once);
+    ``crossings_px`` every crossing inside the image; ``center_px`` is the
+    pixel where the fiducial axis crosses the plane (S origin).
+    """
+
+    angles: SliceAngles
+    T_scanner_from_fiducial: np.ndarray
+    centres_px: dict
+    T_F_from_S: np.ndarray
+    center_px: tuple[float, float]
+    crossings_px: dict = field(default_factory=dict)
+    missing_tubes: tuple[str, ...] = ()
+    pixel_spacing_mm: tuple[float, float] = (0.5, 0.5)
+    slice_thickness_mm: float = 0.0
+    shape: tuple[int, int] = (256, 256)
+    settings: dict = field(default_factory=dict)
+
+    def to_dict(self) -> dict:
+        """JSON-ready dictionary (angles in degrees, lengths in mm, pixels as (row, col))."""
+        a = self.angles
+        return {
+            "depth_mm": float(a.depth_mm),
+            "tilt_deg": float(a.tilt_deg),
+            "azimuth_deg": float(a.azimuth_deg),
+            "twist_deg": float(a.twist_deg),
+            "T_scanner_from_fiducial": np.asarray(self.T_scanner_from_fiducial).tolist(),
+            "T_F_from_S": np.asarray(self.T_F_from_S).tolist(),
+            "centres_px": {k: [float(v[0]), float(v[1])] for k, v in self.centres_px.items()},
+            "crossings_px": {k: np.asarray(v).tolist() for k, v in self.crossings_px.items()},
+            "axis_crossing_px": [float(self.center_px[0]), float(self.center_px[1])],
+            "missing_tubes": list(self.missing_tubes),
+            "shape": [int(self.shape[0]), int(self.shape[1])],
+            "pixel_spacing_mm": [float(v) for v in self.pixel_spacing_mm],
+            "slice_thickness_mm": float(self.slice_thickness_mm),
+            "settings": dict(self.settings),
+        }
+
+
+@dataclass(frozen=True)
+class SimulatedSlice:
+    """A synthetic :class:`~chic_register.slices.Slice` and its truth."""
+
+    slice: Slice
+    truth: SliceTruth
+
+
+def _scanner_placement(shape, spacing, T_scanner_from_image, image_position, image_orientation):
+    """(origin_mm, col_dir, row_dir) of the slice in the scanner; default: axial, centre pixel at 0."""
+    if T_scanner_from_image is not None:
+        if image_position is not None or image_orientation is not None:
+            raise ValueError("give either T_scanner_from_image or image_position/image_orientation, not both")
+        T = np.asarray(T_scanner_from_image, dtype=float)
+        if T.shape != (4, 4):
+            raise ValueError(f"T_scanner_from_image must be 4x4, got shape {T.shape}")
+        col_dir, row_dir, origin = T[:3, 0], T[:3, 1], T[:3, 3]
+    else:
+        if image_orientation is None:
+            col_dir, row_dir = np.array([1.0, 0.0, 0.0]), np.array([0.0, 1.0, 0.0])
+        else:
+            o = np.asarray(image_orientation, dtype=float).reshape(-1)
+            if o.size != 6:
+                raise ValueError(f"image_orientation needs 6 numbers (col_dir, row_dir), got {o.size}")
+            col_dir, row_dir = o[:3], o[3:]
+        if image_position is None:
+            rows, cols = shape
+            origin = -((cols - 1) / 2.0 * spacing[1]) * col_dir - ((rows - 1) / 2.0 * spacing[0]) * row_dir
+        else:
+            origin = np.asarray(image_position, dtype=float).reshape(3)
+    ok = (
+        abs(np.linalg.norm(col_dir) - 1) < 1e-6
+        and abs(np.linalg.norm(row_dir) - 1) < 1e-6
+        and abs(float(col_dir @ row_dir)) < 1e-6
+        and np.all(np.isfinite(origin))
+    )
+    if not ok:
+        raise ValueError("image orientation must be two orthonormal vectors (col_dir, row_dir)")
+    return np.array(origin, dtype=float), np.array(col_dir, dtype=float), np.array(row_dir, dtype=float)
+
+
+def _render_distractors(n, geom, T_F_from_S, grid_shape, spacing, center, rng, supersample):
+    """``n`` anatomy-like bright ellipses in the image, all outside the fiducial body; shape (rows, cols)."""
+    rows, cols = grid_shape
+    rs, cs = spacing
+    out = np.zeros(grid_shape)
+    if n <= 0:
+        return out
+    R, tF = T_F_from_S[:3, :3], T_F_from_S[:3, 3]
+    r_out = 0.5 * geom.body.outer_diameter
+    length = geom.body.length
+    sub = _sample_offsets(supersample)
+    placed = 0
+    for _ in range(200 * n):
+        if placed == n:
+            break
+        a = rng.uniform(1.0, 4.0)
+        b = rng.uniform(1.0, 4.0)
+        phi = rng.uniform(0, math.pi)
+        i_c = rng.uniform(0, rows - 1)
+        j_c = rng.uniform(0, cols - 1)
+        x_c, y_c = (j_c - center[1]) * cs, (i_c - center[0]) * rs
+        pF = R @ np.array([x_c, y_c, 0.0]) + tF
+        clear = max(a, b) + 1.0
+        if math.hypot(pF[0], pF[1]) < r_out + clear and -clear < pF[2] < length + clear:
+            continue
+        h = max(a, b) + 2 * max(rs, cs)
+        i0, i1 = max(0, int((y_c - h) / rs + center[0])), min(rows - 1, int((y_c + h) / rs + center[0]) + 1)
+        j0, j1 = max(0, int((x_c - h) / cs + center[1])), min(cols - 1, int((x_c + h) / cs + center[1]) + 1)
+        ys = ((np.arange(i0, i1 + 1)[:, None] + sub) - center[0]) * rs - y_c
+        xs = ((np.arange(j0, j1 + 1)[:, None] + sub) - center[1]) * cs - x_c
+        X = xs[None, :, None, :]
+        Y = ys[:, None, :, None]
+        cp, sp = math.cos(phi), math.sin(phi)
+        inside = ((X * cp + Y * sp) / a) ** 2 + ((-X * sp + Y * cp) / b) ** 2 <= 1.0
+        frac = inside.mean(axis=(2, 3)) * rng.uniform(0.6, 1.0)
+        region = out[i0 : i1 + 1, j0 : j1 + 1]
+        np.maximum(region, frac, out=region)
+        placed += 1
+    return out
+
+
+def simulate_slice(
+    geom: FiducialGeometry,
+    depth_mm: float,
+    tilt_deg: float,
+    azimuth_deg: float = 0.0,
+    twist_deg: float = 0.0,
+    *,
+    shape=(256, 256),
+    pixel_spacing_mm=(0.5, 0.5),
+    slice_thickness_mm: float = 2.0,
+    center_offset_mm=(0.0, 0.0),
+    noise: str = "none",
+    noise_level: float = 0.1,
+    snr: float = 20.0,
+    distractors: int = 0,
+    bore_signal: float = 0.0,
+    missing_tubes=(),
+    T_scanner_from_image=None,
+    image_position=None,
+    image_orientation=None,
+    rng=None,
+    supersample: int = 4,
+    thickness_samples: int = 5,
+) -> SimulatedSlice:
+    """A synthetic slice of ``geom`` at a known pose, with its truth.
+
+    The slice cuts F as :func:`~chic_register.pose.slice_frame` (depth, tilt,
+    azimuth, twist) says; the fiducial axis crosses the image
+    ``center_offset_mm`` (x along columns, y along rows) from the image centre.
+    ``noise``: ``"none"``, ``"uniform"`` (+ U(-noise_level, noise_level)) or
+    ``"rician"`` (magnitude noise at ``snr``). ``distractors`` bright blobs are
+    placed outside the body; ``bore_signal > 0`` puts a tool of that
+    brightness along the axis in the bore; ``missing_tubes`` ids are left
+    unfilled. The slice sits in the scanner by ``T_scanner_from_image``, or by
+    DICOM-like ``image_position`` (scanner position of pixel (0, 0)) and
+    ``image_orientation`` (col_dir, row_dir); default: an axial image whose
+    centre pixel is at the scanner origin.
+    ``truth.T_scanner_from_fiducial = slice.T_scanner_from_image() @ T_image_from_S @ invert(T_F_from_S)``.
+    """
+    if noise not in NOISE_KINDS:
+        raise ValueError(f"noise is {noise!r}; allowed: {', '.join(NOISE_KINDS)}")
+    missing = tuple(str(m) for m in missing_tubes)
+    unknown = [m for m in missing if m not in geom.ids]
+    if unknown:
+        raise ValueError(f"missing_tubes: unknown tube id(s) {', '.join(unknown)}; known: {', '.join(geom.ids)}")
+    if int(distractors) < 0:
+        raise ValueError(f"distractors must be >= 0, got {distractors}")
+    if not (bore_signal >= 0 and math.isfinite(bore_signal)):
+        raise ValueError(f"bore_signal must be >= 0, got {bore_signal}")
+    rng = rng if isinstance(rng, np.random.Generator) else np.random.default_rng(rng)
+    (rows, cols), spacing, _ = _check_grid(shape, pixel_spacing_mm, None, supersample, thickness_samples, slice_thickness_mm)
+    rs, cs = spacing
+    dx, dy = (float(v) for v in center_offset_mm)
+    center = ((rows - 1) / 2.0 + dy / rs, (cols - 1) / 2.0 + dx / cs)
+    T_F_from_S = slice_frame(depth_mm, tilt_deg, azimuth_deg, twist_deg)
+
+    tubes = [t for t in geom.tubes if t.id not in missing]
+    image = render_tubes(tubes, T_F_from_S, (rows, cols), spacing, slice_thickness_mm, center, supersample, thickness_samples)
+    if bore_signal > 0:
+        L = geom.body.length
+        tool = LineTube("tool", "other", (0.0, 0.0, -L), (0.0, 0.0, 2.0 * L), 0.4 * geom.body.inner_diameter)
+        tool_img = render_tubes([tool], T_F_from_S, (rows, cols), spacing, slice_thickness_mm, center, supersample, thickness_samples)
+        image = np.maximum(image, bore_signal * tool_img)
+    if distractors:
+        blobs = _render_distractors(int(distractors), geom, T_F_from_S, (rows, cols), spacing, center, rng, supersample)
+        image = np.maximum(image, blobs)
+    if noise == "uniform":
+        image = add_uniform_noise(image, noise_level, rng)
+    elif noise == "rician":
+        image = add_rician_noise(image, snr, rng)
+
+    origin, col_dir, row_dir = _scanner_placement(
+        (rows, cols), spacing, T_scanner_from_image, image_position, image_orientation
+    )
+    sl = Slice(image, (rs, cs), origin, col_dir, row_dir, float(slice_thickness_mm), "<simulated>")
+    T_image_from_S = rigid(np.eye(3), (center[1] * cs, center[0] * rs, 0.0))
+    T_scanner_from_fiducial = sl.T_scanner_from_image() @ T_image_from_S @ invert(T_F_from_S)
+
+    all_px = crossings_px(geom, T_F_from_S, spacing, center)
+    crossings, centres = {}, {}
+    for tid, px in all_px.items():
+        if tid in missing:
+            continue
+        inside = px[(px[:, 0] >= -0.5) & (px[:, 0] <= rows - 0.5) & (px[:, 1] >= -0.5) & (px[:, 1] <= cols - 0.5)]
+        if len(inside) == 0:
+            continue
+        crossings[tid] = inside
+        k = int(np.argmin(np.hypot(inside[:, 0] - center[0], inside[:, 1] - center[1])))
+        centres[tid] = (float(inside[k, 0]), float(inside[k, 1]))
+    settings = {
+        "noise": noise,
+        "noise_level": float(noise_level) if noise == "uniform" else None,
+        "snr": float(snr) if noise == "rician" else None,
+        "distractors": int(distractors),
+        "bore_signal": float(bore_signal),
+        "center_offset_mm": [dx, dy],
+        "geometry": geom.name,
+    }
+    truth = SliceTruth(
+        angles=slice_angles(T_F_from_S),
+        T_scanner_from_fiducial=T_scanner_from_fiducial,
+        centres_px=centres,
+        T_F_from_S=T_F_from_S,
+        center_px=center,
+        crossings_px=crossings,
+        missing_tubes=missing,
+        pixel_spacing_mm=(rs, cs),
+        slice_thickness_mm=float(slice_thickness_mm),
+        shape=(rows, cols),
+        settings=settings,
+    )
+    return SimulatedSlice(sl, truth)
