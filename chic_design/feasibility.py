@@ -1,0 +1,717 @@
+"""Feasibility of a CHIC design: where in the scanner it works, and whether it prints.
+
+:func:`check_design` computes, from the geometry objects of
+:func:`chic_design.layout.fiducial_geometry` (never from a re-derived layout):
+
+1. **Tilt limits** at each depth z (1 mm steps or finer, both ends and mid-depth
+   included): the largest tilt of an image plane through the axis point
+   ``(0, 0, z)`` such that, for every azimuth (5 deg grid, then a 0.25 deg grid
+   around the worst one; twist is an in-plane rotation of the image and changes
+   none of the constraints, so it needs no sampling):
+
+   a. every tube centreline crosses the plane inside its own extent
+      (``tube_outside_body``); for axial tubes at radius r this is
+      ``tan(tilt) <= min(z, L - z) / r``;
+   b. every tube crosses it only once (``tube_crosses_twice:H0``), since a
+      second blob of one tube would be an extra, unexplained marker;
+   c. no two cross-sections merge (``tubes_merge:H0/D0``): each is an ellipse of
+      semi-minor ``d/2`` and semi-major ``(d/2)/cos(beta)`` along the projected
+      tube direction (beta = angle between tube tangent and plane normal),
+      smeared by ``slice_thickness * tan(beta)`` along that direction; the gap
+      between two blobs measured along the line joining their centres (the gap
+      between their projections onto that line, from the blobs' support
+      functions, so a positive gap is a real separating strip) must be at least
+      one pixel.
+
+   The max tilt is the first failure going up from 0: a tilt grid of 5 deg,
+   then bisection to < 0.05 deg. Where tilt 0 already fails, ``max_tilt_deg``
+   is 0 and ``limited_by`` names the failing constraint.
+2. **Usable depth** ranges at tilts 0, 15, 30 and 45 deg.
+3. **Clearances** in 3-D between channel surfaces, and between each channel
+   and the bore, the outside and the end faces, against ``print.min_wall``.
+   Decision: a channel wall to the bore, the outside or an end face thinner
+   than ``min_wall`` is a VIOLATION (``wall_too_thin``: the fluid would leak or
+   the print fail). Channel-to-channel gaps below ``min_wall`` and intersecting
+   channels are WARNINGS (``channel_wall_thin``, ``channels_intersect``, with
+   their z-range): every channel holds the same fluid, so a merge cannot leak,
+   and its imaging consequence is already in the tilt limits and usable depth
+   (the paper's prototype has its helices touch the diametric tubes near both
+   ends by design). Channels running the full length open onto the end faces
+   by design (sealed by the caps); that is reported, not a violation.
+4. **Overhang**: the steepest angle of each channel from the build direction
+   (the axis), ``acos(|t_z|)`` over its unit tangents, against
+   ``print.max_overhang_deg`` (violation ``overhang_too_steep``).
+5. **Unambiguity**: at every depth usable at tilt 0, no rotation about the axis
+   or reflection maps the tilt-0 marker positions onto themselves within a
+   tolerance of ``d/2 + pixel`` (a marker moved by less than its own radius plus
+   one pixel still overlaps its original blob, so the two poses cannot be told
+   apart reliably from the image) -> violation ``symmetric_pattern``. A helix
+   whose angle crosses the angle of a straight tube
+   (``helix_leaves_quadrant``), and a design with no depth usable at tilt 0
+   (``no_usable_depth``) are violations too.
+6. **Depth sensitivity**: mm of depth per degree of helix angle (1/|pitch|) and
+   the expected depth precision at the protocol's pixel size, from a centroid
+   quantisation bound ``sigma_xy = pixel / sqrt(12)``, ``sigma_theta =
+   sigma_xy / r``, ``sigma_z = sigma_theta / |pitch|``, combined over the n
+   helices as ``/ sqrt(n)`` (tilt 0, no image noise).
+"""
+
+from __future__ import annotations
+
+import math
+import os
+import tempfile
+from dataclasses import dataclass
+from pathlib import Path
+
+import numpy as np
+
+from chic_register.geometry import FiducialGeometry, LineTube
+
+from .spec import Spec
+
+USABLE_TILTS_DEG = (0.0, 15.0, 30.0, 45.0)
+TILT_CAP_DEG = 89.0
+OUTSIDE = "tube_outside_body"
+NO_LIMIT = "none_below_89_deg"
+_ROLE_RANK = {"helix": 0, "orientation": 1, "diametric": 2, "other": 3}
+_WALL_TOL_MM = 1e-6
+
+
+# ----------------------------------------------------------------------------- results
+
+
+@dataclass(frozen=True)
+class Finding:
+    """A violation or warning: machine ``code``, one-line ``message``, ``where`` (tube, z-range...)."""
+
+    code: str
+    message: str
+    where: str
+
+    def to_dict(self) -> dict:
+        return {"code": self.code, "message": self.message, "where": self.where}
+
+
+@dataclass(frozen=True)
+class TiltLimit:
+    """Max tilt (deg) of an image plane through the axis at ``depth_mm``, over all azimuths.
+
+    ``limited_by`` names the constraint that fails just above it; ``azimuth_deg``
+    is the worst azimuth; ``usable_at_zero_tilt`` is False where even tilt 0 fails.
+    """
+
+    depth_mm: float
+    max_tilt_deg: float
+    limited_by: str
+    azimuth_deg: float = 0.0
+    usable_at_zero_tilt: bool = True
+
+    def to_dict(self) -> dict:
+        return {
+            "depth_mm": round(float(self.depth_mm), 4),
+            "max_tilt_deg": round(float(self.max_tilt_deg), 2),
+            "limited_by": self.limited_by,
+            "azimuth_deg": round(float(self.azimuth_deg), 2),
+            "usable_at_zero_tilt": bool(self.usable_at_zero_tilt),
+        }
+
+
+@dataclass(frozen=True)
+class UsableDepth:
+    """Contiguous depth intervals ``ranges_mm`` ((z0, z1), ...) where max tilt >= ``tilt_deg``."""
+
+    tilt_deg: float
+    ranges_mm: tuple[tuple[float, float], ...]
+
+    @property
+    def total_mm(self) -> float:
+        return float(sum(b - a for a, b in self.ranges_mm))
+
+    def to_dict(self) -> dict:
+        return {
+            "tilt_deg": float(self.tilt_deg),
+            "ranges_mm": [[round(a, 4), round(b, 4)] for a, b in self.ranges_mm],
+            "total_mm": round(self.total_mm, 4),
+        }
+
+
+@dataclass(frozen=True)
+class Clearance:
+    """Smallest surface-to-surface gap between channel ``a`` and ``b`` (a channel or a body surface).
+
+    ``b`` is a tube id or ``bore``, ``outside``, ``bottom_face``, ``top_face``.
+    ``gap_mm`` < 0 means overlap. ``status``: ok, thin, intersect, open (a
+    channel that runs through an end face by design), too_thin (a wall violation).
+    ``intersect_z_mm`` / ``thin_z_mm``: z-ranges (on channel ``a``) where they
+    intersect / are closer than the minimum wall.
+    """
+
+    a: str
+    b: str
+    gap_mm: float
+    at_z_mm: float
+    status: str
+    intersect_z_mm: tuple[tuple[float, float], ...] = ()
+    thin_z_mm: tuple[tuple[float, float], ...] = ()
+
+    def to_dict(self) -> dict:
+        return {
+            "a": self.a,
+            "b": self.b,
+            "gap_mm": round(float(self.gap_mm), 4),
+            "at_z_mm": round(float(self.at_z_mm), 4),
+            "status": self.status,
+            "intersect_z_mm": [[round(p, 3), round(q, 3)] for p, q in self.intersect_z_mm],
+            "thin_z_mm": [[round(p, 3), round(q, 3)] for p, q in self.thin_z_mm],
+        }
+
+
+@dataclass(frozen=True)
+class Overhang:
+    """Steepest angle (deg) of channel ``tube_id`` from the build direction (the axis)."""
+
+    tube_id: str
+    max_overhang_deg: float
+    at_z_mm: float
+
+    def to_dict(self) -> dict:
+        return {"tube": self.tube_id, "max_overhang_deg": round(self.max_overhang_deg, 3),
+                "at_z_mm": round(self.at_z_mm, 3)}
+
+
+@dataclass(frozen=True)
+class Symmetry:
+    """A symmetry of the tilt-0 marker pattern over ``depth_range_mm`` (kind: rotation | reflection)."""
+
+    kind: str
+    angle_deg: float
+    depth_range_mm: tuple[float, float]
+
+    def describe(self) -> str:
+        if self.kind == "rotation":
+            return f"rotation by {self.angle_deg:.1f} deg about the axis"
+        return f"reflection about the {self.angle_deg:.1f}/{self.angle_deg + 180:.1f} deg line"
+
+    def to_dict(self) -> dict:
+        return {"kind": self.kind, "angle_deg": round(self.angle_deg, 3),
+                "depth_range_mm": [round(v, 4) for v in self.depth_range_mm], "what": self.describe()}
+
+
+@dataclass(frozen=True)
+class Unambiguity:
+    """Symmetry analysis of the marker pattern at the depths usable at tilt 0.
+
+    ``tolerance_mm``: a symmetry counts if it maps every marker within this of
+    another; ``min_mismatch_mm``: over the usable depths and all candidate
+    rotations/reflections, the smallest worst-marker mismatch (how far the
+    pattern is from symmetric; > tolerance means unambiguous).
+    """
+
+    tolerance_mm: float
+    min_mismatch_mm: float | None
+    symmetries: tuple[Symmetry, ...]
+    helix_crossings: tuple[Finding, ...]
+
+    def to_dict(self) -> dict:
+        return {
+            "tolerance_mm": round(self.tolerance_mm, 4),
+            "tolerance_rule": "tube diameter / 2 + pixel size",
+            "min_mismatch_mm": None if self.min_mismatch_mm is None else round(self.min_mismatch_mm, 4),
+            "symmetries": [s.to_dict() for s in self.symmetries],
+            "helix_leaves_quadrant": [f.to_dict() for f in self.helix_crossings],
+        }
+
+
+@dataclass(frozen=True)
+class DepthSensitivity:
+    """Depth per degree of helix angle, and the expected depth precision (see module docstring)."""
+
+    per_helix_mm_per_deg: tuple[tuple[str, float], ...]
+    sigma_xy_mm: float
+    per_helix_sigma_z_mm: tuple[tuple[str, float], ...]
+    combined_sigma_z_mm: float | None
+
+    METHOD = (
+        "centroid quantisation bound sigma_xy = pixel/sqrt(12) per blob; helix angle "
+        "sigma_theta = sigma_xy/r (rad); depth sigma_z = sigma_theta/|pitch|; combined over "
+        "the n helices as 1/sqrt(n); tilt 0, no image noise, slice-thickness smear ignored "
+        "(it blurs symmetrically and does not bias the centroid)"
+    )
+
+    def to_dict(self) -> dict:
+        return {
+            "mm_per_deg": {k: round(v, 6) for k, v in self.per_helix_mm_per_deg},
+            "sigma_xy_mm": round(self.sigma_xy_mm, 6),
+            "sigma_z_mm": {k: round(v, 6) for k, v in self.per_helix_sigma_z_mm},
+            "combined_sigma_z_mm": None if self.combined_sigma_z_mm is None
+            else round(self.combined_sigma_z_mm, 6),
+            "method": self.METHOD,
+        }
+
+
+@dataclass(frozen=True)
+class FeasibilityReport:
+    """Everything :func:`check_design` found. ``feasible`` = no violations."""
+
+    name: str
+    pixel_size_mm: float
+    slice_thickness_mm: float
+    min_wall_mm: float
+    max_overhang_deg: float
+    body_length_mm: float
+    violations: tuple[Finding, ...]
+    warnings: tuple[Finding, ...]
+    tilt_limits: tuple[TiltLimit, ...]
+    usable_depth: tuple[UsableDepth, ...]
+    clearances: tuple[Clearance, ...]
+    overhangs: tuple[Overhang, ...]
+    unambiguity: Unambiguity
+    depth_sensitivity: DepthSensitivity
+    plot_name: str = "tilt_limits.png"
+
+    @property
+    def feasible(self) -> bool:
+        return not self.violations
+
+    @property
+    def mid_depth_limit(self) -> TiltLimit:
+        mid = self.body_length_mm / 2
+        return min(self.tilt_limits, key=lambda t: abs(t.depth_mm - mid))
+
+    def to_dict(self) -> dict:
+        return {
+            "feasible": self.feasible,
+            "violations": [v.to_dict() for v in self.violations],
+            "tilt_limits": [t.to_dict() for t in self.tilt_limits],
+            "warnings": [w.to_dict() for w in self.warnings],
+            "name": self.name,
+            "protocol": {"pixel_size_mm": self.pixel_size_mm, "slice_thickness_mm": self.slice_thickness_mm},
+            "mid_depth": self.mid_depth_limit.to_dict(),
+            "usable_depth": [u.to_dict() for u in self.usable_depth],
+            "clearances": {
+                "min_wall_mm": self.min_wall_mm,
+                "policy": "channel to bore/outside/end face thinner than min_wall: violation "
+                "wall_too_thin; channel to channel thinner or intersecting: warning "
+                "(same fluid, cannot leak; imaging effect is in the tilt limits); full-length "
+                "channels open onto the end faces by design (sealed by the caps)",
+                "pairs": [c.to_dict() for c in self.clearances],
+            },
+            "overhangs": {"max_overhang_deg": self.max_overhang_deg,
+                          "channels": [o.to_dict() for o in self.overhangs]},
+            "unambiguity": self.unambiguity.to_dict(),
+            "depth_sensitivity": self.depth_sensitivity.to_dict(),
+        }
+
+    def summary_text(self) -> str:
+        mid = self.mid_depth_limit
+        lines = [
+            f"{self.name}: {'FEASIBLE' if self.feasible else 'INFEASIBLE'} "
+            f"(pixel {self.pixel_size_mm:g} mm, slice {self.slice_thickness_mm:g} mm)",
+            f"tilt limit at mid-depth z = {mid.depth_mm:g} mm: {mid.max_tilt_deg:.1f} deg, "
+            f"limited by {mid.limited_by} (worst azimuth {mid.azimuth_deg:.1f} deg)",
+        ]
+        for u in self.usable_depth:
+            rng = ", ".join(f"{a:g}-{b:g}" for a, b in u.ranges_mm) or "none"
+            lines.append(f"usable depth at tilt {u.tilt_deg:g} deg: {rng} mm ({u.total_mm:g} mm)")
+        walls = [c for c in self.clearances if c.b in ("bore", "outside")]
+        if walls:
+            w = min(walls, key=lambda c: c.gap_mm)
+            lines.append(f"thinnest body wall: {w.gap_mm:.3f} mm ({w.a} to {w.b}; min {self.min_wall_mm:g} mm)")
+        worst = max(self.overhangs, key=lambda o: o.max_overhang_deg, default=None)
+        if worst is not None:
+            lines.append(f"steepest overhang: {worst.max_overhang_deg:.1f} deg ({worst.tube_id}; "
+                         f"max {self.max_overhang_deg:g} deg)")
+        ds = self.depth_sensitivity
+        if ds.per_helix_mm_per_deg:
+            mpd = ", ".join(f"{k} {v:.3f}" for k, v in ds.per_helix_mm_per_deg)
+            prec = "n/a" if ds.combined_sigma_z_mm is None else f"{ds.combined_sigma_z_mm:.3f} mm"
+            lines.append(f"depth sensitivity (mm/deg): {mpd}; expected depth precision {prec} "
+                         "(pixel/sqrt(12) centroid bound)")
+        for v in self.violations:
+            lines.append(f"VIOLATION {v.code} ({v.where}): {v.message}")
+        for w in self.warnings:
+            lines.append(f"warning {w.code} ({w.where}): {w.message}")
+        return "\n".join(lines)
+
+    def markdown(self) -> str:
+        """A ``## Feasibility`` section for report.md (refers to the plot ``tilt_limits.png``)."""
+        mid = self.mid_depth_limit
+        out = [
+            "## Feasibility",
+            "",
+            f"**{'Feasible' if self.feasible else 'Infeasible'}** for pixel size "
+            f"{self.pixel_size_mm:g} mm and slice thickness {self.slice_thickness_mm:g} mm.",
+            "",
+            f"Tilt limit at mid-depth (z = {mid.depth_mm:g} mm): **{mid.max_tilt_deg:.1f} deg**, "
+            f"limited by `{mid.limited_by}`.",
+            "",
+            f"![max tilt vs depth]({self.plot_name})",
+            "",
+            "| tilt (deg) | usable depth (mm) | total (mm) |",
+            "|---|---|---|",
+        ]
+        for u in self.usable_depth:
+            rng = ", ".join(f"{a:g}-{b:g}" for a, b in u.ranges_mm) or "none"
+            out.append(f"| {u.tilt_deg:g} | {rng} | {u.total_mm:g} |")
+        out += ["", "| violation | where | message |", "|---|---|---|"]
+        out += [f"| {v.code} | {v.where} | {v.message} |" for v in self.violations] or ["| none | | |"]
+        out += ["", "| warning | where | message |", "|---|---|---|"]
+        out += [f"| {w.code} | {w.where} | {w.message} |" for w in self.warnings] or ["| none | | |"]
+        out += ["", f"Walls (min {self.min_wall_mm:g} mm):", "", "| channel | to | gap (mm) | status |",
+                "|---|---|---|---|"]
+        out += [f"| {c.a} | {c.b} | {c.gap_mm:.3f} | {c.status} |" for c in self.clearances
+                if c.b in ("bore", "outside", "bottom_face", "top_face") or c.status != "ok"]
+        ds = self.depth_sensitivity
+        if ds.per_helix_mm_per_deg:
+            out += ["", "Depth sensitivity: " + ", ".join(f"{k} {v:.3f} mm/deg" for k, v in ds.per_helix_mm_per_deg)
+                    + (f"; expected depth precision {ds.combined_sigma_z_mm:.3f} mm" if ds.combined_sigma_z_mm
+                       is not None else "") + f" ({ds.METHOD})."]
+        return "\n".join(out) + "\n"
+
+
+# ----------------------------------------------------------------------------- plane crossings
+
+
+def plane_normals(tilt_deg, azimuth_deg) -> np.ndarray:
+    """Unit normals of planes with these tilts/azimuths (pose.slice_frame convention); shape (..., 3)."""
+    t = np.radians(np.asarray(tilt_deg, dtype=float))
+    a = np.radians(np.asarray(azimuth_deg, dtype=float))
+    t, a = np.broadcast_arrays(t, a)
+    return np.stack([np.sin(t) * np.cos(a), np.sin(t) * np.sin(a), np.cos(t)], axis=-1)
+
+
+def _sample_params(tube, eps_mm: float = 1e-6) -> np.ndarray:
+    """Parameters along a tube where plane crossings are bracketed (a hair beyond both ends)."""
+    eps = eps_mm / max(tube.length_mm, 1e-9)
+    if isinstance(tube, LineTube):
+        return np.array([-eps, 1.0 + eps])
+    n = max(9, int(math.ceil(tube.length_mm / 2.0)) + 1)
+    return np.linspace(-eps, 1.0 + eps, n)
+
+
+def plane_crossings(tube, origins, normals, n_iter: int = 5):
+    """Crossings of a tube centreline with many planes at once (vectorised ``intersect_plane``).
+
+    ``origins``, ``normals``: shape (P, 3). The centreline is bracketed at
+    samples (its two ends for a line, <= 2 mm apart otherwise) and each first
+    bracket refined by Illinois regula falsi on ``tube.points``. Returns
+    ``(t, points, tangents, count)``: shapes (P,), (P, 3), (P, 3), (P,); ``t``
+    and the points are NaN where the plane misses the tube, ``count`` is the
+    number of crossings.
+    """
+    o = np.asarray(origins, dtype=float)
+    n = np.asarray(normals, dtype=float)
+    ts = _sample_params(tube)
+    pts = tube.points(ts)  # (K, 3)
+    off = np.einsum("pi,pi->p", o, n)
+    g = n @ pts.T - off[:, None]  # (P, K)
+    pos = g >= 0
+    change = pos[:, 1:] != pos[:, :-1]
+    count = change.sum(axis=1)
+    hit = count > 0
+    k = np.argmax(change, axis=1)
+    rows = np.arange(len(g))
+    ta, tb = ts[k], ts[k + 1]
+    ga, gb = g[rows, k], g[rows, k + 1]
+    denom = np.where(gb != ga, gb - ga, 1.0)
+    t = ta - ga * (tb - ta) / denom
+    if not isinstance(tube, LineTube):
+        for _ in range(n_iter):
+            gt = np.einsum("pi,pi->p", n, tube.points(t)) - off
+            same = np.sign(gt) == np.sign(ga)
+            # Illinois: replace the bracket end on gt's side, halve the other end's value
+            ta, tb, ga, gb = (np.where(same, t, ta), np.where(same, tb, t),
+                              np.where(same, gt, ga * 0.5), np.where(same, gb * 0.5, gt))
+            denom = np.where(gb != ga, gb - ga, 1.0)
+            t = np.clip(ta - ga * (tb - ta) / denom, np.minimum(ta, tb), np.maximum(ta, tb))
+    t = np.where(hit, t, np.nan)
+    safe = np.where(hit, t, 0.0)
+    points = np.where(hit[:, None], tube.points(safe), np.nan)
+    tangents = np.where(hit[:, None], tube.tangents(safe), np.nan)
+    return t, points, tangents, count
+
+
+# ----------------------------------------------------------------------------- tilt limits
+
+
+def _pair_order(geom: FiducialGeometry) -> list[tuple[int, int]]:
+    """All tube pairs, each ordered helix < orientation < diametric < other (``H0/D0``)."""
+    idx = list(range(len(geom.tubes)))
+    rank = sorted(idx, key=lambda i: (_ROLE_RANK.get(geom.tubes[i].role, 9), i))
+    pos = {i: p for p, i in enumerate(rank)}
+    pairs = []
+    for i in idx:
+        for j in idx:
+            if i < j:
+                pairs.append((i, j) if pos[i] < pos[j] else (j, i))
+    return pairs
+
+
+class _PlaneChecker:
+    """Evaluates the tilt constraints on many planes through the axis at once."""
+
+    def __init__(self, geom: FiducialGeometry, pixel_size_mm: float, slice_thickness_mm: float):
+        self.geom = geom
+        self.tubes = geom.tubes
+        self.pixel = float(pixel_size_mm)
+        self.slice = float(slice_thickness_mm)
+        self.pairs = _pair_order(geom)
+        self.I = np.array([p[0] for p in self.pairs], dtype=int)
+        self.J = np.array([p[1] for p in self.pairs], dtype=int)
+        self.semi = np.array([t.diameter / 2 for t in self.tubes])
+        n = len(self.tubes)
+        self.labels = ["ok", OUTSIDE] + [f"tube_crosses_twice:{t.id}" for t in self.tubes] + [
+            f"tubes_merge:{self.tubes[i].id}/{self.tubes[j].id}" for i, j in self.pairs
+        ]
+        self._merge0 = 2 + n
+
+    def margins(self, depth_mm, tilt_deg, azimuth_deg):
+        """Crossing counts (P, N) and merge margins (P, M) (mm; < 0 = merged) for planes (P,)."""
+        z = np.asarray(depth_mm, dtype=float)
+        normals = plane_normals(tilt_deg, azimuth_deg).reshape(-1, 3)
+        origins = np.zeros_like(normals)
+        origins[:, 2] = z
+        P, N = len(normals), len(self.tubes)
+        C = np.empty((P, N, 3))
+        T = np.empty((P, N, 3))
+        cnt = np.empty((P, N), dtype=int)
+        for k, tube in enumerate(self.tubes):
+            _, C[:, k], T[:, k], cnt[:, k] = plane_crossings(tube, origins, normals)
+        if len(self.pairs) == 0:
+            return cnt, np.zeros((P, 0))
+        d = C[:, self.J] - C[:, self.I]  # (P, M, 3)
+        dist = np.linalg.norm(d, axis=-1)
+        e = d / np.where(dist > 0, dist, 1.0)[..., None]
+        cosb = np.abs(np.einsum("pni,pi->pn", T, normals))  # (P, N) = cos(beta)
+        with np.errstate(divide="ignore", invalid="ignore"):
+            wi = np.einsum("pmi,pmi->pm", e, T[:, self.I]) / cosb[:, self.I]
+            wj = np.einsum("pmi,pmi->pm", e, T[:, self.J]) / cosb[:, self.J]
+        # support of an ellipse (a, a/cos b) plus a smear segment s tan(b) along the tube's projection
+        hi = self.semi[self.I] * np.sqrt(1 + wi**2) + 0.5 * self.slice * np.abs(wi)
+        hj = self.semi[self.J] * np.sqrt(1 + wj**2) + 0.5 * self.slice * np.abs(wj)
+        margin = dist - hi - hj - self.pixel
+        margin = np.where(np.isfinite(margin), margin, np.where(np.isnan(dist), np.nan, -np.inf))
+        return cnt, margin
+
+    def codes(self, depth_mm, tilt_deg, azimuth_deg, chunk: int = 20000) -> np.ndarray:
+        """Label index (into ``self.labels``) of the failing constraint per plane; 0 = all pass."""
+        z, t, a = np.broadcast_arrays(*(np.asarray(v, dtype=float) for v in (depth_mm, tilt_deg, azimuth_deg)))
+        z, t, a = z.ravel(), t.ravel(), a.ravel()
+        out = np.zeros(z.size, dtype=int)
+        for s in range(0, z.size, chunk):
+            cnt, margin = self.margins(z[s:s + chunk], t[s:s + chunk], a[s:s + chunk])
+            code = np.zeros(len(cnt), dtype=int)
+            m = np.where(np.isnan(margin), np.inf, margin)
+            if m.shape[1]:
+                worst = np.argmin(m, axis=1)
+                merged = m[np.arange(len(m)), worst] < 0
+                code[merged] = self._merge0 + worst[merged]
+            twice = cnt > 1
+            code[twice.any(1)] = 2 + np.argmax(twice, axis=1)[twice.any(1)]
+            code[(cnt == 0).any(1)] = 1
+            out[s:s + chunk] = code
+        return out
+
+
+def _max_tilt(checker: _PlaneChecker, z: np.ndarray, az: np.ndarray, grid_step: float = 5.0,
+              tol_deg: float = 0.05):
+    """Per (depth, azimuth) pair: first failing tilt (grid, then bisection). Returns tilt, code, ok0."""
+    grid = np.append(np.arange(0.0, TILT_CAP_DEG, grid_step), TILT_CAP_DEG)
+    P = z.size
+    codes = checker.codes(z[:, None], grid[None, :], az[:, None]).reshape(P, grid.size)
+    fail = codes != 0
+    anyfail = fail.any(axis=1)
+    k = np.where(anyfail, np.argmax(fail, axis=1), grid.size)
+    ok0 = k > 0
+    tilt = np.where(anyfail, 0.0, TILT_CAP_DEG)
+    code = np.where(anyfail, 0, 0)
+    code = np.where(k == 0, codes[:, 0], code)
+    sel = np.flatnonzero(anyfail & (k > 0))
+    if sel.size:
+        lo, hi = grid[k[sel] - 1], grid[k[sel]]
+        hic = codes[sel, k[sel]]
+        while np.max(hi - lo) > tol_deg:
+            mid = 0.5 * (lo + hi)
+            c = checker.codes(z[sel], mid, az[sel])
+            bad = c != 0
+            hi = np.where(bad, mid, hi)
+            hic = np.where(bad, c, hic)
+            lo = np.where(bad, lo, mid)
+        tilt[sel] = lo
+        code[sel] = hic
+    return tilt, code, ok0
+
+
+def depth_samples(length_mm: float, step_mm: float = 1.0) -> np.ndarray:
+    """Depths from 0 to ``length_mm`` at <= ``step_mm``, both ends and mid-depth included."""
+    n = max(2, int(math.ceil(length_mm / step_mm)))
+    n += n % 2  # even number of intervals: mid-depth is a sample
+    return np.linspace(0.0, length_mm, n + 1)
+
+
+def tilt_limits(geom: FiducialGeometry, pixel_size_mm: float, slice_thickness_mm: float,
+                depths_mm=None, azimuth_step_deg: float = 5.0, refine_step_deg: float = 0.25
+                ) -> tuple[TiltLimit, ...]:
+    """Max tilt at each depth (default :func:`depth_samples`), worst case over azimuth.
+
+    Azimuths on a ``azimuth_step_deg`` grid, then a ``refine_step_deg`` grid of
+    +-``azimuth_step_deg`` around each depth's worst azimuth. Twist is an
+    in-plane rotation of the image and changes none of the constraints.
+    """
+    checker = _PlaneChecker(geom, pixel_size_mm, slice_thickness_mm)
+    zs = depth_samples(geom.body.length) if depths_mm is None else np.asarray(depths_mm, dtype=float)
+    azs = np.arange(0.0, 360.0, azimuth_step_deg)
+    Z, A = np.meshgrid(zs, azs, indexing="ij")
+    tilt, code, ok0 = (v.reshape(Z.shape) for v in _max_tilt(checker, Z.ravel(), A.ravel()))
+    w = np.argmin(tilt, axis=1)
+    rows = np.arange(len(zs))
+    best_t, best_c, best_a = tilt[rows, w], code[rows, w], A[rows, w]
+    usable0 = ok0.all(axis=1)
+    # refine azimuth around the worst one (where something above tilt 0 limits it)
+    need = usable0 & (best_t < TILT_CAP_DEG)
+    if need.any():
+        off = np.arange(-azimuth_step_deg, azimuth_step_deg + 1e-9, refine_step_deg)
+        Z2 = np.repeat(zs[need], off.size)
+        A2 = (np.repeat(best_a[need], off.size) + np.tile(off, need.sum())) % 360.0
+        t2, c2, _ = _max_tilt(checker, Z2, A2)
+        t2, c2, A2 = t2.reshape(-1, off.size), c2.reshape(-1, off.size), A2.reshape(-1, off.size)
+        w2 = np.argmin(t2, axis=1)
+        r2 = np.arange(len(t2))
+        better = t2[r2, w2] < best_t[need]
+        idx = np.flatnonzero(need)[better]
+        best_t[idx], best_c[idx], best_a[idx] = t2[r2, w2][better], c2[r2, w2][better], A2[r2, w2][better]
+    return tuple(
+        TiltLimit(float(z), float(t) if u else 0.0, checker.labels[int(c)] if c else NO_LIMIT,
+                  float(a), bool(u))
+        for z, t, c, a, u in zip(zs, best_t, best_c, best_a, usable0)
+    )
+
+
+def usable_depth(limits, tilts_deg=USABLE_TILTS_DEG) -> tuple[UsableDepth, ...]:
+    """Contiguous runs of depth samples usable at each tilt (range ends are sample depths)."""
+    zs = np.array([t.depth_mm for t in limits])
+    out = []
+    for tilt in tilts_deg:
+        ok = np.array([t.usable_at_zero_tilt and t.max_tilt_deg >= tilt for t in limits])
+        out.append(UsableDepth(float(tilt), _runs(zs, ok)))
+    return tuple(out)
+
+
+def _runs(zs: np.ndarray, mask: np.ndarray) -> tuple[tuple[float, float], ...]:
+    """(first z, last z) of every run of True in ``mask`` (zs sorted)."""
+    runs, start = [], None
+    for i, m in enumerate(mask):
+        if m and start is None:
+            start = i
+        if start is not None and (not m or i == len(mask) - 1):
+            end = i if m else i - 1
+            runs.append((float(zs[start]), float(zs[end])))
+            start = None
+    return tuple(runs)
+
+
+# ----------------------------------------------------------------------------- check_design
+
+
+def check_geometry(geom: FiducialGeometry, *, pixel_size_mm: float, slice_thickness_mm: float,
+                   min_wall_mm: float, max_overhang_deg: float) -> FeasibilityReport:
+    """All feasibility checks on a geometry (what :func:`check_design` runs for a spec)."""
+    limits = tilt_limits(geom, pixel_size_mm, slice_thickness_mm)
+    usable = usable_depth(limits)
+    violations: list[Finding] = []
+    warnings: list[Finding] = []
+    if not usable[0].ranges_mm:
+        violations.append(Finding("no_usable_depth", "no depth is usable even at tilt 0 "
+                                  f"(e.g. z = {limits[len(limits) // 2].depth_mm:g} mm: "
+                                  f"{limits[len(limits) // 2].limited_by})", "all depths"))
+    empty_unamb = Unambiguity(_symmetry_tolerance(geom, pixel_size_mm), None, (), ())
+    empty_ds = DepthSensitivity((), pixel_size_mm / math.sqrt(12), (), None)
+    return FeasibilityReport(
+        name=geom.name,
+        pixel_size_mm=float(pixel_size_mm),
+        slice_thickness_mm=float(slice_thickness_mm),
+        min_wall_mm=float(min_wall_mm),
+        max_overhang_deg=float(max_overhang_deg),
+        body_length_mm=float(geom.body.length),
+        violations=tuple(violations),
+        warnings=tuple(warnings),
+        tilt_limits=limits,
+        usable_depth=usable,
+        clearances=(),
+        overhangs=(),
+        unambiguity=empty_unamb,
+        depth_sensitivity=empty_ds,
+    )
+
+
+def _symmetry_tolerance(geom: FiducialGeometry, pixel_size_mm: float) -> float:
+    return min(t.diameter for t in geom.tubes) / 2 + pixel_size_mm
+
+
+def check_design(spec: Spec, pixel_size_mm: float | None = None,
+                 slice_thickness_mm: float | None = None) -> FeasibilityReport:
+    """Feasibility of ``spec`` for its imaging protocol (pixel size / slice thickness overridable)."""
+    from .layout import fiducial_geometry
+
+    geom = fiducial_geometry(spec)
+    return check_geometry(
+        geom,
+        pixel_size_mm=spec.imaging.pixel_size if pixel_size_mm is None else float(pixel_size_mm),
+        slice_thickness_mm=spec.imaging.slice_thickness if slice_thickness_mm is None else float(slice_thickness_mm),
+        min_wall_mm=spec.print.min_wall,
+        max_overhang_deg=spec.print.max_overhang_deg,
+    )
+
+
+# ----------------------------------------------------------------------------- plot
+
+
+def save_tilt_plot(report: FeasibilityReport, png_path) -> Path:
+    """Max tilt vs depth, coloured by limiting constraint, usable-depth bands at 0/15/30/45 deg.
+
+    Written atomically (temporary file, then rename).
+    """
+    import matplotlib
+
+    matplotlib.use("Agg")
+    import matplotlib.pyplot as plt
+
+    path = Path(png_path)
+    path.parent.mkdir(parents=True, exist_ok=True)
+    zs = np.array([t.depth_mm for t in report.tilt_limits])
+    ts = np.array([t.max_tilt_deg for t in report.tilt_limits])
+    labels = [t.limited_by if t.usable_at_zero_tilt else f"{t.limited_by} (at tilt 0)"
+              for t in report.tilt_limits]
+    fig, ax = plt.subplots(figsize=(8, 4.5), dpi=120)
+    try:
+        ax.plot(zs, ts, color="0.6", lw=1, zorder=1)
+        cmap = plt.get_cmap("tab10")
+        for k, lab in enumerate(dict.fromkeys(labels)):
+            m = np.array([x == lab for x in labels])
+            ax.scatter(zs[m], ts[m], s=14, color=cmap(k % 10), label=lab, zorder=2)
+        for u in report.usable_depth:
+            for a, b in u.ranges_mm:
+                ax.plot([a, b], [u.tilt_deg, u.tilt_deg], color="k", lw=3, alpha=0.35,
+                        solid_capstyle="butt")
+            ax.axhline(u.tilt_deg, color="k", lw=0.5, ls=":")
+            ax.text(zs[-1], u.tilt_deg + 0.8, f"{u.tilt_deg:g} deg: {u.total_mm:g} mm usable",
+                    ha="right", va="bottom", fontsize=7)
+        ax.set_xlabel("depth z along the axis (mm)")
+        ax.set_ylabel("max tilt, worst azimuth (deg)")
+        ax.set_title(f"{report.name}: max image tilt (pixel {report.pixel_size_mm:g} mm, "
+                     f"slice {report.slice_thickness_mm:g} mm)", fontsize=9)
+        ax.set_xlim(zs[0], zs[-1])
+        ax.set_ylim(0, 90)
+        ax.legend(fontsize=7, loc="upper left", title="limited by", title_fontsize=7)
+        fd, tmp = tempfile.mkstemp(prefix=".tilt-", suffix=".png", dir=path.parent)
+        os.close(fd)
+        try:
+            fig.savefig(tmp, format="png")
+            os.replace(tmp, path)
+        except BaseException:
+            Path(tmp).unlink(missing_ok=True)
+            raise
+    finally:
+        plt.close(fig)
+    return path
