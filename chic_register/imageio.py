@@ -1,0 +1,337 @@
+"""Read image files into :class:`~chic_register.slices.Slice` objects (CONTRACT.md section 3).
+
+- DICOM (pydicom): the scanner frame is LPS, from ImagePositionPatient (centre
+  of the first pixel), ImageOrientationPatient (col_dir, then row_dir) and
+  PixelSpacing (row spacing, col spacing); RescaleSlope / RescaleIntercept are
+  applied. Enhanced (multi-frame) images give one slice per frame, placed by
+  their functional groups.
+- PNG / TIFF / other Pillow images and NPY arrays: no geometry of their own;
+  ``pixel_spacing=(row, col)`` mm is required and the "scanner" frame is the
+  image frame (origin at the centre of pixel (0, 0), x along columns, y
+  along rows). Colour images become luminance (ITU-R 601 weights).
+
+Every failure raises :class:`~chic_register.errors.ImageReadError` naming the
+file and the fault in one line.
+"""
+
+from __future__ import annotations
+
+import math
+import warnings
+from pathlib import Path
+
+import numpy as np
+
+from .errors import ImageReadError
+from .slices import Slice
+
+_LUMA = np.array([0.299, 0.587, 0.114])
+_DICOM_SUFFIXES = {".dcm", ".dicom", ".ima", ""}
+
+
+def _reason(exc: BaseException) -> str:
+    text = str(exc).strip()
+    first = text.splitlines()[0] if text else type(exc).__name__
+    first = first.split(" - ")[0]
+    return first if len(first) <= 120 else first[:117] + "..."
+
+
+def _check_spacing(path, pixel_spacing, kind: str) -> tuple[float, float]:
+    if pixel_spacing is None:
+        raise ImageReadError(
+            path, f"a {kind} image has no geometry: give the pixel spacing (--pixel-spacing ROW COL, mm)"
+        )
+    try:
+        rs, cs = (float(v) for v in pixel_spacing)
+    except (TypeError, ValueError):
+        raise ImageReadError(path, f"pixel spacing must be two numbers (row, col), got {pixel_spacing!r}") from None
+    if not (rs > 0 and cs > 0 and math.isfinite(rs) and math.isfinite(cs)):
+        raise ImageReadError(path, f"pixel spacing must be two positive numbers (mm), got ({rs:g}, {cs:g})")
+    return rs, cs
+
+
+def _as_2d(path, arr: np.ndarray, kind: str, rgb_ok: bool) -> np.ndarray:
+    """A real 2-D float image from an array read from ``path``; colour to luminance."""
+    a = np.asarray(arr)
+    if a.dtype.kind == "c":
+        a = np.abs(a)
+    if a.dtype.kind not in "biuf":
+        raise ImageReadError(path, f"{kind} holds {a.dtype} values, not numbers")
+    while a.ndim > 2 and a.shape[0] == 1:
+        a = a[0]
+    if rgb_ok and a.ndim == 3 and a.shape[-1] in (3, 4):
+        a = a[..., :3].astype(float) @ _LUMA
+    if a.ndim != 2:
+        raise ImageReadError(
+            path, f"{kind} has shape {tuple(a.shape)}: a slice must be one 2-D image (rows, cols)"
+        )
+    if a.size == 0:
+        raise ImageReadError(path, f"{kind} is empty (shape {tuple(a.shape)})")
+    a = a.astype(float)
+    if not np.all(np.isfinite(a)):
+        raise ImageReadError(path, f"{kind} contains NaN or infinite pixel values")
+    return a
+
+
+def _plain_slice(path, pixels: np.ndarray, pixel_spacing, kind: str) -> Slice:
+    spacing = _check_spacing(path, pixel_spacing, kind)
+    return Slice(pixels, spacing, np.zeros(3), np.array([1.0, 0.0, 0.0]), np.array([0.0, 1.0, 0.0]), 0.0, str(path))
+
+
+# --------------------------------------------------------------------------- plain arrays
+
+
+def _read_npy(path) -> np.ndarray:
+    try:
+        arr = np.load(path, allow_pickle=False)
+    except ValueError as exc:
+        if "pickle" in str(exc).lower():
+            raise ImageReadError(path, "NPY file holds Python objects, not a numeric array") from None
+        raise ImageReadError(path, f"NPY file is damaged or truncated ({_reason(exc)})") from None
+    except (OSError, EOFError) as exc:
+        raise ImageReadError(path, f"NPY file is damaged or truncated ({_reason(exc)})") from None
+    if not isinstance(arr, np.ndarray):
+        raise ImageReadError(path, "NPY file does not hold a single array")
+    return _as_2d(path, arr, "NPY array", rgb_ok=False)
+
+
+def _read_tiff(path) -> np.ndarray:
+    import tifffile
+
+    try:
+        with tifffile.TiffFile(path) as tif:
+            if len(tif.pages) > 1:
+                raise ImageReadError(path, f"TIFF holds {len(tif.pages)} pages: a slice must be one 2-D image")
+            page = tif.pages[0]
+            rgb = page.photometric in (tifffile.PHOTOMETRIC.RGB, tifffile.PHOTOMETRIC.YCBCR)
+            arr = page.asarray()
+    except ImageReadError:
+        raise
+    except Exception as exc:  # tifffile raises many kinds on damaged files
+        raise ImageReadError(path, f"TIFF cannot be decoded ({_reason(exc)})") from None
+    return _as_2d(path, arr, "TIFF image", rgb_ok=rgb)
+
+
+def _read_pillow(path, kind: str) -> np.ndarray:
+    from PIL import Image, UnidentifiedImageError
+
+    try:
+        with Image.open(path) as img:
+            if getattr(img, "n_frames", 1) > 1:
+                raise ImageReadError(path, f"{kind} holds {img.n_frames} frames: a slice must be one 2-D image")
+            img.load()
+            mode = img.mode
+            if mode in ("P", "PA", "CMYK", "YCbCr", "HSV", "LAB"):
+                img = img.convert("RGB")
+            elif mode == "LA":
+                img = img.getchannel("L")
+            arr = np.array(img)
+    except ImageReadError:
+        raise
+    except UnidentifiedImageError:
+        raise ImageReadError(path, "not an image: unrecognised file format (expected DICOM, PNG, TIFF or NPY)") from None
+    except Exception as exc:  # truncated or damaged image data
+        raise ImageReadError(path, f"{kind} cannot be decoded ({_reason(exc)})") from None
+    return _as_2d(path, arr, kind, rgb_ok=True)
+
+
+# --------------------------------------------------------------------------- DICOM
+
+
+def _fg_item(ds, frame: int, sequence: str):
+    """First item of functional-group ``sequence`` for ``frame`` (per-frame first, then shared)."""
+    for groups in ("PerFrameFunctionalGroupsSequence", "SharedFunctionalGroupsSequence"):
+        seq = ds.get(groups)
+        if not seq:
+            continue
+        item = seq[frame] if groups.startswith("PerFrame") and frame < len(seq) else seq[0]
+        inner = item.get(sequence)
+        if inner:
+            return inner[0]
+    return None
+
+
+def _numbers(path, value, n: int, name: str) -> np.ndarray:
+    try:
+        arr = np.array([float(v) for v in value], dtype=float)
+    except (TypeError, ValueError):
+        raise ImageReadError(path, f"DICOM {name} is not a list of numbers: {value!r}") from None
+    if arr.size != n or not np.all(np.isfinite(arr)):
+        raise ImageReadError(path, f"DICOM {name} must hold {n} finite numbers, got {list(value)!r}")
+    return arr
+
+
+def _dicom_geometry(path, ds, frame: int | None):
+    """(origin, col_dir, row_dir, (row, col) spacing, thickness) of one frame."""
+    if frame is None:
+        src = {k: ds.get(k) for k in ("ImagePositionPatient", "ImageOrientationPatient", "PixelSpacing", "SliceThickness")}
+    else:
+        pos = _fg_item(ds, frame, "PlanePositionSequence")
+        ori = _fg_item(ds, frame, "PlaneOrientationSequence")
+        meas = _fg_item(ds, frame, "PixelMeasuresSequence")
+        src = {
+            "ImagePositionPatient": pos.get("ImagePositionPatient") if pos else None,
+            "ImageOrientationPatient": ori.get("ImageOrientationPatient") if ori else None,
+            "PixelSpacing": meas.get("PixelSpacing") if meas else None,
+            "SliceThickness": meas.get("SliceThickness") if meas else None,
+        }
+    missing = [k for k in ("ImagePositionPatient", "ImageOrientationPatient", "PixelSpacing") if src[k] in (None, "")]
+    if missing:
+        where = "" if frame is None else f" (frame {frame + 1})"
+        raise ImageReadError(
+            path, f"DICOM has no image geometry{where}: missing {', '.join(missing)}; cannot place the slice in the scanner"
+        )
+    origin = _numbers(path, src["ImagePositionPatient"], 3, "ImagePositionPatient")
+    ori = _numbers(path, src["ImageOrientationPatient"], 6, "ImageOrientationPatient")
+    spacing = _numbers(path, src["PixelSpacing"], 2, "PixelSpacing")
+    col_dir, row_dir = ori[:3], ori[3:]
+    nc, nr = np.linalg.norm(col_dir), np.linalg.norm(row_dir)
+    if abs(nc - 1) > 1e-3 or abs(nr - 1) > 1e-3 or abs(float(col_dir @ row_dir)) > 1e-3:
+        raise ImageReadError(path, f"DICOM ImageOrientationPatient is not two orthonormal vectors: {ori.tolist()}")
+    row_dir = row_dir - (row_dir @ col_dir) / nc**2 * col_dir  # remove rounding in the DS strings
+    col_dir, row_dir = col_dir / nc, row_dir / np.linalg.norm(row_dir)
+    if not np.all(spacing > 0):
+        raise ImageReadError(path, f"DICOM PixelSpacing must be positive, got {spacing.tolist()}")
+    try:
+        thickness = float(src["SliceThickness"]) if src["SliceThickness"] not in (None, "") else 0.0
+    except (TypeError, ValueError):
+        thickness = 0.0
+    return origin, col_dir, row_dir, (float(spacing[0]), float(spacing[1])), thickness
+
+
+def _rescale(ds, frame: int | None) -> tuple[float, float]:
+    item = _fg_item(ds, frame, "PixelValueTransformationSequence") if frame is not None else None
+    src = item if item is not None else ds
+    slope = src.get("RescaleSlope", 1.0)
+    intercept = src.get("RescaleIntercept", 0.0)
+    try:
+        slope = float(slope) if slope not in (None, "") else 1.0
+        intercept = float(intercept) if intercept not in (None, "") else 0.0
+    except (TypeError, ValueError):
+        slope, intercept = 1.0, 0.0
+    return slope, intercept
+
+
+def _no_pixels_reason(ds) -> str:
+    """Why a DICOM data set without pixel data is not a slice: truncated image, or a non-image object."""
+    from pydicom.uid import UID
+
+    meta = getattr(ds, "file_meta", None)
+    sop = ds.get("SOPClassUID") or (meta.get("MediaStorageSOPClassUID") if meta is not None else None)
+    if not sop:
+        return "DICOM file is truncated or damaged: it ends before its SOP class and pixel data"
+    name = UID(str(sop)).name
+    if "Image" in name or "Rows" in ds:
+        return f"DICOM file is truncated: the {name} object ends before its pixel data"
+    return f"DICOM file has no pixel data ({name}: not an image object)"
+
+
+def _read_dicom(path, has_preamble: bool) -> list[Slice]:
+    import pydicom
+    from pydicom.errors import InvalidDicomError
+
+    try:
+        with warnings.catch_warnings():
+            warnings.simplefilter("ignore")
+            ds = pydicom.dcmread(path, force=not has_preamble)
+    except InvalidDicomError:
+        raise ImageReadError(path, "not an image: unrecognised file format (expected DICOM, PNG, TIFF or NPY)") from None
+    except Exception as exc:  # truncated headers raise EOFError, struct.error, ValueError...
+        if not has_preamble:
+            raise ImageReadError(path, "not an image: unrecognised file format (expected DICOM, PNG, TIFF or NPY)") from None
+        raise ImageReadError(path, f"DICOM file is truncated or damaged ({_reason(exc)})") from None
+    if not has_preamble and "Rows" not in ds and "PixelData" not in ds:
+        raise ImageReadError(path, "not an image: unrecognised file format (expected DICOM, PNG, TIFF or NPY)")
+    if not any(k in ds for k in ("PixelData", "FloatPixelData", "DoubleFloatPixelData")):
+        raise ImageReadError(path, _no_pixels_reason(ds))
+    try:
+        with warnings.catch_warnings():
+            warnings.simplefilter("ignore")
+            arr = ds.pixel_array
+    except Exception as exc:
+        raise ImageReadError(path, f"DICOM pixel data cannot be decoded; the file may be truncated ({_reason(exc)})") from None
+    frames = int(ds.get("NumberOfFrames", 1) or 1)
+    spp = int(ds.get("SamplesPerPixel", 1) or 1)
+    if frames == 1:
+        arr = arr[None]
+    if spp > 1 and arr.ndim == 4:
+        arr = arr[..., :3].astype(float) @ _LUMA
+    if arr.ndim != 3:
+        raise ImageReadError(path, f"DICOM pixel data has unexpected shape {tuple(arr.shape)}")
+    per_frame = frames > 1 or "PerFrameFunctionalGroupsSequence" in ds
+    if frames > 1 and "PerFrameFunctionalGroupsSequence" not in ds and "SharedFunctionalGroupsSequence" not in ds:
+        raise ImageReadError(path, f"DICOM holds {frames} frames without per-frame geometry: cannot place them")
+    invert = str(ds.get("PhotometricInterpretation", "MONOCHROME2")).strip() == "MONOCHROME1"
+    slices = []
+    for k in range(arr.shape[0]):
+        frame = k if per_frame else None
+        origin, col_dir, row_dir, spacing, thickness = _dicom_geometry(path, ds, frame)
+        slope, intercept = _rescale(ds, frame)
+        pixels = arr[k].astype(float) * slope + intercept
+        if invert:
+            pixels = pixels.max() + pixels.min() - pixels
+        source = str(path) if arr.shape[0] == 1 else f"{path}#{k + 1}"
+        slices.append(Slice(pixels, spacing, origin, col_dir, row_dir, thickness, source))
+    return slices
+
+
+# --------------------------------------------------------------------------- dispatch
+
+
+def _sniff(head: bytes) -> str | None:
+    if len(head) >= 132 and head[128:132] == b"DICM":
+        return "dicom"
+    if head.startswith(b"\x89PNG\r\n\x1a\n"):
+        return "png"
+    if head[:4] in (b"II*\x00", b"MM\x00*", b"II+\x00", b"MM\x00+"):
+        return "tiff"
+    if head.startswith(b"\x93NUMPY"):
+        return "npy"
+    return None
+
+
+def read_slice(path, pixel_spacing=None) -> list[Slice]:
+    """Every slice in one file (a multi-frame DICOM gives several); raises :class:`ImageReadError`."""
+    p = Path(path)
+    if not p.exists():
+        raise ImageReadError(p, "no such file")
+    if p.is_dir():
+        raise ImageReadError(p, "is a directory, not an image file")
+    try:
+        with open(p, "rb") as fh:
+            head = fh.read(132)
+    except OSError as exc:
+        raise ImageReadError(p, f"cannot be read ({exc.strerror or _reason(exc)})") from None
+    if not head:
+        raise ImageReadError(p, "empty file, not an image")
+    kind = _sniff(head)
+    if kind == "dicom":
+        return _read_dicom(p, has_preamble=True)
+    if kind == "npy":
+        return [_plain_slice(p, _read_npy(p), pixel_spacing, "NPY")]
+    if kind == "tiff":
+        return [_plain_slice(p, _read_tiff(p), pixel_spacing, "TIFF")]
+    if kind == "png":
+        return [_plain_slice(p, _read_pillow(p, "PNG image"), pixel_spacing, "PNG")]
+    if p.suffix.lower() in _DICOM_SUFFIXES:
+        # DICOM without the 128-byte preamble (raw data set), as some scanners export
+        return _read_dicom(p, has_preamble=False)
+    return [_plain_slice(p, _read_pillow(p, "image"), pixel_spacing, p.suffix.lstrip(".").upper() or "plain")]
+
+
+def read_slices(paths, pixel_spacing=None) -> list[Slice]:
+    """Read image files into slices, in order; ``pixel_spacing=(row, col)`` mm for plain images.
+
+    ``paths``: one path or a sequence of paths. DICOM files carry their own
+    geometry (``pixel_spacing`` is then ignored). Raises
+    :class:`~chic_register.errors.ImageReadError` (one line: file and fault)
+    on the first file that cannot be read as a 2-D slice.
+    """
+    if isinstance(paths, (str, Path)):
+        paths = [paths]
+    out: list[Slice] = []
+    for path in paths:
+        out.extend(read_slice(path, pixel_spacing))
+    if not out:
+        raise ImageReadError("<none>", "no image files given")
+    return out
