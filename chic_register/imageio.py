@@ -335,3 +335,50 @@ def read_slices(paths, pixel_spacing=None) -> list[Slice]:
     if not out:
         raise ImageReadError("<none>", "no image files given")
     return out
+
+
+# --------------------------------------------------------------------------- plain writers
+
+PLAIN_SUFFIXES = (".npy", ".png", ".tif", ".tiff")
+
+
+def write_plain_image(pixels: np.ndarray, path) -> dict:
+    """Write a 2-D image as NPY (float64), TIFF (float32) or PNG (16-bit, scaled to its maximum), atomically.
+
+    Returns ``{"format": ..., "scale": s}``: file value = pixel value * s
+    (1 except for PNG). Raises ``ValueError`` for another suffix.
+    """
+    import os
+    import tempfile
+
+    p = Path(path)
+    suffix = p.suffix.lower()
+    if suffix not in PLAIN_SUFFIXES:
+        raise ValueError(f"{p}: unsupported image suffix {p.suffix!r}; allowed: {', '.join(PLAIN_SUFFIXES)}")
+    a = np.asarray(pixels, dtype=float)
+    if a.ndim != 2:
+        raise ValueError(f"image must be 2-D, got shape {a.shape}")
+    p.parent.mkdir(parents=True, exist_ok=True)
+    fd, tmp = tempfile.mkstemp(prefix=".chic-", suffix=suffix, dir=p.parent)
+    os.close(fd)
+    scale = 1.0
+    try:
+        if suffix == ".npy":
+            with open(tmp, "wb") as fh:
+                np.save(fh, a)
+        elif suffix == ".png":
+            from PIL import Image
+
+            peak = float(a.max())
+            scale = 65535.0 / peak if peak > 0 else 1.0
+            stored = np.clip(np.rint(a * scale), 0, 65535).astype(np.uint16)
+            Image.fromarray(stored).save(tmp, format="PNG")
+        else:
+            import tifffile
+
+            tifffile.imwrite(tmp, a.astype(np.float32))
+        os.replace(tmp, p)
+    except BaseException:
+        Path(tmp).unlink(missing_ok=True)
+        raise
+    return {"format": suffix.lstrip("."), "scale": scale}

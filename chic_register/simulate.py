@@ -23,8 +23,12 @@ Pixel (row i, col j) has its centre at slice-frame coordinates
 
 from __future__ import annotations
 
+import json
 import math
+import os
+import tempfile
 from dataclasses import dataclass, field
+from pathlib import Path
 
 import numpy as np
 
@@ -518,3 +522,54 @@ def simulate_slice(
         settings=settings,
     )
     return SimulatedSlice(sl, truth)
+
+
+# --------------------------------------------------------------------------- files
+
+DICOM_SUFFIXES = (".dcm", ".dicom")
+
+
+def truth_path(image_path) -> Path:
+    """Where the truth of a simulated image is written: ``<image>.truth.json``."""
+    p = Path(image_path)
+    return p.with_name(p.name + ".truth.json")
+
+
+def write_simulated(sim: SimulatedSlice, path, extra: dict | None = None):
+    """Write a simulated slice (DICOM, NPY, PNG or TIFF by suffix) and its truth JSON beside it.
+
+    Plain images carry no placement, so their truth is in the image frame
+    (CONTRACT.md section 3): ``sim.slice`` must then sit at the scanner origin
+    with identity orientation (``image_position=(0, 0, 0)``, the default
+    orientation). Both files are written atomically. Returns
+    ``(image_path, truth_path)``.
+    """
+    from .dicomio import write_dicom
+    from .imageio import PLAIN_SUFFIXES, write_plain_image
+
+    p = Path(path)
+    suffix = p.suffix.lower()
+    info = {"image": p.name, "frame": "LPS" if suffix in DICOM_SUFFIXES else "image"}
+    if suffix in DICOM_SUFFIXES:
+        write_dicom(sim.slice, p, truth=sim.truth)
+        info["format"] = "dicom"
+    elif suffix in PLAIN_SUFFIXES:
+        sl = sim.slice
+        if not (np.allclose(sl.T_scanner_from_image(), np.eye(4))):
+            raise ValueError(f"{p}: a plain image has no scanner placement; simulate it in the image frame")
+        info.update(write_plain_image(sl.pixels, p))
+    else:
+        allowed = ", ".join(DICOM_SUFFIXES + PLAIN_SUFFIXES)
+        raise ValueError(f"{p}: unsupported output suffix {p.suffix!r}; allowed: {allowed}")
+    doc = {**sim.truth.to_dict(), "file": info, **(extra or {})}
+    tp = truth_path(p)
+    fd, tmp = tempfile.mkstemp(prefix=".chic-", suffix=".json.tmp", dir=tp.parent)
+    try:
+        with os.fdopen(fd, "w", encoding="utf-8") as fh:
+            json.dump(doc, fh, indent=2)
+            fh.write("\n")
+        os.replace(tmp, tp)
+    except BaseException:
+        Path(tmp).unlink(missing_ok=True)
+        raise
+    return p, tp
