@@ -1,0 +1,192 @@
+"""``chic-design build``: from a spec to a checked export folder, written atomically.
+
+Order: validate the spec (before any CAD work) -> feasibility -> geometry ->
+CAD -> export into a temporary folder inside ``out_root`` -> verify the files
+-> preview -> report -> replace ``out_root/<name>`` in one rename. On any
+failure the temporary folder is removed and an earlier export is left as it was.
+"""
+
+from __future__ import annotations
+
+import os
+import shutil
+import sys
+import tempfile
+import time
+from contextlib import contextmanager
+from dataclasses import dataclass, field
+from pathlib import Path
+
+from build123d import Mesher, export_step
+
+from chic_register.geometry import write_geometry
+
+from .cad import FiducialParts, build_parts
+from .errors import SpecError
+from .layout import fiducial_geometry
+from .preview import render_preview
+from .report import build_report
+from .spec import Spec, load_spec, spec_sha256
+from .verify import STL_ANGULAR_TOLERANCE_RAD, STL_TOLERANCE_MM, VerifyResult, verify_export
+
+TMP_PREFIX = ".{name}.tmp-"
+OLD_PREFIX = ".{name}.old-"
+
+
+@dataclass(frozen=True)
+class BuildResult:
+    """A finished build: its folder, the output checks and per-step wall times (s)."""
+
+    folder: Path
+    checks: VerifyResult
+    timings: dict[str, float] = field(default_factory=dict)
+    feasible: bool | None = None
+
+    def summary_text(self) -> str:
+        n = len(self.checks.checks)
+        total = sum(self.timings.values())
+        lines = [
+            f"built {self.folder} in {total:.1f} s: {n}/{n} output checks passed",
+            "files: " + ", ".join(sorted(p.name for p in self.folder.iterdir())),
+        ]
+        if self.feasible is False:
+            lines.append("WARNING: the design is infeasible (built with --force); see report.md")
+        return "\n".join(lines)
+
+
+class _Steps:
+    """Times each step; with ``progress`` prints one line per step with its elapsed time to stderr."""
+
+    def __init__(self, progress: bool, total: int):
+        self.progress = progress
+        self.total = total
+        self.timings: dict[str, float] = {}
+
+    @contextmanager
+    def step(self, name: str):
+        k = len(self.timings) + 1
+        if self.progress:
+            print(f"chic-design: [{k}/{self.total}] {name} ...", end="", file=sys.stderr, flush=True)
+        t0 = time.perf_counter()
+        try:
+            yield
+        except BaseException:
+            if self.progress:
+                print(" failed", file=sys.stderr, flush=True)
+            raise
+        dt = time.perf_counter() - t0
+        self.timings[name] = dt
+        if self.progress:
+            print(f" {dt:.2f} s", file=sys.stderr, flush=True)
+
+
+def check_cap_fit(spec: Spec, spec_path) -> None:
+    """Caps that would reach each other along the body are a contradictory spec (before CAD)."""
+    if 2 * spec.caps.skirt_height >= spec.body.length:
+        raise SpecError(
+            f"{spec_path}: caps.skirt_height ({spec.caps.skirt_height:g}) must be less than half of "
+            f"body.length ({spec.body.length:g}): the two caps' skirts would meet"
+        )
+
+
+def export_parts(parts: FiducialParts, folder: Path, name: str) -> list[str]:
+    """Write each part as STL, STEP and 3MF (mm, named) plus ``assembly.step``; returns file names."""
+    written = []
+    for part_name, part in parts.items():
+        part.label = part_name
+        if not export_step(part, folder / f"{part_name}.step"):
+            raise OSError(f"{folder / part_name}.step: STEP export failed")
+        # one tessellation for both mesh files: the STL and the 3MF hold the same triangles
+        mesher = Mesher()
+        mesher.add_shape(part, linear_deflection=STL_TOLERANCE_MM,
+                         angular_deflection=STL_ANGULAR_TOLERANCE_RAD, part_number=part_name)
+        mesher.write(str(folder / f"{part_name}.3mf"))
+        mesher.write(str(folder / f"{part_name}.stl"))
+        written += [f"{part_name}.stl", f"{part_name}.step", f"{part_name}.3mf"]
+    if not export_step(parts.assembly(name), folder / "assembly.step"):
+        raise OSError(f"{folder}/assembly.step: STEP export failed")
+    return written + ["assembly.step"]
+
+
+def _overlap_mm3(a, b) -> float:
+    """Exact volume (mm^3) shared by two CAD parts (0 when they only touch)."""
+    common = a.intersect(b)
+    return 0.0 if common is None else float(common.volume)
+
+
+def _default_permissions(folder: Path) -> None:
+    """mkdtemp/mkstemp make private (0700/0600) entries; give the export the usual umask modes."""
+    umask = os.umask(0)
+    os.umask(umask)
+    os.chmod(folder, 0o777 & ~umask)
+    for path in folder.iterdir():
+        if path.is_file():
+            os.chmod(path, 0o666 & ~umask)
+
+
+def _replace_folder(tmp: Path, final: Path) -> None:
+    """Put ``tmp`` at ``final``: move an old ``final`` aside, rename ``tmp`` in, delete the old one."""
+    old = None
+    if final.exists():
+        old = Path(tempfile.mkdtemp(prefix=OLD_PREFIX.format(name=final.name), dir=final.parent))
+        os.rmdir(old)
+        os.rename(final, old)
+    try:
+        os.rename(tmp, final)
+    except BaseException:
+        if old is not None:
+            os.rename(old, final)
+        raise
+    if old is not None:
+        shutil.rmtree(old, ignore_errors=True)
+
+
+def build_design(spec_path, out_root="exports", force: bool = False, progress: bool = True) -> BuildResult:
+    """Build the design in ``spec_path`` into ``out_root/<name>/`` and check the files.
+
+    Raises :class:`~chic_design.errors.SpecError` (bad spec, before any CAD work),
+    :class:`~chic_design.errors.InfeasibleDesign` (unless ``force``) or
+    :class:`~chic_design.errors.BuildCheckError` (an output check failed); in
+    every failure ``out_root/<name>`` is left as it was.
+    """
+    steps = _Steps(progress, total=9)
+    with steps.step("spec"):
+        spec = load_spec(spec_path)
+        check_cap_fit(spec, spec_path)
+    feasible = None
+    feasibility_md = None
+    with steps.step("geometry"):
+        source = {"spec": str(spec_path), "spec_sha256": spec_sha256(spec_path)}
+        geometry = fiducial_geometry(spec, source=source)
+    with steps.step("CAD model"):
+        parts = build_parts(spec, geometry)
+        volumes = {name: float(p.volume) for name, p in parts.items()}
+    out_root = Path(out_root)
+    out_root.mkdir(parents=True, exist_ok=True)
+    final = out_root / spec.name
+    tmp = Path(tempfile.mkdtemp(prefix=TMP_PREFIX.format(name=spec.name), dir=out_root))
+    try:
+        with steps.step("export STL/STEP/3MF"):
+            write_geometry(geometry, tmp / "geometry.yaml")
+            files = export_parts(parts, tmp, spec.name) + ["geometry.yaml"]
+        with steps.step("verify outputs"):
+            overlaps = {cap: _overlap_mm3(parts.body, getattr(parts, cap)) for cap in ("cap_top", "cap_bottom")}
+            checks = verify_export(tmp, volumes, overlaps)
+        with steps.step("preview"):
+            import trimesh
+
+            mesh = trimesh.load_mesh(tmp / "body.stl", file_type="stl")
+            render_preview(geometry, mesh.vertices, mesh.faces, tmp / "preview.png")
+            files.append("preview.png")
+        with steps.step("report"):
+            files.append("report.md")
+            text = build_report(spec, spec_path, geometry, volumes, checks, feasibility_md,
+                                dict(steps.timings), files)
+            (tmp / "report.md").write_text(text, encoding="utf-8")
+        with steps.step("replace export folder"):
+            _default_permissions(tmp)
+            _replace_folder(tmp, final)
+    except BaseException:
+        shutil.rmtree(tmp, ignore_errors=True)
+        raise
+    return BuildResult(final.resolve(), checks, dict(steps.timings), feasible)

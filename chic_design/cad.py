@@ -1,0 +1,249 @@
+"""The CAD model: body and caps as build123d parts, in frame F, in assembled position.
+
+Every channel is a circle swept along a centreline object of
+:mod:`chic_register.geometry` (via :func:`centreline_edge`), so the printed
+channels and ``geometry.yaml`` cannot disagree.
+
+- :class:`FiducialBody`: the annulus ``inner_diameter..outer_diameter``,
+  ``z = 0..length``, minus every channel. Channels run the full length and open
+  at both end faces (each is swept a little past the faces along its own
+  centreline, so the cut is clean and has no coplanar end disks).
+- :class:`Cap`: a plate of ``thickness`` over one end face (the bore stays
+  open) plus a skirt that slips over the outside of the body with a radial
+  ``clearance`` (a glued slip fit). The plate touches the end face; the parts do
+  not overlap. The top cap has one fill port over each channel opening.
+
+The pure-math helpers (:func:`extended_tube`, :func:`channel_openings_xy`,
+:func:`channel_volume_mm3`, :func:`annulus_volume_mm3`, :class:`CapDims`) need
+no CAD kernel and are tested on their own.
+"""
+
+from __future__ import annotations
+
+import math
+from dataclasses import dataclass, replace
+
+import numpy as np
+from build123d import (
+    Align,
+    Axis,
+    BasePartObject,
+    Circle,
+    Compound,
+    Cylinder,
+    Edge,
+    Helix,
+    Line,
+    Mode,
+    Part,
+    Plane,
+    Pos,
+    sweep,
+)
+
+from chic_register.geometry import FiducialGeometry, HelixTube, LineTube, Tube
+
+_BOTTOM = (Align.CENTER, Align.CENTER, Align.MIN)
+
+
+# ---------------------------------------------------------------- pure math
+
+
+def extended_tube(tube: Tube, ext_mm: float) -> Tube:
+    """The same centreline continued by ``ext_mm`` past both ends (same line / same helix).
+
+    Sweeping the extended tube and cutting it with the body gives channels
+    whose openings are exactly the tube's sections by the end-face planes.
+    """
+    if isinstance(tube, LineTube):
+        d = tube.direction
+        return LineTube(tube.id, tube.role, np.asarray(tube.p0) - ext_mm * d,
+                        np.asarray(tube.p1) + ext_mm * d, tube.diameter)
+    z0 = tube.z0 - ext_mm
+    return replace(tube, theta0_deg=float(tube.angle_deg_at(z0)), z0=z0, z1=tube.z1 + ext_mm)
+
+
+def channel_openings_xy(geometry: FiducialGeometry, z_mm: float) -> dict[str, np.ndarray]:
+    """Centre ``(x, y)`` (mm, shape (2,)) of every channel's opening in the end face at ``z_mm``.
+
+    A helix's opening at the top is at angle ``theta0 + pitch * length``.
+    """
+    return {t.id: t.point_at_z(z_mm)[0, :2] for t in geometry.tubes}
+
+
+def channel_volume_mm3(tube: Tube, z_lo_mm: float, z_hi_mm: float) -> float:
+    """Fluid volume of one channel between two heights (mm^3): pi a^2 times the centreline length.
+
+    Exact for a straight channel cut by parallel planes (Cavalieri), and for a
+    helix to within its curvature (radius of curvature >> channel radius).
+    Overlaps with other channels are not subtracted (see :func:`annulus_volume_mm3`).
+    """
+    a = tube.diameter / 2
+    if isinstance(tube, LineTube):
+        dz = abs(tube.direction[2])
+        return math.pi * a * a * (z_hi_mm - z_lo_mm) / dz
+    part = replace(tube, theta0_deg=float(tube.angle_deg_at(z_lo_mm)), z0=z_lo_mm, z1=z_hi_mm)
+    return math.pi * a * a * part.length_mm
+
+
+def annulus_volume_mm3(geometry: FiducialGeometry) -> float:
+    """Volume of the body before the channels are cut (mm^3)."""
+    b = geometry.body
+    return math.pi / 4 * (b.outer_diameter**2 - b.inner_diameter**2) * b.length
+
+
+@dataclass(frozen=True)
+class CapDims:
+    """Named dimensions of a cap (mm), derived from the body and the spec's ``caps``.
+
+    ``inner_radius`` = body bore radius; the skirt's inside is
+    ``outer_diameter / 2 + clearance``, its wall ``skirt_wall``.
+    """
+
+    inner_radius: float
+    body_radius: float
+    thickness: float
+    clearance: float
+    skirt_height: float
+    skirt_wall: float
+    port_diameter: float
+
+    @property
+    def skirt_inner_radius(self) -> float:
+        return self.body_radius + self.clearance
+
+    @property
+    def outer_radius(self) -> float:
+        return self.skirt_inner_radius + self.skirt_wall
+
+    @classmethod
+    def from_spec(cls, spec, geometry: FiducialGeometry) -> "CapDims":
+        c = spec.caps
+        return cls(
+            inner_radius=geometry.body.inner_diameter / 2,
+            body_radius=geometry.body.outer_diameter / 2,
+            thickness=c.thickness,
+            clearance=c.clearance,
+            skirt_height=c.skirt_height,
+            skirt_wall=c.skirt_wall,
+            port_diameter=c.fill_port_diameter,
+        )
+
+    def bbox(self, length_mm: float, end: str) -> tuple[np.ndarray, np.ndarray]:
+        """Expected axis-aligned bounding box (min (3,), max (3,)) of the cap at ``end``."""
+        r = self.outer_radius
+        if end == "top":
+            z = (length_mm - self.skirt_height, length_mm + self.thickness)
+        else:
+            z = (-self.thickness, self.skirt_height)
+        return np.array([-r, -r, z[0]]), np.array([r, r, z[1]])
+
+
+# ---------------------------------------------------------------- CAD
+
+
+def centreline_edge(tube: Tube) -> Edge:
+    """A tube's centreline as a build123d edge: a :class:`Line` or a :class:`Helix`, in F.
+
+    build123d's Helix starts at ``(radius, 0, 0)`` turning counter-clockwise
+    (clockwise if ``lefthand``); it is rotated to ``theta0_deg`` and moved to ``z0``.
+    """
+    if isinstance(tube, LineTube):
+        return Line(tuple(tube.p0), tuple(tube.p1))
+    if isinstance(tube, HelixTube):
+        helix = Helix(
+            pitch=360.0 / abs(tube.pitch_deg_per_mm),
+            height=tube.z1 - tube.z0,
+            radius=tube.radius,
+            lefthand=tube.pitch_deg_per_mm < 0,
+        )
+        return helix.rotate(Axis.Z, tube.theta0_deg).translate((0, 0, tube.z0))
+    raise TypeError(f"no CAD for tube kind {type(tube).__name__}")
+
+
+def channel_solid(tube: Tube, ext_mm: float | None = None) -> Part:
+    """The channel of ``tube``: its circle swept along its (extended) centreline."""
+    ext = tube.diameter if ext_mm is None else ext_mm
+    path = centreline_edge(extended_tube(tube, ext))
+    profile = Plane(origin=path @ 0, z_dir=path % 0) * Circle(tube.diameter / 2)
+    return sweep(profile, path, is_frenet=True)
+
+
+class FiducialBody(BasePartObject):
+    """The CHIC body: annulus from ``geometry.body`` minus every channel of ``geometry.tubes``.
+
+    Args:
+        geometry: tube centrelines and body dimensions in frame F.
+    """
+
+
+    def __init__(self, geometry: FiducialGeometry, mode: Mode = Mode.ADD):
+        b = geometry.body
+        solid = Cylinder(b.outer_diameter / 2, b.length, align=_BOTTOM)
+        solid -= Cylinder(b.inner_diameter / 2, b.length, align=_BOTTOM)
+        solid -= [channel_solid(t) for t in geometry.tubes]
+        super().__init__(part=solid, rotation=(0, 0, 0), align=None, mode=mode)
+        self.label = "body"
+
+
+class Cap(BasePartObject):
+    """An end cap: plate over the end face at ``end`` ("top" z = length, "bottom" z = 0) plus skirt.
+
+    Args:
+        dims: cap dimensions.
+        length_mm: body length (where the top end face is).
+        end: "top" or "bottom".
+        ports_xy: fill-port centres (mm, each (x, y)); drilled through the plate
+            with ``dims.port_diameter``; empty for a solid cap.
+    """
+
+
+    def __init__(self, dims: CapDims, length_mm: float, end: str, ports_xy=(), mode: Mode = Mode.ADD):
+        if end not in ("top", "bottom"):
+            raise ValueError(f"end must be 'top' or 'bottom', got {end!r}")
+        d = dims
+        plate = Cylinder(d.outer_radius, d.thickness, align=_BOTTOM)
+        plate -= Cylinder(d.inner_radius, d.thickness, align=_BOTTOM)
+        skirt = Cylinder(d.outer_radius, d.skirt_height, align=_BOTTOM)
+        skirt -= Cylinder(d.skirt_inner_radius, d.skirt_height, align=_BOTTOM)
+        if end == "top":
+            solid = Pos(0, 0, length_mm) * plate + Pos(0, 0, length_mm - d.skirt_height) * skirt
+            z_plate = length_mm
+        else:
+            solid = Pos(0, 0, -d.thickness) * plate + skirt
+            z_plate = -d.thickness
+        if d.port_diameter > 0 and len(ports_xy):
+            solid -= [
+                Pos(float(x), float(y), z_plate) * Cylinder(d.port_diameter / 2, d.thickness, align=_BOTTOM)
+                for x, y in ports_xy
+            ]
+        super().__init__(part=solid, rotation=(0, 0, 0), align=None, mode=mode)
+        self.label = f"cap_{end}"
+
+
+@dataclass(frozen=True)
+class FiducialParts:
+    """The three printed parts, in F, assembled."""
+
+    body: Part
+    cap_top: Part
+    cap_bottom: Part
+
+    def items(self) -> tuple[tuple[str, Part], ...]:
+        return (("body", self.body), ("cap_top", self.cap_top), ("cap_bottom", self.cap_bottom))
+
+    def assembly(self, name: str) -> Compound:
+        """A compound with the three labelled parts as children (for ``assembly.step``)."""
+        return Compound(label=name, children=[p for _, p in self.items()])
+
+
+def build_parts(spec, geometry: FiducialGeometry) -> FiducialParts:
+    """Body, top cap (one fill port over each channel's top opening) and bottom cap (solid)."""
+    dims = CapDims.from_spec(spec, geometry)
+    length = geometry.body.length
+    ports = list(channel_openings_xy(geometry, length).values())
+    return FiducialParts(
+        body=FiducialBody(geometry),
+        cap_top=Cap(dims, length, "top", ports_xy=ports),
+        cap_bottom=Cap(dims, length, "bottom"),
+    )

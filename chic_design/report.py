@@ -1,0 +1,143 @@
+"""The human report of a build (``report.md``): dimensions, channels, volumes, filling, checks."""
+
+from __future__ import annotations
+
+import math
+
+from chic_register.geometry import FiducialGeometry, HelixTube, LineTube
+
+from .cad import CapDims, annulus_volume_mm3, channel_volume_mm3
+
+FILLING_PROCEDURE = """\
+1. Print the body and both caps (each file is in frame F in its assembled position; the
+   slicer puts it on the bed). The body prints standing on an end face; the caps print plate
+   down. Clear the channels with a wire of slightly smaller diameter than the channels.
+2. Glue the **bottom cap** (`cap_bottom`) onto the body: a thin bead of epoxy (or
+   cyanoacrylate for resins that tolerate it) on the lower end face and inside the skirt, then
+   slide it on. The skirt is a slip fit with {clearance:g} mm radial clearance; the plate
+   seals every channel opening at z = 0. Let it cure.
+3. Glue the **top cap** (`cap_top`) the same way, turned so that each fill port sits over its
+   channel (the ports follow the channel openings, so there is one way it fits: check by
+   looking through the ports). Keep glue away from the port openings.
+4. Stand the fiducial upright and fill each channel through its port with a syringe and a
+   blunt needle thinner than the {port:g} mm port (for example 25 G, 0.5 mm). Push slowly so
+   the fluid runs down the channel and the air escapes up around the needle. Use the MRI
+   contrast fluid or gel of your protocol (for example diluted gadolinium, or a
+   saline/agarose gel). The volumes per channel are in the table above.
+5. Tap out air bubbles, top each port up to a small meniscus, then seal every port with a
+   drop of UV-curing resin or epoxy. Image the fiducial once to confirm every channel shows
+   along its full length (a missing section of a channel means an air bubble).
+"""
+
+
+def _fmt_tube(t) -> tuple[str, str, str]:
+    if isinstance(t, LineTube):
+        a0 = math.degrees(math.atan2(t.p0[1], t.p0[0])) % 360
+        return "line", f"{a0:.1f}", "-"
+    if isinstance(t, HelixTube):
+        return "helix", f"{t.theta0_deg:.1f} -> {float(t.theta1_deg):.1f}", f"{t.pitch_deg_per_mm:+.4g}"
+    return t.kind, "-", "-"
+
+
+def channel_rows(geometry: FiducialGeometry) -> list[dict]:
+    """One row per channel: id, role, kind, angle(s), pitch, length (mm), fluid volume (mm^3)."""
+    length = geometry.body.length
+    rows = []
+    for t in geometry.tubes:
+        kind, angles, pitch = _fmt_tube(t)
+        rows.append({
+            "id": t.id, "role": t.role, "kind": kind, "angle_deg": angles, "pitch": pitch,
+            "diameter_mm": t.diameter, "length_mm": t.length_mm,
+            "fluid_mm3": channel_volume_mm3(t, 0.0, length),
+        })
+    return rows
+
+
+def build_report(spec, spec_path, geometry: FiducialGeometry, part_volumes_mm3: dict[str, float],
+                 verify_result, feasibility_markdown: str | None, timings_s: dict[str, float],
+                 files: list[str]) -> str:
+    """The text of ``report.md``."""
+    b = geometry.body
+    dims = CapDims.from_spec(spec, geometry)
+    rows = channel_rows(geometry)
+    sum_nominal = sum(r["fluid_mm3"] for r in rows)
+    cut = annulus_volume_mm3(geometry) - part_volumes_mm3["body"]
+    out = [
+        f"# CHIC fiducial `{geometry.name}`",
+        "",
+        f"{spec.description}".strip() or "",
+        "",
+        f"Built from `{spec_path}` (sha256 `{(geometry.source or {}).get('spec_sha256', '?')[:16]}...`) by "
+        f"{(geometry.source or {}).get('generator', 'chic-design')}. All parts are in the fiducial frame F "
+        "(mm; origin on the axis in the bottom end face, +z to the top face, +x toward D0).",
+        "",
+        "## Dimensions",
+        "",
+        "| quantity | value |",
+        "|---|---|",
+        f"| body length | {b.length:g} mm |",
+        f"| outer / inner diameter | {b.outer_diameter:g} / {b.inner_diameter:g} mm |",
+        f"| channel diameter | {spec.channels.diameter:g} mm |",
+        f"| channel circle diameter | {2 * spec.channel_radius:g} mm |",
+        f"| cap plate thickness | {dims.thickness:g} mm |",
+        f"| cap skirt: inner diameter / wall / height | {2 * dims.skirt_inner_radius:g} / {dims.skirt_wall:g} / "
+        f"{dims.skirt_height:g} mm (radial clearance {dims.clearance:g} mm) |",
+        f"| fill ports (top cap) | {len(geometry.tubes) if dims.port_diameter > 0 else 0} x "
+        f"{dims.port_diameter:g} mm |",
+        f"| assembled height | {b.length + 2 * dims.thickness:g} mm |",
+        "",
+        "## Channels",
+        "",
+        "| id | role | kind | angle (deg) | pitch (deg/mm) | diameter (mm) | centreline length (mm) | fluid (mL) |",
+        "|---|---|---|---|---|---|---|---|",
+    ]
+    out += [
+        f"| {r['id']} | {r['role']} | {r['kind']} | {r['angle_deg']} | {r['pitch']} | {r['diameter_mm']:g} | "
+        f"{r['length_mm']:.2f} | {r['fluid_mm3'] / 1000:.3f} |"
+        for r in rows
+    ]
+    out += [
+        "",
+        f"Fluid to fill: {sum_nominal / 1000:.3f} mL summed over the channels (pi r^2 x centreline length); "
+        f"the CAD body has {cut / 1000:.3f} mL of channel space (annulus minus body)"
+        + (f": channels that touch near the end faces share {max(sum_nominal - cut, 0.0):.1f} mm^3."
+           if sum_nominal - cut > 0.5 else "."),
+        "Allow about 0.1 mL extra per channel for the needle and the ports.",
+        "",
+        "## Parts",
+        "",
+        "| part | volume (mm^3) | files |",
+        "|---|---|---|",
+    ]
+    out += [
+        f"| {name} | {vol:.1f} | `{name}.stl`, `{name}.step`, `{name}.3mf` |"
+        for name, vol in part_volumes_mm3.items()
+    ]
+    out += [
+        "",
+        "`assembly.step` holds the three labelled parts in their assembled positions; "
+        "`geometry.yaml` is what the registration solver reads; `preview.png` shows the channels.",
+        "",
+        "## Filling and closing",
+        "",
+        FILLING_PROCEDURE.format(clearance=dims.clearance, port=dims.port_diameter),
+        "## Feasibility",
+        "",
+        feasibility_markdown.strip() if feasibility_markdown else "(no feasibility report)",
+        "",
+        "## Output checks",
+        "",
+        "Body sections checked at z = "
+        + ", ".join(f"{z:.2f}" for z in verify_result.section_heights_mm)
+        + " mm (heights where no two channels touch).",
+        "",
+        verify_result.markdown(),
+        "",
+        "## Build",
+        "",
+        "| step | seconds |",
+        "|---|---|",
+    ]
+    out += [f"| {k} | {v:.2f} |" for k, v in timings_s.items()]
+    out += ["", "Files: " + ", ".join(f"`{f}`" for f in files), ""]
+    return "\n".join(out)
