@@ -1,0 +1,264 @@
+"""The slice simulator: rendering against analytic crossings and areas, noise statistics, truth, CLI."""
+
+import json
+import math
+
+import numpy as np
+import pytest
+from scipy import ndimage
+
+from chic_register.cli import main
+from chic_register.geometry import FiducialGeometry, load_geometry
+from chic_register.imageio import read_slices
+from chic_register.pose import apply, invert, slice_frame
+from chic_register.simulate import (
+    add_rician_noise,
+    add_uniform_noise,
+    crossings_px,
+    render_slice,
+    simulate_slice,
+    truth_path,
+)
+
+SHAPE = (256, 256)
+CENTER = ((SHAPE[0] - 1) / 2, (SHAPE[1] - 1) / 2)
+
+
+def blob_centroids(img):
+    """Intensity-weighted centroid (row, col) of each connected blob of a noise-free image."""
+    lab, n = ndimage.label(img > 0)
+    return lab, np.array(ndimage.center_of_mass(img, lab, range(1, n + 1))).reshape(-1, 2)
+
+
+def centroid_errors_px(geom, T, thickness=0.0):
+    """Distance (px) from each tube's analytic crossing to the centroid of its rendered blob (tube alone)."""
+    errors = {}
+    for tid, px in crossings_px(geom, T, (0.5, 0.5), CENTER).items():
+        assert len(px) == 1, tid
+        one = FiducialGeometry("one", geom.body, (geom.tube(tid),))
+        img = render_slice(one, T, SHAPE, (0.5, 0.5), thickness)
+        lab, cents = blob_centroids(img)
+        assert len(cents) == 1, tid
+        errors[tid] = float(np.hypot(*(cents[0] - px[0])))
+    return errors
+
+
+@pytest.mark.parametrize("depth, twist, thickness", [(5, 0, 0.0), (25, 17, 0.0), (40, 63, 0.0), (25, 30, 2.0)])
+def test_centroids_match_analytic_crossings_at_tilt_0(neuro_geometry, depth, twist, thickness):
+    T = slice_frame(depth, 0.0, 0.0, twist)
+    errors = centroid_errors_px(neuro_geometry, T, thickness)
+    assert max(errors.values()) < 0.02, errors
+
+
+def test_centroids_match_analytic_crossings_tilted(neuro_geometry, needle_geometry):
+    for geom, pose in ((neuro_geometry, (20, 30, 40, 10)), (needle_geometry, (15, 20, 200, 75))):
+        T = slice_frame(*pose)
+        errors = centroid_errors_px(geom, T)
+        assert max(errors.values()) < 0.02, errors
+
+
+def test_axis_crossing_moves_with_center_px(neuro_geometry):
+    """Moving center_px moves the whole picture by the same number of pixels."""
+    T = slice_frame(25, 0, 0, 0)
+    a = render_slice(neuro_geometry, T, (128, 128), (0.5, 0.5), 0.0, center_px=(60, 70))
+    b = render_slice(neuro_geometry, T, (128, 128), (0.5, 0.5), 0.0, center_px=(63, 65))
+    assert np.allclose(a[:-3, 5:], b[3:, :-5], atol=1e-12)
+
+
+@pytest.mark.parametrize("tilt, azimuth", [(0, 0), (30, 40), (60, 200)])
+@pytest.mark.parametrize("tube_id", ["D0", "H1"])
+def test_partial_volume_area_is_the_ellipse_area(neuro_geometry, tilt, azimuth, tube_id):
+    """Sum of fluid fraction x pixel area = pi r^2 / cos(angle between tube and normal)."""
+    tube = neuro_geometry.tube(tube_id)
+    one = FiducialGeometry("one", neuro_geometry.body, (tube,))
+    T = slice_frame(25, tilt, azimuth, 10)
+    img = render_slice(one, T, SHAPE, (0.5, 0.5), 0.0)
+    crossing = tube.intersect_plane(T[:3, 3], T[:3, 2])
+    u = (crossing[0, 2] - tube.z_range[0]) / (tube.z_range[1] - tube.z_range[0])
+    cos_angle = abs(float(tube.tangents(u)[0] @ T[:3, 2]))
+    expected = math.pi * (tube.diameter / 2) ** 2 / cos_angle
+    assert img.sum() * 0.25 == pytest.approx(expected, rel=3e-3)
+    assert img.max() == pytest.approx(1.0) and img.min() >= 0.0
+
+
+def test_slice_thickness_partial_volume_at_the_end_face(neuro_geometry):
+    """A 2 mm slab centred on the bottom face holds fluid in its upper half only."""
+    d0 = FiducialGeometry("d0", neuro_geometry.body, (neuro_geometry.tube("D0"),))
+    T = slice_frame(0.0, 0, 0, 0)
+    row, col = crossings_px(d0, T, (0.5, 0.5), CENTER)["D0"][0]
+    thick = render_slice(d0, T, SHAPE, (0.5, 0.5), 2.0, thickness_samples=4)
+    assert thick[int(round(row)), int(round(col))] == pytest.approx(0.5)
+    inside = render_slice(d0, slice_frame(25.0, 0, 0, 0), SHAPE, (0.5, 0.5), 2.0)
+    assert inside[int(round(row)), int(round(col))] == pytest.approx(1.0)
+    outside = render_slice(d0, slice_frame(-1.5, 0, 0, 0), SHAPE, (0.5, 0.5), 2.0)
+    assert outside.max() == 0.0
+
+
+def test_uniform_noise_statistics():
+    rng = np.random.default_rng(1)
+    ones = add_uniform_noise(np.ones((256, 256)), 0.3, rng)
+    assert ones.mean() == pytest.approx(1.0, abs=0.005)
+    assert ones.std() == pytest.approx(0.3 / math.sqrt(3), rel=0.02)
+    zeros = add_uniform_noise(np.zeros((256, 256)), 0.3, rng)
+    assert zeros.min() == 0.0 and zeros.max() <= 0.3
+    assert np.mean(zeros == 0.0) == pytest.approx(0.5, abs=0.01)  # clipped half
+    assert zeros.mean() == pytest.approx(0.3 / 4, rel=0.02)
+
+
+def test_rician_noise_statistics():
+    rng = np.random.default_rng(2)
+    snr = 10.0
+    s = 1.0 / snr
+    background = add_rician_noise(np.zeros((256, 256)), snr, rng)
+    assert background.mean() == pytest.approx(s * math.sqrt(math.pi / 2), rel=0.01)  # Rayleigh
+    assert background.std() == pytest.approx(s * math.sqrt((4 - math.pi) / 2), rel=0.02)
+    fluid = add_rician_noise(np.ones((256, 256)), snr, rng)
+    assert fluid.mean() == pytest.approx(1 + s**2 / 2, rel=0.003)
+    assert fluid.std() == pytest.approx(s, rel=0.03)
+    with pytest.raises(ValueError):
+        add_rician_noise(np.zeros(3), 0.0, rng)
+
+
+def test_truth_maps_fiducial_crossings_onto_their_pixels(neuro_geometry):
+    """pixel_to_scanner(centre of a tube) = T_scanner_from_fiducial @ (crossing in F), off-centre and oblique."""
+    ori = np.array([[0.0, 1.0, 0.0], [0.0, 0.0, -1.0]])  # a sagittal image
+    rot = np.array([[1.0, 0, 0], [0, math.cos(0.3), -math.sin(0.3)], [0, math.sin(0.3), math.cos(0.3)]])
+    ori = ori @ rot.T
+    sim = simulate_slice(
+        neuro_geometry, 30.0, 25.0, 110.0, -40.0, center_offset_mm=(7.0, -4.5),
+        image_position=(12.0, -80.0, 33.0), image_orientation=ori.ravel(), slice_thickness_mm=0.0,
+    )
+    t = sim.truth
+    assert t.center_px == pytest.approx((127.5 - 9.0, 127.5 + 14.0))
+    for tid, (row, col) in t.centres_px.items():
+        tube = neuro_geometry.tube(tid)
+        crossing_F = tube.intersect_plane(t.T_F_from_S[:3, 3], t.T_F_from_S[:3, 2])[0]
+        assert np.allclose(sim.slice.pixel_to_scanner(row, col)[0], apply(t.T_scanner_from_fiducial, crossing_F), atol=1e-9)
+    # the fiducial axis crosses the image at the axis-crossing pixel
+    axis_point = apply(t.T_scanner_from_fiducial, [0.0, 0.0, t.angles.depth_mm])
+    assert np.allclose(sim.slice.pixel_to_scanner(*t.center_px)[0], axis_point, atol=1e-9)
+    assert np.allclose(sim.slice.pixel_to_scanner(0, 0)[0], (12.0, -80.0, 33.0))
+    assert (t.angles.depth_mm, t.angles.tilt_deg, t.angles.azimuth_deg, t.angles.twist_deg) == pytest.approx((30, 25, 110, -40))
+    # the rendered blob sits on the truth
+    lab, cents = blob_centroids(sim.slice.pixels)
+    r, c = t.centres_px["D1"]
+    assert np.hypot(*(cents[lab[round(r), round(c)] - 1] - (r, c))) < 0.05
+
+
+def test_default_placement_is_axial_centred_at_scanner_origin(neuro_geometry):
+    sim = simulate_slice(neuro_geometry, 20.0, 0.0, slice_thickness_mm=0.0)
+    assert np.allclose(sim.slice.pixel_to_scanner(127.5, 127.5)[0], 0.0)
+    assert np.allclose(sim.slice.col_dir, (1, 0, 0)) and np.allclose(sim.slice.row_dir, (0, 1, 0))
+    # at zero pose the fiducial frame is the scanner frame shifted by -depth along z
+    assert np.allclose(sim.truth.T_scanner_from_fiducial, np.array(
+        [[1, 0, 0, 0], [0, 1, 0, 0], [0, 0, 1, -20.0], [0, 0, 0, 1]]), atol=1e-12)
+    T = np.eye(4)
+    T[:3, 3] = (5, 6, 7)
+    moved = simulate_slice(neuro_geometry, 20.0, 0.0, slice_thickness_mm=0.0, T_scanner_from_image=T)
+    assert np.allclose(moved.slice.origin_mm, (5, 6, 7))
+    assert np.allclose(invert(moved.truth.T_scanner_from_fiducial) @ moved.slice.T_scanner_from_image(),
+                       invert(sim.truth.T_scanner_from_fiducial) @ sim.slice.T_scanner_from_image())
+
+
+def test_missing_tube_bore_tool_and_distractors(neuro_geometry):
+    kw = dict(slice_thickness_mm=1.0)
+    clean = simulate_slice(neuro_geometry, 25.0, 20.0, 50.0, 5.0, **kw)
+    sim = simulate_slice(neuro_geometry, 25.0, 20.0, 50.0, 5.0, missing_tubes=("H2",), bore_signal=0.7,
+                         distractors=6, rng=np.random.default_rng(3), **kw)
+    t = sim.truth
+    assert "H2" not in t.centres_px and t.missing_tubes == ("H2",)
+    r, c = clean.truth.centres_px["H2"]
+    assert clean.slice.pixels[round(r), round(c)] > 0.9 and sim.slice.pixels[round(r), round(c)] == 0.0
+    assert sim.slice.pixels[round(t.center_px[0]), round(t.center_px[1])] == pytest.approx(0.7)
+    # distractors: new bright pixels, all outside the fiducial body
+    extra = (sim.slice.pixels > 0) & (clean.slice.pixels == 0)
+    tool = np.hypot(*(np.indices(SHAPE) - np.array(t.center_px)[:, None, None])) * 0.5 < 10.0
+    extra &= ~tool
+    assert ndimage.label(extra)[1] >= 3
+    rows, cols = np.nonzero(extra)
+    pts_S = np.stack([(cols - t.center_px[1]) * 0.5, (rows - t.center_px[0]) * 0.5, 0 * rows], axis=1)
+    pts_F = apply(t.T_F_from_S, pts_S)
+    outside = (np.hypot(pts_F[:, 0], pts_F[:, 1]) > neuro_geometry.body.outer_diameter / 2) | (pts_F[:, 2] < 0) | (
+        pts_F[:, 2] > neuro_geometry.body.length)
+    assert outside.all()
+    with pytest.raises(ValueError, match="Q7"):
+        simulate_slice(neuro_geometry, 25.0, 0.0, missing_tubes=("Q7",))
+
+
+def test_noise_is_seeded(neuro_geometry):
+    a = simulate_slice(neuro_geometry, 25.0, 10.0, noise="rician", snr=15, rng=7)
+    b = simulate_slice(neuro_geometry, 25.0, 10.0, noise="rician", snr=15, rng=7)
+    c = simulate_slice(neuro_geometry, 25.0, 10.0, noise="rician", snr=15, rng=8)
+    assert np.array_equal(a.slice.pixels, b.slice.pixels) and not np.array_equal(a.slice.pixels, c.slice.pixels)
+    u = simulate_slice(neuro_geometry, 25.0, 10.0, noise="uniform", noise_level=0.2, rng=7)
+    clean = simulate_slice(neuro_geometry, 25.0, 10.0)
+    diff = u.slice.pixels - clean.slice.pixels
+    assert np.abs(diff).max() <= 0.2 and diff.std() > 0.05
+    with pytest.raises(ValueError, match="noise"):
+        simulate_slice(neuro_geometry, 25.0, 10.0, noise="gaussian")
+
+
+# --------------------------------------------------------------------------- CLI
+
+
+def _simulate_args(geometry_file, out, *extra):
+    return ["simulate", "--geometry", str(geometry_file), "--depth", "22", "--tilt", "15", "--azimuth", "60",
+            "--twist", "20", "--slice-thickness", "1", "--out", str(out), *extra]
+
+
+@pytest.mark.parametrize("suffix", [".dcm", ".npy", ".png", ".tif"])
+def test_cli_simulate_writes_image_and_truth(neuro_geometry_file, tmp_path, capsys, suffix):
+    out = tmp_path / f"slice{suffix}"
+    extra = ["--noise", "rician", "--snr", "30", "--seed", "4", "--distractors", "2", "--missing", "O1"]
+    if suffix == ".dcm":
+        extra += ["--image-position", "-40", "-50", "10", "--image-orientation", "1", "0", "0", "0", "0", "-1"]
+    assert main(_simulate_args(neuro_geometry_file, out, *extra)) == 0
+    assert "wrote" in capsys.readouterr().out
+    truth = json.loads(truth_path(out).read_text())
+    assert truth["depth_mm"] == pytest.approx(22) and truth["tilt_deg"] == pytest.approx(15)
+    assert "O1" not in truth["centres_px"] and len(truth["centres_px"]) == 8
+    sl = read_slices([out], pixel_spacing=(0.5, 0.5))[0]
+    assert sl.shape == (256, 256)
+    T = np.array(truth["T_scanner_from_fiducial"])
+    T_F_from_S = np.array(truth["T_F_from_S"])
+    geom = load_geometry(neuro_geometry_file)
+    for tid, (row, col) in truth["centres_px"].items():
+        crossing = geom.tube(tid).intersect_plane(T_F_from_S[:3, 3], T_F_from_S[:3, 2])[0]
+        assert np.allclose(sl.pixel_to_scanner(row, col)[0], apply(T, crossing), atol=1e-4)
+        assert sl.pixels[round(row), round(col)] > 0.4 * sl.pixels.max()
+    if suffix == ".dcm":
+        assert np.allclose(sl.origin_mm, (-40, -50, 10)) and np.allclose(sl.row_dir, (0, 0, -1))
+        assert sl.slice_thickness_mm == pytest.approx(1.0)
+    else:
+        assert truth["file"]["frame"] == "image"
+
+
+@pytest.mark.parametrize("extra, fragment", [
+    (["--missing", "Q9"], "Q9"),
+    (["--size", "2"], "--size"),
+    (["--pixel-size", "0"], "--pixel-size"),
+    (["--snr", "-1"], "--snr"),
+    (["--noise-level", "-0.1"], "--noise-level"),
+    (["--slice-thickness", "-1"], "--slice-thickness"),
+    (["--distractors", "-2"], "--distractors"),
+    (["--image-position", "0", "0", "0"], "DICOM output only"),
+])
+def test_cli_simulate_bad_options_exit_2(neuro_geometry_file, tmp_path, capsys, extra, fragment):
+    out = tmp_path / ("x.npy" if "--image-position" in extra else "x.dcm")
+    assert main(_simulate_args(neuro_geometry_file, out, *extra)) == 2
+    err = capsys.readouterr().err.strip()
+    assert fragment in err and len(err.splitlines()) == 1
+    assert not out.exists()
+
+
+def test_cli_simulate_bad_files_exit_2(neuro_geometry_file, tmp_path, capsys):
+    assert main(_simulate_args(tmp_path / "none.yaml", tmp_path / "a.dcm")) == 2
+    assert "no such geometry file" in capsys.readouterr().err
+    tampered = tmp_path / "tampered.yaml"
+    tampered.write_text(neuro_geometry_file.read_text().replace("12.5", "12.6", 1))
+    assert main(_simulate_args(tampered, tmp_path / "a.dcm")) == 2
+    assert "sha256" in capsys.readouterr().err
+    assert main(_simulate_args(neuro_geometry_file, tmp_path / "a.jpg")) == 2
+    assert "unsupported suffix" in capsys.readouterr().err
+    assert main(_simulate_args(neuro_geometry_file, tmp_path)) == 2
+    assert "directory" in capsys.readouterr().err
