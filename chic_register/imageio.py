@@ -112,7 +112,8 @@ def _read_tiff(path) -> np.ndarray:
     return _as_2d(path, arr, "TIFF image", rgb_ok=rgb)
 
 
-def _read_pillow(path, kind: str) -> np.ndarray:
+def _read_pillow(path, kind: str, known: bool = False) -> np.ndarray:
+    """Any 2-D image Pillow reads; ``known``: the file has that format's magic bytes."""
     from PIL import Image, UnidentifiedImageError
 
     try:
@@ -129,6 +130,8 @@ def _read_pillow(path, kind: str) -> np.ndarray:
     except ImageReadError:
         raise
     except UnidentifiedImageError:
+        if known:
+            raise ImageReadError(path, f"{kind} cannot be decoded: truncated or damaged") from None
         raise ImageReadError(path, "not an image: unrecognised file format (expected DICOM, PNG, TIFF or NPY)") from None
     except Exception as exc:  # truncated or damaged image data
         raise ImageReadError(path, f"{kind} cannot be decoded ({_reason(exc)})") from None
@@ -312,7 +315,7 @@ def read_slice(path, pixel_spacing=None) -> list[Slice]:
     if kind == "tiff":
         return [_plain_slice(p, _read_tiff(p), pixel_spacing, "TIFF")]
     if kind == "png":
-        return [_plain_slice(p, _read_pillow(p, "PNG image"), pixel_spacing, "PNG")]
+        return [_plain_slice(p, _read_pillow(p, "PNG image", known=True), pixel_spacing, "PNG")]
     if p.suffix.lower() in _DICOM_SUFFIXES:
         # DICOM without the 128-byte preamble (raw data set), as some scanners export
         return _read_dicom(p, has_preamble=False)
