@@ -430,6 +430,7 @@ def simulate_slice(
     T_scanner_from_image=None,
     image_position=None,
     image_orientation=None,
+    T_scanner_from_fiducial=None,
     rng=None,
     supersample: int = 4,
     thickness_samples: int = 5,
@@ -446,7 +447,9 @@ def simulate_slice(
     unfilled. The slice sits in the scanner by ``T_scanner_from_image``, or by
     DICOM-like ``image_position`` (scanner position of pixel (0, 0)) and
     ``image_orientation`` (col_dir, row_dir); default: an axial image whose
-    centre pixel is at the scanner origin.
+    centre pixel is at the scanner origin. Or give ``T_scanner_from_fiducial``
+    (4x4): the fiducial's pose in the scanner, from which the slice is placed
+    (slices of one series share it).
     ``truth.T_scanner_from_fiducial = slice.T_scanner_from_image() @ T_image_from_S @ invert(T_F_from_S)``.
     """
     if noise not in NOISE_KINDS:
@@ -481,11 +484,19 @@ def simulate_slice(
     elif noise == "rician":
         image = add_rician_noise(image, snr, rng)
 
+    T_image_from_S = rigid(np.eye(3), (center[1] * cs, center[0] * rs, 0.0))
+    if T_scanner_from_fiducial is not None:
+        if T_scanner_from_image is not None or image_position is not None or image_orientation is not None:
+            raise ValueError("give the fiducial's pose or the image placement, not both")
+        T_sf = np.asarray(T_scanner_from_fiducial, dtype=float)
+        R = T_sf[:3, :3] if T_sf.shape == (4, 4) else np.zeros((3, 3))
+        if not (np.allclose(R.T @ R, np.eye(3), atol=1e-9) and np.linalg.det(R) > 0 and np.allclose(T_sf[3], (0, 0, 0, 1))):
+            raise ValueError("T_scanner_from_fiducial must be a 4x4 rigid transform (rotation + translation)")
+        T_scanner_from_image = T_sf @ T_F_from_S @ invert(T_image_from_S)
     origin, col_dir, row_dir = _scanner_placement(
         (rows, cols), spacing, T_scanner_from_image, image_position, image_orientation
     )
     sl = Slice(image, (rs, cs), origin, col_dir, row_dir, float(slice_thickness_mm), "<simulated>")
-    T_image_from_S = rigid(np.eye(3), (center[1] * cs, center[0] * rs, 0.0))
     T_scanner_from_fiducial = sl.T_scanner_from_image() @ T_image_from_S @ invert(T_F_from_S)
 
     all_px = crossings_px(geom, T_F_from_S, spacing, center)

@@ -160,6 +160,26 @@ def test_default_placement_is_axial_centred_at_scanner_origin(neuro_geometry):
                        invert(sim.truth.T_scanner_from_fiducial) @ sim.slice.T_scanner_from_image())
 
 
+def test_a_series_of_slices_shares_a_chosen_fiducial_pose(neuro_geometry):
+    """Parallel slices 2 mm apart, like the paper's real series, all at one fiducial pose in the scanner."""
+    c, s = math.cos(0.4), math.sin(0.4)
+    T_sf = np.array([[c, 0, s, 10.0], [0, 1, 0, -20.0], [-s, 0, c, 55.0], [0, 0, 0, 1]])
+    sims = [simulate_slice(neuro_geometry, d, 15.0, 30.0, 5.0, slice_thickness_mm=0.0, T_scanner_from_fiducial=T_sf)
+            for d in (20.0, 22.0, 24.0)]
+    normals = [sim.slice.normal for sim in sims]
+    assert np.allclose(normals[0], normals[1]) and np.allclose(normals[0], normals[2])
+    gaps = [float((b.slice.origin_mm - a.slice.origin_mm) @ normals[0]) for a, b in zip(sims, sims[1:])]
+    assert gaps == pytest.approx([2.0 * math.cos(math.radians(15))] * 2)
+    for sim in sims:
+        t = sim.truth
+        assert np.allclose(t.T_scanner_from_fiducial, T_sf, atol=1e-12)
+        for tid, (row, col) in t.centres_px.items():
+            crossing = neuro_geometry.tube(tid).intersect_plane(t.T_F_from_S[:3, 3], t.T_F_from_S[:3, 2])[0]
+            assert np.allclose(sim.slice.pixel_to_scanner(row, col)[0], apply(T_sf, crossing), atol=1e-9)
+    with pytest.raises(ValueError, match="rigid"):
+        simulate_slice(neuro_geometry, 20.0, 0.0, T_scanner_from_fiducial=np.diag([2.0, 1, 1, 1]))
+
+
 def test_missing_tube_bore_tool_and_distractors(neuro_geometry):
     kw = dict(slice_thickness_mm=1.0)
     clean = simulate_slice(neuro_geometry, 25.0, 20.0, 50.0, 5.0, **kw)
