@@ -28,6 +28,14 @@ def _parser() -> argparse.ArgumentParser:
     s.add_argument("--pixel-spacing", nargs=2, type=float, metavar=("ROW", "COL"),
                    help="pixel spacing (mm) for PNG/TIFF/NPY images")
     s.add_argument("--overlay", metavar="PNG", help="draw the slice with detections, ellipse and labels")
+    s.add_argument("--slices", nargs="+", type=int, metavar="K",
+                   help="for a volume IMAGE (.nii, .nii.gz, .nrrd, .mha or a DICOM series folder): "
+                        "indices of its slices to register jointly")
+    s.add_argument("--tfm", metavar="FILE", help="also write the pose as an ITK transform file for 3D Slicer "
+                   "(holds T_fiducial_from_scanner, LPS; see README)")
+    s.add_argument("--igtl", metavar="HOST:PORT", help="also send the pose as an OpenIGTLink TRANSFORM (RAS) "
+                   "to a listening server, e.g. 3D Slicer's OpenIGTLinkIF at 127.0.0.1:18944")
+    s.add_argument("--igtl-name", default="CHIC", metavar="NAME", help="OpenIGTLink device name (default CHIC)")
 
     m = sub.add_parser("simulate", help="write a synthetic slice at a known pose, with its truth")
     m.add_argument("--geometry", required=True, help="geometry.yaml")
@@ -56,10 +64,51 @@ def _parser() -> argparse.ArgumentParser:
                    help="DICOM only: scanner (LPS) position of pixel (0, 0) (default: image centre at 0)")
     m.add_argument("--image-orientation", nargs=6, type=float, metavar="V",
                    help="DICOM only: col_dir and row_dir in the scanner (default 1 0 0 0 1 0)")
+    m.add_argument("--volume-shape", nargs=3, type=int, metavar=("NX", "NY", "NZ"),
+                   help="volume mode: write a 3-D volume of NX x NY x NZ voxels (--out .nii, .nii.gz, .nrrd, "
+                        ".mha or a folder for a DICOM series); its middle k-plane cuts the fiducial at "
+                        "--depth/--tilt/--azimuth/--twist")
+    m.add_argument("--voxel-size", nargs="+", type=float, metavar="MM",
+                   help="volume mode: voxel size, one value (isotropic) or three (i j k) (default 0.5 0.5 1)")
 
     e = sub.add_parser("evaluate", help="repeat the paper's simulation study and compare")
     e.add_argument("--geometry", required=True, help="geometry.yaml")
     e.add_argument("--protocol", default="paper", choices=["paper"], help="study protocol (default: paper)")
+
+    r = sub.add_parser("reslice", help="reformat a volume into oblique slices at known poses, register each "
+                       "(the paper's Table II)")
+    r.add_argument("volume", metavar="VOLUME", help=".nii, .nii.gz, .nrrd, .mha or a DICOM series folder")
+    r.add_argument("--geometry", required=True, help="geometry.yaml")
+    r.add_argument("--reference", required=True, metavar="FILE",
+                   help="the fiducial's pose in the volume: a JSON file with T_scanner_from_fiducial "
+                        "(simulate's .truth.json or solve --json output) or a .tfm written by solve --tfm")
+    r.add_argument("--tilt", type=float, default=15.0, metavar="DEG", help="tilt of every slice (default 15)")
+    r.add_argument("--azimuth", type=float, default=0.0, metavar="DEG", help="azimuth (deg, default 0)")
+    r.add_argument("--twist", type=float, default=0.0, metavar="DEG", help="twist (deg, default 0)")
+    r.add_argument("--depths", nargs="+", type=float, metavar="MM",
+                   help="depths of the slices (default: every --depth-step mm across the body)")
+    r.add_argument("--depth-step", type=float, default=2.0, metavar="MM", help="default depth spacing (default 2)")
+    r.add_argument("--size", type=int, default=256, metavar="N", help="slice size N x N pixels (default 256)")
+    r.add_argument("--pixel-size", type=float, default=0.5, metavar="MM", help="square pixel size (default 0.5)")
+    r.add_argument("--slice-thickness", type=float, default=0.0, metavar="MM",
+                   help="average a slab this thick (default 0: one plane)")
+    r.add_argument("--save-slices", metavar="DIR", help="also write the reformatted slices as DICOM files")
+    r.add_argument("--json", action="store_true", help="print one JSON object: settings, summary, every slice")
+
+    t = sub.add_parser("track", help="watch a folder; register each new slice as it arrives")
+    t.add_argument("folder", metavar="FOLDER", help="folder the scanner writes slices into")
+    t.add_argument("--geometry", required=True, help="geometry.yaml")
+    t.add_argument("--pixel-spacing", nargs=2, type=float, metavar=("ROW", "COL"),
+                   help="pixel spacing (mm) for PNG/TIFF/NPY images")
+    t.add_argument("--igtl", metavar="HOST:PORT", help="send each pose as an OpenIGTLink TRANSFORM (RAS)")
+    t.add_argument("--igtl-name", default="CHIC", metavar="NAME", help="OpenIGTLink device name (default CHIC)")
+    t.add_argument("--existing", action="store_true", help="also register files already in the folder")
+    t.add_argument("--poll", type=float, default=0.05, metavar="S", help="polling interval (default 0.05 s)")
+    t.add_argument("--settle", type=float, default=0.2, metavar="S",
+                   help="a file must keep its size this long before it is read (default 0.2 s)")
+    t.add_argument("--max-files", type=int, metavar="N", help="stop after N files")
+    t.add_argument("--timeout", type=float, metavar="S", help="stop after S seconds")
+    t.add_argument("--json", action="store_true", help="print one JSON object per file, then a summary object")
     return p
 
 
@@ -68,6 +117,8 @@ def _run_solve(args) -> int:
 
 
 def _run_simulate(args) -> int:
+    if args.volume_shape is not None:
+        return _run_simulate_volume(args)
     from pathlib import Path
 
     import numpy as np
@@ -132,8 +183,223 @@ def _run_evaluate(args) -> int:
     raise ChicRegisterError("'evaluate' is not implemented yet")
 
 
+# --------------------------------------------------------------------------- volumes, outputs, reslice, track
+
+
+def _check_outputs(args) -> None:
+    """Reject bad --tfm / --igtl values before any work (solve)."""
+    from pathlib import Path
+
+    from .igtl import parse_address
+    from .transforms import SUFFIXES
+
+    if getattr(args, "tfm", None) and Path(args.tfm).suffix.lower() not in SUFFIXES:
+        raise ChicRegisterError(f"--tfm {args.tfm}: transform file must end in {', '.join(SUFFIXES)}")
+    if getattr(args, "igtl", None):
+        parse_address(args.igtl)
+
+
+def _read_solve_inputs(args) -> list:
+    """The slices of ``solve``: 2-D image files as they are, volumes by their ``--slices`` indices."""
+    from .imageio import read_slices
+    from .volume import is_volume_path, read_volume
+
+    _check_outputs(args)
+    volumes = [p for p in args.images if is_volume_path(p)]
+    if volumes and not args.slices:
+        raise ChicRegisterError(f"{volumes[0]} is a volume: pick the slices to register with --slices K [K ...]")
+    if args.slices and not volumes:
+        raise ChicRegisterError("--slices applies to volume inputs (.nii, .nii.gz, .nrrd, .mha, DICOM series folder)")
+    slices = []
+    for path in args.images:
+        if is_volume_path(path):
+            vol = read_volume(path)
+            slices.extend(vol.native_slice(k) for k in args.slices)
+        else:
+            slices.extend(read_slices([path], args.pixel_spacing))
+    return slices
+
+
+def _write_outputs(args, T_scanner_from_fiducial) -> list[str]:
+    """Write --tfm and send --igtl for a pose; returns notes for the human output."""
+    notes = []
+    if getattr(args, "tfm", None):
+        from .transforms import write_tfm
+
+        notes.append(f"wrote {write_tfm(T_scanner_from_fiducial, args.tfm)} (T_fiducial_from_scanner, ITK/LPS)")
+    if getattr(args, "igtl", None):
+        from .igtl import parse_address, send_pose
+
+        a = parse_address(args.igtl)
+        send_pose(T_scanner_from_fiducial, a.host, a.port, name=args.igtl_name)
+        notes.append(f"sent TRANSFORM {args.igtl_name!r} (RAS) to {a}")
+    return notes
+
+
+def _load_reference(path) -> "np.ndarray":
+    """T_scanner_from_fiducial from a JSON file (any object with that key) or a .tfm file."""
+    from pathlib import Path
+
+    import numpy as np
+
+    from .transforms import SUFFIXES, read_tfm
+
+    p = Path(path)
+    if p.suffix.lower() in SUFFIXES:
+        return read_tfm(p)
+    try:
+        doc = json.loads(p.read_text(encoding="utf-8"))
+    except FileNotFoundError:
+        raise ChicRegisterError(f"--reference {p}: no such file") from None
+    except (OSError, UnicodeDecodeError, json.JSONDecodeError) as exc:
+        raise ChicRegisterError(f"--reference {p}: not a JSON file ({exc})") from None
+    T = doc.get("T_scanner_from_fiducial") if isinstance(doc, dict) else None
+    try:
+        T = np.asarray(T, dtype=float)
+    except (TypeError, ValueError):
+        T = np.zeros(0)
+    if T.shape != (4, 4) or not np.all(np.isfinite(T)) or not np.allclose(T[:3, :3].T @ T[:3, :3], np.eye(3), atol=1e-5):
+        raise ChicRegisterError(f"--reference {p}: needs key 'T_scanner_from_fiducial' holding a rigid 4x4 matrix")
+    return T
+
+
+def _run_simulate_volume(args) -> int:
+    """simulate --volume-shape: a synthetic volume and <out>.truth.json."""
+    import os
+    import tempfile
+    from pathlib import Path
+
+    import numpy as np
+
+    from .geometry import load_geometry
+    from .pose import invert, slice_frame
+    from .simulate import truth_path
+    from .volume import simulate_volume, write_volume
+
+    nx, ny, nz = args.volume_shape
+    given = args.voxel_size or [0.5, 0.5, 1.0]
+    vs = given * 3 if len(given) == 1 else given
+    unsupported = [flag for flag, on in (("--distractors", args.distractors), ("--bore-signal", args.bore_signal),
+                                         ("--missing", args.missing), ("--image-position", args.image_position),
+                                         ("--image-orientation", args.image_orientation)) if on]
+    checks = [
+        (min(nx, ny, nz) >= 2 and max(nx, ny, nz) <= 1024, f"--volume-shape must be 2..1024 voxels each, got {nx} {ny} {nz}"),
+        (len(vs) == 3 and all(v > 0 and np.isfinite(v) for v in vs),
+         f"--voxel-size takes one or three sizes > 0 mm, got {' '.join(f'{v:g}' for v in given)}"),
+        (not unsupported, f"{', '.join(unsupported)}: not available in volume mode"),
+        (all(np.isfinite(v) for v in (args.depth, args.tilt, args.azimuth, args.twist)),
+         "--depth, --tilt, --azimuth and --twist must be finite numbers"),
+    ]
+    for ok, message in checks:
+        if not ok:
+            raise ChicRegisterError(message)
+    geom = load_geometry(args.geometry)
+    # axis-aligned volume centred on the scanner origin: the middle k-plane's frame is the identity
+    T = invert(slice_frame(args.depth, args.tilt, args.azimuth, args.twist))
+    try:
+        sv = simulate_volume(geom, T, (nx, ny, nz), vs, noise=args.noise,
+                             noise_level=args.noise_level, snr=args.snr, rng=np.random.default_rng(args.seed))
+    except ValueError as exc:
+        raise ChicRegisterError(str(exc)) from None
+    out = write_volume(sv.volume, args.out)
+    doc = {**sv.truth_dict(), "middle_plane": {"depth_mm": args.depth, "tilt_deg": args.tilt,
+                                               "azimuth_deg": args.azimuth, "twist_deg": args.twist},
+           "volume": Path(out).name, "geometry_file": str(args.geometry),
+           "geometry_sha256": geom.to_dict()["sha256"], "seed": args.seed}
+    tp = truth_path(out)
+    fd, tmp = tempfile.mkstemp(prefix=".chic-", suffix=".json.tmp", dir=tp.parent)
+    with os.fdopen(fd, "w", encoding="utf-8") as fh:
+        json.dump(doc, fh, indent=2)
+        fh.write("\n")
+    os.replace(tmp, tp)
+    print(f"wrote {out} ({nx}x{ny}x{nz} voxels of {' x '.join(f'{v:g}' for v in vs)} mm; middle plane at depth "
+          f"{args.depth:g} mm, tilt {args.tilt:g} deg) and {tp}")
+    return 0
+
+
+def _run_reslice(args) -> int:
+    from pathlib import Path
+
+    import numpy as np
+
+    from .geometry import load_geometry
+    from .reslice import default_depths, reslice, reslice_study
+    from .volume import read_volume
+
+    checks = [
+        (8 <= args.size <= 4096, f"--size must be 8..4096 pixels, got {args.size}"),
+        (args.pixel_size > 0, f"--pixel-size must be > 0 mm, got {args.pixel_size:g}"),
+        (args.slice_thickness >= 0, f"--slice-thickness must be >= 0 mm, got {args.slice_thickness:g}"),
+        (0 <= args.tilt < 90, f"--tilt must be in [0, 90) deg, got {args.tilt:g}"),
+        (args.depth_step > 0, f"--depth-step must be > 0 mm, got {args.depth_step:g}"),
+    ]
+    for ok, message in checks:
+        if not ok:
+            raise ChicRegisterError(message)
+    geom = load_geometry(args.geometry)
+    T_ref = _load_reference(args.reference)
+    vol = read_volume(args.volume)
+    depths = args.depths if args.depths else default_depths(geom, args.tilt, args.depth_step)
+    study = reslice_study(vol, geom, T_ref, depths_mm=depths, tilt_deg=args.tilt, azimuth_deg=args.azimuth,
+                          twist_deg=args.twist, shape=(args.size, args.size),
+                          pixel_spacing_mm=(args.pixel_size, args.pixel_size), slice_thickness_mm=args.slice_thickness)
+    if args.save_slices:
+        from .dicomio import write_dicom
+        from .pose import slice_frame
+
+        folder = Path(args.save_slices)
+        for n, d in enumerate(study.settings["depths_mm"]):
+            S = T_ref @ slice_frame(d, args.tilt, args.azimuth, args.twist)
+            sl = reslice(vol, S, (args.size, args.size), (args.pixel_size, args.pixel_size),
+                         slice_thickness_mm=args.slice_thickness)
+            write_dicom(sl, folder / f"reslice_{n:03d}_depth_{d:.2f}.dcm", instance_number=n + 1)
+    if args.json:
+        print(json.dumps({"status": "ok" if study.locked else "no_lock", "volume": str(args.volume),
+                          "reference": str(args.reference), **study.to_dict()}, indent=2, default=float))
+    else:
+        print(f"{args.volume}: {len(study.results)} slices resliced at tilt {args.tilt:g} deg, "
+              f"depths {depths[0]:.1f}..{depths[-1]:.1f} mm")
+        print(study.table())
+        for r in study.results:
+            if r.status != "ok":
+                print(f"  depth {r.depth_mm:.2f} mm: no lock: {r.reason}")
+    return 0 if study.locked else NoLock.exit_code
+
+
+def _run_track(args) -> int:
+    from .geometry import load_geometry
+    from .igtl import parse_address
+    from .track import track
+
+    if args.igtl:
+        parse_address(args.igtl)
+    if not (args.poll > 0 and args.settle >= 0):
+        raise ChicRegisterError(f"--poll must be > 0 and --settle >= 0 s, got {args.poll:g} and {args.settle:g}")
+    if args.max_files is not None and args.max_files < 1:
+        raise ChicRegisterError(f"--max-files must be >= 1, got {args.max_files}")
+    geom = load_geometry(args.geometry)
+
+    def on_event(event):
+        print(json.dumps(event.to_dict()) if args.json else event.text(), flush=True)
+
+    def on_message(text):
+        print(f"chic-register: {text}", file=sys.stderr, flush=True)
+
+    if not args.json:
+        print(f"watching {args.folder} (Ctrl-C to stop)", file=sys.stderr, flush=True)
+    summary = track(args.folder, geom, pixel_spacing=args.pixel_spacing, poll_s=args.poll, settle_s=args.settle,
+                    include_existing=args.existing, max_files=args.max_files, timeout_s=args.timeout,
+                    igtl=args.igtl, igtl_name=args.igtl_name, on_event=on_event, on_message=on_message)
+    if args.json:
+        print(json.dumps(summary.to_dict()), flush=True)
+    else:
+        print(summary.text(), file=sys.stderr, flush=True)
+    return 0
+
+
 def _run(args) -> int:
-    commands = {"solve": _run_solve, "simulate": _run_simulate, "evaluate": _run_evaluate}
+    commands = {"solve": _run_solve, "simulate": _run_simulate, "evaluate": _run_evaluate,
+                "reslice": _run_reslice, "track": _run_track}
     return commands[args.command](args)
 
 
