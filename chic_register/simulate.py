@@ -57,20 +57,20 @@ def _plane_offsets_mm(thickness_mm: float, n: int) -> np.ndarray:
 def _crossing_params(tube, origin_F: np.ndarray, normal_F: np.ndarray, margin_mm: float) -> np.ndarray:
     """Centreline parameters u (0..1 inside the tube) where the plane cuts the centreline.
 
-    The centreline is extended by ``margin_mm`` at both ends so that a plane
-    cutting the tube's end near its face still renders the cut part (the
+    A helix centreline is extended by ``margin_mm`` at both ends so that a
+    plane cutting the tube's end near its face still renders the cut part (the
     per-sample extent test trims it). Shape (K,).
     """
     length = tube.length_mm
-    mu = margin_mm / length
     if isinstance(tube, LineTube):
-        p0 = np.asarray(tube.p0)
-        d = np.subtract(tube.p1, tube.p0)
-        denom = float(normal_F @ d)
-        if abs(denom) < 1e-12:
+        # exact for a line whatever point of it is used: take the crossing, clipped
+        # to the segment, whenever the tube reaches the plane (also when parallel to it)
+        d0 = float(normal_F @ (np.asarray(tube.p0) - origin_F))
+        d1 = float(normal_F @ (np.asarray(tube.p1) - origin_F))
+        if d0 * d1 > 0 and min(abs(d0), abs(d1)) > 0.5 * tube.diameter:
             return np.empty(0)
-        u = float(normal_F @ (origin_F - p0)) / denom
-        return np.array([u]) if -mu <= u <= 1 + mu else np.empty(0)
+        u = d0 / (d0 - d1) if abs(d0 - d1) > 1e-12 else 0.5
+        return np.array([min(1.0, max(0.0, u))])
     if isinstance(tube, HelixTube):
         dz = margin_mm * (tube.z1 - tube.z0) / length
         ext = HelixTube(

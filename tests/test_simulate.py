@@ -8,7 +8,7 @@ import pytest
 from scipy import ndimage
 
 from chic_register.cli import main
-from chic_register.geometry import FiducialGeometry, load_geometry
+from chic_register.geometry import FiducialGeometry, LineTube, load_geometry
 from chic_register.imageio import read_slices
 from chic_register.pose import apply, invert, slice_frame
 from chic_register.simulate import (
@@ -79,6 +79,17 @@ def test_partial_volume_area_is_the_ellipse_area(neuro_geometry, tilt, azimuth, 
     expected = math.pi * (tube.diameter / 2) ** 2 / cos_angle
     assert img.sum() * 0.25 == pytest.approx(expected, rel=3e-3)
     assert img.max() == pytest.approx(1.0) and img.min() >= 0.0
+
+
+@pytest.mark.parametrize("height_mm", [0.0, 0.9])
+def test_a_tube_lying_in_the_plane_is_a_band(neuro_geometry, height_mm):
+    """A Z-frame-like horizontal line tube 0.9 mm off an axial slice: a band 2 sqrt(r^2 - h^2) wide, L long."""
+    bar = LineTube("Z0", "other", (-15.0, 5.0, 20.0 + height_mm), (15.0, 5.0, 20.0 + height_mm), 3.0)
+    img = render_slice(FiducialGeometry("z", neuro_geometry.body, (bar,)), slice_frame(20.0, 0, 0, 0), SHAPE,
+                       (0.5, 0.5), 0.0)
+    assert img.sum() * 0.25 == pytest.approx(30.0 * 2 * math.sqrt(1.5**2 - height_mm**2), rel=2e-3)
+    rows = np.nonzero(img.sum(axis=1))[0]
+    assert (rows.min() + rows.max()) / 2 == pytest.approx(CENTER[0] + 10.0)
 
 
 def test_slice_thickness_partial_volume_at_the_end_face(neuro_geometry):
