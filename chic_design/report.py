@@ -7,6 +7,7 @@ import math
 from chic_register.geometry import FiducialGeometry, HelixTube, LineTube
 
 from .cad import CapDims, annulus_volume_mm3, channel_volume_mm3
+from .verify import touching_channels
 
 FILLING_PROCEDURE = """\
 1. Print the body and both caps (each file is in frame F in its assembled position; the
@@ -37,6 +38,25 @@ def _fmt_tube(t) -> tuple[str, str, str]:
     if isinstance(t, HelixTube):
         return "helix", f"{t.theta0_deg:.1f} -> {float(t.theta1_deg):.1f}", f"{t.pitch_deg_per_mm:+.4g}"
     return t.kind, "-", "-"
+
+
+def _touching_text(geometry: FiducialGeometry) -> str:
+    """Which channels meet (near the end faces, typically) and so form connected groups."""
+    pairs = touching_channels(geometry)
+    if not pairs:
+        return "No two channels touch: each fills on its own."
+    group = {t: {t} for t in geometry.ids}
+    for a, b, _, _ in pairs:
+        merged = group[a] | group[b]
+        for t in merged:
+            group[t] = merged
+    groups = sorted({tuple(sorted(g)) for g in group.values() if len(g) > 1})
+    where = "; ".join(f"{a}-{b} at z {lo:.1f}..{hi:.1f} mm" for a, b, lo, hi in pairs)
+    names = "; ".join(", ".join(g) for g in groups)
+    return (f"Channels that touch, and are connected there: {where}. Connected groups: {names}. "
+            "A group fills as one vessel: fill it through any of its ports while the air leaves "
+            "through the others, then top up every port of the group. Where channels touch, "
+            "their images merge at those heights.")
 
 
 def channel_rows(geometry: FiducialGeometry) -> list[dict]:
@@ -103,6 +123,8 @@ def build_report(spec, spec_path, geometry: FiducialGeometry, part_volumes_mm3: 
         + (f": channels that touch near the end faces share {max(sum_nominal - cut, 0.0):.1f} mm^3."
            if sum_nominal - cut > 0.5 else "."),
         "Allow about 0.1 mL extra per channel for the needle and the ports.",
+        "",
+        _touching_text(geometry),
         "",
         "## Parts",
         "",

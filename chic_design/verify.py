@@ -102,6 +102,24 @@ def tube_slope_cos(tube: Tube, z_mm) -> np.ndarray:
     raise TypeError(type(tube).__name__)
 
 
+def _section_circles(geometry: FiducialGeometry, z: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+    """Centres (N, T, 2) and bounding radii a / cos(tilt) (N, T) of every channel's section."""
+    centres = np.stack([t.point_at_z(z)[:, :2] for t in geometry.tubes], axis=1)
+    half = np.stack([t.diameter / 2 / tube_slope_cos(t, z) for t in geometry.tubes], axis=1)
+    return centres, half
+
+
+def pair_gaps_mm(geometry: FiducialGeometry, z_mm) -> dict[tuple[str, str], np.ndarray]:
+    """Gap between the section circles of every pair of channels at ``z_mm``: ``{(id, id): (N,)}``."""
+    z = np.atleast_1d(np.asarray(z_mm, dtype=float))
+    centres, half = _section_circles(geometry, z)
+    ids = geometry.ids
+    return {
+        (ids[i], ids[j]): np.linalg.norm(centres[:, i] - centres[:, j], axis=1) - half[:, i] - half[:, j]
+        for i in range(len(ids)) for j in range(i + 1, len(ids))
+    }
+
+
 def section_clearance_mm(geometry: FiducialGeometry, z_mm) -> np.ndarray:
     """Smallest gap between channel sections (and between a section and the walls) at ``z_mm``.
 
@@ -112,17 +130,29 @@ def section_clearance_mm(geometry: FiducialGeometry, z_mm) -> np.ndarray:
     """
     z = np.atleast_1d(np.asarray(z_mm, dtype=float))
     body = geometry.body
-    centres = np.stack([t.point_at_z(z)[:, :2] for t in geometry.tubes], axis=1)  # (N, T, 2)
-    half = np.stack([t.diameter / 2 / tube_slope_cos(t, z) for t in geometry.tubes], axis=1)  # (N, T)
+    centres, half = _section_circles(geometry, z)
     rho = np.linalg.norm(centres, axis=2)
     wall = np.minimum(body.outer_diameter / 2 - (rho + half), (rho - half) - body.inner_diameter / 2)
     gap = wall.min(axis=1)
-    n_t = len(geometry.tubes)
-    for i in range(n_t):
-        for j in range(i + 1, n_t):
-            d = np.linalg.norm(centres[:, i] - centres[:, j], axis=1) - half[:, i] - half[:, j]
-            gap = np.minimum(gap, d)
+    for d in pair_gaps_mm(geometry, z).values():
+        gap = np.minimum(gap, d)
     return gap
+
+
+def touching_channels(geometry: FiducialGeometry, step_mm: float = 0.05) -> list[tuple[str, str, float, float]]:
+    """Pairs of channels whose section circles meet: ``[(id, id, z_lo, z_hi)]`` (mm, sampled).
+
+    Such channels are connected where they meet (they fill together) and
+    their images merge there.
+    """
+    length = geometry.body.length
+    z = np.linspace(0.0, length, int(round(length / step_mm)) + 1)
+    out = []
+    for (a, b), gap in pair_gaps_mm(geometry, z).items():
+        hit = gap < 0
+        if hit.any():
+            out.append((a, b, float(z[hit].min()), float(z[hit].max())))
+    return out
 
 
 def section_heights(geometry: FiducialGeometry, n: int = 5, margin_mm: float = SECTION_MARGIN_MM) -> np.ndarray:
