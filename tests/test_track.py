@@ -154,3 +154,24 @@ def test_poses_are_sent_over_openigtlink(tmp_path, neuro_geometry, staged):
         server.stop()
         for sig, handler in saved.items():
             signal.signal(sig, handler)
+
+
+def test_cli_track_prints_json_lines(tmp_path, neuro_geometry_file, staged, capsys):
+    import json
+
+    from chic_register.cli import main
+
+    watch = tmp_path / "w"
+    watch.mkdir()
+    shutil.copy(staged[2][0], watch / "c.dcm")
+    rc = main(["track", str(watch), "--geometry", str(neuro_geometry_file), "--existing", "--max-files", "1",
+               "--timeout", "30", "--settle", "0", "--json"])
+    lines = [json.loads(line) for line in capsys.readouterr().out.splitlines()]
+    assert rc == 0
+    assert lines[0]["status"] == "ok" and lines[0]["source"].endswith("c.dcm")
+    d_mm, ang = _pose_difference(np.array(lines[0]["T_scanner_from_fiducial"]), staged[2][1])
+    assert d_mm < 0.5 and ang < 0.5
+    assert lines[0]["latency_ms"] > 0
+    assert lines[-1]["stopped_by"] == "max_files" and lines[-1]["ok"] == 1
+    assert main(["track", str(tmp_path / "nope"), "--geometry", str(neuro_geometry_file), "--timeout", "1"]) == 2
+    assert main(["track", str(watch), "--geometry", str(neuro_geometry_file), "--igtl", "host:x"]) == 2

@@ -53,3 +53,16 @@ def test_read_rejects_non_transform(tmp_path):
     bad.write_text("hello\n")
     with pytest.raises(ChicRegisterError, match="bad.tfm: not an ITK transform file"):
         read_tfm(bad)
+
+
+def test_tfm_of_a_registration_reads_back_equal(tmp_path, neuro_geometry):
+    from chic_register.simulate import simulate_slice
+    from chic_register.solve import register
+
+    sim = simulate_slice(neuro_geometry, 22.0, 12.0, 40.0, -15.0, noise="rician", snr=25.0, rng=5,
+                         image_position=(-70.0, -50.0, 30.0))
+    reg = register([sim.slice], neuro_geometry)
+    tx = sitk.ReadTransform(str(write_tfm(reg.T_scanner_from_fiducial, tmp_path / "reg.tfm")))
+    np.testing.assert_allclose(sitk_to_matrix(tx.GetInverse()), reg.T_scanner_from_fiducial, atol=1e-9)
+    # and it is the fiducial's pose: the file maps the scanner position of the F origin back to 0
+    np.testing.assert_allclose(tx.TransformPoint(tuple(reg.T_scanner_from_fiducial[:3, 3])), [0, 0, 0], atol=1e-9)

@@ -236,3 +236,45 @@ def test_reslice_study_table(neuro_geometry, sim_volume):
     shifted = reslice_study(sim_volume.volume, neuro_geometry, T_TRUE @ rigid(np.eye(3), (0, 0, 2.0)),
                             depths_mm=depths[1:3], tilt_deg=15.0, shape=(128, 128))
     assert shifted.locked and all(abs(r.errors["z_mm"] - 2.0) < 0.3 for r in shifted.locked)
+
+
+# --------------------------------------------------------------------------- command line
+
+
+def test_cli_simulate_volume_then_reslice(tmp_path, neuro_geometry_file, capsys):
+    import json
+
+    from chic_register.cli import main
+
+    vol = tmp_path / "vol.nrrd"
+    rc = main(["simulate", "--geometry", str(neuro_geometry_file), "--depth", "25", "--tilt", "5", "--azimuth", "30",
+               "--volume-shape", "112", "112", "56", "--voxel-size", "0.5", "0.5", "1", "--noise", "rician",
+               "--snr", "25", "--seed", "2", "--out", str(vol)])
+    assert rc == 0
+    truth = json.loads((tmp_path / "vol.nrrd.truth.json").read_text())
+    T = np.array(truth["T_scanner_from_fiducial"])
+    # the volume centre (scanner origin) is on the fiducial axis at depth 25
+    np.testing.assert_allclose(apply(invert(T), [0.0, 0.0, 0.0]), [0, 0, 25.0], atol=1e-9)
+    capsys.readouterr()
+    rc = main(["reslice", str(vol), "--geometry", str(neuro_geometry_file), "--reference", str(tmp_path / "vol.nrrd.truth.json"),
+               "--depths", "15", "33", "--size", "112", "--json"])
+    out = json.loads(capsys.readouterr().out)
+    assert rc == 0 and out["n_slices"] == 2 and out["n_locked"] >= 1
+    assert out["summary"]["z_mm"]["rms"] < 0.3
+    assert [s["depth_mm"] for s in out["slices"]] == [15.0, 33.0]
+
+
+def test_cli_bad_inputs(tmp_path, neuro_geometry_file, capsys):
+    from chic_register.cli import main
+
+    g = str(neuro_geometry_file)
+    assert main(["simulate", "--geometry", g, "--depth", "25", "--volume-shape", "8", "8", "8", "--out",
+                 str(tmp_path / "v.dcm")]) == 2
+    assert "volume output must end in" in capsys.readouterr().err
+    bad = tmp_path / "ref.json"
+    bad.write_text('{"T_scanner_from_fiducial": [[1, 0], [0, 1]]}')
+    write_volume(_random_volume(), tmp_path / "v.nii")
+    assert main(["reslice", str(tmp_path / "v.nii"), "--geometry", g, "--reference", str(bad)]) == 2
+    assert "needs key 'T_scanner_from_fiducial' holding a rigid 4x4 matrix" in capsys.readouterr().err
+    assert main(["solve", str(tmp_path / "v.nii"), "--geometry", g]) == 2
+    assert "is a volume: pick the slices to register with --slices" in capsys.readouterr().err
