@@ -229,6 +229,24 @@ def _no_pixels_reason(ds) -> str:
     return f"DICOM file has no pixel data ({name}: not an image object)"
 
 
+def _guess_transfer_syntax(ds) -> None:
+    """A raw data set (no file meta) is decoded with the encoding it was read in."""
+    from pydicom.dataset import FileMetaDataset
+    from pydicom.uid import ExplicitVRBigEndian, ExplicitVRLittleEndian, ImplicitVRLittleEndian
+
+    meta = getattr(ds, "file_meta", None)
+    if meta is not None and "TransferSyntaxUID" in meta:
+        return
+    implicit, little = getattr(ds, "original_encoding", (True, True))
+    if meta is None:
+        ds.file_meta = meta = FileMetaDataset()
+    if implicit is None:
+        implicit, little = True, True
+    meta.TransferSyntaxUID = (
+        ImplicitVRLittleEndian if implicit else ExplicitVRLittleEndian if little else ExplicitVRBigEndian
+    )
+
+
 def _read_dicom(path, has_preamble: bool) -> list[Slice]:
     import pydicom
     from pydicom.errors import InvalidDicomError
@@ -247,6 +265,7 @@ def _read_dicom(path, has_preamble: bool) -> list[Slice]:
         raise ImageReadError(path, "not an image: unrecognised file format (expected DICOM, PNG, TIFF or NPY)")
     if not any(k in ds for k in ("PixelData", "FloatPixelData", "DoubleFloatPixelData")):
         raise ImageReadError(path, _no_pixels_reason(ds))
+    _guess_transfer_syntax(ds)
     try:
         with warnings.catch_warnings():
             warnings.simplefilter("ignore")

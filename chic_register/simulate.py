@@ -150,7 +150,7 @@ def _render_crossing(tube, u_c: float, T_F_from_S: np.ndarray, z_mm: float, grid
         u = u + along.reshape(u.shape) / length
     else:
         perp = (p - c) - s0[..., None] * t
-    dist = np.linalg.norm(perp, axis=-1)
+    dist = np.sqrt(np.einsum("...i,...i->...", perp, perp))
     rs, cs = grid.spacing
     hs_x, hs_y = cs / grid.sub.size, rs / grid.sub.size
     with np.errstate(invalid="ignore", divide="ignore"):

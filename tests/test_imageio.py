@@ -104,6 +104,19 @@ def test_dicom_write_is_atomic(tmp_path, oblique_sim):
     assert sorted(p.name for p in tmp_path.iterdir()) == ["keep.dcm"]
 
 
+def test_raw_dicom_without_preamble_or_file_meta(tmp_path):
+    """Some scanners export bare data sets: read them with the encoding they were written in."""
+    pixels = np.arange(48.0).reshape(6, 8)
+    ds = dicom_dataset(Slice(pixels, (0.5, 0.7), np.array([1.0, 2.0, 3.0])))
+    del ds.file_meta
+    path = tmp_path / "IM0001"
+    pydicom.dcmwrite(path, ds, enforce_file_format=False, implicit_vr=True, little_endian=True)
+    assert path.read_bytes()[128:132] != b"DICM"
+    (sl,) = read_slices(path)
+    assert sl.pixel_spacing_mm == (0.5, 0.7) and np.allclose(sl.origin_mm, (1, 2, 3))
+    assert np.allclose(sl.pixels, pixels, atol=0.51 * 47 / 65535)  # 16-bit rescaled
+
+
 def _enhanced_mr(tmp_path, positions):
     """A minimal enhanced (multi-frame) MR file: geometry in functional groups."""
     sl = Slice(np.arange(2 * 16.0).reshape(2, 16) % 7, (0.5, 0.5))
