@@ -1,0 +1,854 @@
+"""The pose solver: detected tube centres in one or more slices -> the fiducial's 6-DOF pose.
+
+The chain follows the paper, then goes further:
+
+1. a robust ellipse fit of the blob centres (image mm) gives the centre of
+   the cross-section, the tilt (``acos(minor/major)``) and the direction of
+   the major axis (the azimuth, up to a two-fold sign);
+2. "unrolling" every blob onto the cylinder (angle about the axis and height
+   relative to the centre) for each of the four sign choices (which end of
+   the major axis is up; which side the image is viewed from), the tubes that
+   are straight and parallel to the axis fix the rotation about the axis (the
+   twist) and the helices fix the depth (:meth:`HelixTube.z_at_angle`);
+3. every resulting hypothesis is refined on all six degrees of freedom by
+   Gauss-Newton on the model: the predicted crossings of every tube
+   centreline of the geometry file with the image plane against the detected
+   centres, with the blob-to-tube assignment re-solved (Hungarian) on the
+   way, so extra and missing blobs are simply left unassigned;
+4. trust checks turn every doubtful outcome into :class:`NoLock`.
+
+Several slices are registered jointly: one ``T_scanner_from_fiducial`` fitted
+to the correspondences of every slice. Nothing here assumes the CHIC layout:
+the tube list, roles and angles all come from the geometry file.
+"""
+
+from __future__ import annotations
+
+import math
+import time
+from dataclasses import dataclass, field
+
+import numpy as np
+from scipy.optimize import linear_sum_assignment
+
+from .detect import Blobs, detect_blobs
+from .errors import NoLock
+from .geometry import FiducialGeometry, HelixTube, LineTube, content_sha256
+from .pose import invert, rigid, slice_angles
+from .slices import Slice
+
+# --------------------------------------------------------------------------- model
+
+
+@dataclass(frozen=True, eq=False)
+class TubeModel:
+    """The geometry file's tube centrelines as arrays, for vectorised predictions.
+
+    K tubes; line tubes use ``p0``/``d`` (K, 3), helices use ``radius``,
+    ``theta0_rad``, ``omega_rad_per_mm``, ``z0`` (K,) (NaN where unused).
+    ``axial`` marks lines parallel to the z axis (constant angle
+    ``angle_rad``); ``depth_coding`` marks tubes not parallel to the axis
+    (they tell the depth).
+    """
+
+    ids: tuple[str, ...]
+    roles: tuple[str, ...]
+    is_helix: np.ndarray
+    p0: np.ndarray
+    d: np.ndarray
+    radius: np.ndarray
+    theta0_rad: np.ndarray
+    omega_rad_per_mm: np.ndarray
+    z0: np.ndarray
+    z_lo: np.ndarray
+    z_hi: np.ndarray
+    axial: np.ndarray
+    angle_rad: np.ndarray
+    axis_radius_mm: np.ndarray
+    depth_coding: np.ndarray
+    diameter_mm: np.ndarray
+    length_mm: float
+    line_idx: np.ndarray = None
+    helix_idx: np.ndarray = None
+    line_p0: np.ndarray = None
+    line_d: np.ndarray = None
+    line_dunit: np.ndarray = None
+    helix_params: tuple = ()
+
+    def __post_init__(self):
+        li, hi = np.flatnonzero(~self.is_helix), np.flatnonzero(self.is_helix)
+        d = self.d[li]
+        object.__setattr__(self, "line_idx", li)
+        object.__setattr__(self, "helix_idx", hi)
+        object.__setattr__(self, "line_p0", self.p0[li].copy())
+        object.__setattr__(self, "line_d", d.copy())
+        object.__setattr__(self, "line_dunit", d / np.linalg.norm(d, axis=1, keepdims=True))
+        object.__setattr__(self, "helix_params", tuple(
+            (int(k), float(self.radius[k]), float(self.theta0_rad[k]), float(self.omega_rad_per_mm[k]),
+             float(self.z0[k])) for k in hi))
+
+    @classmethod
+    def from_geometry(cls, geom: FiducialGeometry) -> "TubeModel":
+        K = len(geom.tubes)
+        nan = np.full(K, np.nan)
+        p0, d = np.full((K, 3), np.nan), np.full((K, 3), np.nan)
+        radius, th0, om, z0 = nan.copy(), nan.copy(), nan.copy(), nan.copy()
+        z_lo, z_hi = np.zeros(K), np.zeros(K)
+        axial, is_helix = np.zeros(K, bool), np.zeros(K, bool)
+        angle, rad_axis = nan.copy(), np.zeros(K)
+        for k, t in enumerate(geom.tubes):
+            z_lo[k], z_hi[k] = t.z_range
+            if isinstance(t, HelixTube):
+                is_helix[k] = True
+                radius[k], th0[k] = t.radius, math.radians(t.theta0_deg)
+                om[k], z0[k] = math.radians(t.pitch_deg_per_mm), t.z0
+                rad_axis[k] = t.radius
+            elif isinstance(t, LineTube):
+                p0[k], d[k] = t.p0, np.subtract(t.p1, t.p0)
+                direction = t.direction
+                mid = (np.asarray(t.p0) + np.asarray(t.p1)) / 2
+                rad_axis[k] = math.hypot(mid[0], mid[1])
+                if abs(direction[2]) > 1 - 1e-9 and rad_axis[k] > 1e-9:
+                    axial[k] = True
+                    angle[k] = math.atan2(mid[1], mid[0])
+        return cls(
+            ids=geom.ids,
+            roles=tuple(t.role for t in geom.tubes),
+            is_helix=is_helix, p0=p0, d=d, radius=radius, theta0_rad=th0,
+            omega_rad_per_mm=om, z0=z0, z_lo=z_lo, z_hi=z_hi, axial=axial,
+            angle_rad=angle, axis_radius_mm=rad_axis, depth_coding=~axial,
+            diameter_mm=np.array([t.diameter for t in geom.tubes], float),
+            length_mm=float(geom.body.length),
+        )
+
+
+def plane_crossings(model: TubeModel, T_F_from_I: np.ndarray, margin_mm: float = 0.0):
+    """Where every tube centreline crosses the image plane z_I = 0.
+
+    Returns ``(xy_mm (K, 2), tangent_I (K, 3), z_F (K,), inside (K,) bool)``:
+    the crossing in image-frame mm, the centreline's unit tangent in the
+    image frame there, its height in F and whether it lies within the tube's
+    extent widened by ``margin_mm`` (and was found). Lines: closed form;
+    helices: Newton on z started from the axis crossing (scalar code: the
+    arrays are tiny and numpy's per-call overhead would dominate).
+    """
+    R = T_F_from_I[:3, :3]
+    o = T_F_from_I[:3, 3]
+    n = R[:, 2]
+    K = len(model.ids)
+    X = np.empty((K, 3))
+    tan = np.empty((K, 3))
+    ok = np.ones(K, bool)
+    li = model.line_idx
+    if li.size:
+        p0, d = model.line_p0, model.line_d
+        denom = d @ n
+        safe = np.abs(denom) > 1e-9
+        t = ((o - p0) @ n) / np.where(safe, denom, 1.0)
+        X[li] = p0 + t[:, None] * d
+        tan[li] = model.line_dunit
+        ok[li] = safe
+    if model.helix_idx.size:
+        nx, ny, nz = float(n[0]), float(n[1]), float(n[2])
+        no = nx * float(o[0]) + ny * float(o[1]) + nz * float(o[2])
+        z_axis = no / nz if abs(nz) > 1e-9 else 0.0
+        cos, sin = math.cos, math.sin
+        for k, r, th0, om, z0 in model.helix_params:
+            z = z_axis
+            rnx, rny = r * nx, r * ny
+            good = False
+            for _ in range(30):
+                th = th0 + om * (z - z0)
+                c, s = cos(th), sin(th)
+                dg = om * (rny * c - rnx * s) + nz
+                step = (rnx * c + rny * s + nz * z - no) / (dg if abs(dg) > 1e-9 else 1e-9)
+                step = max(-20.0, min(20.0, step))
+                z -= step
+                if abs(step) < 1e-11:
+                    good = True
+                    break
+            th = th0 + om * (z - z0)
+            c, s = cos(th), sin(th)
+            X[k] = (r * c, r * s, z)
+            vx, vy = -r * om * s, r * om * c
+            inv = 1.0 / math.sqrt(vx * vx + vy * vy + 1.0)
+            tan[k] = (vx * inv, vy * inv, inv)
+            ok[k] = good and abs(rnx * c + rny * s + nz * z - no) < 1e-6
+    zF = X[:, 2]
+    inside = ok & (zF >= model.z_lo - margin_mm - 1e-6) & (zF <= model.z_hi + margin_mm + 1e-6)
+    q = (X - o) @ R  # rows: R^T (X - o)
+    return q[:, :2], tan @ R, zF, inside
+
+
+def _skew(v: np.ndarray) -> np.ndarray:
+    """Cross-product matrices of vectors (..., 3) -> (..., 3, 3)."""
+    z = np.zeros(v.shape[:-1])
+    return np.stack(
+        [np.stack([z, -v[..., 2], v[..., 1]], -1),
+         np.stack([v[..., 2], z, -v[..., 0]], -1),
+         np.stack([-v[..., 1], v[..., 0], z], -1)], -2)
+
+
+def _crossing_jacobian(xy: np.ndarray, tan_I: np.ndarray) -> np.ndarray:
+    """d(crossing xy)/d(xi) for a right perturbation ``T_F_from_I @ exp(xi)``, xi = (omega, v).
+
+    Shapes: xy (M, 2), tan_I (M, 3) -> (M, 2, 6). The curve moves by
+    ``delta = P x omega - v`` in the image frame and the crossing slides
+    along the tangent back to z = 0: ``dq = delta_xy - (t_xy / t_z) delta_z``.
+    """
+    x, y = xy[:, 0], xy[:, 1]
+    tz = tan_I[:, 2]
+    tz = np.where(np.abs(tz) < 1e-6, 1e-6, tz)
+    a, b = tan_I[:, 0] / tz, tan_I[:, 1] / tz
+    J = np.zeros((xy.shape[0], 2, 6))
+    J[:, 0, 0], J[:, 0, 1], J[:, 0, 2], J[:, 0, 3], J[:, 0, 5] = a * y, -a * x, y, -1.0, a
+    J[:, 1, 0], J[:, 1, 1], J[:, 1, 2], J[:, 1, 4], J[:, 1, 5] = b * y, -b * x, -x, -1.0, b
+    return J
+
+
+def _exp_se3(xi: np.ndarray) -> np.ndarray:
+    """4x4 transform of a small twist xi = (omega (rad), v (mm)) (Rodrigues; v applied as is)."""
+    wx, wy, wz = float(xi[0]), float(xi[1]), float(xi[2])
+    th = math.sqrt(wx * wx + wy * wy + wz * wz)
+    if th < 1e-12:
+        a, b = 1.0, 0.5
+    else:
+        a, b = math.sin(th) / th, (1 - math.cos(th)) / (th * th)
+    K = np.array([[0.0, -wz, wy], [wz, 0.0, -wx], [-wy, wx, 0.0]])
+    T = np.eye(4)
+    T[:3, :3] += a * K + b * (K @ K)
+    T[:3, 3] = xi[3:]
+    return T
+
+
+def _adjoint(T: np.ndarray) -> np.ndarray:
+    """6x6 adjoint of a rigid transform for twists (omega, v)."""
+    R, p = T[:3, :3], T[:3, 3]
+    A = np.zeros((6, 6))
+    A[:3, :3] = R
+    A[3:, 3:] = R
+    A[3:, :3] = _skew(p) @ R
+    return A
+
+
+# --------------------------------------------------------------------------- ellipse
+
+
+@dataclass(frozen=True)
+class Ellipse:
+    """An ellipse in image mm: centre (2,), semi-axes ``a >= b`` (mm), major-axis angle ``phi`` (rad)."""
+
+    centre: np.ndarray
+    a: float
+    b: float
+    phi: float
+
+    def points(self, n: int = 200) -> np.ndarray:
+        """Outline points, shape (n, 2)."""
+        t = np.linspace(0, 2 * np.pi, n)
+        u, w = self.a * np.cos(t), self.b * np.sin(t)
+        c, s = math.cos(self.phi), math.sin(self.phi)
+        return self.centre + np.stack([u * c - w * s, u * s + w * c], axis=1)
+
+
+def _conic_to_ellipse(coef: np.ndarray):
+    """Conic coefficients (S, 6) [A, B, C, D, E, F] -> (centre (S,2), a, b, phi, valid)."""
+    A, B, C, D, E, F = coef.T
+    det = 4 * A * C - B * B
+    valid = det > 1e-15
+    det = np.where(valid, det, 1.0)
+    cx = (B * E - 2 * C * D) / det
+    cy = (B * D - 2 * A * E) / det
+    Fc = A * cx * cx + B * cx * cy + C * cy * cy + D * cx + E * cy + F
+    tr = A + C
+    disc = np.sqrt(np.maximum((A - C) ** 2 + B * B, 0.0))
+    l1, l2 = (tr - disc) / 2, (tr + disc) / 2  # l1 <= l2
+    with np.errstate(divide="ignore", invalid="ignore"):
+        a2, b2 = -Fc / l1, -Fc / l2
+    valid &= (a2 > 0) & (b2 > 0) & np.isfinite(a2) & np.isfinite(b2)
+    a = np.sqrt(np.where(valid, a2, 1.0))
+    b = np.sqrt(np.where(valid, b2, 1.0))
+    # major axis: eigenvector of the smaller eigenvalue l1 of [[A, B/2], [B/2, C]]
+    phi = 0.5 * np.arctan2(B, A - C) + np.pi / 2
+    return np.stack([cx, cy], axis=1), a, b, phi, valid
+
+
+def _sampson(coef: np.ndarray, xy: np.ndarray) -> np.ndarray:
+    """First-order geometric distance of points (N, 2) to conics (S, 6) -> (S, N)."""
+    x, y = xy[:, 0][None], xy[:, 1][None]
+    A, B, C, D, E, F = (coef[:, i : i + 1] for i in range(6))
+    val = A * x * x + B * x * y + C * y * y + D * x + E * y + F
+    gx = 2 * A * x + B * y + D
+    gy = B * x + 2 * C * y + E
+    return np.abs(val) / np.maximum(np.hypot(gx, gy), 1e-12)
+
+
+def _design(xy: np.ndarray) -> np.ndarray:
+    x, y = xy[..., 0], xy[..., 1]
+    return np.stack([x * x, x * y, y * y, x, y, np.ones_like(x)], axis=-1)
+
+
+def _lsq_conic(xy: np.ndarray) -> np.ndarray:
+    """Least-squares ellipse (Fitzgibbon-Halir-Flusser) through points (N >= 5, 2) -> (6,)."""
+    D = _design(xy)
+    D1, D2 = D[:, :3], D[:, 3:]
+    S1, S2, S3 = D1.T @ D1, D1.T @ D2, D2.T @ D2
+    try:
+        Tm = -np.linalg.solve(S3, S2.T)
+    except np.linalg.LinAlgError:
+        return np.full(6, np.nan)
+    M = S1 + S2 @ Tm
+    M = np.array([M[2] / 2, -M[1], M[0] / 2])
+    w, v = np.linalg.eig(M)
+    v = np.real(v)
+    cond = 4 * v[0] * v[2] - v[1] ** 2
+    idx = np.flatnonzero(cond > 0)
+    if idx.size == 0:
+        return np.full(6, np.nan)
+    a1 = v[:, idx[0]]
+    return np.concatenate([a1, Tm @ a1])
+
+
+def fit_ellipse_robust(xy_mm: np.ndarray, radius_mm: float, max_tilt_deg: float = 80.0,
+                       tol_mm: float | None = None, rng_seed: int = 0, samples: int = 300):
+    """Ellipse of tube centres among candidate points (N, 2), tolerant to outliers.
+
+    The ellipse of a cylinder of radius ``radius_mm`` cut at tilt t has minor
+    semi-axis ``radius_mm`` and major ``radius_mm / cos t``; only such
+    ellipses are accepted. First all points are tried; if some do not fit,
+    RANSAC on 5-point subsets picks the largest consistent set.
+    Returns ``(Ellipse, inlier mask (N,))`` or ``None``.
+    """
+    N = xy_mm.shape[0]
+    if N < 5:
+        return None
+    tol = tol_mm if tol_mm is not None else 0.1 * radius_mm
+    mu = xy_mm.mean(axis=0)
+    scale = radius_mm
+    p = (xy_mm - mu) / scale  # well-conditioned units
+    max_ratio = 1.0 / math.cos(math.radians(max_tilt_deg))
+
+    def plausible(a, b):
+        return (b > 0.75) & (b < 1.25) & (a / b < max_ratio)
+
+    def refit(mask):
+        coef = _lsq_conic(p[mask])
+        if not np.all(np.isfinite(coef)):
+            return None
+        c, a, b, phi, valid = _conic_to_ellipse(coef[None])
+        if not valid[0] or not plausible(a, b)[0]:
+            return None
+        dist = _sampson(coef[None], p)[0] * scale
+        return coef, (c[0], a[0], b[0], phi[0]), dist
+
+    best = refit(np.ones(N, bool))
+    if best is not None and np.all(best[2] < tol):
+        inl = np.ones(N, bool)
+    else:
+        rng = np.random.default_rng(rng_seed)
+        idx = np.argsort(rng.random((samples, N)), axis=1)[:, :5]
+        D = _design(p[idx])  # (S,5,6)
+        _, _, vt = np.linalg.svd(D, full_matrices=True)
+        coef = vt[:, -1, :]
+        c, a, b, phi, valid = _conic_to_ellipse(coef)
+        valid &= plausible(a, b)
+        if not valid.any():
+            return None
+        dist = _sampson(coef, p) * scale
+        inliers = (dist < tol) & valid[:, None]
+        count = inliers.sum(axis=1)
+        err = np.where(inliers, dist, 0).sum(axis=1)
+        order = np.lexsort((err, -count))
+        inl = inliers[order[0]]
+        best = None
+        for _ in range(3):
+            if inl.sum() < 5:
+                return None
+            best = refit(inl)
+            if best is None:
+                return None
+            new = best[2] < tol
+            if np.array_equal(new, inl):
+                break
+            inl = new
+        if best is None or inl.sum() < 5:
+            return None
+    _, (c, a, b, phi), _ = best
+    return Ellipse(c * scale + mu, float(a * scale), float(b * scale), float(phi)), inl
+
+
+# --------------------------------------------------------------------------- hypotheses
+
+
+def _wrap(a):
+    return (a + np.pi) % (2 * np.pi) - np.pi
+
+
+def initial_hypotheses(model: TubeModel, xy_mm: np.ndarray, ell: Ellipse, *,
+                       angle_tol_deg: float = 6.0, max_hypotheses: int = 6) -> list[np.ndarray]:
+    """Closed-form pose guesses ``T_F_from_I`` (4x4) from an ellipse and unrolled blob angles.
+
+    For each of the four sign choices (up end of the major axis ``s``,
+    handedness ``h``) every pairing of a blob with an axial line tube gives
+    a rotation ``beta`` about the axis; the rotations that line up the most
+    axial tubes are kept, then the helices give the depth by consensus.
+    Returns up to ``max_hypotheses`` guesses, best first.
+    """
+    if not model.axial.any() or xy_mm.shape[0] == 0:
+        return []
+    cos_t = min(1.0, ell.b / ell.a)
+    sin_t = math.sqrt(max(0.0, 1 - cos_t * cos_t))
+    c, s_ = math.cos(ell.phi), math.sin(ell.phi)
+    rel = xy_mm - ell.centre
+    u = rel @ np.array([c, s_])
+    w = rel @ np.array([-s_, c])
+    line_ang = model.angle_rad[model.axial]
+    Kl = line_ang.size
+    hel = model.helix_idx
+    tol = math.radians(angle_tol_deg)
+    signs = [(1.0, 1.0), (1.0, -1.0), (-1.0, 1.0), (-1.0, -1.0)] if sin_t > 0.02 else [(1.0, 1.0), (1.0, -1.0)]
+    per_sign = []
+    for s, h in signs:
+        th = np.arctan2(h * w, u * cos_t)  # (N,)
+        zr = s * u * sin_t
+        beta = (line_ang[None, :] - th[:, None]).ravel()  # (B,)
+        e = _wrap(th[None, :, None] + beta[:, None, None] - line_ang[None, None, :])  # (B,N,Kl)
+        jmin = np.argmin(np.abs(e), axis=1)  # (B,Kl)
+        emin = np.take_along_axis(e, jmin[:, None, :], axis=1)[:, 0, :]
+        hit = np.abs(emin) < tol
+        n_lines = hit.sum(axis=1)
+        b = beta - np.where(hit, emin, 0).sum(axis=1) / np.maximum(n_lines, 1)
+        per_sign.append((s, h, th, zr, n_lines, b))
+    top = max(int(ps[4].max()) for ps in per_sign)
+    rows = []  # (score, n_hel, s, h, beta, depth)
+    for s, h, th, zr, n_lines, b in per_sign:
+        keep = n_lines >= max(top - 1, 1)
+        b, nl = b[keep], n_lines[keep]
+        key = np.round(np.degrees(_wrap(b))).astype(int)
+        _, first = np.unique(key, return_index=True)
+        for k in first:
+            for depth, n_hel in _helix_depths(model, hel, th + b[k], zr, tol):
+                rows.append((int(nl[k]) + n_hel, n_hel, s, h, float(b[k]), depth))
+    rows.sort(key=lambda t: (-t[0], -t[1]))
+    out, seen = [], []
+    for score, n_hel, s, h, b, depth in rows:
+        if any(k[0] == s and k[1] == h and abs(_wrap(k[2] - b)) < 0.05 and abs(k[3] - depth) < 2.0 for k in seen):
+            continue
+        seen.append((s, h, b, depth))
+        out.append(_pose_from_hypothesis(ell, cos_t, sin_t, s, h, b, depth))
+        if len(out) >= max_hypotheses:
+            break
+    return out
+
+
+def _helix_depths(model: TubeModel, hel: np.ndarray, theta_F: np.ndarray, zr: np.ndarray, tol: float,
+                  n_best: int = 2):
+    """Candidate depths of the ellipse centre from blob angles in F (N,) and relative heights (N,).
+
+    Every (blob, helix) pair implies a depth; depths agreed on by the most
+    helices win (ties broken by spread). Returns up to ``n_best`` distinct
+    ``(depth_mm, n_helices_agreeing)``, clamped to the body.
+    """
+    L = model.length_mm
+    if hel.size == 0:
+        return [(L / 2, 0)]
+    th0, om, z0 = model.theta0_rad[hel], model.omega_rad_per_mm[hel], model.z0[hel]
+    zlo, zhi = model.z_lo[hel], model.z_hi[hel]
+    # z = z0 + (theta - th0 + 2 pi m) / om, pick m nearest to the middle of the tube
+    raw = (theta_F[:, None] - th0[None, :]) / om[None, :]  # (N,H)
+    period = 2 * np.pi / np.abs(om)
+    zmid = (zlo + zhi) / 2 - z0
+    m = np.round((zmid[None, :] - raw) / period[None, :])
+    z = z0[None, :] + raw + m * period[None, :]
+    d = z - zr[:, None]
+    inside = (z > zlo - 3) & (z < zhi + 3)
+    dtol = tol / np.abs(om)  # depth tolerance of the angle tolerance
+    dv = d[inside]
+    hv = np.broadcast_to(np.arange(hel.size), d.shape)[inside]
+    if dv.size == 0:
+        return [(L / 2, 0)]
+    diff = np.abs(dv[:, None] - dv[None, :])
+    close = diff < dtol[hv][None, :]
+    agree = np.stack([(close & (hv[None, :] == k)).any(axis=1) for k in range(hel.size)], axis=1)
+    n = agree.sum(axis=1)
+    spread = np.where(close, diff, 0).sum(axis=1) / np.maximum(close.sum(axis=1), 1)
+    out = []
+    for i in np.lexsort((spread, -n)):
+        depth = float(dv[close[i]].mean())
+        if any(abs(depth - o[0]) < 1.0 for o in out):
+            continue
+        out.append((min(max(depth, 0.0), L), int(n[i])))
+        if len(out) >= n_best:
+            break
+    return out
+
+
+def _pose_from_hypothesis(ell: Ellipse, cos_t, sin_t, s, h, beta, depth) -> np.ndarray:
+    """``T_F_from_I`` placing the ellipse centre on the axis at ``depth`` (see module docstring)."""
+    c, s_ = math.cos(ell.phi), math.sin(ell.phi)
+    u_maj = np.array([c, s_, 0.0])
+    u_min = np.array([-s_, c, 0.0])
+    e1 = np.array([math.cos(beta), math.sin(beta), 0.0])
+    e2 = np.array([-math.sin(beta), math.cos(beta), 0.0])
+    m = cos_t * e1 + s * sin_t * np.array([0.0, 0.0, 1.0])
+    mn = h * e2
+    F = np.stack([m, mn, np.cross(m, mn)], axis=1)
+    I = np.stack([u_maj, u_min, np.array([0.0, 0.0, 1.0])], axis=1)
+    R = F @ I.T
+    o = np.array([0.0, 0.0, depth]) - R @ np.array([ell.centre[0], ell.centre[1], 0.0])
+    return rigid(R, o)
+
+
+# --------------------------------------------------------------------------- refinement
+
+
+@dataclass(frozen=True, eq=False)
+class _Fit:
+    """One refined joint hypothesis."""
+
+    T_F_from_scanner: np.ndarray
+    assignments: list  # per slice: (K,) int blob index or -1
+    residuals: list  # per slice: (K,) mm, NaN where unassigned
+    inside: list  # per slice: (K,) bool
+    n_matched: int
+    rms_mm: float
+
+
+def _assign(pred: np.ndarray, ok: np.ndarray, blobs_xy: np.ndarray, gate_mm: float) -> np.ndarray:
+    """Blob index per tube (K,), -1 for none: minimum-cost matching within ``gate_mm``."""
+    K = pred.shape[0]
+    out = np.full(K, -1)
+    if blobs_xy.shape[0] == 0 or not ok.any():
+        return out
+    dist = np.linalg.norm(pred[:, None, :] - blobs_xy[None, :, :], axis=2)
+    dist[~ok] = 1e6
+    cost = np.where(dist < gate_mm, dist**2, 1e6)
+    r, c = linear_sum_assignment(cost)
+    good = cost[r, c] < 1e6
+    out[r[good]] = c[good]
+    return out
+
+
+def refine(model: TubeModel, blobs_xy: list[np.ndarray], T_scanner_from_image: list[np.ndarray],
+           T_F_from_scanner: np.ndarray, *, gates_mm=(3.0, 1.5, 1.0, 1.0), iters_per_gate: int = 3,
+           final_iters: int = 4, damping: float = 1e-6) -> _Fit:
+    """Gauss-Newton on all six DOF of ``T_F_from_scanner`` with re-assignment.
+
+    ``blobs_xy``: per slice, detected centres in image mm (N_j, 2). Each gate
+    in ``gates_mm`` re-solves the blob-tube assignment, then iterates; the
+    final iterations keep the last assignment.
+    """
+    X = T_F_from_scanner.copy()
+    ads = [_adjoint(invert(S)) for S in T_scanner_from_image]
+    assign = [None] * len(blobs_xy)
+    schedule = [(g, iters_per_gate) for g in gates_mm] + [(None, final_iters)]
+    step = 1.0
+    for gate, iters in schedule:
+        changed = False
+        for it in range(iters):
+            if it == 1 and not changed and step < 1e-5:
+                break  # converged and the assignment did not change
+            Js, rs = [], []
+            for j, (xy, S) in enumerate(zip(blobs_xy, T_scanner_from_image)):
+                q, tan, _, inside = plane_crossings(model, X @ S, margin_mm=5.0 if gate is not None else 0.0)
+                if gate is not None and it == 0:
+                    new = _assign(q, inside, xy, gate)
+                    changed = changed or assign[j] is None or not np.array_equal(new, assign[j])
+                    assign[j] = new
+                a = assign[j]
+                k = np.flatnonzero((a >= 0) & inside)
+                if k.size == 0:
+                    continue
+                rs.append((q[k] - xy[a[k]]).ravel())
+                Js.append((_crossing_jacobian(q[k], tan[k]) @ ads[j]).reshape(-1, 6))
+            if not rs:
+                break
+            J = np.concatenate(Js)
+            r = np.concatenate(rs)
+            H = J.T @ J
+            H[np.diag_indices(6)] *= 1 + damping
+            H[np.diag_indices(6)] += 1e-9
+            try:
+                xi = -np.linalg.solve(H, J.T @ r)
+            except np.linalg.LinAlgError:
+                break
+            X = X @ _exp_se3(xi)
+            step = float(np.abs(xi).max())
+            if step < 1e-5:  # rad and mm: far below any error that matters
+                break
+        if step > 1e-2:  # still wandering after a whole gate: a hopeless guess, give up
+            break
+    # final bookkeeping
+    residuals, insides, total, sq = [], [], 0, 0.0
+    for j, (xy, S) in enumerate(zip(blobs_xy, T_scanner_from_image)):
+        q, _, _, inside = plane_crossings(model, X @ S)
+        a = assign[j] if assign[j] is not None else np.full(model.is_helix.size, -1)
+        a = np.where(inside, a, -1)
+        assign[j] = a
+        res = np.full(a.size, np.nan)
+        k = np.flatnonzero(a >= 0)
+        res[k] = np.linalg.norm(q[k] - xy[a[k]], axis=1)
+        residuals.append(res)
+        insides.append(inside)
+        total += k.size
+        sq += float(np.sum(res[k] ** 2))
+    rms = math.sqrt(sq / total) if total else float("inf")
+    return _Fit(X, assign, residuals, insides, total, rms)
+
+
+# --------------------------------------------------------------------------- public API
+
+
+@dataclass(frozen=True)
+class SliceResult:
+    """The registered pose of one slice relative to the fiducial.
+
+    ``residuals_mm`` and ``assignment`` are keyed by tube id (matched tubes
+    only); ``blobs_rc`` (N, 2) are all detected candidate centres (row, col),
+    ``predicted_rc`` {tube id: (row, col)} the model's crossings, ``ellipse``
+    the fitted ellipse of tube centres in image mm (or None).
+    """
+
+    source: str
+    depth_mm: float
+    tilt_deg: float
+    azimuth_deg: float
+    twist_deg: float
+    residual_rms_mm: float
+    residuals_mm: dict
+    n_tubes: int
+    assignment: dict
+    blobs_rc: np.ndarray = field(repr=False, default=None)
+    predicted_rc: dict = field(repr=False, default=None)
+    ellipse: Ellipse | None = field(repr=False, default=None)
+
+    def to_dict(self) -> dict:
+        return {
+            "source": self.source,
+            "depth_mm": round(self.depth_mm, 6),
+            "tilt_deg": round(self.tilt_deg, 6),
+            "azimuth_deg": round(self.azimuth_deg, 6),
+            "twist_deg": round(self.twist_deg, 6),
+            "residual_rms_mm": round(self.residual_rms_mm, 6),
+            "n_tubes": self.n_tubes,
+            "residuals_mm": {k: round(v, 6) for k, v in self.residuals_mm.items()},
+            "assignment": dict(self.assignment),
+        }
+
+
+@dataclass(frozen=True)
+class Registration:
+    """A trusted pose: ``T_scanner_from_fiducial`` (4x4, mm) and one :class:`SliceResult` per slice."""
+
+    status: str
+    T_scanner_from_fiducial: np.ndarray
+    slices: tuple[SliceResult, ...]
+    timing_ms: dict
+    geometry_name: str = ""
+    geometry_sha256: str = ""
+
+    def to_dict(self) -> dict:
+        """JSON-ready object, CONTRACT.md section 4 plus extra keys."""
+        return {
+            "status": self.status,
+            "T_scanner_from_fiducial": [[float(v) for v in row] for row in self.T_scanner_from_fiducial],
+            "slices": [s.to_dict() for s in self.slices],
+            "timing_ms": {k: round(v, 3) for k, v in self.timing_ms.items()},
+            "geometry": {"name": self.geometry_name, "sha256": self.geometry_sha256},
+        }
+
+
+@dataclass(frozen=True)
+class SolveOptions:
+    """Trust thresholds and search settings of :func:`register`.
+
+    ``max_rms_px``: largest accepted RMS residual, in pixels of each slice;
+    ``max_residual_px``: largest accepted single-tube residual; ``min_tubes``
+    and ``min_depth_tubes``: fewest matched tubes in all, and of tubes not
+    parallel to the axis (helices), needed for a lock; ``ambiguity_ratio``:
+    a distinct second pose matching as many tubes with an RMS within this
+    factor of the best makes the fit ambiguous (a pose that leaves a tube
+    unexplained loses: near-symmetric layouts always have one that fits all
+    but one tube).
+    """
+
+    max_rms_px: float = 0.5
+    max_residual_px: float = 1.5
+    min_tubes: int = 6
+    min_depth_tubes: int = 2
+    ambiguity_ratio: float = 3.0
+    max_hypotheses: int = 4
+    max_tilt_deg: float = 75.0
+
+
+def _pixel_mm(sl: Slice) -> float:
+    return float(max(sl.pixel_spacing_mm))
+
+
+def _to_xy_mm(blobs: Blobs, sl: Slice) -> np.ndarray:
+    rc = blobs.centres_rc
+    return np.stack([rc[:, 1] * sl.pixel_spacing_mm[1], rc[:, 0] * sl.pixel_spacing_mm[0]], axis=1)
+
+
+def _distinct(T1: np.ndarray, T2: np.ndarray, model: TubeModel) -> bool:
+    """Two fiducial poses differ by more than 1 mm at any tube end or by more than 1 degree."""
+    dR = T1[:3, :3].T @ T2[:3, :3]
+    ang = math.degrees(math.acos(min(1.0, max(-1.0, (np.trace(dR) - 1) / 2))))
+    L = model.length_mm
+    rmax = float(np.max(model.axis_radius_mm)) if model.axis_radius_mm.size else 0.0
+    pts = np.array([[rmax, 0, 0], [-rmax, 0, L], [0, rmax, L / 2], [0, 0, 0], [0, 0, L]])
+    a = pts @ T1[:3, :3].T + T1[:3, 3]
+    b = pts @ T2[:3, :3].T + T2[:3, 3]
+    return ang > 1.0 or float(np.max(np.linalg.norm(a - b, axis=1))) > 1.0
+
+
+def _solve_one(model: TubeModel, xy: np.ndarray, S: np.ndarray, opts: SolveOptions, pixel_mm: float):
+    """Refined hypotheses of one slice, best first, and the ellipse. Raises NoLock if there are none.
+
+    Every closed-form guess gets a short refinement; the best, and any
+    distinct rival as good as it, are then refined to convergence.
+    """
+    if xy.shape[0] < opts.min_tubes:
+        raise NoLock(f"found {xy.shape[0]} candidate tube cross-sections; need at least {opts.min_tubes}",
+                     {"n_candidates": int(xy.shape[0])})
+    ring = model.axis_radius_mm[model.axial | model.is_helix]
+    radius = float(np.median(ring)) if ring.size else float(np.median(model.axis_radius_mm))
+    ell_fit = fit_ellipse_robust(xy, radius, max_tilt_deg=opts.max_tilt_deg,
+                                 tol_mm=max(0.08 * radius, 1.5 * pixel_mm))
+    if ell_fit is None:
+        raise NoLock("no ellipse of tube centres matching the fiducial's radius was found",
+                     {"n_candidates": int(xy.shape[0])})
+    ell, inl = ell_fit
+    hyps = initial_hypotheses(model, xy[inl], ell, max_hypotheses=opts.max_hypotheses)
+    if not hyps:
+        raise NoLock("the detected centres do not match the geometry's tube pattern")
+    S_inv = invert(S)
+    gate = max(float(model.diameter_mm.max()), 2 * pixel_mm)
+    # rank the guesses by how many tubes they line up before refining any
+    scored = []
+    for T in hyps:
+        q, _, _, inside = plane_crossings(model, T, margin_mm=5.0)
+        scored.append((int((_assign(q, inside, xy, gate) >= 0).sum()), T @ S_inv))
+    scored.sort(key=lambda t: -t[0])
+
+    def full(X):
+        return refine(model, [xy], [S], X, gates_mm=(2 * gate, gate, 0.6 * gate), iters_per_gate=3,
+                      final_iters=3)
+
+    # refine in order until a fit explains at least as many tubes as any guess
+    # still untried lines up; those rivals are refined too (for the ambiguity check)
+    fits = []
+    for count, X in scored:
+        if fits and count < fits[0].n_matched and fits[0].rms_mm <= opts.max_rms_px * pixel_mm:
+            break
+        fits = _rank(fits + [full(X)])
+    return fits, ell
+
+
+def _rank(fits: list[_Fit]) -> list[_Fit]:
+    return sorted(fits, key=lambda f: (-f.n_matched, f.rms_mm))
+
+
+def _check_trust(fit: _Fit, others: list[_Fit], model: TubeModel, slices: list[Slice], opts: SolveOptions):
+    """Raise :class:`NoLock` unless ``fit`` is a trustworthy pose."""
+    n_depth = 0
+    for j, sl in enumerate(slices):
+        a = fit.assignments[j]
+        px = _pixel_mm(sl)
+        res = fit.residuals[j][a >= 0]
+        n_depth += int(np.sum((a >= 0) & model.depth_coding))
+        if res.size and math.sqrt(float(np.mean(res**2))) > opts.max_rms_px * px:
+            raise NoLock(
+                f"{sl.source}: residual RMS {math.sqrt(float(np.mean(res ** 2))):.3f} mm exceeds "
+                f"{opts.max_rms_px:g} px ({opts.max_rms_px * px:.3f} mm)",
+                {"residual_rms_mm": round(math.sqrt(float(np.mean(res**2))), 4)})
+        if res.size and res.max() > opts.max_residual_px * px:
+            raise NoLock(f"{sl.source}: a tube residual of {res.max():.3f} mm exceeds "
+                         f"{opts.max_residual_px:g} px", {"max_residual_mm": round(float(res.max()), 4)})
+        T_F_from_I = fit.T_F_from_scanner @ sl.T_scanner_from_image()
+        ang = slice_angles(T_F_from_I)
+        if not (0.0 <= ang.depth_mm <= model.length_mm):
+            raise NoLock(f"{sl.source}: the slice crosses the fiducial axis at depth {ang.depth_mm:.1f} mm, "
+                         f"outside the body [0, {model.length_mm:g}] mm",
+                         {"depth_mm": round(float(ang.depth_mm), 3)})
+    need_depth = min(opts.min_depth_tubes, int(model.depth_coding.sum()))
+    if fit.n_matched < opts.min_tubes or n_depth < need_depth:
+        raise NoLock(f"only {fit.n_matched} tubes matched ({n_depth} helical); need at least "
+                     f"{opts.min_tubes} with {need_depth} helical", {"n_tubes": fit.n_matched})
+    for other in others:
+        if (other.n_matched >= fit.n_matched and other.n_matched >= opts.min_tubes
+                and other.rms_mm <= opts.ambiguity_ratio * max(fit.rms_mm, 1e-3)
+                and _distinct(fit.T_F_from_scanner, other.T_F_from_scanner, model)):
+            raise NoLock(f"ambiguous fit: two distinct poses match {fit.n_matched} and {other.n_matched} "
+                         f"tubes with RMS {fit.rms_mm:.3f} and {other.rms_mm:.3f} mm",
+                         {"n_tubes": fit.n_matched})
+
+
+def register(slices: list[Slice], geom: FiducialGeometry, *, options: SolveOptions | None = None,
+             detect_options: dict | None = None) -> Registration:
+    """Register one or more slices of the fiducial: one ``T_scanner_from_fiducial`` from all.
+
+    Each slice is detected and solved on its own (every slice must lock),
+    then all correspondences are refined jointly. Raises :class:`NoLock`
+    with a reason when no trustworthy pose exists.
+    """
+    opts = options or SolveOptions()
+    if not slices:
+        raise NoLock("no slices given")
+    t0 = time.perf_counter()
+    model = TubeModel.from_geometry(geom)
+    d_mm = float(np.median(model.diameter_mm))
+    blob_sets, xys = [], []
+    for sl in slices:
+        b = detect_blobs(sl.pixels, sl.pixel_spacing_mm, d_mm, **(detect_options or {}))
+        blob_sets.append(b)
+        xys.append(_to_xy_mm(b, sl))
+    t1 = time.perf_counter()
+    Ss = [sl.T_scanner_from_image() for sl in slices]
+    per_slice = []
+    for sl, xy, S in zip(slices, xys, Ss):
+        try:
+            fits, ell = _solve_one(model, xy, S, opts, _pixel_mm(sl))
+            fits = _rank(fits)
+            _check_trust(fits[0], fits[1:], model, [sl], opts)
+        except NoLock as exc:
+            if len(slices) > 1:
+                raise NoLock(f"{sl.source}: {exc.reason}", exc.detail) from None
+            raise
+        per_slice.append((fits[0], ell))
+    if len(slices) == 1:
+        best = per_slice[0][0]
+    else:
+        start = min(per_slice, key=lambda fe: fe[0].rms_mm)[0].T_F_from_scanner
+        gate = max(model.diameter_mm.max(), 2 * max(_pixel_mm(s) for s in slices))
+        best = refine(model, xys, Ss, start, gates_mm=(gate, 0.6 * gate))
+        _check_trust(best, [], model, slices, opts)
+        if best.n_matched < sum(f.n_matched for f, _ in per_slice):
+            raise NoLock("the slices disagree: the joint pose matches fewer tubes than the slices alone",
+                         {"n_tubes": best.n_matched})
+    t2 = time.perf_counter()
+    T_sf = invert(best.T_F_from_scanner)
+    results = []
+    for j, (sl, S) in enumerate(zip(slices, Ss)):
+        T_F_from_I = best.T_F_from_scanner @ S
+        ang = slice_angles(T_F_from_I)
+        a = best.assignments[j]
+        q, _, _, inside = plane_crossings(model, T_F_from_I)
+        k = np.flatnonzero(a >= 0)
+        res = best.residuals[j]
+        px = sl.pixel_spacing_mm
+        results.append(SliceResult(
+            source=sl.source, depth_mm=float(ang.depth_mm), tilt_deg=float(ang.tilt_deg),
+            azimuth_deg=float(ang.azimuth_deg), twist_deg=float(ang.twist_deg),
+            residual_rms_mm=float(math.sqrt(np.mean(res[k] ** 2))),
+            residuals_mm={model.ids[i]: float(res[i]) for i in k},
+            n_tubes=int(k.size),
+            assignment={model.ids[i]: int(a[i]) for i in k},
+            blobs_rc=blob_sets[j].centres_rc,
+            predicted_rc={model.ids[i]: (float(q[i, 1] / px[0]), float(q[i, 0] / px[1]))
+                          for i in np.flatnonzero(inside)},
+            ellipse=per_slice[j][1],
+        ))
+    t3 = time.perf_counter()
+    timing = {"detect": (t1 - t0) * 1e3, "pose": (t2 - t1) * 1e3, "total": (t3 - t0) * 1e3}
+    return Registration("ok", T_sf, tuple(results), timing, geom.name, content_sha256(geom.content()))
