@@ -113,7 +113,49 @@ def _parser() -> argparse.ArgumentParser:
 
 
 def _run_solve(args) -> int:
-    raise ChicRegisterError("'solve' is not implemented yet")
+    from .geometry import load_geometry
+    from .solve import register
+
+    if args.overlay and not args.overlay.lower().endswith(".png"):
+        raise ChicRegisterError(f"--overlay {args.overlay}: the overlay is a PNG file (name it *.png)")
+    geom = load_geometry(args.geometry)
+    slices = _read_solve_inputs(args)
+    try:
+        reg = register(slices, geom)
+    except NoLock:
+        if args.overlay:
+            from .detect import detect_blobs
+            from .overlay import draw_overlay
+
+            d_mm = min(t.diameter for t in geom.tubes)
+            blobs = [detect_blobs(sl.pixels, sl.pixel_spacing_mm, d_mm) for sl in slices]
+            draw_overlay(args.overlay, slices, None, blobs)
+        raise
+    if args.overlay:
+        from .overlay import draw_overlay
+
+        draw_overlay(args.overlay, slices, reg)
+    notes = _write_outputs(args, reg.T_scanner_from_fiducial)
+    if args.json:
+        print(json.dumps(reg.to_dict(), indent=2))
+        for note in notes:
+            print(f"chic-register: {note}", file=sys.stderr)
+        return 0
+    t = reg.timing_ms
+    print(f"status: ok ({len(reg.slices)} slice{'s' if len(reg.slices) > 1 else ''} of '{geom.name}', "
+          f"{t['total']:.1f} ms: detect {t['detect']:.1f}, pose {t['pose']:.1f})")
+    print("T_scanner_from_fiducial (mm):")
+    for row in reg.T_scanner_from_fiducial:
+        print("  " + "  ".join(f"{v:11.5f}" for v in row))
+    for s in reg.slices:
+        print(f"{s.source}: depth {s.depth_mm:.3f} mm, tilt {s.tilt_deg:.3f}, azimuth {s.azimuth_deg:.3f}, "
+              f"twist {s.twist_deg:.3f} deg; residual RMS {s.residual_rms_mm:.3f} mm over {s.n_tubes} tubes")
+        print("  residuals (mm): " + ", ".join(f"{k} {v:.3f}" for k, v in s.residuals_mm.items()))
+    if args.overlay:
+        print(f"wrote {args.overlay}")
+    for note in notes:
+        print(note)
+    return 0
 
 
 def _run_simulate(args) -> int:
