@@ -126,14 +126,21 @@ def _render_crossing(tube, u_c: float, T_F_from_S: np.ndarray, z_mm: float, grid
     t = tube.tangents(u_c)[0] @ R
     r = 0.5 * tube.diameter
     length = tube.length_mm
-    # in-plane section: ellipse with semi-axes a (along the tangent's projection) and r
-    a = min(r / max(abs(t[2]), 1e-6), length + r)
+    # in-plane section: inside the ellipse (semi-axes a along the tangent's projection,
+    # and r) about the tangent line's crossing; c itself is off the plane when a line
+    # crossing was clipped to the tube's end
+    shift = (c[2] - z_mm) / t[2] if abs(t[2]) > 1e-9 else math.inf
+    if abs(shift) <= length:
+        centre = c - shift * t
+        a = min(r / max(abs(t[2]), 1e-6), length + r)
+    else:  # (nearly) parallel to the plane: a band along the segment
+        centre, a = c, length + r
     txy = math.hypot(t[0], t[1])
     ux, uy = (t[0] / txy, t[1] / txy) if txy > 1e-12 else (1.0, 0.0)
     margin = 2.0 * max(grid.spacing)
     hx = math.sqrt((a * ux) ** 2 + (r * uy) ** 2) + margin
     hy = math.sqrt((a * uy) ** 2 + (r * ux) ** 2) + margin
-    box = grid.box(c[0], c[1], hx, hy)
+    box = grid.box(centre[0], centre[1], hx, hy)
     if box is None:
         return
     i0, i1, j0, j1 = box

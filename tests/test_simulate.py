@@ -92,6 +92,26 @@ def test_a_tube_lying_in_the_plane_is_a_band(neuro_geometry, height_mm):
     assert (rows.min() + rows.max()) / 2 == pytest.approx(CENTER[0] + 10.0)
 
 
+def test_tilted_cut_through_the_end_face_matches_brute_force(neuro_geometry):
+    """A 70-degree plane meets D0's line 1 mm below its end and clips it: compare with dense point sampling."""
+    d0 = FiducialGeometry("d0", neuro_geometry.body, (neuro_geometry.tube("D0"),))
+    tilt = math.radians(70)
+    T = slice_frame(12.5 * math.tan(tilt) - 1.0, 70.0, 0.0, 0.0)
+    end_S = apply(invert(T), [12.5, 0.0, 0.0])  # D0's bottom end, put at the image centre
+    shape, cc = (64, 64), 31.5 - end_S[0] / 0.5
+    img = render_slice(d0, T, shape, (0.5, 0.5), 0.0, center_px=(31.5 - end_S[1] / 0.5, cc))
+    rc = 31.5 - end_S[1] / 0.5
+    n = 16  # n x n exact inside tests per pixel
+    sub = (np.arange(n) + 0.5) / n - 0.5
+    ii, jj, si, sj = np.meshgrid(np.arange(64), np.arange(64), sub, sub, indexing="ij")
+    pts = apply(T, np.stack([(jj + sj - cc).ravel() * 0.5, (ii + si - rc).ravel() * 0.5, 0 * ii.ravel()], axis=1))
+    inside = (np.hypot(pts[:, 0] - 12.5, pts[:, 1]) <= 1.5) & (pts[:, 2] >= 0) & (pts[:, 2] <= 50)
+    brute = inside.reshape(64, 64, n * n).mean(axis=2)
+    assert brute.sum() > 2.0 and brute[0].sum() == brute[-1].sum() == brute[:, 0].sum() == brute[:, -1].sum() == 0
+    assert np.abs(img - brute).max() < 0.08
+    assert img.sum() == pytest.approx(brute.sum(), rel=0.01)
+
+
 def test_slice_thickness_partial_volume_at_the_end_face(neuro_geometry):
     """A 2 mm slab centred on the bottom face holds fluid in its upper half only."""
     d0 = FiducialGeometry("d0", neuro_geometry.body, (neuro_geometry.tube("D0"),))
