@@ -82,3 +82,20 @@ def test_bad_address_is_rejected(text):
 def test_address_default_port():
     a = parse_address("10.0.0.5")
     assert (a.host, a.port) == ("10.0.0.5", 18944)
+
+
+def test_cli_solve_sends_the_pose(tmp_path, server, neuro_geometry, neuro_geometry_file, capsys):
+    import json
+
+    from chic_register.cli import main
+    from chic_register.simulate import simulate_slice, write_simulated
+
+    sim = simulate_slice(neuro_geometry, 20.0, 10.0, 45.0, 10.0, noise="rician", snr=25.0, rng=4)
+    img, _ = write_simulated(sim, tmp_path / "s.dcm")
+    rc = main(["solve", str(img), "--geometry", str(neuro_geometry_file), "--json",
+               "--igtl", f"{server.host}:{server.port}", "--igtl-name", "ROBOT"])
+    assert rc == 0
+    T = np.array(json.loads(capsys.readouterr().out)["T_scanner_from_fiducial"])
+    msg = server.wait_for_message("ROBOT", timeout=5.0)
+    assert msg is not None
+    np.testing.assert_allclose(msg.matrix, ras_matrix(T), atol=1e-3)

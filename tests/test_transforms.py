@@ -66,3 +66,22 @@ def test_tfm_of_a_registration_reads_back_equal(tmp_path, neuro_geometry):
     np.testing.assert_allclose(sitk_to_matrix(tx.GetInverse()), reg.T_scanner_from_fiducial, atol=1e-9)
     # and it is the fiducial's pose: the file maps the scanner position of the F origin back to 0
     np.testing.assert_allclose(tx.TransformPoint(tuple(reg.T_scanner_from_fiducial[:3, 3])), [0, 0, 0], atol=1e-9)
+
+
+def test_cli_solve_writes_tfm_equal_to_its_json(tmp_path, neuro_geometry, neuro_geometry_file, capsys):
+    import json
+
+    from chic_register.cli import main
+    from chic_register.simulate import simulate_slice, write_simulated
+
+    sim = simulate_slice(neuro_geometry, 30.0, 8.0, -20.0, 60.0, noise="rician", snr=25.0, rng=2,
+                         image_position=(-64.0, -64.0, 12.0))
+    img, _ = write_simulated(sim, tmp_path / "s.dcm")
+    tfm = tmp_path / "out" / "reg.tfm"
+    rc = main(["solve", str(img), "--geometry", str(neuro_geometry_file), "--json", "--tfm", str(tfm)])
+    assert rc == 0
+    T_json = np.array(json.loads(capsys.readouterr().out)["T_scanner_from_fiducial"])
+    tx = sitk.ReadTransform(str(tfm))
+    np.testing.assert_allclose(sitk_to_matrix(tx.GetInverse()), T_json, atol=1e-9)
+    assert main(["solve", str(img), "--geometry", str(neuro_geometry_file), "--tfm", str(tmp_path / "r.mat")]) == 2
+    assert "--tfm" in capsys.readouterr().err and not (tmp_path / "r.mat").exists()

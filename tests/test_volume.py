@@ -299,3 +299,19 @@ def test_cli_bad_inputs(tmp_path, neuro_geometry_file, capsys):
     assert "needs key 'T_scanner_from_fiducial' holding a rigid 4x4 matrix" in capsys.readouterr().err
     assert main(["solve", str(tmp_path / "v.nii"), "--geometry", g]) == 2
     assert "is a volume: pick the slices to register with --slices" in capsys.readouterr().err
+
+
+def test_cli_solve_volume_slices_jointly(tmp_path, neuro_geometry_file, sim_volume, capsys):
+    import json
+
+    from chic_register.cli import main
+
+    path = write_volume(sim_volume.volume, tmp_path / "vol.nii.gz")
+    rc = main(["solve", str(path), "--slices", "22", "30", "38", "--geometry", str(neuro_geometry_file), "--json"])
+    out = json.loads(capsys.readouterr().out)
+    assert rc == 0 and len(out["slices"]) == 3
+    assert out["slices"][1]["source"].endswith("[k=30]")
+    d_mm, ang = _pose_difference(np.array(out["T_scanner_from_fiducial"]), T_TRUE)
+    assert d_mm < 0.5 and ang < 0.5
+    assert main(["solve", str(path), "--slices", "99", "--geometry", str(neuro_geometry_file)]) == 2
+    assert "slice index 99 is outside 0..59" in capsys.readouterr().err
