@@ -1,18 +1,23 @@
 """``chic-design build``: from a spec to a checked export folder, written atomically.
 
-Order: validate the spec (before any CAD work) -> feasibility -> geometry ->
-CAD -> export into a temporary folder inside ``out_root`` -> verify the files
--> preview -> report -> replace ``out_root/<name>`` in one rename. On any
+Order: validate the spec (before any CAD work) -> feasibility (refuse an
+infeasible design unless forced) -> geometry -> CAD -> export into a temporary
+folder inside ``out_root`` -> verify the files -> pictures -> report -> replace
+``out_root/<name>`` in one rename. The pictures (preview, tilt plot) need only
+the geometry and are drawn in a worker process while the CAD work runs. On any
 failure the temporary folder is removed and an earlier export is left as it was.
 """
 
 from __future__ import annotations
 
+import json
+import multiprocessing
 import os
 import shutil
 import sys
 import tempfile
 import time
+from concurrent.futures import ProcessPoolExecutor
 from contextlib import contextmanager
 from dataclasses import dataclass, field
 from pathlib import Path
@@ -22,9 +27,10 @@ from build123d import Mesher, export_step
 from chic_register.geometry import write_geometry
 
 from .cad import FiducialParts, build_parts
-from .errors import SpecError
+from .errors import InfeasibleDesign, SpecError
+from .feasibility import check_design
 from .layout import fiducial_geometry
-from .preview import render_preview
+from .preview import render_pictures
 from .report import build_report
 from .spec import Spec, load_spec, spec_sha256
 from .verify import STL_ANGULAR_TOLERANCE_RAD, STL_TOLERANCE_MM, VerifyResult, verify_export
@@ -41,12 +47,12 @@ class BuildResult:
     checks: VerifyResult
     timings: dict[str, float] = field(default_factory=dict)
     feasible: bool | None = None
+    wall_s: float = 0.0
 
     def summary_text(self) -> str:
         n = len(self.checks.checks)
-        total = sum(self.timings.values())
         lines = [
-            f"built {self.folder} in {total:.1f} s: {n}/{n} output checks passed",
+            f"built {self.folder} in {self.wall_s:.1f} s: {n}/{n} output checks passed",
             "files: " + ", ".join(sorted(p.name for p in self.folder.iterdir())),
         ]
         if self.feasible is False:
@@ -141,52 +147,82 @@ def _replace_folder(tmp: Path, final: Path) -> None:
         shutil.rmtree(old, ignore_errors=True)
 
 
-def build_design(spec_path, out_root="exports", force: bool = False, progress: bool = True) -> BuildResult:
+def _start_pictures(geometry, feasibility_report, folder: Path, in_worker: bool):
+    """Start drawing the pictures; returns ``(executor or None, collect)``, ``collect() -> times``.
+
+    The pictures need only the geometry objects, so by default they are drawn
+    by :func:`render_pictures` in a worker process (the second core) while this
+    process does the CAD work. ``in_worker=False`` draws them here, when
+    collected.
+    """
+    if not in_worker:
+        return None, lambda: render_pictures(geometry, feasibility_report, folder)
+    executor = ProcessPoolExecutor(max_workers=1, mp_context=multiprocessing.get_context("spawn"))
+    future = executor.submit(render_pictures, geometry, feasibility_report, folder)
+    return executor, future.result
+
+
+def build_design(spec_path, out_root="exports", force: bool = False, progress: bool = True,
+                 pictures_in_worker: bool = True) -> BuildResult:
     """Build the design in ``spec_path`` into ``out_root/<name>/`` and check the files.
 
     Raises :class:`~chic_design.errors.SpecError` (bad spec, before any CAD work),
     :class:`~chic_design.errors.InfeasibleDesign` (unless ``force``) or
     :class:`~chic_design.errors.BuildCheckError` (an output check failed); in
-    every failure ``out_root/<name>`` is left as it was.
+    every failure ``out_root/<name>`` is left as it was. ``pictures_in_worker``
+    renders the preview and tilt plot in a second process, in parallel.
     """
+    t_start = time.perf_counter()
     steps = _Steps(progress, total=9)
     with steps.step("spec"):
         spec = load_spec(spec_path)
         check_cap_fit(spec, spec_path)
-    feasible = None
-    feasibility_md = None
+    with steps.step("feasibility"):
+        feasibility = check_design(spec)
+        if not feasibility.feasible and not force:
+            raise InfeasibleDesign(spec_path, feasibility.violations)
     with steps.step("geometry"):
         source = {"spec": str(spec_path), "spec_sha256": spec_sha256(spec_path)}
         geometry = fiducial_geometry(spec, source=source)
-    with steps.step("CAD model"):
-        parts = build_parts(spec, geometry)
-        volumes = {name: float(p.volume) for name, p in parts.items()}
     out_root = Path(out_root)
     out_root.mkdir(parents=True, exist_ok=True)
     final = out_root / spec.name
     tmp = Path(tempfile.mkdtemp(prefix=TMP_PREFIX.format(name=spec.name), dir=out_root))
+    executor = None
     try:
+        executor, collect_pictures = _start_pictures(geometry, feasibility, tmp, pictures_in_worker)
+        with steps.step("CAD model"):
+            parts = build_parts(spec, geometry)
+            volumes = {name: float(p.volume) for name, p in parts.items()}
         with steps.step("export STL/STEP/3MF"):
             write_geometry(geometry, tmp / "geometry.yaml")
             files = export_parts(parts, tmp, spec.name) + ["geometry.yaml"]
+            (tmp / "feasibility.json").write_text(json.dumps(feasibility.to_dict(), indent=2), encoding="utf-8")
+            files.append("feasibility.json")
         with steps.step("verify outputs"):
             overlaps = {cap: _overlap_mm3(parts.body, getattr(parts, cap)) for cap in ("cap_top", "cap_bottom")}
             checks = verify_export(tmp, volumes, overlaps)
-        with steps.step("preview"):
-            import trimesh
-
-            mesh = trimesh.load_mesh(tmp / "body.stl", file_type="stl")
-            render_preview(geometry, mesh.vertices, mesh.faces, tmp / "preview.png")
-            files.append("preview.png")
+        with steps.step("preview and tilt plot"):
+            picture_times = collect_pictures()
+            files += ["preview.png", "tilt_limits.png"]
         with steps.step("report"):
             files.append("report.md")
-            text = build_report(spec, spec_path, geometry, volumes, checks, feasibility_md,
-                                dict(steps.timings), files)
+            timings = {**steps.timings, **{f"{k} (parallel)": v for k, v in picture_times.items()}}
+            text = build_report(spec, spec_path, geometry, volumes, checks, feasibility.markdown(),
+                                timings, files)
             (tmp / "report.md").write_text(text, encoding="utf-8")
         with steps.step("replace export folder"):
             _default_permissions(tmp)
             _replace_folder(tmp, final)
     except BaseException:
+        if executor is not None:
+            executor.shutdown(wait=True, cancel_futures=True)  # no writes into tmp after this
+            executor = None
         shutil.rmtree(tmp, ignore_errors=True)
         raise
-    return BuildResult(final.resolve(), checks, dict(steps.timings), feasible)
+    finally:
+        if executor is not None:
+            executor.shutdown(wait=True)
+    timings = {**steps.timings, **{f"{k} (parallel)": v for k, v in picture_times.items()}}
+    return BuildResult(final.resolve(), checks, timings, feasibility.feasible,
+                       wall_s=time.perf_counter() - t_start)

@@ -1,13 +1,18 @@
-"""An off-screen picture of the fiducial, after the paper's Fig. 1.
+"""The build's pictures: an off-screen 3-D preview after the paper's Fig. 1, and the tilt plot.
 
-Semi-transparent body with each channel drawn as a coloured tube along its
-centreline (red: diametric, blue: helices, green: orientation), each labelled
-with its id at its top end.
+The preview shows the body's envelope (the annulus ``inner..outer diameter``,
+``z = 0..length``) semi-transparent, and each channel as a coloured tube of
+its diameter along its centreline (red: diametric, blue: helices, green:
+orientation), labelled with its id at its top end. It is drawn from the
+geometry objects alone, so it can be rendered in a separate process while the
+CAD model is built (:func:`render_pictures`); this module does not import the
+CAD kernel.
 """
 
 from __future__ import annotations
 
 import os
+import time
 from pathlib import Path
 
 import numpy as np
@@ -17,46 +22,29 @@ from chic_register.geometry import FiducialGeometry
 ROLE_COLOURS = {"diametric": "red", "helix": "blue", "orientation": "green", "other": "orange"}
 
 
-def _centreline_polydata(tube, n: int = 200):
-    import pyvista as pv
-
-    pts = tube.points(np.linspace(0.0, 1.0, n))
-    return pv.lines_from_points(pts)
-
-
-def render_preview(geometry: FiducialGeometry, body_vertices, body_faces, png_path,
-                   window_size: tuple[int, int] = (1000, 800)) -> Path:
-    """Render the body mesh and the channel centrelines to ``png_path`` (off-screen).
-
-    Args:
-        geometry: tube centrelines (frame F).
-        body_vertices: body mesh vertices, shape (V, 3), mm.
-        body_faces: body mesh triangles, shape (F, 3), vertex indices.
-        png_path: output picture; written via a temporary file, then renamed.
-    """
+def render_preview(geometry: FiducialGeometry, png_path, window_size: tuple[int, int] = (1000, 800)) -> Path:
+    """Render the fiducial to ``png_path`` off-screen (temporary file, then rename)."""
     import pyvista as pv
     import vtk
 
     vtk.vtkObject.GlobalWarningDisplayOff()  # no "bad X server connection" noise off-screen
     png_path = Path(png_path)
-    faces = np.asarray(body_faces, dtype=np.int64)
-    cells = np.hstack([np.full((len(faces), 1), 3, dtype=np.int64), faces]).ravel()
-    body = pv.PolyData(np.asarray(body_vertices, dtype=float), cells)
+    b = geometry.body
+    body = pv.Disc(inner=b.inner_diameter / 2, outer=b.outer_diameter / 2, r_res=1, c_res=120)
+    body = body.extrude((0.0, 0.0, b.length), capping=True)
 
     plotter = pv.Plotter(off_screen=True, window_size=list(window_size))
     plotter.set_background("white")
     plotter.add_mesh(body, color="lightgrey", opacity=0.25)
     labels, label_pts = [], []
     for tube in geometry.tubes:
-        line = _centreline_polydata(tube)
-        plotter.add_mesh(line.tube(radius=tube.diameter / 2, n_sides=16, capping=True),
-                         color=ROLE_COLOURS.get(tube.role, "orange"), smooth_shading=True)
-        top = tube.points([1.0])[0] if tube.points([1.0])[0, 2] >= tube.points([0.0])[0, 2] else tube.points([0.0])[0]
+        pts = tube.points(np.linspace(0.0, 1.0, 120))
+        plotter.add_mesh(pv.lines_from_points(pts).tube(radius=tube.diameter / 2, n_sides=16, capping=True),
+                         color=ROLE_COLOURS.get(tube.role, "orange"))
         labels.append(tube.id)
-        label_pts.append(top + np.array([0.0, 0.0, 2.0]))
+        label_pts.append(pts[np.argmax(pts[:, 2])] + np.array([0.0, 0.0, 2.0]))
     plotter.add_point_labels(np.array(label_pts), labels, font_size=18, point_size=1,
                              shape_opacity=0.6, always_visible=True)
-    b = geometry.body
     plotter.add_text(
         f"{geometry.name}: L {b.length:g}, OD {b.outer_diameter:g}, ID {b.inner_diameter:g} mm\n"
         "red: diametric  blue: helix  green: orientation",
@@ -74,3 +62,22 @@ def render_preview(geometry: FiducialGeometry, body_vertices, body_faces, png_pa
         plotter.close()
         tmp.unlink(missing_ok=True)
     return png_path
+
+
+def render_pictures(geometry: FiducialGeometry, feasibility_report, folder) -> dict[str, float]:
+    """``preview.png`` and (if a report is given) ``tilt_limits.png`` in ``folder``; wall times (s).
+
+    The build runs this in a worker process, in parallel with the CAD work.
+    """
+    folder = Path(folder)
+    times = {}
+    t0 = time.perf_counter()
+    render_preview(geometry, folder / "preview.png")
+    times["preview"] = time.perf_counter() - t0
+    if feasibility_report is not None:
+        from .feasibility import save_tilt_plot
+
+        t0 = time.perf_counter()
+        save_tilt_plot(feasibility_report, folder / "tilt_limits.png")
+        times["tilt plot"] = time.perf_counter() - t0
+    return times

@@ -138,14 +138,15 @@ def build_report(spec, spec_path, geometry: FiducialGeometry, part_volumes_mm3: 
     out += [
         "",
         "`assembly.step` holds the three labelled parts in their assembled positions; "
-        "`geometry.yaml` is what the registration solver reads; `preview.png` shows the channels.",
+        "`geometry.yaml` is what the registration solver reads; `preview.png` shows the channels; "
+        "`feasibility.json` is the feasibility report (as `chic-design check --json`).",
+        "",
+        "![preview](preview.png)",
         "",
         "## Filling and closing",
         "",
         FILLING_PROCEDURE.format(clearance=dims.clearance, port=dims.port_diameter),
-        "## Feasibility",
-        "",
-        feasibility_markdown.strip() if feasibility_markdown else "(no feasibility report)",
+        feasibility_markdown.strip() if feasibility_markdown else "## Feasibility\n\n(not checked)",
         "",
         "## Output checks",
         "",

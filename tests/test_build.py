@@ -1,20 +1,24 @@
 """Full build of designs/neuro.yaml: every output file, the output checks, and atomic writing."""
 
 import hashlib
+import json
 import math
 import shutil
+from dataclasses import replace
 from pathlib import Path
 
 import numpy as np
 import pytest
 import trimesh
 from build123d import Mesher
+from PIL import Image
 
 import chic_design.build as build_mod
 from chic_design.build import _replace_folder, _Steps, build_design
 from chic_design.cad import build_parts
 from chic_design.cli import main
-from chic_design.errors import BuildCheckError, SpecError
+from chic_design.errors import BuildCheckError, InfeasibleDesign, SpecError
+from chic_design.feasibility import Finding
 from chic_design.layout import fiducial_geometry
 from chic_design.spec import load_spec, spec_sha256
 from chic_design.verify import (
@@ -31,7 +35,8 @@ from .conftest import NEURO
 pytestmark = pytest.mark.slow
 
 PART_FILES = [f"{p}.{e}" for p in ("body", "cap_top", "cap_bottom") for e in ("stl", "step", "3mf")]
-ALL_FILES = PART_FILES + ["assembly.step", "geometry.yaml", "preview.png", "report.md"]
+ALL_FILES = PART_FILES + ["assembly.step", "geometry.yaml", "preview.png", "report.md",
+                          "tilt_limits.png", "feasibility.json"]
 
 
 @pytest.fixture(scope="module")
@@ -102,6 +107,49 @@ def test_assembly_step_has_labelled_parts(built):
     text = (result.folder / "assembly.step").read_text(errors="replace")
     for name in ("neuro", "body", "cap_top", "cap_bottom"):
         assert f"PRODUCT('{name}'" in text
+
+
+def test_preview_shows_the_coloured_channels(built):
+    _, result, _ = built
+    img = np.asarray(Image.open(result.folder / "preview.png").convert("RGB")).astype(int)
+    assert img.shape == (800, 1000, 3)
+    r, g, b = img[..., 0], img[..., 1], img[..., 2]
+    assert ((r > 150) & (g < 80) & (b < 80)).sum() > 500  # red diametric tubes
+    assert ((b > 100) & (r < 60) & (g < 60)).sum() > 500  # blue helices
+    assert ((g > 90) & (r < 60) & (b < 60)).sum() > 200  # green orientation tubes
+
+
+def test_feasibility_is_in_the_export(built):
+    _, result, _ = built
+    data = json.loads((result.folder / "feasibility.json").read_text())
+    assert data["feasible"] is True and data["tilt_limits"]
+    assert result.feasible is True
+    text = (result.folder / "report.md").read_text()
+    assert "## Feasibility" in text and "tilt_limits.png" in text
+    assert Image.open(result.folder / "tilt_limits.png").size[0] > 200
+
+
+def test_infeasible_design_is_refused_before_cad_unless_forced(tmp_path, monkeypatch):
+    real = build_mod.check_design
+
+    def with_violation(spec, **kwargs):
+        report = real(spec, **kwargs)
+        return replace(report, violations=(Finding("wall_too_thin", "0.5 mm wall", "D0"),))
+
+    def no_cad(*args, **kwargs):
+        raise AssertionError("CAD work started for an infeasible design")
+
+    monkeypatch.setattr(build_mod, "check_design", with_violation)
+    monkeypatch.setattr(build_mod, "build_parts", no_cad)
+    out = tmp_path / "exports"
+    with pytest.raises(InfeasibleDesign, match="wall_too_thin") as err:
+        build_design(NEURO, out_root=out, progress=False)
+    assert err.value.exit_code == 4
+    assert not out.exists() or not any(out.iterdir())
+    assert main(["build", str(NEURO), "--out", str(out), "--quiet"]) == 4
+    with pytest.raises(AssertionError, match="CAD work started"):  # --force goes on to the CAD
+        build_design(NEURO, out_root=out, force=True, progress=False, pictures_in_worker=False)
+    assert not any(out.iterdir())
 
 
 def test_report_has_volumes_and_filling(built):
@@ -187,12 +235,15 @@ def test_failed_build_leaves_earlier_export_untouched(built, tmp_path, monkeypat
     shutil.copytree(built[1].folder, out / "neuro")  # an earlier good export
     before = _tree_digest(out / "neuro")
 
-    def broken_preview(*args, **kwargs):
-        raise RuntimeError("renderer crashed")
+    real_export = build_mod.export_parts
 
-    monkeypatch.setattr(build_mod, "render_preview", broken_preview)
-    with pytest.raises(RuntimeError, match="renderer crashed"):
-        build_design(NEURO, out_root=out, progress=False)
+    def export_then_crash(parts, folder, name):
+        real_export(parts, folder, name)  # the new files are all written in the temporary folder
+        raise OSError("disk full")
+
+    monkeypatch.setattr(build_mod, "export_parts", export_then_crash)
+    with pytest.raises(OSError, match="disk full"):
+        build_design(NEURO, out_root=out, progress=False, pictures_in_worker=False)
     assert _tree_digest(out / "neuro") == before
     assert sorted(p.name for p in out.iterdir()) == ["neuro"], "temporary folder left behind"
 
@@ -205,7 +256,7 @@ def test_failed_output_check_leaves_earlier_export_untouched(built, tmp_path, mo
     monkeypatch.setattr(build_mod, "STL_TOLERANCE_MM", 0.5)  # far too coarse a tessellation
     monkeypatch.setattr(build_mod, "STL_ANGULAR_TOLERANCE_RAD", 0.8)
     with pytest.raises(BuildCheckError, match="volume matches CAD"):
-        build_design(NEURO, out_root=out, progress=False)
+        build_design(NEURO, out_root=out, progress=False, pictures_in_worker=False)
     assert _tree_digest(out / "neuro") == before
     assert sorted(p.name for p in out.iterdir()) == ["neuro"]
 
