@@ -112,6 +112,36 @@ def test_tilted_cut_through_the_end_face_matches_brute_force(neuro_geometry):
     assert img.sum() == pytest.approx(brute.sum(), rel=0.01)
 
 
+def test_steep_helix_section_matches_exact_distance_sampling(neuro_geometry):
+    """At tilt 60 a helix section is curved (its centroid leaves the crossing by ~0.1 px): the
+    rendering must follow the exact distance to the helix, not only the tangent line."""
+    from scipy.spatial import cKDTree
+
+    tube = neuro_geometry.tube("H1")
+    T = slice_frame(20.0, 60.0, 40.0, 0.0)
+    C = (47.5, 47.5)
+    img = render_slice(FiducialGeometry("h", neuro_geometry.body, (tube,)), T, (96, 96), (0.5, 0.5), 0.0, center_px=C)
+    z_c = tube.intersect_plane(T[:3, 3], T[:3, 2])[0, 2]
+    zs = np.linspace(z_c - 12, z_c + 12, 24001)
+    tree = cKDTree(tube.point_at_z(zs))
+    n = 8
+    sub = (np.arange(n) + 0.5) / n - 0.5
+    rows, cols = np.nonzero(ndimage.binary_dilation(img > 0, iterations=3))
+    ii, si, sj = rows[:, None, None] + sub[:, None], sub[:, None], sub[None, :]
+    ys = np.broadcast_to(ii + 0 * sj, (len(rows), n, n))
+    xs = np.broadcast_to(cols[:, None, None] + sj + 0 * si, (len(rows), n, n))
+    pts = apply(T, np.stack([(xs - C[1]).ravel() * 0.5, (ys - C[0]).ravel() * 0.5, 0 * xs.ravel()], axis=1))
+    inside = tree.query(pts, distance_upper_bound=2.0)[0] <= 1.5
+    brute = np.zeros_like(img)
+    brute[rows, cols] = inside.reshape(len(rows), n * n).mean(axis=1)
+    c_img, c_brute = ndimage.center_of_mass(img), ndimage.center_of_mass(brute)
+    crossing = crossings_px(FiducialGeometry("h", neuro_geometry.body, (tube,)), T, (0.5, 0.5), C)["H1"][0]
+    assert np.hypot(*np.subtract(c_brute, crossing)) > 0.05  # the curvature shows
+    assert np.hypot(*np.subtract(c_img, c_brute)) < 0.01
+    assert img.sum() == pytest.approx(brute.sum(), rel=2e-3)
+    assert np.abs(img - brute).max() < 0.06
+
+
 def test_slice_thickness_partial_volume_at_the_end_face(neuro_geometry):
     """A 2 mm slab centred on the bottom face holds fluid in its upper half only."""
     d0 = FiducialGeometry("d0", neuro_geometry.body, (neuro_geometry.tube("D0"),))
