@@ -253,6 +253,7 @@ class Ellipse:
 
 def _conic_to_ellipse(coef: np.ndarray):
     """Conic coefficients (S, 6) [A, B, C, D, E, F] -> (centre (S,2), a, b, phi, valid)."""
+    coef = coef * np.where(coef[:, 0] + coef[:, 2] < 0, -1.0, 1.0)[:, None]  # positive-definite form
     A, B, C, D, E, F = coef.T
     det = 4 * A * C - B * B
     valid = det > 1e-15
@@ -531,12 +532,13 @@ def _assign(pred: np.ndarray, ok: np.ndarray, blobs_xy: np.ndarray, gate_mm: flo
 
 def refine(model: TubeModel, blobs_xy: list[np.ndarray], T_scanner_from_image: list[np.ndarray],
            T_F_from_scanner: np.ndarray, *, gates_mm=(3.0, 1.5, 1.0, 1.0), iters_per_gate: int = 3,
-           final_iters: int = 4, damping: float = 1e-6) -> _Fit:
+           final_iters: int = 4, damping: float = 1e-6, exclude: list | None = None) -> _Fit:
     """Gauss-Newton on all six DOF of ``T_F_from_scanner`` with re-assignment.
 
     ``blobs_xy``: per slice, detected centres in image mm (N_j, 2). Each gate
     in ``gates_mm`` re-solves the blob-tube assignment, then iterates; the
-    final iterations keep the last assignment.
+    final iterations keep the last assignment. ``exclude``: per slice, a
+    (K,) bool mask of tubes left unassigned (rejected outliers).
     """
     X = T_F_from_scanner.copy()
     ads = [_adjoint(invert(S)) for S in T_scanner_from_image]
@@ -552,7 +554,7 @@ def refine(model: TubeModel, blobs_xy: list[np.ndarray], T_scanner_from_image: l
             for j, (xy, S) in enumerate(zip(blobs_xy, T_scanner_from_image)):
                 q, tan, _, inside = plane_crossings(model, X @ S, margin_mm=5.0 if gate is not None else 0.0)
                 if gate is not None and it == 0:
-                    new = _assign(q, inside, xy, gate)
+                    new = _assign(q, inside & ~exclude[j] if exclude else inside, xy, gate)
                     changed = changed or assign[j] is None or not np.array_equal(new, assign[j])
                     assign[j] = new
                 a = assign[j]
@@ -742,7 +744,35 @@ def _solve_one(model: TubeModel, xy: np.ndarray, S: np.ndarray, opts: SolveOptio
         if fits and count < fits[0].n_matched and fits[0].rms_mm <= opts.max_rms_px * pixel_mm:
             break
         fits = _rank(fits + [full(X)])
+    fits[0] = _reject_outliers(model, [xy], [S], fits[0], [pixel_mm], opts)
     return fits, ell
+
+
+def _reject_outliers(model: TubeModel, xys, Ss, fit: _Fit, px_mm: list[float], opts: SolveOptions) -> _Fit:
+    """Drop the worst-fitting tube while it stands out, and refit (fixed by the remaining tubes).
+
+    A tube is dropped when its residual exceeds ``max_rms_px`` pixels and
+    three times the median residual (two touching tubes, a bubble, a blob
+    merged with anatomy); never below ``min_tubes`` / ``min_depth_tubes``.
+    """
+    K = len(model.ids)
+    excl = [np.zeros(K, bool) for _ in xys]
+    gate = max(float(model.diameter_mm.max()), 2 * max(px_mm))
+    for _ in range(max(0, fit.n_matched - opts.min_tubes)):
+        res = [np.where(np.isfinite(r), r / px, -1.0) for r, px in zip(fit.residuals, px_mm)]
+        allres = np.concatenate([r[np.isfinite(r)] for r in fit.residuals])
+        j = int(np.argmax([r.max() for r in res]))
+        k = int(np.argmax(res[j]))
+        worst_mm = fit.residuals[j][k]
+        if res[j][k] <= opts.max_rms_px or worst_mm <= 3 * float(np.median(allres)):
+            break
+        n_depth = sum(int(np.sum((a >= 0) & model.depth_coding)) for a in fit.assignments)
+        if model.depth_coding[k] and n_depth <= opts.min_depth_tubes:
+            break
+        excl[j][k] = True
+        fit = refine(model, xys, Ss, fit.T_F_from_scanner, gates_mm=(0.6 * gate,), iters_per_gate=4,
+                     final_iters=2, exclude=excl)
+    return fit
 
 
 def _rank(fits: list[_Fit]) -> list[_Fit]:
@@ -778,6 +808,7 @@ def _check_trust(fit: _Fit, others: list[_Fit], model: TubeModel, slices: list[S
     for other in others:
         if (other.n_matched >= fit.n_matched and other.n_matched >= opts.min_tubes
                 and other.rms_mm <= opts.ambiguity_ratio * max(fit.rms_mm, 1e-3)
+                and other.rms_mm <= opts.max_rms_px * min(_pixel_mm(sl) for sl in slices)
                 and _distinct(fit.T_F_from_scanner, other.T_F_from_scanner, model)):
             raise NoLock(f"ambiguous fit: two distinct poses match {fit.n_matched} and {other.n_matched} "
                          f"tubes with RMS {fit.rms_mm:.3f} and {other.rms_mm:.3f} mm",
