@@ -150,6 +150,17 @@ def _scan(folder: Path) -> dict[str, tuple]:
     return out
 
 
+def _warm_up() -> None:
+    """Import the image readers now, so the first file's latency does not include loading them."""
+    import importlib
+
+    for name in ("pydicom", "pydicom.pixels", "PIL.Image", "PIL.PngImagePlugin", "tifffile"):
+        try:
+            importlib.import_module(name)
+        except ImportError:
+            pass
+
+
 def _default_event(event: TrackEvent) -> None:
     print(event.text(), flush=True)
 
@@ -205,6 +216,7 @@ def track(
 
         sender = IgtlSender(igtl, name=igtl_name)
 
+    _warm_up()
     start = time.monotonic()
     done: dict[str, tuple] = {} if include_existing else _scan(folder)
     pending: dict[str, _Pending] = {}
