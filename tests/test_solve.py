@@ -1,0 +1,264 @@
+"""The pose solver: model predictions, ellipse fit, simulate -> register round trips, trust, the CLI."""
+
+import json
+import math
+
+import numpy as np
+import pytest
+
+from chic_register.cli import main
+from chic_register.errors import NoLock
+from chic_register.geometry import write_geometry
+from chic_register.pose import apply, invert, rigid, slice_angles, slice_frame, wrap_deg
+from chic_register.simulate import simulate_slice
+from chic_register.solve import (
+    Ellipse, TubeModel, _crossing_jacobian, _exp_se3, fit_ellipse_robust, plane_crossings, register,
+)
+
+# ----------------------------------------------------------------------------- model
+
+
+@pytest.mark.parametrize("pose", [(25, 0, 0, 0), (12, 35, 60, -20), (38, 55, 200, 75)])
+def test_plane_crossings_match_the_geometry_objects(neuro_geometry, pose):
+    T = slice_frame(*pose)
+    model = TubeModel.from_geometry(neuro_geometry)
+    xy, tan, z, inside = plane_crossings(model, T)
+    ref = neuro_geometry.intersect_plane(T[:3, 3], T[:3, 2])
+    for k, tid in enumerate(model.ids):
+        pts = ref[tid]
+        if len(pts) == 0:
+            assert not inside[k]
+            continue
+        p_img = apply(invert(T), pts)
+        j = int(np.argmin(np.linalg.norm(p_img[:, :2] - xy[k], axis=1)))
+        assert np.allclose(p_img[j, :2], xy[k], atol=1e-7)
+        assert abs(p_img[j, 2]) < 1e-9
+        assert z[k] == pytest.approx(pts[j, 2], abs=1e-7)
+        assert np.linalg.norm(tan[k]) == pytest.approx(1.0)
+
+
+def test_crossing_jacobian_matches_finite_differences(neuro_geometry):
+    model = TubeModel.from_geometry(neuro_geometry)
+    T = slice_frame(20, 25, 30, 10)
+    xy, tan, _, _ = plane_crossings(model, T)
+    J = _crossing_jacobian(xy, tan)
+    h = 1e-6
+    for i in range(6):
+        xi = np.zeros(6)
+        xi[i] = h
+        xp, *_ = plane_crossings(model, T @ _exp_se3(xi))
+        xm, *_ = plane_crossings(model, T @ _exp_se3(-xi))
+        assert np.allclose((xp - xm) / (2 * h), J[:, :, i], atol=1e-5)
+
+
+def test_robust_ellipse_fit_recovers_axes_and_rejects_outliers():
+    truth = Ellipse(np.array([40.0, 60.0]), 12.5 / math.cos(math.radians(35)), 12.5, math.radians(20))
+    pts = truth.points(10)[:-1]
+    outliers = np.array([[40.0, 60.0], [70.0, 20.0], [52.0, 60.0]])
+    ell, inl = fit_ellipse_robust(np.vstack([pts, outliers]), 12.5, tol_mm=0.5)
+    assert inl.tolist() == [True] * 9 + [False] * 3
+    assert ell.a == pytest.approx(truth.a, abs=1e-6) and ell.b == pytest.approx(12.5, abs=1e-6)
+    assert np.allclose(ell.centre, truth.centre, atol=1e-6)
+    assert math.isclose(math.cos(2 * (ell.phi - truth.phi)), 1.0, abs_tol=1e-9)  # axis angle mod 180 deg
+
+
+# ----------------------------------------------------------------------------- round trips
+
+
+def _check(reg, sim, depth_tol=0.1, angle_tol=0.3, point_tol=0.3):
+    s = reg.slices[0]
+    t = sim.truth.angles
+    assert reg.status == "ok"
+    assert s.depth_mm == pytest.approx(t.depth_mm, abs=depth_tol)
+    # near a normal section only the helices see the tilt (the straight tubes barely move): looser
+    assert s.tilt_deg == pytest.approx(t.tilt_deg, abs=angle_tol if t.tilt_deg > 10 else 2 * angle_tol)
+    assert abs(wrap_deg(s.twist_deg - t.twist_deg)) < angle_tol
+    if t.tilt_deg > 5:
+        assert abs(wrap_deg(s.azimuth_deg - t.azimuth_deg)) < 2 * angle_tol
+    # the whole transform: fiducial points land where the truth puts them
+    pts = np.array([[0, 0, 0], [0, 0, 50], [12.5, 0, 25], [0, -12.5, 10]], float)
+    d = apply(reg.T_scanner_from_fiducial, pts) - apply(sim.truth.T_scanner_from_fiducial, pts)
+    assert np.abs(d).max() < point_tol
+
+
+NEURO_POSES = [(25, 0, 0, 0), (10, 30, 45, 20), (40, 20, 200, -70), (25, 50, 120, 10), (30, 0, 0, 90)]
+
+
+@pytest.mark.parametrize("pose", NEURO_POSES)
+def test_simulate_then_register_neuro(neuro_geometry, pose):
+    sim = simulate_slice(neuro_geometry, *pose, slice_thickness_mm=2.0, noise="uniform", noise_level=0.1, rng=7)
+    reg = register([sim.slice], neuro_geometry)
+    _check(reg, sim)
+    assert reg.slices[0].n_tubes == 9
+    assert set(reg.slices[0].residuals_mm) == set(neuro_geometry.ids)
+
+
+@pytest.mark.parametrize("pose", [(20, 0, 0, 0), (12, 25, 60, 30), (28, 40, 300, -45)])
+def test_simulate_then_register_needle_guide(needle_geometry, pose):
+    sim = simulate_slice(needle_geometry, *pose, pixel_spacing_mm=(0.3, 0.3), slice_thickness_mm=1.5,
+                         noise="rician", snr=25.0, rng=11)
+    reg = register([sim.slice], needle_geometry)
+    _check(reg, sim, depth_tol=0.15)
+
+
+def test_oblique_scanner_placement_and_offset(neuro_geometry):
+    c, s = math.cos(0.4), math.sin(0.4)
+    T_si = rigid(np.array([[c, 0, s], [0, 1, 0], [-s, 0, c]]), (-40.0, 12.0, 7.0))
+    sim = simulate_slice(neuro_geometry, 22, 15, 80, 5, T_scanner_from_image=T_si, center_offset_mm=(8, -5),
+                         noise="uniform", rng=2)
+    reg = register([sim.slice], neuro_geometry)
+    _check(reg, sim)
+
+
+def test_distractors_tool_and_a_missing_tube(neuro_geometry):
+    sim = simulate_slice(neuro_geometry, 18, 20, 150, 30, noise="rician", snr=20, distractors=5, bore_signal=0.9,
+                         missing_tubes=["D1"], rng=5)
+    reg = register([sim.slice], neuro_geometry)
+    _check(reg, sim)
+    assert "D1" not in reg.slices[0].assignment and reg.slices[0].n_tubes == 8
+
+
+def test_a_missing_orientation_marker_never_gives_a_wrong_pose(neuro_geometry):
+    # without O0 the pattern is nearly symmetric: either the right pose or no lock, never a wrong "ok"
+    sim = simulate_slice(neuro_geometry, 25, 0, 0, 0, noise="uniform", missing_tubes=["O0"], rng=1)
+    try:
+        reg = register([sim.slice], neuro_geometry)
+    except NoLock as exc:
+        assert "ambiguous" in exc.reason or "matched" in exc.reason
+    else:
+        _check(reg, sim)
+
+
+def test_a_slice_leaving_the_body_is_right_or_refused(neuro_geometry):
+    sim = simulate_slice(neuro_geometry, 47, 45, 0, 0, noise="uniform", rng=3)  # a third of it above the top
+    assert len(sim.truth.centres_px) < 9
+    try:
+        reg = register([sim.slice], neuro_geometry)
+    except NoLock:
+        return
+    _check(reg, sim, depth_tol=0.3, angle_tol=1.5, point_tol=1.0)  # 7 tubes, 47 mm lever: less precise
+    assert reg.slices[0].n_tubes == len(sim.truth.centres_px)
+
+
+def _scanner_from_image_for(T_sf, depth, tilt, az, tw, shape=(256, 256), spacing=(0.5, 0.5)):
+    """The image placement that makes a slice at these angles see the fiducial at ``T_sf``."""
+    T_image_from_S = rigid(np.eye(3), ((shape[1] - 1) / 2 * spacing[1], (shape[0] - 1) / 2 * spacing[0], 0))
+    return T_sf @ slice_frame(depth, tilt, az, tw) @ invert(T_image_from_S)
+
+
+def test_joint_registration_of_several_slices(neuro_geometry):
+    T_sf = rigid(slice_frame(0, 20, 30, 40)[:3, :3], (5.0, -3.0, 60.0))
+    poses = [(15, 10, 0, 0), (25, 10, 0, 0), (35, 10, 0, 0)]
+    sims = [simulate_slice(neuro_geometry, *p, noise="uniform", noise_level=0.1, rng=i,
+                           T_scanner_from_image=_scanner_from_image_for(T_sf, *p)) for i, p in enumerate(poses)]
+    for s in sims:
+        assert np.allclose(s.truth.T_scanner_from_fiducial, T_sf, atol=1e-9)
+    reg = register([s.slice for s in sims], neuro_geometry)
+    assert len(reg.slices) == 3 and sum(s.n_tubes for s in reg.slices) == 27
+    for s, p in zip(reg.slices, poses):
+        assert s.depth_mm == pytest.approx(p[0], abs=0.1)
+    pts = np.array([[0, 0, 0], [0, 0, 50], [12.5, 0, 25]], float)
+    assert np.abs(apply(reg.T_scanner_from_fiducial, pts) - apply(T_sf, pts)).max() < 0.15
+
+
+def test_slices_of_different_poses_do_not_lock(neuro_geometry):
+    a = simulate_slice(neuro_geometry, 15, 0, 0, 0, rng=0)
+    b = simulate_slice(neuro_geometry, 30, 0, 0, 0, rng=1)  # same image placement, different fiducial pose
+    with pytest.raises(NoLock):
+        register([a.slice, b.slice], neuro_geometry)
+
+
+@pytest.mark.parametrize("kind", ["blank", "noise", "outside", "wrong_geometry"])
+def test_no_lock_cases(neuro_geometry, needle_geometry, kind):
+    if kind == "blank":
+        sl = simulate_slice(neuro_geometry, 70, 0, 0, 0).slice  # beyond the body: nothing
+        geom = neuro_geometry
+    elif kind == "noise":
+        sl = simulate_slice(neuro_geometry, 70, 0, 0, 0, noise="rician", snr=20, rng=3).slice
+        geom = neuro_geometry
+    elif kind == "outside":
+        sl = simulate_slice(neuro_geometry, 53, 45, 0, 0, noise="uniform", rng=3).slice  # axis beyond the top
+        geom = neuro_geometry
+    else:
+        sl = simulate_slice(neuro_geometry, 25, 10, 0, 0, noise="uniform", rng=3).slice
+        geom = needle_geometry
+    with pytest.raises(NoLock) as exc:
+        register([sl], geom)
+    assert exc.value.reason
+
+
+# ----------------------------------------------------------------------------- CLI
+
+
+def _simulate_cli(tmp_path, geom_file, name="s.dcm", *extra):
+    out = tmp_path / name
+    assert main(["simulate", "--geometry", str(geom_file), "--out", str(out), *extra]) == 0
+    return out
+
+
+def test_cli_solve_json_matches_the_truth(tmp_path, neuro_geometry_file, capsys):
+    img = _simulate_cli(tmp_path, neuro_geometry_file, "s.dcm", "--depth", "22", "--tilt", "25", "--azimuth",
+                        "60", "--twist", "15", "--noise", "uniform", "--seed", "4")
+    capsys.readouterr()
+    overlay = tmp_path / "o.png"
+    assert main(["solve", str(img), "--geometry", str(neuro_geometry_file), "--json", "--overlay", str(overlay)]) == 0
+    doc = json.loads(capsys.readouterr().out)
+    truth = json.loads((tmp_path / "s.dcm.truth.json").read_text())
+    assert doc["status"] == "ok" and set(doc["timing_ms"]) >= {"total"}
+    s = doc["slices"][0]
+    for key in ("source", "depth_mm", "tilt_deg", "azimuth_deg", "twist_deg", "residual_rms_mm"):
+        assert key in s
+    assert s["depth_mm"] == pytest.approx(22, abs=0.1) and s["tilt_deg"] == pytest.approx(25, abs=0.3)
+    T = np.array(doc["T_scanner_from_fiducial"])
+    assert np.abs(T - np.array(truth["T_scanner_from_fiducial"]))[:3].max() < 0.2
+    assert overlay.read_bytes()[:8] == b"\x89PNG\r\n\x1a\n"
+    # the human summary
+    assert main(["solve", str(img), "--geometry", str(neuro_geometry_file)]) == 0
+    assert "status: ok" in capsys.readouterr().out
+
+
+def test_cli_bad_inputs_exit_2(tmp_path, neuro_geometry, neuro_geometry_file, capsys):
+    g = str(neuro_geometry_file)
+    img = _simulate_cli(tmp_path, neuro_geometry_file, "s.dcm", "--depth", "20")
+    capsys.readouterr()
+    cases = {}
+    cases["missing file"] = ["solve", str(tmp_path / "nope.dcm"), "--geometry", g]
+    text = tmp_path / "notes.png"
+    text.write_text("this is not an image\n")
+    cases["not an image"] = ["solve", str(text), "--geometry", g, "--pixel-spacing", "0.5", "0.5"]
+    trunc = tmp_path / "trunc.dcm"
+    trunc.write_bytes(img.read_bytes()[: len(img.read_bytes()) // 2])
+    cases["truncated DICOM"] = ["solve", str(trunc), "--geometry", g]
+    tampered = tmp_path / "tampered.yaml"
+    tampered.write_text(neuro_geometry_file.read_text().replace("pitch_deg_per_mm: 1.4", "pitch_deg_per_mm: 1.5", 1))
+    cases["tampered geometry"] = ["solve", str(img), "--geometry", str(tampered)]
+    cases["missing geometry"] = ["solve", str(img), "--geometry", str(tmp_path / "none.yaml")]
+    for name, argv in cases.items():
+        rc = main(argv)
+        err = capsys.readouterr()
+        assert rc == 2, name
+        assert err.err.count("\n") == 1 and "error" in err.err, name
+        assert '"ok"' not in err.out, name
+
+
+def test_cli_no_lock_exit_3_with_json_reason(tmp_path, neuro_geometry_file, needle_geometry, capsys):
+    blank = tmp_path / "blank.npy"
+    np.save(blank, np.zeros((256, 256)))
+    rng = np.random.default_rng(0)
+    noise = tmp_path / "noise.npy"
+    np.save(noise, rng.uniform(0, 1, (256, 256)))
+    miss = _simulate_cli(tmp_path, neuro_geometry_file, "miss.dcm", "--depth", "80", "--noise", "rician", "--seed", "1")
+    good = _simulate_cli(tmp_path, neuro_geometry_file, "good.dcm", "--depth", "25", "--tilt", "10")
+    wrong_geom = write_geometry(needle_geometry, tmp_path / "needle.yaml")
+    capsys.readouterr()
+    runs = [
+        [str(blank), "--pixel-spacing", "0.5", "0.5"],
+        [str(noise), "--pixel-spacing", "0.5", "0.5"],
+        [str(miss)],
+    ]
+    for r in runs:
+        assert main(["solve", *r, "--geometry", str(neuro_geometry_file), "--json"]) == 3, r
+        doc = json.loads(capsys.readouterr().out)
+        assert doc["status"] == "no_lock" and doc["reason"] and "T_scanner_from_fiducial" not in doc
+    assert main(["solve", str(good), "--geometry", str(wrong_geom)]) == 3
+    assert "no lock" in capsys.readouterr().err
