@@ -10,9 +10,10 @@ from .cad import CapDims, annulus_volume_mm3, channel_volume_mm3
 from .verify import touching_channels
 
 FILLING_PROCEDURE = """\
-1. Print the body and both caps (each file is in frame F in its assembled position; the
-   slicer puts it on the bed). The body prints standing on an end face; the caps print plate
-   down. Clear the channels with a wire of slightly smaller diameter than the channels.
+1. Print the body and both caps. Each file is in frame F in its assembled position; the
+   slicer puts it on the bed. The body prints standing on an end face. Print both caps plate
+   down: `cap_bottom` already is; turn `cap_top` upside down in the slicer. Clear the
+   channels with a wire slightly thinner than the channels.
 2. Glue the **bottom cap** (`cap_bottom`) onto the body: a thin bead of epoxy (or
    cyanoacrylate for resins that tolerate it) on the lower end face and inside the skirt, then
    slide it on. The skirt is a slip fit with {clearance:g} mm radial clearance; the plate
