@@ -175,9 +175,18 @@ def plane_crossings(model: TubeModel, T_F_from_I: np.ndarray, margin_mm: float =
             tan[k] = (vx * inv, vy * inv, inv)
             ok[k] = good and abs(rnx * c + rny * s + nz * z - no) < 1e-6
     zF = X[:, 2]
-    inside = ok & (zF >= model.z_lo - margin_mm - 1e-6) & (zF <= model.z_hi + margin_mm + 1e-6)
+    tan_I = tan @ R
+    if margin_mm > 0:
+        lo, hi = model.z_lo - margin_mm, model.z_hi + margin_mm
+    else:
+        # strict: the whole cross-section must lie within the tube, else the blob is cut short by the
+        # tube's end and its centre is biased: half the cut's length along the tube, in z of F
+        cos_a = np.maximum(np.abs(tan_I[:, 2]), 1e-6)
+        clear = 0.5 * model.diameter_mm * np.sqrt(np.maximum(1 - cos_a * cos_a, 0.0)) / cos_a * np.abs(tan[:, 2])
+        lo, hi = model.z_lo + clear, model.z_hi - clear
+    inside = ok & (zF >= lo - 1e-6) & (zF <= hi + 1e-6)
     q = (X - o) @ R  # rows: R^T (X - o)
-    return q[:, :2], tan @ R, zF, inside
+    return q[:, :2], tan_I, zF, inside
 
 
 def _skew(v: np.ndarray) -> np.ndarray:
@@ -740,43 +749,47 @@ def _solve_one(model: TubeModel, xy: np.ndarray, S: np.ndarray, opts: SolveOptio
     # refine in order until a fit explains at least as many tubes as any guess
     # still untried lines up; those rivals are refined too (for the ambiguity check)
     fits = []
+    limit = opts.max_rms_px * pixel_mm
     for count, X in scored:
-        if fits and count < fits[0].n_matched and fits[0].rms_mm <= opts.max_rms_px * pixel_mm:
+        if fits and count < fits[0].n_matched and fits[0].rms_mm <= limit:
             break
-        fits = _rank(fits + [full(X)])
-    fits[0] = _reject_outliers(model, [xy], [S], fits[0], [pixel_mm], opts)
+        fits = _rank(fits + [_reject_outliers(model, [xy], [S], full(X), [pixel_mm], opts)], limit)
     return fits, ell
 
 
 def _reject_outliers(model: TubeModel, xys, Ss, fit: _Fit, px_mm: list[float], opts: SolveOptions) -> _Fit:
-    """Drop the worst-fitting tube while it stands out, and refit (fixed by the remaining tubes).
+    """Drop the worst-fitting tube while that makes the fit markedly better, and refit.
 
-    A tube is dropped when its residual exceeds ``max_rms_px`` pixels and
-    three times the median residual (two touching tubes, a bubble, a blob
-    merged with anatomy); never below ``min_tubes`` / ``min_depth_tubes``.
+    Tried while the worst residual exceeds ``max_rms_px`` pixels (two
+    touching tubes, a bubble, a blob merged with anatomy); a drop is kept
+    when the RMS falls by at least a third. Never below ``min_tubes`` /
+    ``min_depth_tubes``.
     """
     K = len(model.ids)
     excl = [np.zeros(K, bool) for _ in xys]
     gate = max(float(model.diameter_mm.max()), 2 * max(px_mm))
     for _ in range(max(0, fit.n_matched - opts.min_tubes)):
         res = [np.where(np.isfinite(r), r / px, -1.0) for r, px in zip(fit.residuals, px_mm)]
-        allres = np.concatenate([r[np.isfinite(r)] for r in fit.residuals])
         j = int(np.argmax([r.max() for r in res]))
         k = int(np.argmax(res[j]))
-        worst_mm = fit.residuals[j][k]
-        if res[j][k] <= opts.max_rms_px or worst_mm <= 3 * float(np.median(allres)):
+        if res[j][k] <= opts.max_rms_px:
             break
         n_depth = sum(int(np.sum((a >= 0) & model.depth_coding)) for a in fit.assignments)
         if model.depth_coding[k] and n_depth <= opts.min_depth_tubes:
             break
-        excl[j][k] = True
-        fit = refine(model, xys, Ss, fit.T_F_from_scanner, gates_mm=(0.6 * gate,), iters_per_gate=4,
-                     final_iters=2, exclude=excl)
+        trial_excl = [e.copy() for e in excl]
+        trial_excl[j][k] = True
+        trial = refine(model, xys, Ss, fit.T_F_from_scanner, gates_mm=(0.6 * gate,), iters_per_gate=4,
+                       final_iters=2, exclude=trial_excl)
+        if trial.n_matched < fit.n_matched - 1 or trial.rms_mm > fit.rms_mm / 1.5:
+            break
+        fit, excl = trial, trial_excl
     return fit
 
 
-def _rank(fits: list[_Fit]) -> list[_Fit]:
-    return sorted(fits, key=lambda f: (-f.n_matched, f.rms_mm))
+def _rank(fits: list[_Fit], rms_limit_mm: float = math.inf) -> list[_Fit]:
+    """Best first: fits within the RMS limit, then the most tubes, then the lowest RMS."""
+    return sorted(fits, key=lambda f: (f.rms_mm > rms_limit_mm, -f.n_matched, f.rms_mm))
 
 
 def _check_trust(fit: _Fit, others: list[_Fit], model: TubeModel, slices: list[Slice], opts: SolveOptions):
@@ -840,7 +853,6 @@ def register(slices: list[Slice], geom: FiducialGeometry, *, options: SolveOptio
     for sl, xy, S in zip(slices, xys, Ss):
         try:
             fits, ell = _solve_one(model, xy, S, opts, _pixel_mm(sl))
-            fits = _rank(fits)
             _check_trust(fits[0], fits[1:], model, [sl], opts)
         except NoLock as exc:
             if len(slices) > 1:
