@@ -162,7 +162,11 @@ def centreline_edge(tube: Tube) -> Edge:
 
 
 def channel_solid(tube: Tube, ext_mm: float | None = None) -> Part:
-    """The channel of ``tube``: its circle swept along its (extended) centreline."""
+    """The channel of ``tube``: its circle swept along its (extended) centreline.
+
+    The default extension, one diameter past each end, puts the swept end disk
+    (z-extent <= its radius for any helix) wholly outside the body.
+    """
     ext = tube.diameter if ext_mm is None else ext_mm
     path = centreline_edge(extended_tube(tube, ext))
     profile = Plane(origin=path @ 0, z_dir=path % 0) * Circle(tube.diameter / 2)

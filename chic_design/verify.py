@@ -34,11 +34,11 @@ PARTS = ("body", "cap_top", "cap_bottom")
 STL_TOLERANCE_MM = 0.01
 STL_ANGULAR_TOLERANCE_RAD = 0.15
 
-#: Mesh vs CAD volume. A facetted surface inscribed in a circle of radius R with facet angle
-#: alpha loses about alpha^2/6 of the enclosed area: 0.4 % at alpha = 0.15 for the outer
-#: skin, much less where the deflection limit is finer; the measured error of the neuro body
-#: is 0.06 %. 0.5 % still catches a missing or extra channel (one 3 mm channel is 2 % of the
-#: neuro body, one 1.6 mm channel 1.5 % of the needle-guide body).
+#: Mesh vs CAD volume. Facets inscribed in a circle of radius R with chord deviation delta
+#: span alpha = 2 acos(1 - delta / R) and lose alpha^2 / 6 of its area: 0.09 % for R = 15 mm,
+#: 0.17 % for R = 8 mm at delta = 0.01 mm (measured: -0.06 % for the neuro body). 0.5 % leaves
+#: headroom and still catches a missing or extra channel (one 3 mm channel is 2 % of the neuro
+#: body, one 1.6 mm channel 1.5 % of the needle-guide body).
 VOLUME_REL_TOL = 0.005
 #: Hole centroid vs tube centreline (the issue's requirement); measured < 0.005 mm.
 CENTROID_TOL_MM = 0.05
@@ -239,8 +239,10 @@ def check_body_sections(mesh: trimesh.Trimesh, geometry: FiducialGeometry, heigh
                 f"{len(loops) - 1} holes, expected {expected - 1} ({len(geometry.tubes)} tubes + bore)",
             ))
             continue
-        loops = sorted(loops, key=lambda l: -l[0])
-        (a_out, c_out), (a_in, c_in), holes = loops[0], loops[1], loops[2:]
+        loops = sorted(loops, key=lambda l: -l[0])  # the outer skin encloses the largest area
+        (a_out, c_out), inner = loops[0], loops[1:]
+        k_bore = int(np.argmin([np.linalg.norm(c) for _, c in inner]))  # the bore is on the axis
+        (a_in, c_in), holes = inner[k_bore], inner[:k_bore] + inner[k_bore + 1:]
         ring_ok = (
             np.linalg.norm(c_out) < tol_mm and np.linalg.norm(c_in) < tol_mm
             and abs(a_out / (math.pi * body.outer_diameter**2 / 4) - 1) < AREA_REL_TOL
