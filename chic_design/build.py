@@ -1,7 +1,7 @@
 """``chic-design build``: from a spec to a checked export folder, written atomically.
 
-Order: validate the spec (before any CAD work) -> feasibility (refuse an
-infeasible design unless forced) -> geometry -> CAD -> export into a temporary
+Order: validate the spec (before any CAD work) -> geometry -> feasibility
+(refuse an infeasible design unless forced) -> CAD -> export into a temporary
 folder inside ``out_root`` -> verify the files -> pictures -> report -> replace
 ``out_root/<name>`` in one rename. The pictures (preview, tilt plot) need only
 the geometry and are drawn in a worker process while the CAD work runs. On any
@@ -10,6 +10,7 @@ failure the temporary folder is removed and an earlier export is left as it was.
 
 from __future__ import annotations
 
+import functools
 import json
 import multiprocessing
 import os
@@ -17,7 +18,7 @@ import shutil
 import sys
 import tempfile
 import time
-from concurrent.futures import ProcessPoolExecutor
+from concurrent.futures import Future, ProcessPoolExecutor
 from contextlib import contextmanager
 from dataclasses import dataclass, field
 from pathlib import Path
@@ -30,7 +31,7 @@ from .cad import FiducialParts, build_parts
 from .errors import InfeasibleDesign, SpecError
 from .feasibility import check_design
 from .layout import fiducial_geometry
-from .preview import render_pictures
+from .preview import preview_job, tilt_plot_job
 from .report import build_report
 from .spec import Spec, load_spec, spec_sha256
 from .verify import STL_ANGULAR_TOLERANCE_RAD, STL_TOLERANCE_MM, VerifyResult, verify_export
@@ -147,19 +148,31 @@ def _replace_folder(tmp: Path, final: Path) -> None:
         shutil.rmtree(old, ignore_errors=True)
 
 
-def _start_pictures(geometry, feasibility_report, folder: Path, in_worker: bool):
-    """Start drawing the pictures; returns ``(executor or None, collect)``, ``collect() -> times``.
+class _Pictures:
+    """Picture jobs (preview, tilt plot): in a worker process, or here when collected.
 
-    The pictures need only the geometry objects, so by default they are drawn
-    by :func:`render_pictures` in a worker process (the second core) while this
-    process does the CAD work. ``in_worker=False`` draws them here, when
-    collected.
+    The pictures need only the geometry objects and the feasibility report, so
+    by default a worker process (the second core) draws them while this
+    process does the CAD work. Each job returns its wall time (s).
     """
-    if not in_worker:
-        return None, lambda: render_pictures(geometry, feasibility_report, folder)
-    executor = ProcessPoolExecutor(max_workers=1, mp_context=multiprocessing.get_context("spawn"))
-    future = executor.submit(render_pictures, geometry, feasibility_report, folder)
-    return executor, future.result
+
+    def __init__(self, in_worker: bool):
+        self.executor = (ProcessPoolExecutor(max_workers=1, mp_context=multiprocessing.get_context("spawn"))
+                         if in_worker else None)
+        self.jobs: list[tuple[str, object]] = []
+
+    def submit(self, name: str, fn, *args) -> None:
+        job = self.executor.submit(fn, *args) if self.executor else functools.partial(fn, *args)
+        self.jobs.append((name, job))
+
+    def collect(self) -> dict[str, float]:
+        return {name: job.result() if isinstance(job, Future) else job() for name, job in self.jobs}
+
+    def close(self, cancel: bool = False) -> None:
+        """Wait for the worker (so nothing writes into the folder afterwards) and stop it."""
+        if self.executor is not None:
+            self.executor.shutdown(wait=True, cancel_futures=cancel)
+            self.executor = None
 
 
 def build_design(spec_path, out_root="exports", force: bool = False, progress: bool = True,
@@ -177,10 +190,6 @@ def build_design(spec_path, out_root="exports", force: bool = False, progress: b
     with steps.step("spec"):
         spec = load_spec(spec_path)
         check_cap_fit(spec, spec_path)
-    with steps.step("feasibility"):
-        feasibility = check_design(spec)
-        if not feasibility.feasible and not force:
-            raise InfeasibleDesign(spec_path, feasibility.violations)
     with steps.step("geometry"):
         source = {"spec": str(spec_path), "spec_sha256": spec_sha256(spec_path)}
         geometry = fiducial_geometry(spec, source=source)
@@ -188,9 +197,14 @@ def build_design(spec_path, out_root="exports", force: bool = False, progress: b
     out_root.mkdir(parents=True, exist_ok=True)
     final = out_root / spec.name
     tmp = Path(tempfile.mkdtemp(prefix=TMP_PREFIX.format(name=spec.name), dir=out_root))
-    executor = None
+    pictures = _Pictures(pictures_in_worker)
     try:
-        executor, collect_pictures = _start_pictures(geometry, feasibility, tmp, pictures_in_worker)
+        pictures.submit("preview", preview_job, geometry, tmp)
+        with steps.step("feasibility"):
+            feasibility = check_design(spec)
+            if not feasibility.feasible and not force:
+                raise InfeasibleDesign(spec_path, feasibility.violations)
+            pictures.submit("tilt plot", tilt_plot_job, feasibility, tmp)
         with steps.step("CAD model"):
             parts = build_parts(spec, geometry)
             volumes = {name: float(p.volume) for name, p in parts.items()}
@@ -203,7 +217,7 @@ def build_design(spec_path, out_root="exports", force: bool = False, progress: b
             overlaps = {cap: _overlap_mm3(parts.body, getattr(parts, cap)) for cap in ("cap_top", "cap_bottom")}
             checks = verify_export(tmp, volumes, overlaps)
         with steps.step("preview and tilt plot"):
-            picture_times = collect_pictures()
+            picture_times = pictures.collect()
             files += ["preview.png", "tilt_limits.png"]
         with steps.step("report"):
             files.append("report.md")
@@ -215,14 +229,11 @@ def build_design(spec_path, out_root="exports", force: bool = False, progress: b
             _default_permissions(tmp)
             _replace_folder(tmp, final)
     except BaseException:
-        if executor is not None:
-            executor.shutdown(wait=True, cancel_futures=True)  # no writes into tmp after this
-            executor = None
+        pictures.close(cancel=True)  # no writes into tmp after this
         shutil.rmtree(tmp, ignore_errors=True)
         raise
     finally:
-        if executor is not None:
-            executor.shutdown(wait=True)
-    timings = {**steps.timings, **{f"{k} (parallel)": v for k, v in picture_times.items()}}
+        pictures.close()
+    timings = {**steps.timings, **{f"{k} (parallel)": v for k, v in picture_times.items()}}  # + last step
     return BuildResult(final.resolve(), checks, timings, feasibility.feasible,
                        wall_s=time.perf_counter() - t_start)

@@ -5,7 +5,7 @@ The preview shows the body's envelope (the annulus ``inner..outer diameter``,
 its diameter along its centreline (red: diametric, blue: helices, green:
 orientation), labelled with its id at its top end. It is drawn from the
 geometry objects alone, so it can be rendered in a separate process while the
-CAD model is built (:func:`render_pictures`); this module does not import the
+CAD model is built (:func:`preview_job`); this module does not import the
 CAD kernel.
 """
 
@@ -64,20 +64,17 @@ def render_preview(geometry: FiducialGeometry, png_path, window_size: tuple[int,
     return png_path
 
 
-def render_pictures(geometry: FiducialGeometry, feasibility_report, folder) -> dict[str, float]:
-    """``preview.png`` and (if a report is given) ``tilt_limits.png`` in ``folder``; wall times (s).
-
-    The build runs this in a worker process, in parallel with the CAD work.
-    """
-    folder = Path(folder)
-    times = {}
+def preview_job(geometry: FiducialGeometry, folder) -> float:
+    """Write ``folder/preview.png``; returns the wall time (s). Runs in the build's worker process."""
     t0 = time.perf_counter()
-    render_preview(geometry, folder / "preview.png")
-    times["preview"] = time.perf_counter() - t0
-    if feasibility_report is not None:
-        from .feasibility import save_tilt_plot
+    render_preview(geometry, Path(folder) / "preview.png")
+    return time.perf_counter() - t0
 
-        t0 = time.perf_counter()
-        save_tilt_plot(feasibility_report, folder / "tilt_limits.png")
-        times["tilt plot"] = time.perf_counter() - t0
-    return times
+
+def tilt_plot_job(feasibility_report, folder) -> float:
+    """Write ``folder/tilt_limits.png`` (the feasibility plot); returns the wall time (s)."""
+    from .feasibility import save_tilt_plot
+
+    t0 = time.perf_counter()
+    save_tilt_plot(feasibility_report, Path(folder) / "tilt_limits.png")
+    return time.perf_counter() - t0
