@@ -401,7 +401,8 @@ def initial_hypotheses(model: TubeModel, xy_mm: np.ndarray, ell: Ellipse, *,
     For each of the four sign choices (up end of the major axis ``s``,
     handedness ``h``) every pairing of a blob with an axial line tube gives
     a rotation ``beta`` about the axis; the rotations that line up the most
-    axial tubes are kept, then the helices give the depth by consensus.
+    axial tubes (all of those seen, when there are three or more) are kept,
+    then the helices give the depth by consensus.
     Returns up to ``max_hypotheses`` guesses, best first.
     """
     if not model.axial.any() or xy_mm.shape[0] == 0:
@@ -432,7 +433,7 @@ def initial_hypotheses(model: TubeModel, xy_mm: np.ndarray, ell: Ellipse, *,
     top = max(int(ps[4].max()) for ps in per_sign)
     rows = []  # (score, n_hel, s, h, beta, depth)
     for s, h, th, zr, n_lines, b in per_sign:
-        keep = n_lines >= max(top - 1, 1)
+        keep = n_lines >= (top if top >= 3 else max(top - 1, 1))
         b, nl = b[keep], n_lines[keep]
         key = np.round(np.degrees(_wrap(b))).astype(int)
         _, first = np.unique(key, return_index=True)
@@ -743,16 +744,22 @@ def _solve_one(model: TubeModel, xy: np.ndarray, S: np.ndarray, opts: SolveOptio
     scored.sort(key=lambda t: -t[0])
 
     def full(X):
-        return refine(model, [xy], [S], X, gates_mm=(2 * gate, gate, 0.6 * gate), iters_per_gate=3,
-                      final_iters=3)
+        return refine(model, [xy], [S], X, gates_mm=(2 * gate, 0.6 * gate), iters_per_gate=3, final_iters=2)
 
     # refine in order until a fit explains at least as many tubes as any guess
-    # still untried lines up; those rivals are refined too (for the ambiguity check)
+    # still untried lines up; those rivals (for the ambiguity check) get a short
+    # refinement first and a full one only if they come close
     fits = []
     limit = opts.max_rms_px * pixel_mm
     for count, X in scored:
         if fits and count < fits[0].n_matched and fits[0].rms_mm <= limit:
             break
+        if fits:
+            quick = refine(model, [xy], [S], X, gates_mm=(gate,), iters_per_gate=2, final_iters=0)
+            if (quick.n_matched < fits[0].n_matched or quick.rms_mm > 2 * limit
+                    or not _distinct(quick.T_F_from_scanner, fits[0].T_F_from_scanner, model)):
+                fits.append(quick)
+                continue
         fits = _rank(fits + [_reject_outliers(model, [xy], [S], full(X), [pixel_mm], opts)], limit)
     return fits, ell
 
