@@ -24,6 +24,7 @@ the tube list, roles and angles all come from the geometry file.
 
 from __future__ import annotations
 
+import dataclasses
 import math
 import time
 from dataclasses import dataclass, field
@@ -836,14 +837,16 @@ def _check_trust(fit: _Fit, others: list[_Fit], model: TubeModel, slices: list[S
 
 
 def register(slices: list[Slice], geom: FiducialGeometry, *, options: SolveOptions | None = None,
-             detect_options: dict | None = None) -> Registration:
+             detect_options: dict | None = None, **overrides) -> Registration:
     """Register one or more slices of the fiducial: one ``T_scanner_from_fiducial`` from all.
 
     Each slice is detected and solved on its own (every slice must lock),
-    then all correspondences are refined jointly. Raises :class:`NoLock`
+    then all correspondences are refined jointly. ``overrides`` set fields
+    of :class:`SolveOptions` (e.g. ``max_rms_px=0.4``); ``detect_options``
+    go to :func:`~chic_register.detect.detect_blobs`. Raises :class:`NoLock`
     with a reason when no trustworthy pose exists.
     """
-    opts = options or SolveOptions()
+    opts = dataclasses.replace(options or SolveOptions(), **overrides)
     if not slices:
         raise NoLock("no slices given")
     t0 = time.perf_counter()

@@ -262,3 +262,12 @@ def test_cli_no_lock_exit_3_with_json_reason(tmp_path, neuro_geometry_file, need
         assert doc["status"] == "no_lock" and doc["reason"] and "T_scanner_from_fiducial" not in doc
     assert main(["solve", str(good), "--geometry", str(wrong_geom)]) == 3
     assert "no lock" in capsys.readouterr().err
+
+
+def test_options_are_checked_and_used(neuro_geometry):
+    sim = simulate_slice(neuro_geometry, 25, 20, 30, 0, noise="uniform", rng=0)
+    with pytest.raises(TypeError):
+        register([sim.slice], neuro_geometry, no_such_option=1)
+    with pytest.raises(NoLock) as exc:  # demanding more tubes than the fiducial has
+        register([sim.slice], neuro_geometry, min_tubes=10)
+    assert "need at least 10" in exc.value.reason
