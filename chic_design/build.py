@@ -62,7 +62,10 @@ class BuildResult:
 
 
 class _Steps:
-    """Times each step; with ``progress`` prints one line per step with its elapsed time to stderr."""
+    """Times each step; with ``progress`` prints one line per finished step with its time to stderr.
+
+    A failed step prints nothing: the CLI's one-line error message follows.
+    """
 
     def __init__(self, progress: bool, total: int):
         self.progress = progress
@@ -71,20 +74,12 @@ class _Steps:
 
     @contextmanager
     def step(self, name: str):
-        k = len(self.timings) + 1
-        if self.progress:
-            print(f"chic-design: [{k}/{self.total}] {name} ...", end="", file=sys.stderr, flush=True)
         t0 = time.perf_counter()
-        try:
-            yield
-        except BaseException:
-            if self.progress:
-                print(" failed", file=sys.stderr, flush=True)
-            raise
+        yield
         dt = time.perf_counter() - t0
         self.timings[name] = dt
         if self.progress:
-            print(f" {dt:.2f} s", file=sys.stderr, flush=True)
+            print(f"chic-design: [{len(self.timings)}/{self.total}] {name} {dt:.2f} s", file=sys.stderr, flush=True)
 
 
 def check_cap_fit(spec: Spec, spec_path) -> None:

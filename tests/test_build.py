@@ -320,8 +320,11 @@ def test_progress_lines_go_to_stderr_and_can_be_silenced(capsys):
     steps = _Steps(progress=True, total=2)
     with steps.step("CAD model"):
         pass
+    with pytest.raises(ValueError), steps.step("export"):
+        raise ValueError("boom")
     err = capsys.readouterr().err
-    assert "[1/2] CAD model ..." in err and err.strip().endswith(" s")
+    assert err.startswith("chic-design: [1/2] CAD model ") and err.endswith(" s\n")
+    assert err.count("\n") == 1  # a failed step prints nothing (the CLI's error line follows)
     quiet = _Steps(progress=False, total=2)
     with quiet.step("CAD model"):
         pass
