@@ -3,7 +3,7 @@
 The preview shows the body's envelope (the annulus ``inner..outer diameter``,
 ``z = 0..length``) semi-transparent, and each channel as a coloured tube of
 its diameter along its centreline (red: diametric, blue: helices, green:
-orientation), labelled with its id at its top end. It is drawn from the
+orientation), labelled with its id (straight tubes at the top, helices at the bottom). It is drawn from the
 geometry objects alone, so it can be rendered in a separate process while the
 CAD model is built (:func:`preview_job`); this module does not import the
 CAD kernel.
@@ -42,7 +42,12 @@ def render_preview(geometry: FiducialGeometry, png_path, window_size: tuple[int,
         plotter.add_mesh(pv.lines_from_points(pts).tube(radius=tube.diameter / 2, n_sides=16, capping=True),
                          color=ROLE_COLOURS.get(tube.role, "orange"))
         labels.append(tube.id)
-        label_pts.append(pts[np.argmax(pts[:, 2])] + np.array([0.0, 0.0, 2.0]))
+        # straight tubes labelled above their top end, helices below their bottom end:
+        # a helix ends next to a diametric tube, and the two labels would overlap
+        if tube.kind == "helix":
+            label_pts.append(pts[np.argmin(pts[:, 2])] - np.array([0.0, 0.0, 3.0]))
+        else:
+            label_pts.append(pts[np.argmax(pts[:, 2])] + np.array([0.0, 0.0, 2.0]))
     plotter.add_point_labels(np.array(label_pts), labels, font_size=18, point_size=1,
                              shape_opacity=0.6, always_visible=True)
     plotter.add_text(
@@ -53,7 +58,6 @@ def render_preview(geometry: FiducialGeometry, png_path, window_size: tuple[int,
     plotter.add_axes()
     plotter.camera_position = "iso"
     plotter.camera.elevation = 10
-    plotter.camera.zoom(1.3)
     tmp = png_path.with_name(f".{png_path.stem}.tmp{os.getpid()}.png")
     try:
         plotter.screenshot(str(tmp))
