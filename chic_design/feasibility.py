@@ -42,10 +42,11 @@
    (the axis), ``acos(|t_z|)`` over its unit tangents, against
    ``print.max_overhang_deg`` (violation ``overhang_too_steep``).
 5. **Unambiguity**: at every depth usable at tilt 0, no rotation about the axis
-   or reflection maps the tilt-0 marker positions onto themselves within a
-   tolerance of ``d/2 + pixel`` (a marker moved by less than its own radius plus
-   one pixel still overlaps its original blob, so the two poses cannot be told
-   apart reliably from the image) -> violation ``symmetric_pattern``. A helix
+   or reflection maps the tilt-0 marker positions (sampled every 0.05 mm in
+   depth) onto themselves within ``max(pixel, 5 % of d)`` (see
+   :func:`symmetry_tolerance`) -> violation ``symmetric_pattern``. All blobs
+   look alike, so a reflection that swaps helices and diametric tubes counts: it
+   is the fiducial seen upside down. A helix
    whose angle crosses the angle of a straight tube
    (``helix_leaves_quadrant``), and a design with no depth usable at tilt 0
    (``no_usable_depth``) are violations too.
@@ -61,7 +62,7 @@ from __future__ import annotations
 import math
 import os
 import tempfile
-from dataclasses import dataclass
+from dataclasses import dataclass, replace
 from pathlib import Path
 
 import numpy as np
@@ -98,7 +99,9 @@ class TiltLimit:
     """Max tilt (deg) of an image plane through the axis at ``depth_mm``, over all azimuths.
 
     ``limited_by`` names the constraint that fails just above it; ``azimuth_deg``
-    is the worst azimuth; ``usable_at_zero_tilt`` is False where even tilt 0 fails.
+    is the worst azimuth; ``usable_at_zero_tilt`` is False where even tilt 0 fails;
+    ``visibility_tilt_deg`` is the limit from constraint (a) alone (every tube
+    crosses the plane inside its extent), for comparison with the paper.
     """
 
     depth_mm: float
@@ -106,9 +109,12 @@ class TiltLimit:
     limited_by: str
     azimuth_deg: float = 0.0
     usable_at_zero_tilt: bool = True
+    visibility_tilt_deg: float | None = None
 
     def to_dict(self) -> dict:
         return {
+            "visibility_tilt_deg": None if self.visibility_tilt_deg is None
+            else round(float(self.visibility_tilt_deg), 2),
             "depth_mm": round(float(self.depth_mm), 4),
             "max_tilt_deg": round(float(self.max_tilt_deg), 2),
             "limited_by": self.limited_by,
@@ -182,11 +188,18 @@ class Overhang:
 
 @dataclass(frozen=True)
 class Symmetry:
-    """A symmetry of the tilt-0 marker pattern over ``depth_range_mm`` (kind: rotation | reflection)."""
+    """A (near) symmetry of the tilt-0 marker pattern over ``depth_range_mm``.
+
+    ``kind``: rotation (about the axis, by ``angle_deg``) or reflection (about the
+    line at ``angle_deg``), the one with the smallest ``mismatch_mm`` (worst
+    marker displacement) in the range, at ``at_depth_mm``.
+    """
 
     kind: str
     angle_deg: float
     depth_range_mm: tuple[float, float]
+    at_depth_mm: float
+    mismatch_mm: float
 
     def describe(self) -> str:
         if self.kind == "rotation":
@@ -194,8 +207,10 @@ class Symmetry:
         return f"reflection about the {self.angle_deg:.1f}/{self.angle_deg + 180:.1f} deg line"
 
     def to_dict(self) -> dict:
-        return {"kind": self.kind, "angle_deg": round(self.angle_deg, 3),
-                "depth_range_mm": [round(v, 4) for v in self.depth_range_mm], "what": self.describe()}
+        return {"kind": str(self.kind), "angle_deg": round(float(self.angle_deg), 3),
+                "depth_range_mm": [round(float(v), 4) for v in self.depth_range_mm],
+                "at_depth_mm": round(float(self.at_depth_mm), 4),
+                "mismatch_mm": round(float(self.mismatch_mm), 4), "what": self.describe()}
 
 
 @dataclass(frozen=True)
@@ -216,7 +231,7 @@ class Unambiguity:
     def to_dict(self) -> dict:
         return {
             "tolerance_mm": round(self.tolerance_mm, 4),
-            "tolerance_rule": "tube diameter / 2 + pixel size",
+            "tolerance_rule": "max(pixel size, 5% of the tube diameter)",
             "min_mismatch_mm": None if self.min_mismatch_mm is None else round(self.min_mismatch_mm, 4),
             "symmetries": [s.to_dict() for s in self.symmetries],
             "helix_leaves_quadrant": [f.to_dict() for f in self.helix_crossings],
@@ -309,7 +324,8 @@ class FeasibilityReport:
             f"{self.name}: {'FEASIBLE' if self.feasible else 'INFEASIBLE'} "
             f"(pixel {self.pixel_size_mm:g} mm, slice {self.slice_thickness_mm:g} mm)",
             f"tilt limit at mid-depth z = {mid.depth_mm:g} mm: {mid.max_tilt_deg:.1f} deg, "
-            f"limited by {mid.limited_by} (worst azimuth {mid.azimuth_deg:.1f} deg)",
+            f"limited by {mid.limited_by} (worst azimuth {mid.azimuth_deg:.1f} deg); "
+            f"visibility alone (every tube inside the body) allows {mid.visibility_tilt_deg:.1f} deg",
         ]
         for u in self.usable_depth:
             rng = ", ".join(f"{a:g}-{b:g}" for a, b in u.ranges_mm) or "none"
@@ -344,7 +360,7 @@ class FeasibilityReport:
             f"{self.pixel_size_mm:g} mm and slice thickness {self.slice_thickness_mm:g} mm.",
             "",
             f"Tilt limit at mid-depth (z = {mid.depth_mm:g} mm): **{mid.max_tilt_deg:.1f} deg**, "
-            f"limited by `{mid.limited_by}`.",
+            f"limited by `{mid.limited_by}` (visibility alone: {mid.visibility_tilt_deg:.1f} deg).",
             "",
             f"![max tilt vs depth]({self.plot_name})",
             "",
@@ -448,15 +464,63 @@ def _pair_order(geom: FiducialGeometry) -> list[tuple[int, int]]:
     return pairs
 
 
+def _blob_gap(phi, dist, pi, qi, pj, qj, ai, aj, slice_mm):
+    """Strip width between two blobs across the in-plane direction at angle ``phi`` from their centre line.
+
+    Each blob is an ellipse (semi-minor a, semi-major a/cos(beta) along the
+    tube's projection) plus a smear segment of slice*tan(beta) along it; its
+    support along a unit in-plane e is ``a sqrt(1 + w^2) + slice/2 |w|`` with
+    ``w = (e . t) / cos(beta)`` (p, q: w for e along / across the centre line).
+    """
+    c, s = np.cos(phi), np.sin(phi)
+    wi = c * pi + s * qi
+    wj = c * pj + s * qj
+    hi = ai * np.sqrt(1 + wi**2) + 0.5 * slice_mm * np.abs(wi)
+    hj = aj * np.sqrt(1 + wj**2) + 0.5 * slice_mm * np.abs(wj)
+    return c * dist - hi - hj
+
+
+def _max_blob_gap(dist, pi, qi, pj, qj, ai, aj, slice_mm, n_coarse: int = 61, n_golden: int = 14):
+    """Distance between two convex blobs: the widest separating strip over all in-plane directions.
+
+    Separating-axis theorem: max over e of (e . delta - h_i(e) - h_j(e)); < 0 when
+    they overlap. Coarse sampling of the direction over +-90 deg from the
+    centre line, then golden-section refinement around the best sample. Shapes (K,).
+    """
+    args = [a[:, None] for a in (dist, pi, qi, pj, qj, ai, aj)]
+    phis = np.linspace(-np.pi / 2, np.pi / 2, n_coarse)
+    vals = _blob_gap(phis[None, :], *args, slice_mm)
+    vals = np.where(np.isnan(vals), -np.inf, vals)
+    k = np.argmax(vals, axis=1)
+    step = phis[1] - phis[0]
+    lo, hi = phis[k] - step, phis[k] + step
+    args = [a[:, 0] for a in args]
+    r = (math.sqrt(5) - 1) / 2
+    x1, x2 = hi - r * (hi - lo), lo + r * (hi - lo)
+    f1, f2 = _blob_gap(x1, *args, slice_mm), _blob_gap(x2, *args, slice_mm)
+    for _ in range(n_golden):
+        left = f1 > f2  # the max lies in [lo, x2]
+        hi = np.where(left, x2, hi)
+        lo = np.where(left, lo, x1)
+        x1n = np.where(left, hi - r * (hi - lo), x2)
+        x2n = np.where(left, x1, lo + r * (hi - lo))
+        f1n = np.where(left, _blob_gap(x1n, *args, slice_mm), f2)
+        f2n = np.where(left, f1, _blob_gap(x2n, *args, slice_mm))
+        x1, x2, f1, f2 = x1n, x2n, f1n, f2n
+    best = np.maximum(np.maximum(f1, f2), vals.max(axis=1))
+    return best
+
+
 class _PlaneChecker:
     """Evaluates the tilt constraints on many planes through the axis at once."""
 
-    def __init__(self, geom: FiducialGeometry, pixel_size_mm: float, slice_thickness_mm: float):
+    def __init__(self, geom: FiducialGeometry, pixel_size_mm: float, slice_thickness_mm: float,
+                 merges: bool = True):
         self.geom = geom
         self.tubes = geom.tubes
         self.pixel = float(pixel_size_mm)
         self.slice = float(slice_thickness_mm)
-        self.pairs = _pair_order(geom)
+        self.pairs = _pair_order(geom) if merges else []
         self.I = np.array([p[0] for p in self.pairs], dtype=int)
         self.J = np.array([p[1] for p in self.pairs], dtype=int)
         self.semi = np.array([t.diameter / 2 for t in self.tubes])
@@ -482,16 +546,23 @@ class _PlaneChecker:
             return cnt, np.zeros((P, 0))
         d = C[:, self.J] - C[:, self.I]  # (P, M, 3)
         dist = np.linalg.norm(d, axis=-1)
-        e = d / np.where(dist > 0, dist, 1.0)[..., None]
+        e0 = d / np.where(dist > 0, dist, 1.0)[..., None]
+        e1 = np.cross(normals[:, None, :], e0)  # in-plane, perpendicular to the centre line
         cosb = np.abs(np.einsum("pni,pi->pn", T, normals))  # (P, N) = cos(beta)
         with np.errstate(divide="ignore", invalid="ignore"):
-            wi = np.einsum("pmi,pmi->pm", e, T[:, self.I]) / cosb[:, self.I]
-            wj = np.einsum("pmi,pmi->pm", e, T[:, self.J]) / cosb[:, self.J]
-        # support of an ellipse (a, a/cos b) plus a smear segment s tan(b) along the tube's projection
-        hi = self.semi[self.I] * np.sqrt(1 + wi**2) + 0.5 * self.slice * np.abs(wi)
-        hj = self.semi[self.J] * np.sqrt(1 + wj**2) + 0.5 * self.slice * np.abs(wj)
-        margin = dist - hi - hj - self.pixel
-        margin = np.where(np.isfinite(margin), margin, np.where(np.isnan(dist), np.nan, -np.inf))
+            pi = np.einsum("pmi,pmi->pm", e0, T[:, self.I]) / cosb[:, self.I]
+            qi = np.einsum("pmi,pmi->pm", e1, T[:, self.I]) / cosb[:, self.I]
+            pj = np.einsum("pmi,pmi->pm", e0, T[:, self.J]) / cosb[:, self.J]
+            qj = np.einsum("pmi,pmi->pm", e1, T[:, self.J]) / cosb[:, self.J]
+        args = (dist, pi, qi, pj, qj, self.semi[self.I], self.semi[self.J])
+        with np.errstate(invalid="ignore"):
+            gap = _blob_gap(0.0, *args, self.slice)  # along the centre line: a lower bound
+            cand = np.flatnonzero((gap < self.pixel).ravel() & np.isfinite(gap).ravel())
+            if cand.size:
+                flat = [np.broadcast_to(a, gap.shape).ravel()[cand] for a in args]
+                gap.ravel()[cand] = _max_blob_gap(*flat, self.slice)
+        margin = gap - self.pixel
+        margin = np.where(np.isnan(dist), np.nan, np.where(np.isnan(margin), -np.inf, margin))
         return cnt, margin
 
     def codes(self, depth_mm, tilt_deg, azimuth_deg, chunk: int = 20000) -> np.ndarray:
@@ -519,18 +590,25 @@ def _max_tilt(checker: _PlaneChecker, z: np.ndarray, az: np.ndarray, grid_step: 
     """Per (depth, azimuth) pair: first failing tilt (grid, then bisection). Returns tilt, code, ok0."""
     grid = np.append(np.arange(0.0, TILT_CAP_DEG, grid_step), TILT_CAP_DEG)
     P = z.size
-    codes = checker.codes(z[:, None], grid[None, :], az[:, None]).reshape(P, grid.size)
-    fail = codes != 0
-    anyfail = fail.any(axis=1)
-    k = np.where(anyfail, np.argmax(fail, axis=1), grid.size)
+    k = np.full(P, grid.size)  # index of the first failing grid tilt
+    first_code = np.zeros(P, dtype=int)
+    alive = np.arange(P)
+    for i, g in enumerate(grid):  # only planes that have not failed yet
+        if not alive.size:
+            break
+        c = checker.codes(z[alive], g, az[alive])
+        bad = c != 0
+        k[alive[bad]] = i
+        first_code[alive[bad]] = c[bad]
+        alive = alive[~bad]
+    anyfail = k < grid.size
     ok0 = k > 0
     tilt = np.where(anyfail, 0.0, TILT_CAP_DEG)
-    code = np.where(anyfail, 0, 0)
-    code = np.where(k == 0, codes[:, 0], code)
+    code = np.where(k == 0, first_code, 0)
     sel = np.flatnonzero(anyfail & (k > 0))
     if sel.size:
         lo, hi = grid[k[sel] - 1], grid[k[sel]]
-        hic = codes[sel, k[sel]]
+        hic = first_code[sel]
         while np.max(hi - lo) > tol_deg:
             mid = 0.5 * (lo + hi)
             c = checker.codes(z[sel], mid, az[sel])
@@ -551,15 +629,16 @@ def depth_samples(length_mm: float, step_mm: float = 1.0) -> np.ndarray:
 
 
 def tilt_limits(geom: FiducialGeometry, pixel_size_mm: float, slice_thickness_mm: float,
-                depths_mm=None, azimuth_step_deg: float = 5.0, refine_step_deg: float = 0.25
-                ) -> tuple[TiltLimit, ...]:
+                depths_mm=None, azimuth_step_deg: float = 5.0, refine_step_deg: float = 0.25,
+                merges: bool = True) -> tuple[TiltLimit, ...]:
     """Max tilt at each depth (default :func:`depth_samples`), worst case over azimuth.
 
     Azimuths on a ``azimuth_step_deg`` grid, then a ``refine_step_deg`` grid of
     +-``azimuth_step_deg`` around each depth's worst azimuth. Twist is an
     in-plane rotation of the image and changes none of the constraints.
+    ``merges=False`` checks visibility (tubes inside the body, crossed once) only.
     """
-    checker = _PlaneChecker(geom, pixel_size_mm, slice_thickness_mm)
+    checker = _PlaneChecker(geom, pixel_size_mm, slice_thickness_mm, merges=merges)
     zs = depth_samples(geom.body.length) if depths_mm is None else np.asarray(depths_mm, dtype=float)
     azs = np.arange(0.0, 360.0, azimuth_step_deg)
     Z, A = np.meshgrid(zs, azs, indexing="ij")
@@ -611,22 +690,254 @@ def _runs(zs: np.ndarray, mask: np.ndarray) -> tuple[tuple[float, float], ...]:
     return tuple(runs)
 
 
+# ----------------------------------------------------------------------------- clearances
+
+
+def _samples(tube, spacing_mm: float):
+    """Centreline parameters, points (N, 3) and unit tangents (N, 3) at <= ``spacing_mm``."""
+    n = max(2, int(math.ceil(tube.length_mm / spacing_mm)) + 1)
+    t = np.linspace(0.0, 1.0, n)
+    return t, tube.points(t), tube.tangents(t)
+
+
+def _pair_gap(ta, tb, min_wall_mm: float, spacing_mm: float):
+    """Surface gap between two channels: min (refined), z there, intersect / thin z-ranges on ``ta``."""
+    from scipy.optimize import minimize
+    from scipy.spatial import cKDTree
+
+    ra, rb = ta.diameter / 2, tb.diameter / 2
+    sa, pa, _ = _samples(ta, spacing_mm)
+    sb, pb, _ = _samples(tb, spacing_mm)
+    d, nb = cKDTree(pb).query(pa)
+    gap = d - ra - rb
+    k = int(np.argmin(gap))
+
+    def f(x):
+        return float(np.linalg.norm(ta.points(x[:1])[0] - tb.points(x[1:])[0]))
+
+    res = minimize(f, [sa[k], sb[nb[k]]], method="L-BFGS-B", bounds=[(0, 1), (0, 1)],
+                   options={"ftol": 1e-14, "gtol": 1e-10})
+    best = min(float(res.fun), float(d[k])) - ra - rb
+    at = ta.points([res.x[0]])[0] if res.fun <= d[k] else pa[k]
+    zs = pa[:, 2]
+    order = np.argsort(zs, kind="stable")
+    inter = _runs(zs[order], (gap < 0)[order])
+    thin = _runs(zs[order], ((gap >= 0) & (gap < min_wall_mm - _WALL_TOL_MM))[order])
+    return best, float(at[2]), inter, thin
+
+
+def _fmt_ranges(ranges) -> str:
+    return ", ".join(f"{a:.1f}-{b:.1f}" for a, b in ranges)
+
+
+def channel_clearances(geom: FiducialGeometry, min_wall_mm: float, spacing_mm: float = 0.1):
+    """Clearances channel-channel and channel-body (see module docstring, item 3).
+
+    Returns ``(clearances, violations, warnings)``.
+    """
+    out: list[Clearance] = []
+    viol: list[Finding] = []
+    warn: list[Finding] = []
+    body = geom.body
+    r_in, r_out, length = body.inner_diameter / 2, body.outer_diameter / 2, body.length
+    for i, j in _pair_order(geom):
+        a, b = geom.tubes[i], geom.tubes[j]
+        gap, z, inter, thin = _pair_gap(a, b, min_wall_mm, spacing_mm)
+        if gap < 0:
+            status = "intersect"
+            warn.append(Finding("channels_intersect", f"channels {a.id} and {b.id} intersect (overlap "
+                                f"{-gap:.2f} mm) at z {_fmt_ranges(inter)} mm; same fluid, no leak; "
+                                "those depths are limited in the tilt limits", f"{a.id}/{b.id}"))
+        elif gap < min_wall_mm - _WALL_TOL_MM:
+            status = "thin"
+            warn.append(Finding("channel_wall_thin", f"wall between {a.id} and {b.id} is {gap:.3f} mm "
+                                f"(< min_wall {min_wall_mm:g}) at z {_fmt_ranges(thin)} mm", f"{a.id}/{b.id}"))
+        else:
+            status = "ok"
+        out.append(Clearance(a.id, b.id, gap, z, status, inter, thin))
+    for tube in geom.tubes:
+        r = tube.diameter / 2
+        _, p, _ = _samples(tube, spacing_mm)
+        rho = np.hypot(p[:, 0], p[:, 1])
+        for name, gaps in (("bore", rho - r_in - r), ("outside", r_out - rho - r)):
+            k = int(np.argmin(gaps))
+            g = float(gaps[k])
+            bad = g < min_wall_mm - _WALL_TOL_MM
+            out.append(Clearance(tube.id, name, g, float(p[k, 2]), "too_thin" if bad else "ok"))
+            if bad:
+                viol.append(Finding("wall_too_thin", f"wall from channel {tube.id} to the "
+                                    f"{'bore' if name == 'bore' else 'outside surface'} is {g:.3f} mm; "
+                                    f"min_wall is {min_wall_mm:g} mm", f"{tube.id} z={p[k, 2]:.1f} mm"))
+        for name, zc in (("bottom_face", float(p[:, 2].min())), ("top_face", float(length - p[:, 2].max()))):
+            g = zc - r
+            zat = 0.0 if name == "bottom_face" else length
+            if zc <= _WALL_TOL_MM:
+                out.append(Clearance(tube.id, name, g, zat, "open"))
+            elif g < min_wall_mm - _WALL_TOL_MM:
+                out.append(Clearance(tube.id, name, g, zat, "too_thin"))
+                viol.append(Finding("wall_too_thin", f"channel {tube.id} ends {g:.3f} mm from the {name.replace('_', ' ')}"
+                                    f"; min_wall is {min_wall_mm:g} mm", f"{tube.id} {name}"))
+            else:
+                out.append(Clearance(tube.id, name, g, zat, "ok"))
+    return tuple(out), viol, warn
+
+
+def channel_overhangs(geom: FiducialGeometry, max_overhang_deg: float, spacing_mm: float = 0.5):
+    """Steepest angle from the build direction (+z) of each channel: max acos(|t_z|). Returns (overhangs, violations)."""
+    out, viol = [], []
+    for tube in geom.tubes:
+        _, p, tg = _samples(tube, spacing_mm)
+        ang = np.degrees(np.arccos(np.clip(np.abs(tg[:, 2]), 0.0, 1.0)))
+        k = int(np.argmax(ang))
+        out.append(Overhang(tube.id, float(ang[k]), float(p[k, 2])))
+        if ang[k] > max_overhang_deg + 1e-9:
+            viol.append(Finding("overhang_too_steep", f"channel {tube.id} runs {ang[k]:.1f} deg from the "
+                                f"build direction; max_overhang_deg is {max_overhang_deg:g}", tube.id))
+    return tuple(out), viol
+
+
+# ----------------------------------------------------------------------------- unambiguity
+
+
+def _wrap180(a):
+    return (np.asarray(a) + 180.0) % 360.0 - 180.0
+
+
+def helix_quadrant_crossings(geom: FiducialGeometry, step_mm: float = 0.05) -> tuple[Finding, ...]:
+    """Helices whose angle crosses the angle of a straight tube within their common z extent."""
+    out = []
+    for h in (t for t in geom.tubes if t.role == "helix"):
+        for line in (t for t in geom.tubes if isinstance(t, LineTube)):
+            z0 = max(h.z_range[0], line.z_range[0])
+            z1 = min(h.z_range[1], line.z_range[1])
+            if z1 <= z0 or line.z_range[1] - line.z_range[0] < 1e-9:
+                continue
+            zs = np.linspace(z0, z1, max(3, int(math.ceil((z1 - z0) / step_mm)) + 1))
+            ph, pl = h.point_at_z(zs), line.point_at_z(zs)
+            delta = _wrap180(np.degrees(np.arctan2(ph[:, 1], ph[:, 0]) - np.arctan2(pl[:, 1], pl[:, 0])))
+            pos = delta > 0
+            cross = np.flatnonzero((pos[1:] != pos[:-1]) & (np.abs(delta[1:]) < 90) & (np.abs(delta[:-1]) < 90))
+            # a helix that only touches the tube's angle at its own end stays in its quadrant
+            cross = [c for c in cross if not (c == 0 and delta[0] == 0) and not (delta[c + 1] == 0 and c + 1 == len(zs) - 1)]
+            if cross:
+                c = cross[0]
+                zc = zs[c] + (zs[c + 1] - zs[c]) * delta[c] / (delta[c] - delta[c + 1])
+                out.append(Finding("helix_leaves_quadrant",
+                                   f"helix {h.id} crosses the angle of straight tube {line.id} at z = {zc:.1f} mm: "
+                                   "its angle no longer gives depth uniquely (reduce the pitch or the span)",
+                                   f"{h.id}/{line.id} z={zc:.1f} mm"))
+    return tuple(out)
+
+
+def _section_markers(geom: FiducialGeometry, depths_mm: np.ndarray) -> np.ndarray:
+    """Tilt-0 marker positions (x, y) of every tube at each depth; shape (Z, N, 2), NaN where absent."""
+    n = np.tile([0.0, 0.0, 1.0], (len(depths_mm), 1))
+    o = np.zeros_like(n)
+    o[:, 2] = depths_mm
+    return np.stack([plane_crossings(t, o, n)[1][:, :2] for t in geom.tubes], axis=1)
+
+
+def _hausdorff(a: np.ndarray, b: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+    """Symmetric Hausdorff distance between point sets a (..., N, 2) and b (..., N, 2), and nearest index."""
+    d = np.linalg.norm(a[..., :, None, :] - b[..., None, :, :], axis=-1)
+    nearest = np.argmin(d, axis=-1)
+    return np.maximum(d.min(axis=-1).max(axis=-1), d.min(axis=-2).max(axis=-1)), nearest
+
+
+def pattern_symmetries(geom: FiducialGeometry, depths_mm, tolerance_mm: float):
+    """Rotations about the axis / reflections mapping the tilt-0 marker set onto itself.
+
+    Candidates map marker 0 onto each marker j: rotation by theta_j - theta_0,
+    reflection about the line at (theta_0 + theta_j)/2. A candidate is a
+    symmetry if its symmetric Hausdorff mismatch is <= ``tolerance_mm`` and it
+    permutes the markers (not the identity). Returns ``(symmetries, min_mismatch)``:
+    one Symmetry per depth run, and the smallest mismatch of any non-trivial candidate.
+    """
+    zs = np.asarray(depths_mm, dtype=float)
+    if zs.size == 0:
+        return (), None
+    P = _section_markers(geom, zs)  # (Z, N, 2)
+    Z, N, _ = P.shape
+    th = np.arctan2(P[..., 1], P[..., 0])  # (Z, N)
+    rot = th - th[:, :1]  # (Z, N): j = 0 is the identity
+    refl = 0.5 * (th + th[:, :1])  # mirror-line angles
+    ang = np.concatenate([rot[:, 1:], refl], axis=1)  # (Z, C)
+    kind = np.array(["rotation"] * (N - 1) + ["reflection"] * N)
+    c, s = np.cos(ang), np.sin(ang)
+    x, y = P[..., 0][:, None, :], P[..., 1][:, None, :]  # (Z, 1, N)
+    is_rot = (kind == "rotation")[None, :, None]
+    c2, s2 = np.cos(2 * ang)[..., None], np.sin(2 * ang)[..., None]
+    xr = np.where(is_rot, c[..., None] * x - s[..., None] * y, c2 * x + s2 * y)
+    yr = np.where(is_rot, s[..., None] * x + c[..., None] * y, s2 * x - c2 * y)
+    mapped = np.stack([xr, yr], axis=-1)  # (Z, C, N, 2)
+    mism, nearest = _hausdorff(mapped, np.broadcast_to(P[:, None], mapped.shape))
+    identity = (nearest == np.arange(N)).all(axis=-1)
+    mism = np.where(identity | np.isnan(mism), np.inf, mism)
+    best = np.argmin(mism, axis=1)
+    best_m = mism[np.arange(Z), best]
+    min_mismatch = float(best_m.min()) if np.isfinite(best_m).any() else None
+    syms = []
+    for a, b in _runs(np.arange(Z), best_m <= tolerance_mm):
+        a, b = int(a), int(b)
+        zi = a + int(np.argmin(best_m[a:b + 1]))
+        k = str(kind[best[zi]])
+        angle = float(np.degrees(ang[zi, best[zi]]) % (360.0 if k == "rotation" else 180.0))
+        syms.append(Symmetry(k, angle, (float(zs[a]), float(zs[b])), float(zs[zi]), float(best_m[zi])))
+    return tuple(syms), min_mismatch
+
+
+def depth_sensitivity(geom: FiducialGeometry, pixel_size_mm: float) -> DepthSensitivity:
+    """mm of depth per degree of helix angle and expected depth precision (see module docstring, item 6)."""
+    sigma_xy = pixel_size_mm / math.sqrt(12.0)
+    per, sig = [], []
+    for h in (t for t in geom.tubes if t.role == "helix" and hasattr(t, "pitch_deg_per_mm")):
+        w = abs(h.pitch_deg_per_mm)
+        per.append((h.id, 1.0 / w))
+        sig.append((h.id, math.degrees(sigma_xy / h.radius) / w))
+    combined = None
+    if sig:
+        inv = sum(1.0 / v**2 for _, v in sig if v > 0)
+        combined = 0.0 if inv == 0 else 1.0 / math.sqrt(inv)
+    return DepthSensitivity(tuple(per), sigma_xy, tuple(sig), combined)
+
+
 # ----------------------------------------------------------------------------- check_design
 
 
 def check_geometry(geom: FiducialGeometry, *, pixel_size_mm: float, slice_thickness_mm: float,
                    min_wall_mm: float, max_overhang_deg: float) -> FeasibilityReport:
     """All feasibility checks on a geometry (what :func:`check_design` runs for a spec)."""
-    limits = tilt_limits(geom, pixel_size_mm, slice_thickness_mm)
+    full = tilt_limits(geom, pixel_size_mm, slice_thickness_mm)
+    vis = tilt_limits(geom, pixel_size_mm, slice_thickness_mm, merges=False)
+    limits = tuple(replace(f, visibility_tilt_deg=v.max_tilt_deg if v.usable_at_zero_tilt else 0.0)
+                   for f, v in zip(full, vis))
     usable = usable_depth(limits)
     violations: list[Finding] = []
     warnings: list[Finding] = []
     if not usable[0].ranges_mm:
+        mid = limits[len(limits) // 2]
         violations.append(Finding("no_usable_depth", "no depth is usable even at tilt 0 "
-                                  f"(e.g. z = {limits[len(limits) // 2].depth_mm:g} mm: "
-                                  f"{limits[len(limits) // 2].limited_by})", "all depths"))
-    empty_unamb = Unambiguity(_symmetry_tolerance(geom, pixel_size_mm), None, (), ())
-    empty_ds = DepthSensitivity((), pixel_size_mm / math.sqrt(12), (), None)
+                                  f"(e.g. z = {mid.depth_mm:g} mm: {mid.limited_by})", "all depths"))
+    clearances, v, w = channel_clearances(geom, min_wall_mm)
+    violations += v
+    warnings += w
+    overhangs, v = channel_overhangs(geom, max_overhang_deg)
+    violations += v
+    crossings = helix_quadrant_crossings(geom)
+    violations += crossings
+    tol = symmetry_tolerance(geom, pixel_size_mm)
+    usable_z = np.concatenate([np.linspace(a, b, max(2, int(math.ceil((b - a) / 0.05)) + 1))
+                               for a, b in usable[0].ranges_mm] or [np.empty(0)])
+    syms, mismatch = pattern_symmetries(geom, usable_z, tol)
+    for sym in syms:
+        a, b = sym.depth_range_mm
+        violations.append(Finding("symmetric_pattern", f"the tilt-0 marker pattern maps onto itself under a "
+                                  f"{sym.describe()} (worst marker off by {sym.mismatch_mm:.2f} mm at z = "
+                                  f"{sym.at_depth_mm:.2f} mm; tolerance {tol:.2f} mm): twist/depth are "
+                                  "ambiguous; move the orientation tubes so that no tube is equally far "
+                                  "from its two neighbours", f"z {a:.2f}-{b:.2f} mm"))
+    unamb = Unambiguity(tol, mismatch, syms, crossings)
+    sens = depth_sensitivity(geom, pixel_size_mm)
     return FeasibilityReport(
         name=geom.name,
         pixel_size_mm=float(pixel_size_mm),
@@ -638,15 +949,22 @@ def check_geometry(geom: FiducialGeometry, *, pixel_size_mm: float, slice_thickn
         warnings=tuple(warnings),
         tilt_limits=limits,
         usable_depth=usable,
-        clearances=(),
-        overhangs=(),
-        unambiguity=empty_unamb,
-        depth_sensitivity=empty_ds,
+        clearances=clearances,
+        overhangs=overhangs,
+        unambiguity=unamb,
+        depth_sensitivity=sens,
     )
 
 
-def _symmetry_tolerance(geom: FiducialGeometry, pixel_size_mm: float) -> float:
-    return min(t.diameter for t in geom.tubes) / 2 + pixel_size_mm
+def symmetry_tolerance(geom: FiducialGeometry, pixel_size_mm: float) -> float:
+    """Largest marker displacement an image cannot resolve: one pixel, at least 5 % of the tube diameter.
+
+    One pixel is conservative against the centroid quantisation bound
+    (pixel/sqrt(12)), allowing for noise, partial volume and tilt distortion;
+    the 5 % floor stands for the printed channel's shape tolerance, which
+    bounds how well a marker centre is known even with ideal imaging.
+    """
+    return max(pixel_size_mm, 0.05 * min(t.diameter for t in geom.tubes))
 
 
 def check_design(spec: Spec, pixel_size_mm: float | None = None,
