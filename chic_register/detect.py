@@ -31,7 +31,10 @@ class Blobs:
     image over the blob; ``axis_ratio`` (N,): minor/major axis of the blob's
     second moments (1 = round); ``contrast`` (N,): (mean - background) /
     noise sigma; ``background`` and ``noise_sigma``: image level and noise
-    estimate; ``threshold``: the level used on the smoothed image.
+    estimate; ``threshold``: the level used on the smoothed image;
+    ``footprints`` (N,): per blob ``(row0, col0, mask)``, the pixels (a bool
+    mask placed at row0, col0) whose intensity made its centre, so that a
+    model can predict that centre the same way (see ``solve``).
     """
 
     centres_rc: np.ndarray
@@ -42,6 +45,7 @@ class Blobs:
     background: float
     noise_sigma: float
     threshold: float
+    footprints: tuple = ()
 
     def __len__(self) -> int:
         return int(self.centres_rc.shape[0])
@@ -132,7 +136,7 @@ def detect_blobs(
     objs = ndi.find_objects(labels)
     keep = np.flatnonzero((area >= min_area_factor * a0) & (area <= max_area_factor * a0))
     k = dilate_px if dilate_px is not None else 1
-    centres, areas, means, ratios, contrasts = [], [], [], [], []
+    centres, areas, means, ratios, contrasts, feet = [], [], [], [], [], []
     H, W = img.shape
     for i in keep:
         sl = objs[i]
@@ -167,6 +171,7 @@ def detect_blobs(
             means.append(float(raw[part].mean()))
             ratios.append(ratio if part is blob else _moments(part.astype(float))[2])
             contrasts.append(contrast)
+            feet.append((r0, c0, foot))
     if not centres:
         return Blobs.empty(bg, sigma_n, thr)
     return Blobs(
@@ -178,6 +183,7 @@ def detect_blobs(
         background=bg,
         noise_sigma=sigma_n,
         threshold=thr,
+        footprints=tuple(feet),
     )
 
 

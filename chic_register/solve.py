@@ -543,17 +543,25 @@ def _assign(pred: np.ndarray, ok: np.ndarray, blobs_xy: np.ndarray, gate_mm: flo
 
 def refine(model: TubeModel, blobs_xy: list[np.ndarray], T_scanner_from_image: list[np.ndarray],
            T_F_from_scanner: np.ndarray, *, gates_mm=(3.0, 1.5, 1.0, 1.0), iters_per_gate: int = 3,
-           final_iters: int = 4, damping: float = 1e-6, exclude: list | None = None) -> _Fit:
+           final_iters: int = 4, damping: float = 1e-6, exclude: list | None = None,
+           assign0: list | None = None, offsets_mm: list | None = None, strict_ends: bool = True) -> _Fit:
     """Gauss-Newton on all six DOF of ``T_F_from_scanner`` with re-assignment.
 
     ``blobs_xy``: per slice, detected centres in image mm (N_j, 2). Each gate
     in ``gates_mm`` re-solves the blob-tube assignment, then iterates; the
-    final iterations keep the last assignment. ``exclude``: per slice, a
-    (K,) bool mask of tubes left unassigned (rejected outliers).
+    final iterations keep the last assignment (``assign0``, per slice (K,)
+    blob indices, when there are no gates). ``exclude``: per slice, a (K,)
+    bool mask of tubes left unassigned (rejected outliers). ``offsets_mm``:
+    per slice (K, 2), added to the predicted crossings (the centroid model:
+    the centroid of a tube's image section minus its centreline crossing).
+    ``strict_ends``: leave out crossings whose section a tube end cuts
+    (their blob centre is biased) unless the offsets model that cut.
     """
+    end_margin = 0.0 if strict_ends else 1e-9
     X = T_F_from_scanner.copy()
     ads = [_adjoint(invert(S)) for S in T_scanner_from_image]
-    assign = [None] * len(blobs_xy)
+    assign = list(assign0) if assign0 is not None else [None] * len(blobs_xy)
+    offs = offsets_mm if offsets_mm is not None else [None] * len(blobs_xy)
     schedule = [(g, iters_per_gate) for g in gates_mm] + [(None, final_iters)]
     step = 1.0
     for gate, iters in schedule:
@@ -563,16 +571,17 @@ def refine(model: TubeModel, blobs_xy: list[np.ndarray], T_scanner_from_image: l
                 break  # converged and the assignment did not change
             Js, rs = [], []
             for j, (xy, S) in enumerate(zip(blobs_xy, T_scanner_from_image)):
-                q, tan, _, inside = plane_crossings(model, X @ S, margin_mm=5.0 if gate is not None else 0.0)
+                q, tan, _, inside = plane_crossings(model, X @ S, margin_mm=5.0 if gate is not None else end_margin)
+                qm = q + offs[j] if offs[j] is not None else q  # what the detector measures
                 if gate is not None and it == 0:
-                    new = _assign(q, inside & ~exclude[j] if exclude else inside, xy, gate)
+                    new = _assign(qm, inside & ~exclude[j] if exclude else inside, xy, gate)
                     changed = changed or assign[j] is None or not np.array_equal(new, assign[j])
                     assign[j] = new
                 a = assign[j]
                 k = np.flatnonzero((a >= 0) & inside)
                 if k.size == 0:
                     continue
-                rs.append((q[k] - xy[a[k]]).ravel())
+                rs.append((qm[k] - xy[a[k]]).ravel())
                 Js.append((_crossing_jacobian(q[k], tan[k]) @ ads[j]).reshape(-1, 6))
             if not rs:
                 break
@@ -594,7 +603,9 @@ def refine(model: TubeModel, blobs_xy: list[np.ndarray], T_scanner_from_image: l
     # final bookkeeping
     residuals, insides, total, sq = [], [], 0, 0.0
     for j, (xy, S) in enumerate(zip(blobs_xy, T_scanner_from_image)):
-        q, _, _, inside = plane_crossings(model, X @ S)
+        q, _, _, inside = plane_crossings(model, X @ S, margin_mm=end_margin)
+        if offs[j] is not None:
+            q = q + offs[j]
         a = assign[j] if assign[j] is not None else np.full(model.is_helix.size, -1)
         a = np.where(inside, a, -1)
         assign[j] = a
@@ -607,6 +618,116 @@ def refine(model: TubeModel, blobs_xy: list[np.ndarray], T_scanner_from_image: l
         sq += float(np.sum(res[k] ** 2))
     rms = math.sqrt(sq / total) if total else float("inf")
     return _Fit(X, assign, residuals, insides, total, rms)
+
+
+def centroid_offsets(tubes, model: TubeModel, T_F_from_I: np.ndarray, assignment: np.ndarray, footprints,
+                     pixel_spacing_mm, slice_thickness_mm: float, *, supersample: int = 5,
+                     thickness_samples: int = 5, purity: bool = False):
+    """Where the detector sees each matched tube, relative to its centreline crossing; (K, 2) image mm.
+
+    The centre the detector reports is the intensity centroid of the blob's
+    footprint, not the centreline crossing: a helix's section is curved, a
+    section is clipped by the tube's end and a neighbour can spill into the
+    footprint. So each matched tube's footprint (``footprints[assignment[k]]``
+    = (row0, col0, mask), from :class:`~chic_register.detect.Blobs`) is
+    rendered noise-free at the pose ``T_F_from_I`` (4x4) with every tube
+    (``tubes``, the geometry's objects) that reaches it, by the simulator's
+    exact partial-volume renderer over the slice thickness; the offset is
+    that footprint's centroid minus the crossing. Zero for unmatched tubes.
+    Returns ``(offsets (K, 2), purity (K,))``; with ``purity=True`` that is
+    the share of the tube's own signal inside its footprint times the share
+    of the footprint's signal that is the tube's own (1: a clean blob; less:
+    a touching neighbour or a footprint split through the section, whose
+    centre follows the pose only weakly), else ones.
+    """
+    from .simulate import render_tubes
+
+    q, tan, _, found = plane_crossings(model, T_F_from_I, margin_mm=5.0)
+    K = q.shape[0]
+    off = np.zeros((K, 2))
+    pure = np.ones(K)
+    rs, cs = (float(v) for v in pixel_spacing_mm)
+    px = max(rs, cs)
+    # each tube's in-plane section: half-length along its projected tangent u, half-width across
+    txy = np.hypot(tan[:, 0], tan[:, 1])
+    tz = np.maximum(np.abs(tan[:, 2]), 1e-3)
+    half_len = np.minimum(0.5 * model.diameter_mm / tz + 0.5 * slice_thickness_mm * txy / tz, model.length_mm)
+    half_wid = 0.5 * model.diameter_mm + 0.5 * slice_thickness_mm
+    u = tan[:, :2] / np.maximum(txy, 1e-12)[:, None]
+    render = {"pixel_spacing_mm": (rs, cs), "slice_thickness_mm": slice_thickness_mm,
+              "supersample": supersample, "thickness_samples": thickness_samples}
+    for k in np.flatnonzero(assignment >= 0):
+        r0, c0, mask = footprints[int(assignment[k])]
+        h, w = mask.shape
+        centre = np.array([(c0 + (w - 1) / 2) * cs, (r0 + (h - 1) / 2) * rs])
+        half = 0.5 * math.hypot(h * rs, w * cs) + 2 * px
+        d = centre - q
+        along = np.abs(np.einsum("ij,ij->i", d, u))
+        across = np.abs(u[:, 0] * d[:, 1] - u[:, 1] * d[:, 0])
+        near = np.flatnonzero(found & (along < half + half_len) & (across < half + half_wid))
+        near = np.union1d(near, [k])
+        img = render_tubes([tubes[i] for i in near], T_F_from_I, (h, w), center_px=(-float(r0), -float(c0)),
+                           **render)
+        wgt = np.where(mask, img, 0.0)
+        total = wgt.sum()
+        if total <= 0:
+            pure[k] = 0.0
+            continue
+        r = (wgt.sum(axis=1) @ np.arange(h)) / total + r0
+        c = (wgt.sum(axis=0) @ np.arange(w)) / total + c0
+        off[k] = (c * cs - q[k, 0], r * rs - q[k, 1])
+        if purity:
+            # the tube alone, in a window holding its whole section and the footprint
+            ex = abs(u[k, 0]) * half_len[k] + abs(u[k, 1]) * half_wid[k] + 2 * px
+            ey = abs(u[k, 1]) * half_len[k] + abs(u[k, 0]) * half_wid[k] + 2 * px
+            R0 = min(r0, int(math.floor((q[k, 1] - ey) / rs)))
+            C0 = min(c0, int(math.floor((q[k, 0] - ex) / cs)))
+            R1 = max(r0 + h, int(math.ceil((q[k, 1] + ey) / rs)) + 1)
+            C1 = max(c0 + w, int(math.ceil((q[k, 0] + ex) / cs)) + 1)
+            own = render_tubes([tubes[k]], T_F_from_I, (R1 - R0, C1 - C0), center_px=(-float(R0), -float(C0)),
+                               **render)
+            own_total = own.sum()
+            own_in = float(np.where(mask, own[r0 - R0:r0 - R0 + h, c0 - C0:c0 - C0 + w], 0.0).sum())
+            pure[k] = (own_in / own_total) * (own_in / total) if own_total > 0 else 0.0
+    return off, pure
+
+
+def _centroid_refine(model: TubeModel, tubes, fit: _Fit, xys, Ss, slices, blob_sets, opts) -> _Fit:
+    """Refit ``fit`` with the centroid model (:func:`centroid_offsets`).
+
+    A fixed-point iteration: offsets at the current pose, refit, repeated
+    until the pose moves less than 1e-4 (mm and rad) or ``centroid_iterations``
+    times. Tubes whose blob is not clean (purity below
+    ``centroid_min_purity``: a touching neighbour, a footprint split through
+    the section) are left out while enough tubes remain: their centre
+    follows the pose only weakly, which the fixed point follows slowly,
+    and a split's boundary moves with the noise.
+    """
+    assign = [a.copy() for a in fit.assignments]
+    for it in range(opts.centroid_iterations):
+        X0 = fit.T_F_from_scanner
+        offs = []
+        for j, (sl, S, b) in enumerate(zip(slices, Ss, blob_sets)):
+            off, pure = centroid_offsets(
+                tubes, model, fit.T_F_from_scanner @ S, assign[j], b.footprints, sl.pixel_spacing_mm,
+                float(sl.slice_thickness_mm), supersample=opts.centroid_supersample,
+                thickness_samples=opts.centroid_thickness_samples, purity=it == 0)
+            offs.append(off)
+            if it == 0:
+                for k in np.argsort(pure):
+                    if pure[k] >= opts.centroid_min_purity:
+                        break
+                    n_all = sum(int((a >= 0).sum()) for a in assign)
+                    n_depth = sum(int(((a >= 0) & model.depth_coding).sum()) for a in assign)
+                    if n_all <= opts.min_tubes or (model.depth_coding[k] and n_depth <= opts.min_depth_tubes):
+                        continue
+                    assign[j][k] = -1
+        fit = refine(model, xys, Ss, fit.T_F_from_scanner, gates_mm=(), final_iters=6, assign0=assign,
+                     offsets_mm=offs, strict_ends=False)
+        d = invert(X0) @ fit.T_F_from_scanner
+        if max(abs(d[:3, 3]).max(), abs(d[:3, :3] - np.eye(3)).max()) < 1e-4:
+            break
+    return fit
 
 
 # --------------------------------------------------------------------------- public API
@@ -682,7 +803,13 @@ class SolveOptions:
     a distinct second pose matching as many tubes with an RMS within this
     factor of the best makes the fit ambiguous (a pose that leaves a tube
     unexplained loses: near-symmetric layouts always have one that fits all
-    but one tube).
+    but one tube). ``centroid_model``: after the lock, refit predicting
+    each tube's section centroid as the detector measures it, not its
+    centreline crossing (:func:`centroid_offsets`; removes the bias of
+    curved, clipped and touching sections at a few ms per iteration:
+    ``centroid_iterations`` renders of every matched tube's footprint with
+    ``centroid_supersample``² samples per pixel and
+    ``centroid_thickness_samples`` sub-planes).
     """
 
     max_rms_px: float = 0.5
@@ -692,6 +819,11 @@ class SolveOptions:
     ambiguity_ratio: float = 3.0
     max_hypotheses: int = 4
     max_tilt_deg: float = 75.0
+    centroid_model: bool = False
+    centroid_iterations: int = 4
+    centroid_supersample: int = 5
+    centroid_thickness_samples: int = 5
+    centroid_min_purity: float = 0.93
 
 
 def _pixel_mm(sl: Slice) -> float:
@@ -879,6 +1011,13 @@ def register(slices: list[Slice], geom: FiducialGeometry, *, options: SolveOptio
         if best.n_matched < sum(f.n_matched for f, _ in per_slice):
             raise NoLock("the slices disagree: the joint pose matches fewer tubes than the slices alone",
                          {"n_tubes": best.n_matched})
+    if opts.centroid_model:
+        corrected = _centroid_refine(model, geom.tubes, best, xys, Ss, slices, blob_sets, opts)
+        _check_trust(corrected, [], model, slices, opts)  # only ever stricter: the lock was checked above
+        if _distinct(corrected.T_F_from_scanner, best.T_F_from_scanner, model):
+            raise NoLock("the centroid model moved the pose by more than 1 mm or 1 degree: the fit is not stable",
+                         {"n_tubes": corrected.n_matched})
+        best = corrected
     t2 = time.perf_counter()
     T_sf = invert(best.T_F_from_scanner)
     results = []

@@ -271,3 +271,43 @@ def test_options_are_checked_and_used(neuro_geometry):
     with pytest.raises(NoLock) as exc:  # demanding more tubes than the fiducial has
         register([sim.slice], neuro_geometry, min_tubes=10)
     assert "need at least 10" in exc.value.reason
+
+
+# ----------------------------------------------------------------------------- centroid model (bias)
+
+
+def test_centroid_offsets_predict_the_detected_centres_at_the_true_pose(neuro_geometry):
+    # steep cut, thick slice: curved helix sections and touching blobs; at the true pose the model's
+    # centroids must land on the detector's centres (the crossings alone are off by up to a pixel)
+    from chic_register.detect import detect_blobs
+    from chic_register.solve import _assign, centroid_offsets
+
+    sim = simulate_slice(neuro_geometry, 25, 60, 75, 20, slice_thickness_mm=2.0)
+    b = detect_blobs(sim.slice.pixels, sim.slice.pixel_spacing_mm, 3.0)
+    xy = np.stack([b.centres_rc[:, 1] * 0.5, b.centres_rc[:, 0] * 0.5], axis=1)
+    model = TubeModel.from_geometry(neuro_geometry)
+    T_F_from_I = invert(sim.truth.T_scanner_from_fiducial) @ sim.slice.T_scanner_from_image()
+    q, _, _, inside = plane_crossings(model, T_F_from_I)
+    a = _assign(q, inside, xy, 1.5)
+    off, pure = centroid_offsets(neuro_geometry.tubes, model, T_F_from_I, a, b.footprints, (0.5, 0.5), 2.0,
+                                 purity=True)
+    k = np.flatnonzero(a >= 0)
+    before = np.linalg.norm(q[k] - xy[a[k]], axis=1)
+    after = np.linalg.norm(q[k] + off[k] - xy[a[k]], axis=1)
+    assert before.max() > 0.1  # mm: the bias is there...
+    assert after.max() < 0.005  # ...and the model explains it
+    assert np.all((pure > 0) & (pure <= 1.0 + 1e-9))
+
+
+@pytest.mark.parametrize("pose", [(25, 60, 75, 20), (17.5, 60, 160, -35), (10, 30, 75, 20)])
+def test_centroid_model_removes_the_bias_of_steep_sections(neuro_geometry, pose):
+    sim = simulate_slice(neuro_geometry, *pose, slice_thickness_mm=2.0)  # noise-free: any error is a bias
+    T_true = invert(sim.truth.T_scanner_from_fiducial) @ sim.slice.T_scanner_from_image()
+    errs = {}
+    for on in (False, True):
+        reg = register([sim.slice], neuro_geometry, centroid_model=on)
+        T = invert(reg.T_scanner_from_fiducial) @ sim.slice.T_scanner_from_image()
+        normal = math.degrees(math.acos(min(1.0, abs(float(T[:3, 2] @ T_true[:3, 2])))))
+        errs[on] = (abs(reg.slices[0].depth_mm - sim.truth.angles.depth_mm), normal)
+    assert errs[True][0] < 0.01 and errs[True][1] < 0.05, errs
+    assert errs[False][0] > 2 * errs[True][0] or errs[False][1] > 2 * errs[True][1], errs  # the model did it
