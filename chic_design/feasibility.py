@@ -406,7 +406,7 @@ def _sample_params(tube, eps_mm: float = 1e-6) -> np.ndarray:
     return np.linspace(-eps, 1.0 + eps, n)
 
 
-def plane_crossings(tube, origins, normals, n_iter: int = 5):
+def plane_crossings(tube, origins, normals, n_iter: int = 6):
     """Crossings of a tube centreline with many planes at once (vectorised ``intersect_plane``).
 
     ``origins``, ``normals``: shape (P, 3). The centreline is bracketed at
@@ -433,12 +433,15 @@ def plane_crossings(tube, origins, normals, n_iter: int = 5):
     denom = np.where(gb != ga, gb - ga, 1.0)
     t = ta - ga * (tb - ta) / denom
     if not isinstance(tube, LineTube):
+        side = np.zeros(len(t))  # +1: end a was replaced last time, -1: end b
         for _ in range(n_iter):
             gt = np.einsum("pi,pi->p", n, tube.points(t)) - off
-            same = np.sign(gt) == np.sign(ga)
-            # Illinois: replace the bracket end on gt's side, halve the other end's value
-            ta, tb, ga, gb = (np.where(same, t, ta), np.where(same, tb, t),
-                              np.where(same, gt, ga * 0.5), np.where(same, gb * 0.5, gt))
+            same = np.sign(gt) == np.sign(ga)  # t replaces end a
+            # Illinois: halve the kept end's value when the same end is replaced twice in a row
+            ga, gb = (np.where(same, gt, np.where(side == -1, 0.5 * ga, ga)),
+                      np.where(same, np.where(side == 1, 0.5 * gb, gb), gt))
+            ta, tb = np.where(same, t, ta), np.where(same, tb, t)
+            side = np.where(same, 1.0, -1.0)
             denom = np.where(gb != ga, gb - ga, 1.0)
             t = np.clip(ta - ga * (tb - ta) / denom, np.minimum(ta, tb), np.maximum(ta, tb))
     t = np.where(hit, t, np.nan)
