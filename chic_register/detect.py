@@ -74,6 +74,43 @@ def otsu_threshold(image: np.ndarray, bins: int = 256) -> float:
     return float(lo + (k + 1) * (hi - lo) / bins)
 
 
+def _dilate(mask: np.ndarray, iterations: int = 1) -> np.ndarray:
+    """3 x 3 (8-connected) binary dilation of a small mask (h, w), by array shifts (no scipy call overhead)."""
+    out = mask
+    for _ in range(iterations):
+        m = out.copy()
+        m[1:] |= out[:-1]
+        m[:-1] |= out[1:]
+        row = m.copy()
+        m[:, 1:] |= row[:, :-1]
+        m[:, :-1] |= row[:, 1:]
+        out = m
+    return out
+
+
+def _smooth(img: np.ndarray, sigma_px: float) -> np.ndarray:
+    """Separable binomial smoothing (float32), the closest of widths 3 / 5 / 7 to a Gaussian of ``sigma_px``.
+
+    ``n`` passes of [1, 2, 1] / 4 have sigma sqrt(n / 2); array shifts are
+    several times faster than ``scipy.ndimage.gaussian_filter`` on one core.
+    Edges replicate the border pixel.
+    """
+    n = min(3, max(1, int(round(2 * sigma_px * sigma_px))))
+    out = img.astype(np.float32)
+    for _ in range(n):
+        t = out * 0.5
+        t[1:] += out[:-1] * 0.25
+        t[:-1] += out[1:] * 0.25
+        t[0] += out[0] * 0.25
+        t[-1] += out[-1] * 0.25
+        out = t * 0.5
+        out[:, 1:] += t[:, :-1] * 0.25
+        out[:, :-1] += t[:, 1:] * 0.25
+        out[:, 0] += t[:, 0] * 0.25
+        out[:, -1] += t[:, -1] * 0.25
+    return out
+
+
 def _moments(w: np.ndarray):
     """Centroid (row, col) of weights ``w`` (h, w) and the minor/major axis ratio of their spread."""
     total = w.sum()
@@ -118,7 +155,7 @@ def detect_blobs(
     r_px = 0.5 * tube_diameter_mm / math.sqrt(rs * cs)
     a0 = math.pi * r_px * r_px
     sig = smooth_sigma_px if smooth_sigma_px is not None else max(0.5, 0.3 * r_px)
-    smooth = ndi.gaussian_filter(img.astype(np.float32), sig, truncate=2.5)
+    smooth = _smooth(img, sig)
     thr = otsu_threshold(smooth[::2, ::2])
     mask = smooth > thr
     labels, n = ndi.label(mask, _CROSS)
@@ -157,9 +194,9 @@ def detect_blobs(
                 parts = [blob] + parts
         others = (lab != 0) & (lab != i + 1)
         if others.any():  # keep out of the neighbours' own edges
-            others = ndi.binary_dilation(others, _SQUARE, iterations=1)
+            others = _dilate(others)
         for part in parts:
-            foot = ndi.binary_dilation(part, _SQUARE, iterations=k) & ~others
+            foot = _dilate(part, k) & ~others
             if part is not blob:
                 foot &= ~(blob & ~part)  # a split half stays out of the other half
             w = np.where(foot, raw - bg, 0.0)
