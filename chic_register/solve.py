@@ -596,7 +596,8 @@ def refine(model: TubeModel, blobs_xy: list[np.ndarray], T_scanner_from_image: l
                 break
             X = X @ _exp_se3(xi)
             step = float(np.abs(xi).max())
-            if step < 1e-5:  # rad and mm: far below any error that matters
+            # rad and mm: under a gate, close enough to re-assign; at the end, far below any error that matters
+            if step < (1e-3 if gate is not None else 1e-6):
                 break
         if step > 1e-2:  # still wandering after a whole gate: a hopeless guess, give up
             break
