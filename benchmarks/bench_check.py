@@ -2,12 +2,15 @@
 
 Run: ``.venv/bin/python benchmarks/bench_check.py [SPEC ...] [--runs N]``. Prints, per
 spec, the median and min over N in-process runs of :func:`check_design`, and
-the median wall time of the full CLI in a fresh interpreter (imports included).
+the median wall and CPU (user + sys) time of the full CLI in a fresh
+interpreter (imports included). On a shared machine the CPU time is the
+steadier figure.
 """
 
 from __future__ import annotations
 
 import argparse
+import resource
 import statistics
 import subprocess
 import sys
@@ -33,14 +36,18 @@ def main() -> int:
             t0 = time.perf_counter()
             report = check_design(spec)
             times.append(time.perf_counter() - t0)
-        cli = []
+        cli, cpu = [], []
         for _ in range(args.runs):
+            r0 = resource.getrusage(resource.RUSAGE_CHILDREN)
             t0 = time.perf_counter()
             subprocess.run([sys.executable, "-m", "chic_design.cli", "check", path], cwd=ROOT,
                            stdout=subprocess.DEVNULL, stderr=subprocess.DEVNULL, check=False)
             cli.append(time.perf_counter() - t0)
+            r1 = resource.getrusage(resource.RUSAGE_CHILDREN)
+            cpu.append(r1.ru_utime - r0.ru_utime + r1.ru_stime - r0.ru_stime)
         print(f"{path}: check_design median {statistics.median(times):.3f} s (min {min(times):.3f} s), "
-              f"CLI median {statistics.median(cli):.3f} s over {args.runs} runs; "
+              f"CLI median {statistics.median(cli):.3f} s wall, {statistics.median(cpu):.3f} s CPU "
+              f"over {args.runs} runs; "
               f"{len(report.tilt_limits)} depths, feasible={report.feasible}")
     return 0
 

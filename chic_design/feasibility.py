@@ -5,8 +5,8 @@
 
 1. **Tilt limits** at each depth z (1 mm steps or finer, both ends and mid-depth
    included): the largest tilt of an image plane through the axis point
-   ``(0, 0, z)`` such that, for every azimuth (5 deg grid, then a 0.25 deg grid
-   around the worst one; twist is an in-plane rotation of the image and changes
+   ``(0, 0, z)`` such that, for every azimuth (10 deg grid, then a 0.5 deg grid
+   over +-10 deg around the worst one; twist is an in-plane rotation of the image and changes
    none of the constraints, so it needs no sampling):
 
    a. every tube centreline crosses the plane inside its own extent
@@ -42,7 +42,7 @@
    (the axis), ``acos(|t_z|)`` over its unit tangents, against
    ``print.max_overhang_deg`` (violation ``overhang_too_steep``).
 5. **Unambiguity**: at every depth usable at tilt 0, no rotation about the axis
-   or reflection maps the tilt-0 marker positions (sampled every 0.05 mm in
+   or reflection maps the tilt-0 marker positions (sampled every 0.1 mm in
    depth) onto themselves within ``max(pixel, 5 % of d)`` (see
    :func:`symmetry_tolerance`) -> violation ``symmetric_pattern``. All blobs
    look alike, so a reflection that swaps helices and diametric tubes counts: it
@@ -406,7 +406,15 @@ def _sample_params(tube, eps_mm: float = 1e-6) -> np.ndarray:
     return np.linspace(-eps, 1.0 + eps, n)
 
 
-def plane_crossings(tube, origins, normals, n_iter: int = 6):
+def crossing_counts(tube, origins, normals) -> np.ndarray:
+    """How many times a tube centreline crosses each plane (origins, normals: (P, 3)); shape (P,)."""
+    pts = tube.points(_sample_params(tube))
+    g = np.asarray(normals, dtype=float) @ pts.T - np.einsum("pi,pi->p", origins, normals)[:, None]
+    pos = g >= 0
+    return (pos[:, 1:] != pos[:, :-1]).sum(axis=1)
+
+
+def plane_crossings(tube, origins, normals, n_iter: int = 4):
     """Crossings of a tube centreline with many planes at once (vectorised ``intersect_plane``).
 
     ``origins``, ``normals``: shape (P, 3). The centreline is bracketed at
@@ -543,10 +551,12 @@ class _PlaneChecker:
         C = np.empty((P, N, 3))
         T = np.empty((P, N, 3))
         cnt = np.empty((P, N), dtype=int)
+        if len(self.pairs) == 0:  # visibility only: crossing counts suffice
+            for k, tube in enumerate(self.tubes):
+                cnt[:, k] = crossing_counts(tube, origins, normals)
+            return cnt, np.zeros((P, 0))
         for k, tube in enumerate(self.tubes):
             _, C[:, k], T[:, k], cnt[:, k] = plane_crossings(tube, origins, normals)
-        if len(self.pairs) == 0:
-            return cnt, np.zeros((P, 0))
         d = C[:, self.J] - C[:, self.I]  # (P, M, 3)
         dist = np.linalg.norm(d, axis=-1)
         e0 = d / np.where(dist > 0, dist, 1.0)[..., None]
@@ -632,7 +642,7 @@ def depth_samples(length_mm: float, step_mm: float = 1.0) -> np.ndarray:
 
 
 def tilt_limits(geom: FiducialGeometry, pixel_size_mm: float, slice_thickness_mm: float,
-                depths_mm=None, azimuth_step_deg: float = 5.0, refine_step_deg: float = 0.25,
+                depths_mm=None, azimuth_step_deg: float = 10.0, refine_step_deg: float = 0.5,
                 merges: bool = True) -> tuple[TiltLimit, ...]:
     """Max tilt at each depth (default :func:`depth_samples`), worst case over azimuth.
 
@@ -653,16 +663,32 @@ def tilt_limits(geom: FiducialGeometry, pixel_size_mm: float, slice_thickness_mm
     # refine azimuth around the worst one (where something above tilt 0 limits it)
     need = usable0 & (best_t < TILT_CAP_DEG)
     if need.any():
+        # bracket each neighbour azimuth in [worst - 3, worst + tol]: only lower limits matter
         off = np.arange(-azimuth_step_deg, azimuth_step_deg + 1e-9, refine_step_deg)
-        Z2 = np.repeat(zs[need], off.size)
-        A2 = (np.repeat(best_a[need], off.size) + np.tile(off, need.sum())) % 360.0
-        t2, c2, _ = _max_tilt(checker, Z2, A2)
-        t2, c2, A2 = t2.reshape(-1, off.size), c2.reshape(-1, off.size), A2.reshape(-1, off.size)
-        w2 = np.argmin(t2, axis=1)
-        r2 = np.arange(len(t2))
-        better = t2[r2, w2] < best_t[need]
-        idx = np.flatnonzero(need)[better]
-        best_t[idx], best_c[idx], best_a[idx] = t2[r2, w2][better], c2[r2, w2][better], A2[r2, w2][better]
+        rows2 = np.repeat(np.flatnonzero(need), off.size)
+        Z2 = zs[rows2]
+        A2 = (best_a[rows2] + np.tile(off, need.sum())) % 360.0
+        hi = best_t[rows2] + 0.05
+        lo = np.maximum(best_t[rows2] - 3.0, 0.0)
+        c_lo = checker.codes(Z2, lo, A2)
+        low_fail = c_lo != 0
+        t2 = np.empty(Z2.size)
+        c2 = np.zeros(Z2.size, dtype=int)
+        if low_fail.any():  # rare: far lower than the grid showed; search from tilt 0
+            t2[low_fail], c2[low_fail], _ = _max_tilt(checker, Z2[low_fail], A2[low_fail])
+        ok = np.flatnonzero(~low_fail)
+        lo, hi, hic = lo[ok], hi[ok], np.zeros(ok.size, dtype=int)
+        while ok.size and np.max(hi - lo) > 0.05:
+            mid = 0.5 * (lo + hi)
+            c = checker.codes(Z2[ok], mid, A2[ok])
+            bad = c != 0
+            hi, hic, lo = np.where(bad, mid, hi), np.where(bad, c, hic), np.where(bad, lo, mid)
+        t2[ok], c2[ok] = lo, hic
+        for r in np.flatnonzero(need):
+            m = rows2 == r
+            j = np.argmin(np.where(c2[m] != 0, t2[m], np.inf))
+            if c2[m][j] != 0 and t2[m][j] < best_t[r]:
+                best_t[r], best_c[r], best_a[r] = t2[m][j], c2[m][j], A2[m][j]
     return tuple(
         TiltLimit(float(z), float(t) if u else 0.0, checker.labels[int(c)] if c else NO_LIMIT,
                   float(a), bool(u))
@@ -705,7 +731,6 @@ def _samples(tube, spacing_mm: float):
 
 def _pair_gap(ta, tb, min_wall_mm: float, spacing_mm: float):
     """Surface gap between two channels: min (refined), z there, intersect / thin z-ranges on ``ta``."""
-    from scipy.optimize import minimize
     from scipy.spatial import cKDTree
 
     ra, rb = ta.diameter / 2, tb.diameter / 2
@@ -714,14 +739,15 @@ def _pair_gap(ta, tb, min_wall_mm: float, spacing_mm: float):
     d, nb = cKDTree(pb).query(pa)
     gap = d - ra - rb
     k = int(np.argmin(gap))
-
-    def f(x):
-        return float(np.linalg.norm(ta.points(x[:1])[0] - tb.points(x[1:])[0]))
-
-    res = minimize(f, [sa[k], sb[nb[k]]], method="L-BFGS-B", bounds=[(0, 1), (0, 1)],
-                   options={"ftol": 1e-14, "gtol": 1e-10})
-    best = min(float(res.fun), float(d[k])) - ra - rb
-    at = ta.points([res.x[0]])[0] if res.fun <= d[k] else pa[k]
+    # refine the minimum on a fine parameter grid around the best sample pair
+    fine = np.linspace(-1.0, 1.0, 41)
+    ua = np.clip(sa[k] + fine * (sa[1] - sa[0]), 0.0, 1.0)
+    ub = np.clip(sb[nb[k]] + fine * (sb[1] - sb[0]), 0.0, 1.0)
+    qa, qb = ta.points(ua), tb.points(ub)
+    dd = np.linalg.norm(qa[:, None, :] - qb[None, :, :], axis=-1)
+    i, _ = np.unravel_index(np.argmin(dd), dd.shape)
+    best = float(min(dd.min(), d[k])) - ra - rb
+    at = qa[i] if dd.min() <= d[k] else pa[k]
     zs = pa[:, 2]
     order = np.argsort(zs, kind="stable")
     inter = _runs(zs[order], (gap < 0)[order])
@@ -929,7 +955,7 @@ def check_geometry(geom: FiducialGeometry, *, pixel_size_mm: float, slice_thickn
     crossings = helix_quadrant_crossings(geom)
     violations += crossings
     tol = symmetry_tolerance(geom, pixel_size_mm)
-    usable_z = np.concatenate([np.linspace(a, b, max(2, int(math.ceil((b - a) / 0.05)) + 1))
+    usable_z = np.concatenate([np.linspace(a, b, max(2, int(math.ceil((b - a) / 0.1)) + 1))
                                for a, b in usable[0].ranges_mm] or [np.empty(0)])
     syms, mismatch = pattern_symmetries(geom, usable_z, tol)
     for sym in syms:
