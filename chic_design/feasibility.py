@@ -113,13 +113,13 @@ class TiltLimit:
 
     def to_dict(self) -> dict:
         return {
-            "visibility_tilt_deg": None if self.visibility_tilt_deg is None
-            else round(float(self.visibility_tilt_deg), 2),
             "depth_mm": round(float(self.depth_mm), 4),
             "max_tilt_deg": round(float(self.max_tilt_deg), 2),
             "limited_by": self.limited_by,
             "azimuth_deg": round(float(self.azimuth_deg), 2),
             "usable_at_zero_tilt": bool(self.usable_at_zero_tilt),
+            "visibility_tilt_deg": None if self.visibility_tilt_deg is None
+            else round(float(self.visibility_tilt_deg), 2),
         }
 
 
@@ -570,10 +570,10 @@ class _PlaneChecker:
         args = (dist, pi, qi, pj, qj, self.semi[self.I], self.semi[self.J])
         with np.errstate(invalid="ignore"):
             gap = _blob_gap(0.0, *args, self.slice)  # along the centre line: a lower bound
-            cand = np.flatnonzero((gap < self.pixel).ravel() & np.isfinite(gap).ravel())
-            if cand.size:
-                flat = [np.broadcast_to(a, gap.shape).ravel()[cand] for a in args]
-                gap.ravel()[cand] = _max_blob_gap(*flat, self.slice)
+            rows, cols = np.nonzero((gap < self.pixel) & np.isfinite(gap))
+            if rows.size:
+                sub = [np.broadcast_to(a, gap.shape)[rows, cols] for a in args]
+                gap[rows, cols] = _max_blob_gap(*sub, self.slice)
         margin = gap - self.pixel
         margin = np.where(np.isnan(dist), np.nan, np.where(np.isnan(margin), -np.inf, margin))
         return cnt, margin
@@ -1028,15 +1028,19 @@ def save_tilt_plot(report: FeasibilityReport, png_path) -> Path:
     path.parent.mkdir(parents=True, exist_ok=True)
     zs = np.array([t.depth_mm for t in report.tilt_limits])
     ts = np.array([t.max_tilt_deg for t in report.tilt_limits])
-    labels = [t.limited_by if t.usable_at_zero_tilt else f"{t.limited_by} (at tilt 0)"
+    labels = [t.limited_by if t.usable_at_zero_tilt else "unusable even at tilt 0"
               for t in report.tilt_limits]
+    vis = [t.visibility_tilt_deg for t in report.tilt_limits]
     fig, ax = plt.subplots(figsize=(8, 4.5), dpi=120)
     try:
         ax.plot(zs, ts, color="0.6", lw=1, zorder=1)
+        if all(v is not None for v in vis):
+            ax.plot(zs, vis, color="0.3", lw=1, ls="--", zorder=1, label="visibility alone")
         cmap = plt.get_cmap("tab10")
         for k, lab in enumerate(dict.fromkeys(labels)):
             m = np.array([x == lab for x in labels])
-            ax.scatter(zs[m], ts[m], s=14, color=cmap(k % 10), label=lab, zorder=2)
+            color = "0.5" if lab.startswith("unusable") else cmap(k % 10)
+            ax.scatter(zs[m], ts[m], s=14, color=color, label=lab, zorder=2)
         for u in report.usable_depth:
             for a, b in u.ranges_mm:
                 ax.plot([a, b], [u.tilt_deg, u.tilt_deg], color="k", lw=3, alpha=0.35,
@@ -1050,7 +1054,7 @@ def save_tilt_plot(report: FeasibilityReport, png_path) -> Path:
                      f"slice {report.slice_thickness_mm:g} mm)", fontsize=9)
         ax.set_xlim(zs[0], zs[-1])
         ax.set_ylim(0, 90)
-        ax.legend(fontsize=7, loc="upper left", title="limited by", title_fontsize=7)
+        ax.legend(fontsize=7, loc="upper left", title="limited by", title_fontsize=7, framealpha=0.9)
         fd, tmp = tempfile.mkstemp(prefix=".tilt-", suffix=".png", dir=path.parent)
         os.close(fd)
         try:

@@ -329,3 +329,12 @@ def test_cli_prototype_ideal_imaging_and_plot(tmp_path, capsys):
     assert "tilt limit at mid-depth z = 25 mm" in text and "63.4 deg" in text
     assert png.read_bytes()[:8] == b"\x89PNG\r\n\x1a\n"
     assert main(["check", NEURO, "--pixel-size", "-1"]) == 2
+
+
+def test_batch_and_single_depth_evaluations_agree(neuro_ideal):
+    """Regression: the limit at one depth must not depend on which other planes share the batch."""
+    geom = fiducial_geometry(load_spec(NEURO))
+    for z in (12.0, 25.0):
+        single = F.tilt_limits(geom, 0.0, 0.0, depths_mm=[z])[0]
+        batch = next(t for t in neuro_ideal.tilt_limits if t.depth_mm == z)
+        assert single.max_tilt_deg == pytest.approx(batch.max_tilt_deg, abs=0.06)
