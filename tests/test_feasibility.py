@@ -338,3 +338,10 @@ def test_batch_and_single_depth_evaluations_agree(neuro_ideal):
         single = F.tilt_limits(geom, 0.0, 0.0, depths_mm=[z])[0]
         batch = next(t for t in neuro_ideal.tilt_limits if t.depth_mm == z)
         assert single.max_tilt_deg == pytest.approx(batch.max_tilt_deg, abs=0.06)
+
+
+def test_no_usable_depth_is_a_violation():
+    rep = F.check_geometry(_two_parallel_tubes(d=5.2), pixel_size_mm=0.0, slice_thickness_mm=0.0,
+                           min_wall_mm=0.8, max_overhang_deg=45.0)
+    assert "no_usable_depth" in {v.code for v in rep.violations} and not rep.feasible
+    assert all(u.ranges_mm == () for u in rep.usable_depth)
