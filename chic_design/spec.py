@@ -102,7 +102,7 @@ class MarkerSpec(_Strict):
         "diametric tubes Dq and D(q+1)."
     )
     orientation_deg: tuple[float, ...] = Field(
-        (295.0, 315.0), min_length=1, max_length=3,
+        (290.0, 330.0), min_length=1, max_length=3,
         description="Angles of the straight orientation tubes O0.. (deg); they must lie in "
         "the quadrant without a helix, placed asymmetrically so the pattern fixes twist.",
     )

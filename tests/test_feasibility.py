@@ -292,10 +292,11 @@ def test_prototype_is_feasible_and_unambiguous():
 
 
 def test_needle_guide_with_asymmetric_orientation_tubes_is_feasible():
-    """The shipped needle-guide's [295, 320] is mirror-symmetric at z ~ 23.3 mm; [294, 330] is not."""
-    bad = F.check_design(load_spec(NEEDLE))
+    """Orientation tubes at [295, 320] make the needle-guide mirror-symmetric at z ~ 23.3 mm; the shipped [294, 330] does not."""
+    bad = F.check_design(_spec(NEEDLE, markers__orientation_deg=[295, 320]))
     assert [v.code for v in bad.violations] == ["symmetric_pattern"]
-    rep = F.check_design(_spec(NEEDLE, markers__orientation_deg=[294, 330]))
+    rep = F.check_design(load_spec(NEEDLE))
+    assert list(load_spec(NEEDLE).markers.orientation_deg) == [294, 330]
     assert rep.feasible, rep.violations
 
 
