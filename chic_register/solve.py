@@ -25,6 +25,7 @@ the tube list, roles and angles all come from the geometry file.
 from __future__ import annotations
 
 import dataclasses
+import functools
 import math
 import time
 from dataclasses import dataclass, field
@@ -121,6 +122,43 @@ class TubeModel:
             diameter_mm=np.array([t.diameter for t in geom.tubes], float),
             length_mm=float(geom.body.length),
         )
+
+
+class _GeometryKey:
+    """A hashable stand-in for a :class:`FiducialGeometry` (whose ``source`` dict is not hashable).
+
+    Equal keys mean equal content (name, units, body, tubes, source), so a
+    memo keyed by it never serves one geometry's model for another's.
+    """
+
+    __slots__ = ("geom", "key", "_hash")
+
+    def __init__(self, geom: FiducialGeometry):
+        src = geom.source
+        frozen_src = None if src is None else tuple(sorted((str(k), repr(v)) for k, v in src.items()))
+        self.geom = geom
+        self.key = (geom.name, geom.units, geom.body, geom.tubes, frozen_src)
+        self._hash = hash(self.key)
+
+    def __hash__(self) -> int:
+        return self._hash
+
+    def __eq__(self, other) -> bool:
+        return isinstance(other, _GeometryKey) and self.key == other.key
+
+
+@functools.lru_cache(maxsize=8)
+def _prepared(key: _GeometryKey) -> tuple[TubeModel, str]:
+    """The tube model and the content hash of a geometry, computed once per distinct geometry."""
+    return TubeModel.from_geometry(key.geom), content_sha256(key.geom.content())
+
+
+def prepare_geometry(geom: FiducialGeometry) -> tuple[TubeModel, str]:
+    """``(TubeModel, content sha256)`` of ``geom``, memoised on its content (repeat calls cost ~10 us)."""
+    try:
+        return _prepared(_GeometryKey(geom))
+    except TypeError:  # an unhashable value somewhere: no memo
+        return TubeModel.from_geometry(geom), content_sha256(geom.content())
 
 
 def plane_crossings(model: TubeModel, T_F_from_I: np.ndarray, margin_mm: float = 0.0):
@@ -419,10 +457,9 @@ def initial_hypotheses(model: TubeModel, xy_mm: np.ndarray, ell: Ellipse, *,
     hel = model.helix_idx
     tol = math.radians(angle_tol_deg)
     signs = [(1.0, 1.0), (1.0, -1.0), (-1.0, 1.0), (-1.0, -1.0)] if sin_t > 0.02 else [(1.0, 1.0), (1.0, -1.0)]
-    per_sign = []
-    for s, h in signs:
+    per_h = {}
+    for h in sorted({h for _, h in signs}, reverse=True):  # the line match does not depend on s
         th = np.arctan2(h * w, u * cos_t)  # (N,)
-        zr = s * u * sin_t
         beta = (line_ang[None, :] - th[:, None]).ravel()  # (B,)
         e = _wrap(th[None, :, None] + beta[:, None, None] - line_ang[None, None, :])  # (B,N,Kl)
         jmin = np.argmin(np.abs(e), axis=1)  # (B,Kl)
@@ -430,7 +467,8 @@ def initial_hypotheses(model: TubeModel, xy_mm: np.ndarray, ell: Ellipse, *,
         hit = np.abs(emin) < tol
         n_lines = hit.sum(axis=1)
         b = beta - np.where(hit, emin, 0).sum(axis=1) / np.maximum(n_lines, 1)
-        per_sign.append((s, h, th, zr, n_lines, b))
+        per_h[h] = (th, n_lines, b)
+    per_sign = [(s, h, per_h[h][0], s * u * sin_t, per_h[h][1], per_h[h][2]) for s, h in signs]
     top = max(int(ps[4].max()) for ps in per_sign)
     rows = []  # (score, n_hel, s, h, beta, depth)
     for s, h, th, zr, n_lines, b in per_sign:
@@ -484,9 +522,10 @@ def _helix_depths(model: TubeModel, hel: np.ndarray, theta_F: np.ndarray, zr: np
     agree = np.stack([(close & (hv[None, :] == k)).any(axis=1) for k in range(hel.size)], axis=1)
     n = agree.sum(axis=1)
     spread = np.where(close, diff, 0).sum(axis=1) / np.maximum(close.sum(axis=1), 1)
+    means = (close @ dv) / close.sum(axis=1)  # each row holds its own depth: never empty
     out = []
-    for i in np.lexsort((spread, -n)):
-        depth = float(dv[close[i]].mean())
+    for i in np.lexsort((spread, -n)).tolist():
+        depth = float(means[i])
         if any(abs(depth - o[0]) < 1.0 for o in out):
             continue
         out.append((min(max(depth, 0.0), L), int(n[i])))
@@ -497,17 +536,16 @@ def _helix_depths(model: TubeModel, hel: np.ndarray, theta_F: np.ndarray, zr: np
 
 def _pose_from_hypothesis(ell: Ellipse, cos_t, sin_t, s, h, beta, depth) -> np.ndarray:
     """``T_F_from_I`` placing the ellipse centre on the axis at ``depth`` (see module docstring)."""
+    # columns of F's frame: m = cos_t e1 + s sin_t z, mn = h e2, m x mn; of the image: u_maj, u_min, z
     c, s_ = math.cos(ell.phi), math.sin(ell.phi)
-    u_maj = np.array([c, s_, 0.0])
-    u_min = np.array([-s_, c, 0.0])
-    e1 = np.array([math.cos(beta), math.sin(beta), 0.0])
-    e2 = np.array([-math.sin(beta), math.cos(beta), 0.0])
-    m = cos_t * e1 + s * sin_t * np.array([0.0, 0.0, 1.0])
-    mn = h * e2
-    F = np.stack([m, mn, np.cross(m, mn)], axis=1)
-    I = np.stack([u_maj, u_min, np.array([0.0, 0.0, 1.0])], axis=1)
-    R = F @ I.T
-    o = np.array([0.0, 0.0, depth]) - R @ np.array([ell.centre[0], ell.centre[1], 0.0])
+    cb, sb = math.cos(beta), math.sin(beta)
+    m = (cos_t * cb, cos_t * sb, s * sin_t)
+    mn = (-h * sb, h * cb, 0.0)
+    m3 = (m[1] * mn[2] - m[2] * mn[1], m[2] * mn[0] - m[0] * mn[2], m[0] * mn[1] - m[1] * mn[0])
+    # R = F @ I^T with I = [[c, -s_, 0], [s_, c, 0], [0, 0, 1]]
+    R = np.array([[m[i] * c - mn[i] * s_, m[i] * s_ + mn[i] * c, m3[i]] for i in range(3)])
+    cx, cy = float(ell.centre[0]), float(ell.centre[1])
+    o = np.array([-(R[0, 0] * cx + R[0, 1] * cy), -(R[1, 0] * cx + R[1, 1] * cy), depth - (R[2, 0] * cx + R[2, 1] * cy)])
     return rigid(R, o)
 
 
@@ -983,7 +1021,7 @@ def register(slices: list[Slice], geom: FiducialGeometry, *, options: SolveOptio
     if not slices:
         raise NoLock("no slices given")
     t0 = time.perf_counter()
-    model = TubeModel.from_geometry(geom)
+    model, geom_sha = prepare_geometry(geom)
     d_mm = float(np.median(model.diameter_mm))
     blob_sets, xys = [], []
     for sl in slices:
@@ -1044,4 +1082,4 @@ def register(slices: list[Slice], geom: FiducialGeometry, *, options: SolveOptio
         ))
     t3 = time.perf_counter()
     timing = {"detect": (t1 - t0) * 1e3, "pose": (t2 - t1) * 1e3, "total": (t3 - t0) * 1e3}
-    return Registration("ok", T_sf, tuple(results), timing, geom.name, content_sha256(geom.content()))
+    return Registration("ok", T_sf, tuple(results), timing, geom.name, geom_sha)
