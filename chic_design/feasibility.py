@@ -328,8 +328,8 @@ class FeasibilityReport:
             f"visibility alone (every tube inside the body) allows {mid.visibility_tilt_deg:.1f} deg",
         ]
         for u in self.usable_depth:
-            rng = ", ".join(f"{a:g}-{b:g}" for a, b in u.ranges_mm) or "none"
-            lines.append(f"usable depth at tilt {u.tilt_deg:g} deg: {rng} mm ({u.total_mm:g} mm)")
+            rng = ", ".join(f"{a:g}-{b:g} mm" for a, b in u.ranges_mm) or "none"
+            lines.append(f"usable depth at tilt {u.tilt_deg:g} deg: {rng} ({u.total_mm:g} mm)")
         walls = [c for c in self.clearances if c.b in ("bore", "outside")]
         if walls:
             w = min(walls, key=lambda c: c.gap_mm)

@@ -213,12 +213,12 @@ def format_summary(result: StudyResult) -> str:
     lines = [f"{s['geometry']}: {s['draws']} draws per case, {noise}, slice thickness "
              f"{s['slice_thickness_mm']:g} mm, seed {s['seed']}, solver options "
              f"{s.get('register_options') or 'default'}",
-             f"{'group':<40} {'max':>9} {'paper':>7} {'x better':>8}   {'std':>9} {'paper':>7} {'x better':>8}"
-             f"  no-lock"]
+             f"{'group':<40} {'max':>11} {'paper':>7} {'x better':>8}   {'std':>11} {'paper':>7} "
+             f"{'x better':>8}  no-lock"]
     for g, v in result.summary().items():
         u = v["unit"]
-        lines.append(f"{GROUP_TITLES[g]:<40} {v['max']:>7.4f}{u[:2]:>2} {v['paper_max']:>7.3f} "
-                     f"{v['paper_max_over_max']:>8.1f}   {v['std']:>7.4f}{u[:2]:>2} {v['paper_std']:>7.3f} "
+        lines.append(f"{GROUP_TITLES[g]:<40} {v['max']:>7.4f} {u:<3} {v['paper_max']:>7.3f} "
+                     f"{v['paper_max_over_max']:>8.1f}   {v['std']:>7.4f} {u:<3} {v['paper_std']:>7.3f} "
                      f"{v['paper_std_over_std']:>8.1f}  {v['no_lock']}/{v['draws']}")
     return "\n".join(lines)
 
