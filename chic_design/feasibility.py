@@ -60,13 +60,12 @@
 from __future__ import annotations
 
 import math
-import os
-import tempfile
 from dataclasses import dataclass, replace
 from pathlib import Path
 
 import numpy as np
 
+from chic_register.atomic import atomic_path
 from chic_register.geometry import FiducialGeometry, LineTube
 
 from .spec import Spec
@@ -1055,14 +1054,8 @@ def save_tilt_plot(report: FeasibilityReport, png_path) -> Path:
         ax.set_xlim(zs[0], zs[-1])
         ax.set_ylim(0, 90)
         ax.legend(fontsize=7, loc="upper left", title="limited by", title_fontsize=7, framealpha=0.9)
-        fd, tmp = tempfile.mkstemp(prefix=".tilt-", suffix=".png", dir=path.parent)
-        os.close(fd)
-        try:
+        with atomic_path(path) as tmp:
             fig.savefig(tmp, format="png")
-            os.replace(tmp, path)
-        except BaseException:
-            Path(tmp).unlink(missing_ok=True)
-            raise
     finally:
         plt.close(fig)
     return path

@@ -347,12 +347,11 @@ def _load_reference(path) -> "np.ndarray":
 
 def _run_simulate_volume(args) -> int:
     """simulate --volume-shape: a synthetic volume and <out>.truth.json."""
-    import os
-    import tempfile
     from pathlib import Path
 
     import numpy as np
 
+    from .atomic import write_json
     from .geometry import load_geometry
     from .pose import invert, slice_frame
     from .simulate import truth_path
@@ -388,12 +387,7 @@ def _run_simulate_volume(args) -> int:
                                                "azimuth_deg": args.azimuth, "twist_deg": args.twist},
            "volume": Path(out).name, "geometry_file": str(args.geometry),
            "geometry_sha256": geom.to_dict()["sha256"], "seed": args.seed}
-    tp = truth_path(out)
-    fd, tmp = tempfile.mkstemp(prefix=".chic-", suffix=".json.tmp", dir=tp.parent)
-    with os.fdopen(fd, "w", encoding="utf-8") as fh:
-        json.dump(doc, fh, indent=2)
-        fh.write("\n")
-    os.replace(tmp, tp)
+    tp = write_json(truth_path(out), doc)
     print(f"wrote {out} ({nx}x{ny}x{nz} voxels of {' x '.join(f'{v:g}' for v in vs)} mm; middle plane at depth "
           f"{args.depth:g} mm, tilt {args.tilt:g} deg) and {tp}")
     return 0
@@ -401,8 +395,6 @@ def _run_simulate_volume(args) -> int:
 
 def _run_reslice(args) -> int:
     from pathlib import Path
-
-    import numpy as np
 
     from .geometry import load_geometry
     from .reslice import default_depths, reslice, reslice_study

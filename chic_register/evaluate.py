@@ -28,18 +28,16 @@ centroid rather than its centreline crossing), which the summary states too.
 
 from __future__ import annotations
 
-import json
 import math
-import os
-import tempfile
 from dataclasses import dataclass, field
 from pathlib import Path
 
 import numpy as np
 
+from .atomic import atomic_path, write_json
 from .errors import NoLock
 from .geometry import FiducialGeometry
-from .pose import invert, slice_frame, wrap_deg
+from .pose import invert, wrap_deg
 
 #: The paper's simulation results: group -> (max error, standard deviation) and unit.
 PAPER = {
@@ -223,17 +221,6 @@ def format_summary(result: StudyResult) -> str:
     return "\n".join(lines)
 
 
-def _atomic_write(path: Path, write) -> None:
-    fd, tmp = tempfile.mkstemp(prefix=f".{path.stem}-", suffix=path.suffix, dir=path.parent)
-    os.close(fd)
-    try:
-        write(tmp)
-        os.replace(tmp, path)
-    except BaseException:
-        Path(tmp).unlink(missing_ok=True)
-        raise
-
-
 def save_plots(result: StudyResult, out_dir, tag: str = "") -> list[Path]:
     """Figures like the paper's Fig. 7 (axial errors) and Fig. 8 (normal and twist errors)."""
     import matplotlib
@@ -274,10 +261,11 @@ def save_plots(result: StudyResult, out_dir, tag: str = "") -> list[Path]:
                      fontsize=9)
         fig.tight_layout()
         path = out_dir / f"{fig_name}{tag}.png"
-        _atomic_write(path, lambda tmp: fig.savefig(tmp, dpi=110, format="png"))
+        with atomic_path(path) as tmp:
+            fig.savefig(tmp, dpi=110, format="png")
         plt.close(fig)
         written.append(path)
     path = out_dir / f"study{tag}.json"
-    _atomic_write(path, lambda tmp: Path(tmp).write_text(json.dumps(result.to_dict(), indent=1)))
+    write_json(path, result.to_dict())
     written.append(path)
     return written

@@ -19,8 +19,6 @@ from __future__ import annotations
 import hashlib
 import json
 import math
-import os
-import tempfile
 from dataclasses import dataclass, field
 from pathlib import Path
 
@@ -28,6 +26,7 @@ import numpy as np
 import yaml
 from scipy.optimize import brentq
 
+from .atomic import write_text
 from .errors import GeometryFileError
 
 FORMAT = "chic-geometry"
@@ -332,17 +331,7 @@ def geometry_to_yaml(geom: FiducialGeometry) -> str:
 
 def write_geometry(geom: FiducialGeometry, path) -> Path:
     """Write ``geom`` to ``path`` atomically (temporary file, then rename)."""
-    path = Path(path)
-    path.parent.mkdir(parents=True, exist_ok=True)
-    fd, tmp = tempfile.mkstemp(prefix=".geometry-", suffix=".tmp", dir=path.parent)
-    try:
-        with os.fdopen(fd, "w", encoding="utf-8") as fh:
-            fh.write(geometry_to_yaml(geom))
-        os.replace(tmp, path)
-    except BaseException:
-        Path(tmp).unlink(missing_ok=True)
-        raise
-    return path
+    return write_text(path, geometry_to_yaml(geom))
 
 
 def _number(path, where: str, value) -> float:

@@ -22,6 +22,7 @@ from pathlib import Path
 
 import numpy as np
 
+from .atomic import atomic_path
 from .errors import ImageReadError
 from .slices import Slice
 
@@ -232,7 +233,11 @@ def _no_pixels_reason(ds) -> str:
 def _guess_transfer_syntax(ds) -> None:
     """A raw data set (no file meta) is decoded with the encoding it was read in."""
     from pydicom.dataset import FileMetaDataset
-    from pydicom.uid import ExplicitVRBigEndian, ExplicitVRLittleEndian, ImplicitVRLittleEndian
+    from pydicom.uid import (
+        ExplicitVRBigEndian,
+        ExplicitVRLittleEndian,
+        ImplicitVRLittleEndian,
+    )
 
     meta = getattr(ds, "file_meta", None)
     if meta is not None and "TransferSyntaxUID" in meta:
@@ -370,9 +375,6 @@ def write_plain_image(pixels: np.ndarray, path) -> dict:
     Returns ``{"format": ..., "scale": s}``: file value = pixel value * s
     (1 except for PNG). Raises ``ValueError`` for another suffix.
     """
-    import os
-    import tempfile
-
     p = Path(path)
     suffix = p.suffix.lower()
     if suffix not in PLAIN_SUFFIXES:
@@ -380,11 +382,8 @@ def write_plain_image(pixels: np.ndarray, path) -> dict:
     a = np.asarray(pixels, dtype=float)
     if a.ndim != 2:
         raise ValueError(f"image must be 2-D, got shape {a.shape}")
-    p.parent.mkdir(parents=True, exist_ok=True)
-    fd, tmp = tempfile.mkstemp(prefix=".chic-", suffix=suffix, dir=p.parent)
-    os.close(fd)
     scale = 1.0
-    try:
+    with atomic_path(p, suffix=suffix) as tmp:
         if suffix == ".npy":
             with open(tmp, "wb") as fh:
                 np.save(fh, a)
@@ -399,8 +398,4 @@ def write_plain_image(pixels: np.ndarray, path) -> dict:
             import tifffile
 
             tifffile.imwrite(tmp, a.astype(np.float32))
-        os.replace(tmp, p)
-    except BaseException:
-        Path(tmp).unlink(missing_ok=True)
-        raise
     return {"format": suffix.lstrip("."), "scale": scale}

@@ -8,12 +8,11 @@ matplotlib's Agg backend, atomically (temporary file, then rename).
 
 from __future__ import annotations
 
-import os
-import tempfile
 from pathlib import Path
 
 import numpy as np
 
+from .atomic import atomic_path
 from .errors import ChicRegisterError
 
 
@@ -77,15 +76,9 @@ def draw_overlay(path, slices, registration=None, blobs=None, title: str | None 
             ax.set_title(title or "no lock: candidates only", fontsize=9)
         ax.legend(loc="lower right", fontsize=7, framealpha=0.6)
     fig.tight_layout()
-    path.parent.mkdir(parents=True, exist_ok=True)
-    fd, tmp = tempfile.mkstemp(prefix=".overlay-", suffix=".png", dir=path.parent)
-    os.close(fd)
     try:
-        fig.savefig(tmp, dpi=110, format="png")
-        os.replace(tmp, path)
-    except BaseException:
-        Path(tmp).unlink(missing_ok=True)
-        raise
+        with atomic_path(path) as tmp:
+            fig.savefig(tmp, dpi=110, format="png")
     finally:
         plt.close(fig)
     return path

@@ -23,15 +23,13 @@ Pixel (row i, col j) has its centre at slice-frame coordinates
 
 from __future__ import annotations
 
-import json
 import math
-import os
-import tempfile
 from dataclasses import dataclass, field
 from pathlib import Path
 
 import numpy as np
 
+from .atomic import write_json
 from .geometry import FiducialGeometry, HelixTube, LineTube
 from .pose import SliceAngles, apply, invert, rigid, slice_angles, slice_frame
 from .slices import Slice
@@ -580,14 +578,4 @@ def write_simulated(sim: SimulatedSlice, path, extra: dict | None = None):
         allowed = ", ".join(DICOM_SUFFIXES + PLAIN_SUFFIXES)
         raise ValueError(f"{p}: unsupported output suffix {p.suffix!r}; allowed: {allowed}")
     doc = {**sim.truth.to_dict(), "file": info, **(extra or {})}
-    tp = truth_path(p)
-    fd, tmp = tempfile.mkstemp(prefix=".chic-", suffix=".json.tmp", dir=tp.parent)
-    try:
-        with os.fdopen(fd, "w", encoding="utf-8") as fh:
-            json.dump(doc, fh, indent=2)
-            fh.write("\n")
-        os.replace(tmp, tp)
-    except BaseException:
-        Path(tmp).unlink(missing_ok=True)
-        raise
-    return p, tp
+    return p, write_json(truth_path(p), doc)

@@ -17,13 +17,12 @@ Direction convention (stated once, here and in the README):
 
 from __future__ import annotations
 
-import os
-import tempfile
 from pathlib import Path
 
 import numpy as np
 import SimpleITK as sitk
 
+from .atomic import atomic_path
 from .errors import ChicRegisterError
 from .pose import invert
 
@@ -80,18 +79,11 @@ def write_tfm(T_scanner_from_fiducial, path) -> Path:
         raise ChicRegisterError(f"{path}: transform file must end in {', '.join(SUFFIXES)}")
     T = _check_rigid(T_scanner_from_fiducial)
     tx = matrix_to_sitk(invert(T))
-    path.parent.mkdir(parents=True, exist_ok=True)
-    fd, tmp = tempfile.mkstemp(prefix=".tfm-", suffix=path.suffix, dir=path.parent)
-    os.close(fd)
     try:
-        sitk.WriteTransform(tx, tmp)
-        os.replace(tmp, path)
+        with atomic_path(path) as tmp:
+            sitk.WriteTransform(tx, str(tmp))
     except RuntimeError as exc:
-        Path(tmp).unlink(missing_ok=True)
         raise ChicRegisterError(f"{path}: cannot write transform: {str(exc).strip().splitlines()[-1]}") from None
-    except BaseException:
-        Path(tmp).unlink(missing_ok=True)
-        raise
     return path
 
 

@@ -23,6 +23,7 @@ from pathlib import Path
 import numpy as np
 import SimpleITK as sitk
 
+from .atomic import atomic_path
 from .errors import ChicRegisterError, ImageReadError
 from .slices import Slice
 
@@ -265,17 +266,11 @@ def write_volume(volume: Volume, path) -> Path:
     path.parent.mkdir(parents=True, exist_ok=True)
     suffix = _suffix(path)
     if suffix in WRITE_SUFFIXES:
-        fd, tmp = tempfile.mkstemp(prefix=f".{path.name}-", suffix=suffix, dir=path.parent)
-        os.close(fd)
         try:
-            sitk.WriteImage(volume.to_sitk(), tmp)
-            os.replace(tmp, path)
+            with atomic_path(path, suffix=suffix) as tmp:
+                sitk.WriteImage(volume.to_sitk(), str(tmp))
         except RuntimeError as exc:
-            Path(tmp).unlink(missing_ok=True)
             raise ChicRegisterError(f"{path}: cannot write volume: {_last_line(exc)}") from None
-        except BaseException:
-            Path(tmp).unlink(missing_ok=True)
-            raise
         return path
     if suffix in (".dcm", ".gz", ".nhdr", ".mhd", ".png", ".tif", ".tiff", ".npy", ".json"):
         raise ChicRegisterError(
