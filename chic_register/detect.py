@@ -96,30 +96,68 @@ def _smooth(img: np.ndarray, sigma_px: float) -> np.ndarray:
     Edges replicate the border pixel.
     """
     n = min(3, max(1, int(round(2 * sigma_px * sigma_px))))
-    out = img.astype(np.float32)
+    a = img.astype(np.float32)
+    h, w = a.shape
+    # two image buffers and one of pair sums, reused by every pass: fresh large arrays cost page faults
+    b = np.empty_like(a)
+    pair = np.empty(h * w, np.float32)
     for _ in range(n):
-        t = out * 0.5
-        t[1:] += out[:-1] * 0.25
-        t[:-1] += out[1:] * 0.25
-        t[0] += out[0] * 0.25
-        t[-1] += out[-1] * 0.25
-        out = t * 0.5
-        out[:, 1:] += t[:, :-1] * 0.25
-        out[:, :-1] += t[:, 1:] * 0.25
-        out[:, 0] += t[:, 0] * 0.25
-        out[:, -1] += t[:, -1] * 0.25
-    return out
+        _binomial_rows(a, b, pair)
+        _binomial_cols(b, a, pair)
+    return a
+
+
+def _binomial_rows(x: np.ndarray, y: np.ndarray, pair: np.ndarray) -> None:
+    """``y`` = one [1, 2, 1] / 4 pass along axis 0 of ``x`` (h, w), edges replicated; ``pair``: scratch (>= h * w).
+
+    Sums of neighbouring pairs, then sums of neighbouring pair sums.
+    """
+    h, w = x.shape
+    if h < 2:
+        y[...] = x
+        return
+    p = pair[: (h - 1) * w].reshape(h - 1, w)
+    np.add(x[:-1], x[1:], out=p)  # x[i] + x[i+1]
+    np.add(p[:-1], p[1:], out=y[1:-1])
+    y[0] = p[0] + 2 * x[0]  # replicated x[-1] = x[0]
+    y[-1] = p[-1] + 2 * x[-1]
+    y *= 0.25
+
+
+def _binomial_cols(x: np.ndarray, y: np.ndarray, pair: np.ndarray) -> None:
+    """The same pass along axis 1, on the flattened image (one long contiguous loop, not h short ones).
+
+    Pairs that straddle two rows only land in the first and last columns,
+    which are then overwritten with their replicated-edge values.
+    """
+    h, w = x.shape
+    if w < 2:
+        y[...] = x
+        return
+    xf, p = x.reshape(-1), pair[: h * w - 1]
+    np.add(xf[:-1], xf[1:], out=p)  # p[i * w + j] = x[i, j] + x[i, j + 1] for j < w - 1
+    np.add(p[:-1], p[1:], out=y.reshape(-1)[1:-1])
+    y[:, 0] = x[:, 0] * 3 + x[:, 1]
+    y[:, -1] = x[:, -2] + x[:, -1] * 3
+    y *= 0.25
 
 
 def _moments(w: np.ndarray):
-    """Centroid (row, col) of weights ``w`` (h, w) and the minor/major axis ratio of their spread."""
-    total = w.sum()
+    """Centroid (row, col) of weights ``w`` (h, w) and the minor/major axis ratio of their spread.
+
+    From the row and column sums (two passes over ``w``, then vectors of
+    length h and w): these windows are small, so call overhead dominates.
+    Returns None when the weights do not sum to a positive total.
+    """
+    wr, wc = w.sum(axis=1), w.sum(axis=0)
+    total = float(wr.sum())
+    if not total > 0:
+        return None
     rr = np.arange(w.shape[0], dtype=float)
     cc = np.arange(w.shape[1], dtype=float)
-    wr, wc = w.sum(axis=1), w.sum(axis=0)
-    mr, mc = (wr @ rr) / total, (wc @ cc) / total
+    mr, mc = float(wr @ rr) / total, float(wc @ cc) / total
     dr, dc = rr - mr, cc - mc
-    srr, scc, src = (wr @ (dr * dr)) / total, (wc @ (dc * dc)) / total, (dr @ w @ dc) / total
+    srr, scc, src = float(wr @ (dr * dr)) / total, float(wc @ (dc * dc)) / total, float(dr @ w @ dc) / total
     half_tr, det = (srr + scc) / 2, srr * scc - src * src
     root = math.sqrt(max(half_tr * half_tr - det, 0.0))
     big, small = half_tr + root, max(half_tr - root, 0.0)
@@ -146,9 +184,11 @@ def detect_blobs(
     ``min_contrast`` noise sigmas are dropped. Blank images give no blobs.
     """
     img = np.asarray(pixels, dtype=float)
-    if img.ndim != 2 or img.size == 0 or not np.all(np.isfinite(img)):
+    if img.ndim != 2 or img.size == 0:
         return Blobs.empty()
     lo, hi = float(img.min()), float(img.max())
+    if not (math.isfinite(lo) and math.isfinite(hi)):  # a NaN or an infinity anywhere shows in min / max
+        return Blobs.empty()
     if hi - lo <= 1e-12 * max(1.0, abs(hi)):
         return Blobs.empty(background=lo)
     rs, cs = (float(v) for v in pixel_spacing_mm)
@@ -169,7 +209,7 @@ def detect_blobs(
     sigma_n = float(bg_pixels.std())
     if n == 0:
         return Blobs.empty(bg, sigma_n, thr)
-    area = np.bincount(labels.ravel(), minlength=n + 1)[1:]
+    area = np.bincount(labels[mask], minlength=n + 1)[1:]  # only the labelled pixels: far fewer
     objs = ndi.find_objects(labels)
     keep = np.flatnonzero((area >= min_area_factor * a0) & (area <= max_area_factor * a0))
     k = dilate_px if dilate_px is not None else 1
@@ -182,7 +222,7 @@ def detect_blobs(
         lab = labels[r0:r1, c0:c1]
         blob = lab == i + 1
         raw = img[r0:r1, c0:c1]
-        mean_i = float(raw[blob].mean())
+        mean_i = float(raw[blob].sum()) / float(area[i])
         contrast = (mean_i - bg) / sigma_n if sigma_n > 0 else math.inf
         if contrast < min_contrast:
             continue
@@ -192,21 +232,31 @@ def detect_blobs(
             parts = _split(blob, smooth[r0:r1, c0:c1], r_px) or [blob]
             if len(parts) > 1:
                 parts = [blob] + parts
-        others = (lab != 0) & (lab != i + 1)
+        others = (lab != 0) ^ blob
         if others.any():  # keep out of the neighbours' own edges
             others = _dilate(others)
+            keep_out = ~others
+        else:
+            keep_out = None
+        raw_bg = raw - bg
         for part in parts:
-            foot = _dilate(part, k) & ~others
+            foot = _dilate(part, k)
+            if keep_out is not None:
+                foot &= keep_out
             if part is not blob:
                 foot &= ~(blob & ~part)  # a split half stays out of the other half
-            w = np.where(foot, raw - bg, 0.0)
-            if w.sum() <= 0:
+            m = _moments(raw_bg * foot)
+            if m is None:
                 continue
-            mr, mc, _ = _moments(w)
-            centres.append((r0 + mr, c0 + mc))
-            areas.append(float(part.sum()))
-            means.append(float(raw[part].mean()))
-            ratios.append(ratio if part is blob else _moments(part.astype(float))[2])
+            centres.append((r0 + m[0], c0 + m[1]))
+            if part is blob:
+                areas.append(float(area[i]))
+                means.append(mean_i)
+                ratios.append(ratio)
+            else:
+                areas.append(float(part.sum()))
+                means.append(float(raw[part].mean()))
+                ratios.append(_moments(part.astype(float))[2])
             contrasts.append(contrast)
             feet.append((r0, c0, foot))
     if not centres:

@@ -519,8 +519,8 @@ def _helix_depths(model: TubeModel, hel: np.ndarray, theta_F: np.ndarray, zr: np
         return [(L / 2, 0)]
     diff = np.abs(dv[:, None] - dv[None, :])
     close = diff < dtol[hv][None, :]
-    agree = np.stack([(close & (hv[None, :] == k)).any(axis=1) for k in range(hel.size)], axis=1)
-    n = agree.sum(axis=1)
+    onehot = hv[:, None] == np.arange(hel.size)[None, :]  # (M, H)
+    n = ((close.astype(float) @ onehot) > 0).sum(axis=1)  # helices agreeing with each depth
     spread = np.where(close, diff, 0).sum(axis=1) / np.maximum(close.sum(axis=1), 1)
     means = (close @ dv) / close.sum(axis=1)  # each row holds its own depth: never empty
     out = []
@@ -570,9 +570,15 @@ def _assign(pred: np.ndarray, ok: np.ndarray, blobs_xy: np.ndarray, gate_mm: flo
     out = np.full(K, -1)
     if blobs_xy.shape[0] == 0 or not ok.any():
         return out
-    dist = np.linalg.norm(pred[:, None, :] - blobs_xy[None, :, :], axis=2)
-    dist[~ok] = 1e6
-    cost = np.where(dist < gate_mm, dist**2, 1e6)
+    diff = pred[:, None, :] - blobs_xy[None, :, :]
+    d2 = np.einsum("ijk,ijk->ij", diff, diff)  # squared distances (K, N)
+    within = (d2 < gate_mm * gate_mm) & ok[:, None]
+    if within.sum(axis=0).max() <= 1 and within.sum(axis=1).max() <= 1:
+        # every gated pair is alone in its row and column: they are the (unique) optimal matching
+        r, c = np.nonzero(within)
+        out[r] = c
+        return out
+    cost = np.where(within, d2, 1e6)
     r, c = linear_sum_assignment(cost)
     good = cost[r, c] < 1e6
     out[r[good]] = c[good]
