@@ -256,26 +256,29 @@ def _crossing_jacobian(xy: np.ndarray, tan_I: np.ndarray) -> np.ndarray:
 
 def _exp_se3(xi: np.ndarray) -> np.ndarray:
     """4x4 transform of a small twist xi = (omega (rad), v (mm)) (Rodrigues; v applied as is)."""
-    wx, wy, wz = float(xi[0]), float(xi[1]), float(xi[2])
-    th = math.sqrt(wx * wx + wy * wy + wz * wz)
+    wx, wy, wz, vx, vy, vz = (float(v) for v in xi)
+    th2 = wx * wx + wy * wy + wz * wz
+    th = math.sqrt(th2)
     if th < 1e-12:
         a, b = 1.0, 0.5
     else:
-        a, b = math.sin(th) / th, (1 - math.cos(th)) / (th * th)
-    K = np.array([[0.0, -wz, wy], [wz, 0.0, -wx], [-wy, wx, 0.0]])
-    T = np.eye(4)
-    T[:3, :3] += a * K + b * (K @ K)
-    T[:3, 3] = xi[3:]
-    return T
+        a, b = math.sin(th) / th, (1 - math.cos(th)) / th2
+    # I + a K + b K^2, K = [w]x, K^2 = w w^T - |w|^2 I
+    return np.array([
+        [1 + b * (wx * wx - th2), -a * wz + b * wx * wy, a * wy + b * wx * wz, vx],
+        [a * wz + b * wx * wy, 1 + b * (wy * wy - th2), -a * wx + b * wy * wz, vy],
+        [-a * wy + b * wx * wz, a * wx + b * wy * wz, 1 + b * (wz * wz - th2), vz],
+        [0.0, 0.0, 0.0, 1.0]])
 
 
 def _adjoint(T: np.ndarray) -> np.ndarray:
-    """6x6 adjoint of a rigid transform for twists (omega, v)."""
+    """6x6 adjoint of a rigid transform for twists (omega, v): [[R, 0], [[p]x R, R]]."""
     R, p = T[:3, :3], T[:3, 3]
+    px, py, pz = (float(v) for v in p)
     A = np.zeros((6, 6))
     A[:3, :3] = R
     A[3:, 3:] = R
-    A[3:, :3] = _skew(p) @ R
+    A[3:, :3] = np.array([[0.0, -pz, py], [pz, 0.0, -px], [-py, px, 0.0]]) @ R
     return A
 
 
@@ -320,6 +323,29 @@ def _conic_to_ellipse(coef: np.ndarray):
     # major axis: eigenvector of the smaller eigenvalue l1 of [[A, B/2], [B/2, C]]
     phi = 0.5 * np.arctan2(B, A - C) + np.pi / 2
     return np.stack([cx, cy], axis=1), a, b, phi, valid
+
+
+def _conic_to_ellipse_1(coef: np.ndarray):
+    """One conic (6,) -> ``(centre (2,), a, b, phi)`` or None: :func:`_conic_to_ellipse` in scalar arithmetic."""
+    A, B, C, D, E, F = (float(v) for v in coef)
+    if A + C < 0:
+        A, B, C, D, E, F = -A, -B, -C, -D, -E, -F
+    det = 4 * A * C - B * B
+    if not det > 1e-15:
+        return None
+    cx = (B * E - 2 * C * D) / det
+    cy = (B * D - 2 * A * E) / det
+    Fc = A * cx * cx + B * cx * cy + C * cy * cy + D * cx + E * cy + F
+    tr = A + C
+    disc = math.sqrt(max((A - C) ** 2 + B * B, 0.0))
+    l1, l2 = (tr - disc) / 2, (tr + disc) / 2
+    if l1 == 0 or l2 == 0:
+        return None
+    a2, b2 = -Fc / l1, -Fc / l2
+    if not (a2 > 0 and b2 > 0 and math.isfinite(a2) and math.isfinite(b2)):
+        return None
+    phi = 0.5 * math.atan2(B, A - C) + math.pi / 2
+    return np.array([cx, cy]), math.sqrt(a2), math.sqrt(b2), phi
 
 
 def _sampson(coef: np.ndarray, xy: np.ndarray) -> np.ndarray:
@@ -384,11 +410,11 @@ def fit_ellipse_robust(xy_mm: np.ndarray, radius_mm: float, max_tilt_deg: float 
         coef = _lsq_conic(p[mask])
         if not np.all(np.isfinite(coef)):
             return None
-        c, a, b, phi, valid = _conic_to_ellipse(coef[None])
-        if not valid[0] or not plausible(a, b)[0]:
+        e = _conic_to_ellipse_1(coef)
+        if e is None or not plausible(e[1], e[2]):
             return None
         dist = _sampson(coef[None], p)[0] * scale
-        return coef, (c[0], a[0], b[0], phi[0]), dist
+        return coef, e, dist
 
     best = refit(np.ones(N, bool))
     if best is not None and np.all(best[2] < tol):
@@ -977,8 +1003,9 @@ def _rank(fits: list[_Fit], rms_limit_mm: float = math.inf) -> list[_Fit]:
     return sorted(fits, key=lambda f: (f.rms_mm > rms_limit_mm, -f.n_matched, f.rms_mm))
 
 
-def _check_trust(fit: _Fit, others: list[_Fit], model: TubeModel, slices: list[Slice], opts: SolveOptions):
-    """Raise :class:`NoLock` unless ``fit`` is a trustworthy pose."""
+def _check_trust(fit: _Fit, others: list[_Fit], model: TubeModel, slices: list[Slice], opts: SolveOptions,
+                 Ss: list | None = None):
+    """Raise :class:`NoLock` unless ``fit`` is a trustworthy pose (``Ss``: the slices' T_scanner_from_image)."""
     n_depth = 0
     for j, sl in enumerate(slices):
         a = fit.assignments[j]
@@ -993,7 +1020,7 @@ def _check_trust(fit: _Fit, others: list[_Fit], model: TubeModel, slices: list[S
         if res.size and res.max() > opts.max_residual_px * px:
             raise NoLock(f"{sl.source}: a tube residual of {res.max():.3f} mm exceeds "
                          f"{opts.max_residual_px:g} px", {"max_residual_mm": round(float(res.max()), 4)})
-        T_F_from_I = fit.T_F_from_scanner @ sl.T_scanner_from_image()
+        T_F_from_I = fit.T_F_from_scanner @ (Ss[j] if Ss is not None else sl.T_scanner_from_image())
         ang = slice_angles(T_F_from_I)
         if not (0.0 <= ang.depth_mm <= model.length_mm):
             raise NoLock(f"{sl.source}: the slice crosses the fiducial axis at depth {ang.depth_mm:.1f} mm, "
@@ -1040,7 +1067,7 @@ def register(slices: list[Slice], geom: FiducialGeometry, *, options: SolveOptio
     for sl, xy, S in zip(slices, xys, Ss):
         try:
             fits, ell = _solve_one(model, xy, S, opts, _pixel_mm(sl))
-            _check_trust(fits[0], fits[1:], model, [sl], opts)
+            _check_trust(fits[0], fits[1:], model, [sl], opts, [S])
         except NoLock as exc:
             if len(slices) > 1:
                 raise NoLock(f"{sl.source}: {exc.reason}", exc.detail) from None
@@ -1052,13 +1079,13 @@ def register(slices: list[Slice], geom: FiducialGeometry, *, options: SolveOptio
         start = min(per_slice, key=lambda fe: fe[0].rms_mm)[0].T_F_from_scanner
         gate = max(model.diameter_mm.max(), 2 * max(_pixel_mm(s) for s in slices))
         best = refine(model, xys, Ss, start, gates_mm=(gate, 0.6 * gate))
-        _check_trust(best, [], model, slices, opts)
+        _check_trust(best, [], model, slices, opts, Ss)
         if best.n_matched < sum(f.n_matched for f, _ in per_slice):
             raise NoLock("the slices disagree: the joint pose matches fewer tubes than the slices alone",
                          {"n_tubes": best.n_matched})
     if opts.centroid_model:
         corrected = _centroid_refine(model, geom.tubes, best, xys, Ss, slices, blob_sets, opts)
-        _check_trust(corrected, [], model, slices, opts)  # only ever stricter: the lock was checked above
+        _check_trust(corrected, [], model, slices, opts, Ss)  # only ever stricter: the lock was checked above
         if _distinct(corrected.T_F_from_scanner, best.T_F_from_scanner, model):
             raise NoLock("the centroid model moved the pose by more than 1 mm or 1 degree: the fit is not stable",
                          {"n_tubes": corrected.n_matched})
