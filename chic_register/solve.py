@@ -75,6 +75,7 @@ class TubeModel:
     line_p0: np.ndarray = None
     line_d: np.ndarray = None
     line_dunit: np.ndarray = None
+    line_params: tuple = ()
     helix_params: tuple = ()
 
     def __post_init__(self):
@@ -85,6 +86,9 @@ class TubeModel:
         object.__setattr__(self, "line_p0", self.p0[li].copy())
         object.__setattr__(self, "line_d", d.copy())
         object.__setattr__(self, "line_dunit", d / np.linalg.norm(d, axis=1, keepdims=True))
+        object.__setattr__(self, "line_params", tuple(
+            (int(k), *(float(v) for v in self.p0[k]), *(float(v) for v in self.d[k]),
+             *(float(v) for v in self.d[k] / np.linalg.norm(self.d[k]))) for k in li))
         object.__setattr__(self, "helix_params", tuple(
             (int(k), float(self.radius[k]), float(self.theta0_rad[k]), float(self.omega_rad_per_mm[k]),
              float(self.z0[k])) for k in hi))
@@ -173,23 +177,16 @@ def plane_crossings(model: TubeModel, T_F_from_I: np.ndarray, margin_mm: float =
     """
     R = T_F_from_I[:3, :3]
     o = T_F_from_I[:3, 3]
-    n = R[:, 2]
+    (_, _, nx, ox), (_, _, ny, oy), (_, _, nz, oz) = T_F_from_I[:3].tolist()
+    no = nx * ox + ny * oy + nz * oz  # the plane: x . n = no
     K = len(model.ids)
-    X = np.empty((K, 3))
-    tan = np.empty((K, 3))
-    ok = np.ones(K, bool)
-    li = model.line_idx
-    if li.size:
-        p0, d = model.line_p0, model.line_d
-        denom = d @ n
-        safe = np.abs(denom) > 1e-9
-        t = ((o - p0) @ n) / np.where(safe, denom, 1.0)
-        X[li] = p0 + t[:, None] * d
-        tan[li] = model.line_dunit
-        ok[li] = safe
-    if model.helix_idx.size:
-        nx, ny, nz = float(n[0]), float(n[1]), float(n[2])
-        no = nx * float(o[0]) + ny * float(o[1]) + nz * float(o[2])
+    rows = [None] * K  # per tube: crossing (3), unit tangent (3), found; all in F
+    for k, px, py, pz, dx, dy, dz, ux, uy, uz in model.line_params:
+        denom = dx * nx + dy * ny + dz * nz
+        safe = abs(denom) > 1e-9
+        t = (no - (px * nx + py * ny + pz * nz)) / (denom if safe else 1.0)
+        rows[k] = (px + t * dx, py + t * dy, pz + t * dz, ux, uy, uz, safe)
+    if model.helix_params:
         z_axis = no / nz if abs(nz) > 1e-9 else 0.0
         cos, sin = math.cos, math.sin
         for k, r, th0, om, z0 in model.helix_params:
@@ -208,11 +205,12 @@ def plane_crossings(model: TubeModel, T_F_from_I: np.ndarray, margin_mm: float =
                     break
             th = th0 + om * (z - z0)
             c, s = cos(th), sin(th)
-            X[k] = (r * c, r * s, z)
             vx, vy = -r * om * s, r * om * c
             inv = 1.0 / math.sqrt(vx * vx + vy * vy + 1.0)
-            tan[k] = (vx * inv, vy * inv, inv)
-            ok[k] = good and abs(rnx * c + rny * s + nz * z - no) < 1e-6
+            rows[k] = (r * c, r * s, z, vx * inv, vy * inv, inv,
+                       good and abs(rnx * c + rny * s + nz * z - no) < 1e-6)
+    A = np.array(rows, dtype=float).reshape(K, 7)
+    X, tan, ok = A[:, :3], A[:, 3:6], A[:, 6] > 0
     zF = X[:, 2]
     tan_I = tan @ R
     if margin_mm > 0:
