@@ -485,7 +485,10 @@ def initial_hypotheses(model: TubeModel, xy_mm: np.ndarray, ell: Ellipse, *,
     for h in sorted({h for _, h in signs}, reverse=True):  # the line match does not depend on s
         th = np.arctan2(h * w, u * cos_t)  # (N,)
         beta = (line_ang[None, :] - th[:, None]).ravel()  # (B,)
-        e = _wrap(th[None, :, None] + beta[:, None, None] - line_ang[None, None, :])  # (B,N,Kl)
+        # th[n] - th[i] + ang[l] - ang[m], each difference wrapped first: one add and two compares to wrap
+        e = (_wrap(th[None, :] - th[:, None])[:, None, :, None]
+             + _wrap(line_ang[:, None] - line_ang[None, :])[None, :, None, :]).reshape(beta.size, th.size, Kl)
+        e = np.where(e >= np.pi, e - 2 * np.pi, np.where(e < -np.pi, e + 2 * np.pi, e))  # (B,N,Kl)
         jmin = np.argmin(np.abs(e), axis=1)  # (B,Kl)
         emin = np.take_along_axis(e, jmin[:, None, :], axis=1)[:, 0, :]
         hit = np.abs(emin) < tol
@@ -653,11 +656,12 @@ def refine(model: TubeModel, blobs_xy: list[np.ndarray], T_scanner_from_image: l
                 Js.append((_crossing_jacobian(q[k], tan[k]) @ ads[j]).reshape(-1, 6))
             if not rs:
                 break
-            J = np.concatenate(Js)
-            r = np.concatenate(rs)
+            J = Js[0] if len(Js) == 1 else np.concatenate(Js)
+            r = rs[0] if len(rs) == 1 else np.concatenate(rs)
             H = J.T @ J
-            H[np.diag_indices(6)] *= 1 + damping
-            H[np.diag_indices(6)] += 1e-9
+            diag = H.reshape(-1)[::7]  # a view of the diagonal
+            diag *= 1 + damping
+            diag += 1e-9
             try:
                 xi = -np.linalg.solve(H, J.T @ r)
             except np.linalg.LinAlgError:
