@@ -131,17 +131,18 @@ class TubeModel:
 class _GeometryKey:
     """A hashable stand-in for a :class:`FiducialGeometry` (whose ``source`` dict is not hashable).
 
-    Equal keys mean equal content (name, units, body, tubes, source), so a
-    memo keyed by it never serves one geometry's model for another's.
+    Equal keys mean equal content (name, units, body, tubes, source, by
+    their ``repr``, which tells -0.0 from 0.0 as the content hash does), so a
+    memo keyed by it never serves one geometry's model or hash for another's.
     """
 
-    __slots__ = ("geom", "key", "_hash")
+    __slots__ = ("_hash", "geom", "key")
 
     def __init__(self, geom: FiducialGeometry):
         src = geom.source
         frozen_src = None if src is None else tuple(sorted((str(k), repr(v)) for k, v in src.items()))
         self.geom = geom
-        self.key = (geom.name, geom.units, geom.body, geom.tubes, frozen_src)
+        self.key = (geom.name, geom.units, repr(geom.body), repr(geom.tubes), frozen_src)
         self._hash = hash(self.key)
 
     def __hash__(self) -> int:

@@ -71,3 +71,21 @@ def test_pure_noise_has_no_strong_candidates():
     rng = np.random.default_rng(0)
     b = detect_blobs(rng.uniform(0, 1, (256, 256)), (0.5, 0.5), 3.0)
     assert len(b) <= 3
+
+
+def test_smoothing_is_repeated_binomial_passes_with_replicated_edges():
+    from scipy import ndimage as ndi
+
+    from chic_register.detect import _smooth
+
+    rng = np.random.default_rng(1)
+    for shape in [(64, 48), (5, 3), (1, 7), (7, 1), (2, 2)]:
+        img = rng.uniform(0, 1, shape)
+        for sigma, n in [(0.5, 1), (0.9, 2), (1.3, 3)]:
+            ref = img.copy()
+            for _ in range(n):
+                for axis in (0, 1):
+                    ref = ndi.correlate1d(ref, [0.25, 0.5, 0.25], axis=axis, mode="nearest")
+            out = _smooth(img, sigma)
+            assert out.dtype == np.float32 and out.shape == shape
+            assert np.allclose(out, ref, atol=1e-6)

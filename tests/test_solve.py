@@ -8,11 +8,12 @@ import pytest
 
 from chic_register.cli import main
 from chic_register.errors import NoLock
-from chic_register.geometry import write_geometry
+from chic_register.geometry import content_sha256, write_geometry
 from chic_register.pose import apply, invert, rigid, slice_angles, slice_frame, wrap_deg
 from chic_register.simulate import simulate_slice
 from chic_register.solve import (
-    Ellipse, TubeModel, _crossing_jacobian, _exp_se3, fit_ellipse_robust, plane_crossings, register,
+    Ellipse, TubeModel, _assign, _crossing_jacobian, _exp_se3, fit_ellipse_robust, plane_crossings,
+    prepare_geometry, register,
 )
 
 # ----------------------------------------------------------------------------- model
@@ -49,6 +50,50 @@ def test_crossing_jacobian_matches_finite_differences(neuro_geometry):
         xp, *_ = plane_crossings(model, T @ _exp_se3(xi))
         xm, *_ = plane_crossings(model, T @ _exp_se3(-xi))
         assert np.allclose((xp - xm) / (2 * h), J[:, :, i], atol=1e-5)
+
+
+def test_prepared_geometry_follows_the_content(neuro_geometry, needle_geometry):
+    import dataclasses
+
+    model, sha = prepare_geometry(neuro_geometry)
+    assert sha == content_sha256(neuro_geometry.content())
+    assert model.ids == neuro_geometry.ids and prepare_geometry(neuro_geometry)[0] is model  # memoised
+    # an equal copy shares the memo; any change of content (a tube, the source) gets its own model and hash
+    copy = dataclasses.replace(neuro_geometry, source=dict(neuro_geometry.source))
+    assert prepare_geometry(copy)[0] is model
+    moved = dataclasses.replace(neuro_geometry, tubes=(dataclasses.replace(neuro_geometry.tubes[0], diameter=2.0),
+                                                       *neuro_geometry.tubes[1:]))
+    m2, sha2 = prepare_geometry(moved)
+    assert sha2 == content_sha256(moved.content()) != sha and m2.diameter_mm[0] == 2.0
+    other = dataclasses.replace(neuro_geometry, source={"spec": "elsewhere.yaml"})
+    assert prepare_geometry(other)[1] == content_sha256(other.content()) != sha
+    assert prepare_geometry(needle_geometry)[0].ids == needle_geometry.ids
+    d0 = neuro_geometry.tubes[0]
+    signed = dataclasses.replace(neuro_geometry, tubes=(
+        dataclasses.replace(d0, p0=(d0.p0[0], -0.0, d0.p0[2])), *neuro_geometry.tubes[1:]))
+    assert d0.p0[1] == 0.0 and prepare_geometry(signed)[1] == content_sha256(signed.content())
+
+
+def test_assignment_fast_path_agrees_with_the_hungarian_matching():
+    from scipy.optimize import linear_sum_assignment
+
+    rng = np.random.default_rng(5)
+    for _ in range(300):
+        K, N = int(rng.integers(1, 10)), int(rng.integers(1, 14))
+        pred, blobs = rng.uniform(0, 20, (K, 2)), rng.uniform(0, 20, (N, 2))
+        ok = rng.random(K) > 0.2
+        gate = float(rng.uniform(0.5, 6.0))
+        dist = np.linalg.norm(pred[:, None] - blobs[None], axis=2)
+        cost = np.where((dist < gate) & ok[:, None], dist**2, 1e6)
+        r, c = linear_sum_assignment(cost)
+        ref = np.full(K, -1)
+        ref[r[cost[r, c] < 1e6]] = c[cost[r, c] < 1e6]
+        got = _assign(pred, ok, blobs, gate)
+        # same number of matches and the same total cost (the optimum; ties may pick other pairs)
+        assert (got >= 0).sum() == (ref >= 0).sum()
+        k = np.flatnonzero(got >= 0)
+        assert cost[k, got[k]].sum() == pytest.approx(cost[r, c][cost[r, c] < 1e6].sum(), rel=1e-9, abs=1e-12)
+        assert np.all(dist[k, got[k]] < gate) and len(set(got[k].tolist())) == k.size
 
 
 def test_robust_ellipse_fit_recovers_axes_and_rejects_outliers():
