@@ -346,3 +346,76 @@ def test_no_usable_depth_is_a_violation():
                            min_wall_mm=0.8, max_overhang_deg=45.0)
     assert "no_usable_depth" in {v.code for v in rep.violations} and not rep.feasible
     assert all(u.ranges_mm == () for u in rep.usable_depth)
+
+
+# ------------------------------------------------------------------ exact blob gap vs brute force
+
+
+def _brute_gap(ta, tb, o, n, length_mm, h=0.02, box=5.0):
+    """Gap between two tubes' sections (zero slice thickness) on a fine in-plane grid of spacing h.
+
+    A grid point is in a tube's blob if it is within d/2 of the densely sampled
+    centreline and inside the body's z range. Returns (lower, upper) bounds on
+    the true gap: the grid distance minus / plus one cell diagonal.
+    """
+    from scipy.spatial import cKDTree
+
+    pa, pb = ta.intersect_plane(o, n)[0], tb.intersect_plane(o, n)[0]
+    u = np.cross(n, [0.0, 1.0, 0.0])
+    u /= np.linalg.norm(u)
+    v = np.cross(n, u)
+    g = np.arange(-box, box + h / 2, h)
+    X, Y = np.meshgrid(g, g, indexing="ij")
+    P = 0.5 * (pa + pb) + X.ravel()[:, None] * u + Y.ravel()[:, None] * v
+    blobs = []
+    for tube in (ta, tb):
+        d, _ = cKDTree(tube.points(np.linspace(0, 1, int(tube.length_mm / 0.01) + 1))).query(P)
+        blobs.append(P[(d <= tube.diameter / 2) & (P[:, 2] >= 0) & (P[:, 2] <= length_mm)])
+    d = cKDTree(blobs[0]).query(blobs[1])[0].min()
+    return d - h * math.sqrt(2), d + h * math.sqrt(2)
+
+
+def test_section_gap_matches_brute_force_on_helix_and_line_at_steep_tilt():
+    geom = fiducial_geometry(load_spec(NEURO))
+    h0, d0 = geom.tube("H0"), geom.tube("D0")
+    o = np.array([0.0, 0.0, 25.0])
+    for tilt, az in ((55.0, 10.0), (60.0, 7.0), (61.0, 6.0)):
+        n = F.plane_normals(tilt, az)
+        gap = F.section_gap(h0, d0, o[None], n[None], 0.0, 50.0)[0][0]
+        lo, hi = _brute_gap(h0, d0, o, n, 50.0)
+        if lo > 0:  # clearly separate: the distance itself
+            assert lo - 0.01 <= gap <= hi + 0.01, (tilt, gap, lo, hi)
+        else:  # overlapping: only the sign is meaningful
+            assert gap < 0
+
+
+def test_exact_limit_brackets_brute_force_merge():
+    """Helix/line pair at steep tilt: at the exact limit the brute-force gap is >= one pixel, 0.2 deg above it < one pixel."""
+    geom = FiducialGeometry("pair", Body(50, 30, 20), (
+        HelixTube("H0", "helix", 12.5, 10.0, 1.4, 0.0, 50.0, 3.0),
+        LineTube("D0", "diametric", (12.5, 0, 0), (12.5, 0, 50), 3.0)))
+    pixel = 0.3
+    lim = F.tilt_limits(geom, pixel, 0.0, depths_mm=[25.0], exact=True)[0]
+    assert lim.limited_by == "tubes_merge:H0/D0" and 45 < lim.max_tilt_deg < 63
+    o = np.array([0.0, 0.0, 25.0])
+    lo, _ = _brute_gap(geom.tubes[0], geom.tubes[1], o, F.plane_normals(lim.max_tilt_deg, lim.azimuth_deg), 50.0)
+    _, hi = _brute_gap(geom.tubes[0], geom.tubes[1], o, F.plane_normals(lim.max_tilt_deg + 0.2, lim.azimuth_deg), 50.0)
+    assert lo >= pixel - 0.03 and hi < pixel
+    fast = F.tilt_limits(geom, pixel, 0.0, depths_mm=[25.0])[0]
+    assert fast.max_tilt_deg <= lim.max_tilt_deg + 0.1  # the ellipse model is conservative here
+
+
+def test_clipped_disc_distance_hand_cases():
+    G = np.array([0.0, 1.0, 0.0])  # face line y = 0, half-plane y >= 0 kept
+    c1, c2 = np.array([0.0, 1.0, 0.0]), np.array([3.0, 1.0, 0.0])
+    one = np.array(1.0)
+    # both discs inside-ish: arc points on the centre line lie in y >= 0 -> 3 - 2
+    assert F._clipped_disc_distance(c1, one, c2, one, G, np.array(1.0), np.array(1.0)) == pytest.approx(1.0)
+    # centres below the line at y = -0.6: caps with chords |x - cx| <= 0.8 on y = 0 -> 3 - 1.6
+    c1b, c2b = c1 - [0, 1.6, 0], c2 - [0, 1.6, 0]
+    assert F._clipped_disc_distance(c1b, one, c2b, one, G, np.array(-0.6), np.array(-0.6)) == pytest.approx(1.4)
+    # overlapping discs whose lens lies below the line: chords 0.8 wide at centres 1.2 apart -> no overlap
+    c2c = c1b + [1.9, 0, 0]
+    assert F._clipped_disc_distance(c1b, one, c2c, one, G, np.array(-0.6), np.array(-0.6)) == pytest.approx(0.3)
+    # a disc entirely below the line is empty
+    assert F._clipped_disc_distance(c1 - [0, 2.5, 0], one, c2, one, G, np.array(-1.5), np.array(1.0)) == np.inf
