@@ -1,6 +1,6 @@
 """Accuracy on the paper's simulation protocol, against the paper and the targets (3x better than its maxima).
 
-    .venv/bin/python benchmarks/bench_accuracy.py [--draws 20] [--levels 0.1 0.05 0.025 0.01] [--snr 20 50]
+    .venv/bin/python benchmarks/bench_accuracy.py [--draws 20] [--levels 0.1 0.05 0.025 0.01] [--snr 20 50 | --snr]
         [--centroid-model on|off]
 
 Runs :func:`chic_register.evaluate.run_study` on designs/neuro.yaml (256 x 256,
@@ -30,7 +30,7 @@ def main() -> None:
     ap.add_argument("--draws", type=int, default=20)
     ap.add_argument("--seed", type=int, default=0)
     ap.add_argument("--levels", type=float, nargs="+", default=[0.1, 0.05, 0.025, 0.01])
-    ap.add_argument("--snr", type=float, nargs="+", default=[20.0, 50.0])
+    ap.add_argument("--snr", type=float, nargs="*", default=[20.0, 50.0])
     ap.add_argument("--slice-thickness", type=float, default=0.0)
     ap.add_argument("--centroid-model", choices=("on", "off"), default="on",
                     help="solver's centroid model (default on, as the study)")

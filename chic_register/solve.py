@@ -33,7 +33,7 @@ from dataclasses import dataclass, field
 import numpy as np
 from scipy.optimize import linear_sum_assignment
 
-from .detect import Blobs, detect_blobs
+from .detect import Blobs, _dilate, detect_blobs
 from .errors import NoLock
 from .geometry import FiducialGeometry, HelixTube, LineTube, content_sha256
 from .pose import invert, rigid, slice_angles
@@ -766,6 +766,95 @@ def centroid_offsets(tubes, model: TubeModel, T_F_from_I: np.ndarray, assignment
     return off, pure
 
 
+def template_shifts(tubes, model: TubeModel, T_F_from_I: np.ndarray, assignment: np.ndarray, pixels: np.ndarray,
+                    footprints, pixel_spacing_mm, slice_thickness_mm: float, *, supersample: int = 5,
+                    thickness_samples: int = 5, grow_px: int = 2, step_px: float = 0.1):
+    """Where each matched tube's section lies in the image by a template fit; (K, 2) image mm from its crossing.
+
+    The centroid of a footprint sums the noise of every pixel in it; a
+    matched filter uses only the section's edges and is about twice as
+    precise in white noise. So for each matched tube, the noise-free image of
+    its section at the pose ``T_F_from_I`` (4x4), rendered by the
+    simulator's partial-volume renderer like :func:`centroid_offsets`, is
+    fitted to ``pixels`` (rows, cols) over the blob's footprint grown by
+    ``grow_px`` (less the other blobs' footprints):
+    ``I = b + a (T(x - d) + N(x))``, N the neighbouring tubes at the pose,
+    linear in (b, a, a d) once ``T(x - d)`` is expanded to first order (the
+    derivative from renders shifted by ``+-step_px``). The shift is small
+    near the converged pose, and the caller iterates at the refitted pose.
+    Returns ``(shift (K, 2) mm, gain a (K,), fitted (K,) bool)``: the
+    template's own position is the crossing plus ``shift`` (no centroid
+    bias); ``fitted`` is False for unmatched tubes (gain 0), degenerate fits
+    (gain NaN) and fits without a positive gain.
+    """
+    from .simulate import render_tubes
+
+    q, tan, _, found = plane_crossings(model, T_F_from_I, margin_mm=5.0)
+    K = q.shape[0]
+    shift, gain, fitted = np.zeros((K, 2)), np.zeros(K), np.zeros(K, bool)
+    rs, cs = (float(v) for v in pixel_spacing_mm)
+    px = max(rs, cs)
+    H, W = pixels.shape
+    txy = np.hypot(tan[:, 0], tan[:, 1])
+    tz = np.maximum(np.abs(tan[:, 2]), 1e-3)
+    half_len = np.minimum(0.5 * model.diameter_mm / tz + 0.5 * slice_thickness_mm * txy / tz, model.length_mm)
+    half_wid = 0.5 * model.diameter_mm + 0.5 * slice_thickness_mm
+    u = tan[:, :2] / np.maximum(txy, 1e-12)[:, None]
+    render = {"pixel_spacing_mm": (rs, cs), "slice_thickness_mm": slice_thickness_mm,
+              "supersample": supersample, "thickness_samples": thickness_samples}
+    g = int(grow_px)
+    for k in np.flatnonzero(assignment >= 0):
+        i = int(assignment[k])
+        fr0, fc0, fmask = footprints[i]
+        r0, c0 = max(0, fr0 - g), max(0, fc0 - g)
+        r1, c1 = min(H, fr0 + fmask.shape[0] + g), min(W, fc0 + fmask.shape[1] + g)
+        h, w = r1 - r0, c1 - c0
+        own = np.zeros((h, w), bool)
+        own[fr0 - r0:fr0 - r0 + fmask.shape[0], fc0 - c0:fc0 - c0 + fmask.shape[1]] = fmask
+        mask = _dilate(own, g) if g > 0 else own.copy()
+        for n, (or0, oc0, omask) in enumerate(footprints):
+            if n == i or or0 >= r1 or oc0 >= c1 or or0 + omask.shape[0] <= r0 or oc0 + omask.shape[1] <= c0:
+                continue
+            a0, b0 = max(or0, r0), max(oc0, c0)
+            a1, b1 = min(or0 + omask.shape[0], r1), min(oc0 + omask.shape[1], c1)
+            other = omask[a0 - or0:a1 - or0, b0 - oc0:b1 - oc0]
+            sub = mask[a0 - r0:a1 - r0, b0 - c0:b1 - c0]
+            sub &= ~(other & ~own[a0 - r0:a1 - r0, b0 - c0:b1 - c0])
+        centre = np.array([(c0 + (w - 1) / 2) * cs, (r0 + (h - 1) / 2) * rs])
+        half = 0.5 * math.hypot(h * rs, w * cs) + 2 * px
+        d = centre - q
+        along = np.abs(np.einsum("ij,ij->i", d, u))
+        across = np.abs(u[:, 0] * d[:, 1] - u[:, 1] * d[:, 0])
+        near = [n for n in np.flatnonzero(found & (along < half + half_len) & (across < half + half_wid)) if n != k]
+
+        def draw(tube_list, dr_px=0.0, dc_px=0.0):
+            # the section moved by (dr, dc) pixels: the grid's origin moves the other way
+            return render_tubes(tube_list, T_F_from_I, (h, w), center_px=(-float(r0) + dr_px, -float(c0) + dc_px),
+                                **render)
+
+        # composited as the image is: the brighter of the tube and its neighbours (touching sections overlap)
+        # (forward differences: a derivative a little off costs a little precision, never bias, since the
+        # residual vanishes at the true pose whatever the derivative)
+        nbr = draw([tubes[n] for n in near]) if near else np.zeros((h, w))
+        tpl = np.maximum(draw([tubes[k]]), nbr)
+        dT_dr = (np.maximum(draw([tubes[k]], step_px), nbr) - tpl) / step_px
+        dT_dc = (np.maximum(draw([tubes[k]], 0.0, step_px), nbr) - tpl) / step_px
+        m = mask.ravel()
+        A = np.stack([np.ones(int(m.sum())), tpl.ravel()[m], dT_dr.ravel()[m], dT_dc.ravel()[m]], axis=1)
+        y = np.asarray(pixels[r0:r1, c0:c1], float).ravel()[m]
+        try:
+            coef, _, rank, _ = np.linalg.lstsq(A, y, rcond=None)
+        except np.linalg.LinAlgError:
+            continue
+        gain[k] = coef[1] if rank == 4 else math.nan
+        if not gain[k] > 0:
+            continue
+        # first order: a T(x - d) = a T(x) + (a d) . dT/dd
+        shift[k] = (coef[3] / coef[1] * cs, coef[2] / coef[1] * rs)
+        fitted[k] = True
+    return shift, gain, fitted
+
+
 def _centroid_refine(model: TubeModel, tubes, fit: _Fit, xys, Ss, slices, blob_sets, opts) -> _Fit:
     """Refit ``fit`` with the centroid model (:func:`centroid_offsets`).
 
@@ -800,6 +889,65 @@ def _centroid_refine(model: TubeModel, tubes, fit: _Fit, xys, Ss, slices, blob_s
                      offsets_mm=offs, strict_ends=False)
         d = invert(X0) @ fit.T_F_from_scanner
         if max(abs(d[:3, 3]).max(), abs(d[:3, :3] - np.eye(3)).max()) < 1e-4:
+            break
+    if opts.template_iterations > 0:
+        fit = _template_refine(model, tubes, fit, assign, xys, Ss, slices, blob_sets, opts, offs)
+    return fit
+
+
+def _template_refine(model: TubeModel, tubes, fit: _Fit, assign, xys, Ss, slices, blob_sets, opts,
+                     centroid_offs) -> _Fit:
+    """Refit ``fit`` on template-fitted tube positions (:func:`template_shifts`), ``template_iterations`` times.
+
+    Each matched tube's measurement becomes the position of its fitted
+    template (crossing plus shift, offset zero); a tube whose template fit
+    is degenerate keeps its centroid and centroid-model offset. Raises
+    :class:`NoLock` when a template lands more than ``template_max_disagreement_px``
+    from where the centroid model puts the tube, or fits with no positive
+    gain: the blob is not the clean section the model expects.
+    """
+    for it in range(opts.template_iterations):
+        X0 = fit.T_F_from_scanner
+        new_xys, offs = [], []
+        for j, (sl, S, b) in enumerate(zip(slices, Ss, blob_sets)):
+            T_F_from_I = fit.T_F_from_scanner @ S
+            a = assign[j]
+            render = {"supersample": opts.centroid_supersample, "thickness_samples": opts.centroid_thickness_samples}
+            thick = float(sl.slice_thickness_mm)
+            shift, gain, ok = template_shifts(tubes, model, T_F_from_I, a, np.asarray(sl.pixels), b.footprints,
+                                              sl.pixel_spacing_mm, thick, **render)
+            matched = a >= 0
+            if np.any(matched & (gain <= 0)):  # (NaN, a degenerate fit, keeps the centroid instead)
+                k = int(np.flatnonzero(matched & (gain <= 0))[0])
+                raise NoLock(f"{sl.source}: tube {model.ids[k]} matches a blob its template does not fit "
+                             f"(gain {gain[k]:.3g})", {"n_tubes": int(matched.sum())})
+            rest = np.where(ok, -1, a)
+            if it == 0:  # the centroid model's last offsets (the pose has barely moved since)
+                off = centroid_offs[j].copy()
+            elif np.any(rest >= 0):
+                off = centroid_offsets(tubes, model, T_F_from_I, rest, b.footprints, sl.pixel_spacing_mm, thick,
+                                       **render)[0]
+            else:
+                off = np.zeros((a.size, 2))
+            q = plane_crossings(model, T_F_from_I, margin_mm=5.0)[0]
+            kk = np.flatnonzero(ok)
+            xy = xys[j].copy()
+            if it == 0 and kk.size:
+                gap = np.linalg.norm(xy[a[kk]] - off[kk] - (q[kk] + shift[kk]), axis=1)
+                limit = opts.template_max_disagreement_px * _pixel_mm(sl)
+                if gap.max() > limit:
+                    k = int(kk[np.argmax(gap)])
+                    raise NoLock(f"{sl.source}: tube {model.ids[k]}'s template fit is {gap.max():.3f} mm from its "
+                                 f"centroid fit (limit {opts.template_max_disagreement_px:g} px)",
+                                 {"n_tubes": int(matched.sum())})
+            xy[a[kk]] = q[kk] + shift[kk]
+            off[kk] = 0.0
+            new_xys.append(xy)
+            offs.append(off)
+        fit = refine(model, new_xys, Ss, fit.T_F_from_scanner, gates_mm=(), final_iters=6, assign0=assign,
+                     offsets_mm=offs, strict_ends=False)
+        d = invert(X0) @ fit.T_F_from_scanner
+        if max(abs(d[:3, 3]).max(), abs(d[:3, :3] - np.eye(3)).max()) < 1e-5:
             break
     return fit
 
@@ -883,7 +1031,12 @@ class SolveOptions:
     curved, clipped and touching sections at a few ms per iteration:
     ``centroid_iterations`` renders of every matched tube's footprint with
     ``centroid_supersample``² samples per pixel and
-    ``centroid_thickness_samples`` sub-planes).
+    ``centroid_thickness_samples`` sub-planes). Then, ``template_iterations``
+    times, each clean tube's position is measured by fitting its rendered
+    section to the pixels (:func:`template_shifts`; about 1.5 times more
+    precise than a centroid in white noise) and the pose refitted on those;
+    a template landing more than ``template_max_disagreement_px`` from the
+    centroid model's position gives :class:`NoLock`. 0 turns it off.
     """
 
     max_rms_px: float = 0.5
@@ -898,6 +1051,8 @@ class SolveOptions:
     centroid_supersample: int = 5
     centroid_thickness_samples: int = 5
     centroid_min_purity: float = 0.93
+    template_iterations: int = 1
+    template_max_disagreement_px: float = 0.5
 
 
 def _pixel_mm(sl: Slice) -> float:
