@@ -694,6 +694,16 @@ def refine(model: TubeModel, blobs_xy: list[np.ndarray], T_scanner_from_image: l
     return _Fit(X, assign, residuals, insides, total, rms)
 
 
+def _section_extent(model, tan, slice_thickness_mm):
+    """Each tube's in-plane section: half-length (mm) along its projected tangent ``u`` (K, 2), half-width across."""
+    txy = np.hypot(tan[:, 0], tan[:, 1])
+    tz = np.maximum(np.abs(tan[:, 2]), 1e-3)
+    half_len = np.minimum(0.5 * model.diameter_mm / tz + 0.5 * slice_thickness_mm * txy / tz, model.length_mm)
+    half_wid = 0.5 * model.diameter_mm + 0.5 * slice_thickness_mm
+    u = tan[:, :2] / np.maximum(txy, 1e-12)[:, None]
+    return half_len, half_wid, u
+
+
 def centroid_offsets(tubes, model: TubeModel, T_F_from_I: np.ndarray, assignment: np.ndarray, footprints,
                      pixel_spacing_mm, slice_thickness_mm: float, *, supersample: int = 5,
                      thickness_samples: int = 5, purity: bool = False):
@@ -722,12 +732,7 @@ def centroid_offsets(tubes, model: TubeModel, T_F_from_I: np.ndarray, assignment
     pure = np.ones(K)
     rs, cs = (float(v) for v in pixel_spacing_mm)
     px = max(rs, cs)
-    # each tube's in-plane section: half-length along its projected tangent u, half-width across
-    txy = np.hypot(tan[:, 0], tan[:, 1])
-    tz = np.maximum(np.abs(tan[:, 2]), 1e-3)
-    half_len = np.minimum(0.5 * model.diameter_mm / tz + 0.5 * slice_thickness_mm * txy / tz, model.length_mm)
-    half_wid = 0.5 * model.diameter_mm + 0.5 * slice_thickness_mm
-    u = tan[:, :2] / np.maximum(txy, 1e-12)[:, None]
+    half_len, half_wid, u = _section_extent(model, tan, slice_thickness_mm)
     render = {"pixel_spacing_mm": (rs, cs), "slice_thickness_mm": slice_thickness_mm,
               "supersample": supersample, "thickness_samples": thickness_samples}
     for k in np.flatnonzero(assignment >= 0):
@@ -795,11 +800,7 @@ def template_shifts(tubes, model: TubeModel, T_F_from_I: np.ndarray, assignment:
     rs, cs = (float(v) for v in pixel_spacing_mm)
     px = max(rs, cs)
     H, W = pixels.shape
-    txy = np.hypot(tan[:, 0], tan[:, 1])
-    tz = np.maximum(np.abs(tan[:, 2]), 1e-3)
-    half_len = np.minimum(0.5 * model.diameter_mm / tz + 0.5 * slice_thickness_mm * txy / tz, model.length_mm)
-    half_wid = 0.5 * model.diameter_mm + 0.5 * slice_thickness_mm
-    u = tan[:, :2] / np.maximum(txy, 1e-12)[:, None]
+    half_len, half_wid, u = _section_extent(model, tan, slice_thickness_mm)
     render = {"pixel_spacing_mm": (rs, cs), "slice_thickness_mm": slice_thickness_mm,
               "supersample": supersample, "thickness_samples": thickness_samples}
     g = int(grow_px)
