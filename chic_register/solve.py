@@ -1045,8 +1045,9 @@ class SolveOptions:
     present with its shape, nothing unexplained on the tubes' circle, pixel
     spacing, no rival that explains the pixels nearly as well, and a
     predicted error (3 sigma) within ``trust_tre_mm`` at the frame centre and
-    ``trust_rot_deg``; when only that last test fails in the fast mode, the
-    accuracy mode's refinement is tried before refusing); off only for
+    ``trust_rot_deg``; when only that last test fails in the fast mode and
+    ``refine_when_imprecise``, the accuracy mode's refinement is tried before
+    refusing); off only for
     studies of the raw fit.
     """
 
@@ -1067,6 +1068,7 @@ class SolveOptions:
     verify: bool = True
     trust_tre_mm: float = 0.5
     trust_rot_deg: float = 0.5
+    refine_when_imprecise: bool = True
 
 
 def _pixel_mm(sl: Slice) -> float:
@@ -1270,7 +1272,7 @@ def register(slices: list[Slice], geom: FiducialGeometry, *, options: SolveOptio
         try:
             checks = verify_fit(geom, model, best, rivals, slices, Ss, blob_sets, opts)
         except ImprecisePose:
-            if opts.centroid_model:
+            if opts.centroid_model or not opts.refine_when_imprecise:
                 raise
             # verified but not precise enough from the centroids: fit the sections themselves (the accuracy
             # mode), then decide on that

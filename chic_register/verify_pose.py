@@ -94,6 +94,9 @@ RIVAL_MARGIN = 50.0
 #: most this many sub-planes over the slab.
 SUPERSAMPLE = 1
 MAX_THICKNESS_SAMPLES = 3
+#: One more sub-plane for every this many pixels of slab smear along a section (the renderer averages the
+#: sub-planes; between them the section's end is a ramp, within the shape tolerance at 4 px).
+SMEAR_PX_PER_SAMPLE = 4.0
 
 
 @dataclass(frozen=True)
@@ -145,7 +148,7 @@ def _windows(geom, model, T_F_from_I, shape, spacing, thickness_mm):
     ey = np.abs(u[:, 1]) * half_len + np.abs(u[:, 0]) * half_wid + 2 * px
     txy = np.hypot(tan[:, 0], tan[:, 1])
     smear_px = float(np.max(thickness_mm * txy / np.maximum(np.abs(tan[:, 2]), 1e-3))) / px if txy.size else 0.0
-    ts = int(min(MAX_THICKNESS_SAMPLES, max(1, math.ceil(smear_px / 2) + 1)))  # a sub-plane every 2 px of smear
+    ts = int(min(MAX_THICKNESS_SAMPLES, max(1, math.ceil(smear_px / SMEAR_PX_PER_SAMPLE) + 1)))
     render = {"pixel_spacing_mm": (rs, cs), "slice_thickness_mm": thickness_mm, "supersample": SUPERSAMPLE,
               "thickness_samples": ts}
     H, W = shape
@@ -363,9 +366,10 @@ def pose_precision(model, fit, Ss, pixel_mm: float, exclude=None):
     dof = 2 * n - 6
     if not Js or dof <= 0:
         return math.inf, math.inf
-    from scipy.stats import chi2
+    from scipy.special import gammaincinv  # (scipy.stats takes a second to import)
 
-    sigma = max(math.sqrt(sq / chi2.ppf(1.0 - SCATTER_CONFIDENCE, dof)), POSITION_FLOOR_PX * pixel_mm)
+    chi2_low = 2.0 * float(gammaincinv(0.5 * dof, 1.0 - SCATTER_CONFIDENCE))  # chi-square quantile, dof degrees
+    sigma = max(math.sqrt(sq / chi2_low), POSITION_FLOOR_PX * pixel_mm)
     J = np.concatenate(Js)
     try:
         C = sigma * sigma * np.linalg.inv(J.T @ J)
