@@ -12,8 +12,10 @@ import argparse
 import json
 import sys
 
-from . import __version__
+from . import __version__, exits
 from .errors import ChicRegisterError, NoLock
+
+PROG = "chic-register"
 
 
 def _parser() -> argparse.ArgumentParser:
@@ -506,36 +508,13 @@ def main(argv=None) -> int:
             print(f"chic-register: no lock: {exc.reason}", file=sys.stderr)
         return exc.exit_code
     except ChicRegisterError as exc:
-        return _report(f"error: {exc}", exc.exit_code)
+        return exits.report(PROG, f"error: {exc}", exc.exit_code)
     except KeyboardInterrupt:
-        return _report("interrupted", 130)
+        return exits.report(PROG, "interrupted", 130)
     except BrokenPipeError:  # e.g. `chic-register ... | head`: the reader left; nothing more to say
-        return _quiet_broken_pipe()
+        return exits.broken_pipe()
     except OSError as exc:  # an output that cannot be written (disk full, permission, vanished folder)
-        where = f"{exc.filename}: " if exc.filename else ""
-        return _report(f"error: {where}{exc.strerror or exc}", 1)
-
-
-def _report(text: str, code: int) -> int:
-    """Print one ``chic-register: ...`` line on stderr (if stderr is still there) and return ``code``."""
-    try:
-        print(f"chic-register: {text}", file=sys.stderr)
-    except (BrokenPipeError, OSError):
-        pass
-    return code
-
-
-def _quiet_broken_pipe() -> int:
-    """Point stdout at /dev/null so the interpreter's final flush does not fail again; exit 141 (SIGPIPE)."""
-    import os
-
-    try:
-        devnull = os.open(os.devnull, os.O_WRONLY)
-        os.dup2(devnull, sys.stdout.fileno())
-        os.close(devnull)
-    except (OSError, ValueError, AttributeError):
-        pass
-    return 141
+        return exits.os_error(PROG, exc)
 
 
 if __name__ == "__main__":
