@@ -350,12 +350,15 @@ def _load_reference(path) -> "np.ndarray":
     p = Path(path)
     if p.suffix.lower() in SUFFIXES:
         return read_tfm(p)
+    from .errors import InputFileError
+    from .safeload import read_regular_file
+
     try:
-        doc = json.loads(p.read_text(encoding="utf-8"))
-    except FileNotFoundError:
-        raise ChicRegisterError(f"--reference {p}: no such file") from None
-    except (OSError, UnicodeDecodeError, json.JSONDecodeError) as exc:
-        raise ChicRegisterError(f"--reference {p}: not a JSON file ({exc})") from None
+        doc = json.loads(read_regular_file(p, "reference file", max_bytes=1 << 20).decode("utf-8"))
+    except InputFileError as exc:
+        raise ChicRegisterError(f"--reference {exc}") from None
+    except (UnicodeDecodeError, json.JSONDecodeError, RecursionError) as exc:
+        raise ChicRegisterError(f"--reference {p}: not a JSON file ({str(exc).splitlines()[0][:100]})") from None
     T = doc.get("T_scanner_from_fiducial") if isinstance(doc, dict) else None
     try:
         T = np.asarray(T, dtype=float)

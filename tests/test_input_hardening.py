@@ -405,3 +405,18 @@ def test_check_flags_meet_the_spec_ranges(capsys):
     assert design_main(["check", str(ROOT / "designs" / "neuro.yaml"), "--pixel-size", "1e9"]) == 2
     assert "imaging.pixel_size: Input should be less than or equal to 10" in _one_line_error(
         capsys, "chic-design: error: ")
+
+
+def test_fifo_geometry_and_reference_files_are_refused_not_waited_on(tmp_path, capsys, neuro_geometry_file):
+    fifo = tmp_path / "fifo-geometry.yaml"
+    os.mkfifo(fifo)
+    with pytest.raises(GeometryFileError, match="is a FIFO .named pipe., not a geometry file"):
+        load_geometry(fifo)
+    ref = tmp_path / "ref.json"
+    os.mkfifo(ref)
+    vol = tmp_path / "v.nii"
+    vol.write_bytes(b"")
+    rc = register_main(["reslice", str(vol), "--geometry", str(neuro_geometry_file), "--reference", str(ref)])
+    assert rc == 2
+    err = _one_line_error(capsys, "chic-register: error: --reference ")
+    assert "is a FIFO (named pipe), not a reference file" in err
