@@ -39,6 +39,15 @@ def _parser() -> argparse.ArgumentParser:
     c.add_argument("--plot", metavar="PNG", help="also save the max-tilt-vs-depth plot here")
 
     sub.add_parser("schema", help="print the spec's JSON Schema")
+
+    o = sub.add_parser("optimize", help="search designs for a tool and protocol; Pareto set, specs and report")
+    o.add_argument("requirements", help="requirements (YAML), e.g. designs/requirements/neuro.yaml")
+    o.add_argument("--out", help="output folder (default: exports/optimize-<name>)")
+    o.add_argument("--trials", type=int, help="candidates to evaluate (default: the file's search.trials)")
+    o.add_argument("--seed", type=int, default=0, help="optimiser seed (default: 0)")
+    o.add_argument("--scheduler", help="run on Dask: tcp://HOST:PORT, or local:N for a LocalCluster of N workers")
+    o.add_argument("--workers", type=int, help="local worker processes (default: the CPU count)")
+    o.add_argument("--quiet", action="store_true", help="no progress bar")
     return p
 
 
@@ -67,6 +76,19 @@ def _run(args) -> int:
         else:
             print(report.summary_text())
         return 0 if report.feasible else 1
+    if args.command == "optimize":
+        from .optimize.engine import parse_scheduler
+        from .optimize.pipeline import optimize
+
+        if args.trials is not None and args.trials < 1:
+            raise ChicDesignError(f"--trials must be >= 1, got {args.trials}")
+        if args.workers is not None and args.workers < 1:
+            raise ChicDesignError(f"--workers must be >= 1, got {args.workers}")
+        result = optimize(args.requirements, out_dir=args.out, trials=args.trials, seed=args.seed,
+                          scheduler=parse_scheduler(args.scheduler), workers=args.workers,
+                          progress=not args.quiet)
+        print(result.summary_text())
+        return 0
     if args.command == "build":
         from .build import build_design
 
