@@ -234,6 +234,52 @@ class HelixTube:
 Tube = LineTube | HelixTube
 
 
+def _rigid_4x4(values) -> np.ndarray | None:
+    """``values`` as a proper rigid 4x4 matrix (last row 0 0 0 1), or None."""
+    try:
+        T = np.asarray(values, dtype=float)
+    except (TypeError, ValueError):
+        return None
+    if T.shape != (4, 4) or not np.all(np.isfinite(T)) or not np.allclose(T[3], [0, 0, 0, 1]):
+        return None
+    R = T[:3, :3]
+    if not np.allclose(R.T @ R, np.eye(3), atol=1e-6) or np.linalg.det(R) < 0:
+        return None
+    return T
+
+
+@dataclass(frozen=True, eq=False)
+class ToolFrame:
+    """The tool's frame relative to F: ``T_fiducial_from_tool`` (4x4, mm); its origin is the tool tip.
+
+    Optional key ``tool`` of the geometry file (written only when the spec
+    has a tool, so files without it keep their hash).
+    """
+
+    T_fiducial_from_tool: np.ndarray
+
+    def __post_init__(self):
+        T = _rigid_4x4(self.T_fiducial_from_tool)
+        if T is None:
+            raise ValueError("tool.T_fiducial_from_tool must be a rigid 4x4 matrix (rotation, translation, 0 0 0 1)")
+        object.__setattr__(self, "T_fiducial_from_tool", T)
+
+    @classmethod
+    def tip_offset(cls, tip_offset_mm: float) -> "ToolFrame":
+        """A tool whose axes are F's and whose tip is on the axis at z = ``tip_offset_mm``."""
+        T = np.eye(4)
+        T[2, 3] = float(tip_offset_mm)
+        return cls(T)
+
+    @property
+    def tip_mm(self) -> np.ndarray:
+        """The tip in F (mm)."""
+        return self.T_fiducial_from_tool[:3, 3].copy()
+
+    def to_dict(self) -> dict:
+        return {"T_fiducial_from_tool": [[float(v) for v in row] for row in self.T_fiducial_from_tool]}
+
+
 @dataclass(frozen=True)
 class FiducialGeometry:
     """Everything the solver knows about a fiducial: its body and its tube centrelines."""
@@ -243,6 +289,7 @@ class FiducialGeometry:
     tubes: tuple[Tube, ...]
     source: dict | None = None
     units: str = "mm"
+    tool: ToolFrame | None = None
 
     def __post_init__(self):
         object.__setattr__(self, "tubes", tuple(self.tubes))
@@ -280,6 +327,8 @@ class FiducialGeometry:
         }
         if self.source is not None:
             out["source"] = dict(self.source)
+        if self.tool is not None:
+            out["tool"] = self.tool.to_dict()
         return out
 
     def to_dict(self) -> dict:
@@ -392,6 +441,17 @@ def tube_from_dict(data: dict, path="<geometry>", where: str = "tubes[?]") -> Tu
     raise GeometryFileError(path, f"{where}.kind is {kind!r}; allowed: line, helix")
 
 
+def tool_from_dict(data, path="<geometry>") -> ToolFrame:
+    """Parse the optional ``tool`` entry: ``{T_fiducial_from_tool: 4x4}``."""
+    if not isinstance(data, dict) or set(data) != {"T_fiducial_from_tool"}:
+        raise GeometryFileError(path, f"tool must be a mapping with the one key T_fiducial_from_tool, got {data!r}")
+    T = _rigid_4x4(data["T_fiducial_from_tool"])
+    if T is None:
+        raise GeometryFileError(path, "tool.T_fiducial_from_tool must be a rigid 4x4 matrix "
+                                "(orthonormal rotation, det +1, last row 0 0 0 1)")
+    return ToolFrame(T)
+
+
 def geometry_from_dict(data, path="<geometry>", check_hash: bool = True) -> FiducialGeometry:
     """Validate a parsed geometry file and build the :class:`FiducialGeometry`."""
     if not isinstance(data, dict):
@@ -426,8 +486,9 @@ def geometry_from_dict(data, path="<geometry>", check_hash: bool = True) -> Fidu
     if not isinstance(tubes_raw, list) or not tubes_raw:
         raise GeometryFileError(path, "tubes must be a non-empty list")
     tubes = [tube_from_dict(t, path, f"tubes[{i}]") for i, t in enumerate(tubes_raw)]
+    tool = tool_from_dict(data["tool"], path) if "tool" in data else None
     try:
-        return FiducialGeometry(str(name), body, tuple(tubes), data.get("source"), units)
+        return FiducialGeometry(str(name), body, tuple(tubes), data.get("source"), units, tool)
     except ValueError as exc:
         raise GeometryFileError(path, str(exc)) from None
 
