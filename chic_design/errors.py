@@ -23,9 +23,12 @@ class InfeasibleDesign(ChicDesignError):
 
     def __init__(self, spec_path, violations):
         self.violations = list(violations)
-        names = "; ".join(f"{v.code} ({v.where}): {v.message}" for v in self.violations)
+        # one line per violation: 18 of them on one line were unreadable (issue 10)
+        lines = "".join(f"\n  - {v.code} ({v.where}): {v.message}" for v in self.violations)
+        n = len(self.violations)
         super().__init__(
-            f"{spec_path}: design is infeasible: {names}. Fix the spec or build anyway with --force"
+            f"{spec_path}: design is infeasible ({n} violation{'s' if n != 1 else ''}; fix the spec or "
+            f"build anyway with --force):{lines}"
         )
 
 

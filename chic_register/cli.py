@@ -59,6 +59,8 @@ def _parser() -> argparse.ArgumentParser:
     m.add_argument("--bore-signal", type=float, default=0.0, metavar="X",
                    help="brightness of a tool in the bore (default 0: none)")
     m.add_argument("--missing", nargs="+", default=[], metavar="ID", help="tube ids left unfilled")
+    m.add_argument("--allow-empty", action="store_true",
+                   help="write the slice even when no tube crosses it (a missed slice, to test refusals)")
     m.add_argument("--center-offset", nargs=2, type=float, default=(0.0, 0.0), metavar=("X", "Y"),
                    help="axis crossing from the image centre, mm along columns and rows (default 0 0)")
     m.add_argument("--image-position", nargs=3, type=float, metavar=("X", "Y", "Z"),
@@ -255,6 +257,12 @@ def _run_simulate(args) -> int:
             image_orientation=args.image_orientation,
             rng=np.random.default_rng(args.seed),
         )
+        n_in_view = len(sim.truth.centres_px)
+        if n_in_view == 0 and not args.allow_empty:  # issue 10: an empty image was written with exit 0 in silence
+            raise ChicRegisterError(
+                f"--depth {args.depth:g} --tilt {args.tilt:g}: no tube crosses the image (the body spans "
+                f"z = 0..{geom.body.length:g} mm; check --depth, --tilt, --center-offset, or pass --allow-empty "
+                "for a deliberately missed slice); nothing written")
         extra = {"geometry_file": str(args.geometry), "geometry_sha256": geom.to_dict()["sha256"], "seed": args.seed}
         image_path, truth_file = write_simulated(sim, out, extra)
     except ValueError as exc:
@@ -265,8 +273,10 @@ def _run_simulate(args) -> int:
     print(
         f"wrote {image_path} ({args.size}x{args.size}, {args.pixel_size:g} mm pixels, "
         f"depth {a.depth_mm:.3f} mm, tilt {a.tilt_deg:.3f}, azimuth {a.azimuth_deg:.3f}, twist {a.twist_deg:.3f} deg, "
-        f"{len(sim.truth.centres_px)} tubes in view) and {truth_file}"
+        f"{n_in_view} tubes in view) and {truth_file}"
     )
+    if n_in_view < len(geom.tubes):
+        print(f"chic-register: warning: only {n_in_view} of {len(geom.tubes)} tubes in view", file=sys.stderr)
     return 0
 
 

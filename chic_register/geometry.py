@@ -457,6 +457,9 @@ def geometry_from_dict(data, path="<geometry>", check_hash: bool = True) -> Fidu
     if not isinstance(data, dict):
         raise GeometryFileError(path, "not a chic-geometry file (top level is not a mapping)")
     if data.get("format") != FORMAT:
+        if "format" not in data and ("channels" in data or "markers" in data or "tubes" not in data):
+            raise GeometryFileError(path, "not a geometry file (no 'format: chic-geometry'); it looks like a design "
+                                    "spec: run 'chic-design build SPEC' and pass exports/<name>/geometry.yaml")
         raise GeometryFileError(path, f"format is {data.get('format')!r}; expected '{FORMAT}'")
     if data.get("version") != VERSION:
         raise GeometryFileError(

@@ -42,13 +42,13 @@ MARKUPS_SCHEMA = ("https://raw.githubusercontent.com/slicer/slicer/master/Module
 TOOL_SHAFT_DIAMETER_MM = 1.0
 
 
-def _tube_mesh(geom, sides: int = 16):
+def _tube_mesh(geom, sides: int = 12):
     """Vertices and triangles of every tube channel (diameter as in the geometry), frame F."""
     import pyvista as pv
 
     meshes = []
     for tube in geom.tubes:
-        line = pv.lines_from_points(sample_centreline(tube, 0.5))
+        line = pv.lines_from_points(sample_centreline(tube, 1.0))
         meshes.append(line.tube(radius=tube.diameter / 2, n_sides=sides, capping=True).triangulate())
     return _merge(meshes)
 

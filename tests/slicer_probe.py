@@ -124,7 +124,7 @@ def probe_scene(req: dict) -> dict:
                 arr = vtk_to_numpy(img.GetPointData().GetScalars())
                 d["sum"] = float(np.sum(arr, dtype=float))
         nodes.append(d)
-    return {"imported": bool(ok), "errors": bool(scene.GetErrorCode()), "nodes": nodes}
+    return {"imported": bool(ok), "nodes": nodes}
 
 
 def main(argv) -> int:

@@ -103,7 +103,7 @@ def test_listen_mode_waits_for_the_bridge_and_survives_a_reconnect(stream, neuro
     assert [m.device_name for m in got if m.message_type == "TRANSFORM"] == ["CHIC", "CHICToRAS"] * 2
 
 
-def test_cli_track_igtl_images(stream, neuro_geometry_file, capsys):
+def test_cli_track_igtl_images(stream, neuro_geometry_file, capsys, tmp_path):
     from chic_register.cli import main
 
     bridge = Bridge()
@@ -111,11 +111,12 @@ def test_cli_track_igtl_images(stream, neuro_geometry_file, capsys):
                           daemon=True)
     th.start()
     rc = main(["track", "-", "--geometry", str(neuro_geometry_file), "--igtl-images", f"127.0.0.1:{bridge.port}",
-               "--max-files", "1", "--timeout", "60", "--json"])
+               "--max-files", "1", "--timeout", "60", "--json", "--scene", str(tmp_path / "scenes")])
     th.join(30)
     lines = [json.loads(x) for x in capsys.readouterr().out.splitlines()]
     assert rc == 0 and lines[0]["status"] == "ok" and lines[0]["source"] == "igtl:MRI#1"
     assert _distance_mm(np.array(lines[0]["T_scanner_from_fiducial"]), stream[1].truth.T_scanner_from_fiducial) < 0.5
-    assert lines[-1]["stopped_by"] == "max_files"
+    assert lines[-1]["stopped_by"] == "max_files" and lines[-1]["outputs_failed"] == 0
+    assert (tmp_path / "scenes" / "image_00001" / "scene.mrml").is_file()
     assert main(["track", "somewhere", "--geometry", str(neuro_geometry_file), "--igtl-images", "h:1"]) == 2
     assert "give '-'" in capsys.readouterr().err

@@ -41,6 +41,7 @@ def run_probe(tmp_path: Path, request: dict) -> dict:
     req.write_text(json.dumps(request))
     proc = subprocess.run([slicer_python(), str(PROBE), str(req)], capture_output=True, text=True, timeout=120)
     assert proc.returncode == 0, proc.stderr[-2000:]
+    assert "ERR" not in proc.stderr and "WARN" not in proc.stderr, proc.stderr[-2000:]  # Slicer complained
     line = [ln for ln in proc.stdout.splitlines() if ln.startswith("PROBE-JSON ")]
     assert line, proc.stdout[-2000:] + proc.stderr[-2000:]
     return json.loads(line[-1][len("PROBE-JSON "):])
