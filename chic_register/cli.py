@@ -143,14 +143,14 @@ def _add_igtl_args(p) -> None:
                    help="OpenIGTLink device name (default CHIC; also NAMEToRAS, NAMETool, NAMEToolToRAS, NAMEQuality)")
 
 
-def _report(delivery) -> None:
+def _report_failures(delivery) -> None:
     for note in delivery.failed:
         print(f"chic-register: output failed: {note}", file=sys.stderr, flush=True)
 
 
 def _run_solve(args) -> int:
     from .geometry import load_geometry
-    from .outputs import EXIT_OUTPUT_FAILED, Delivery, OutputPlan, deliver, deliver_no_lock, registration_json
+    from .outputs import EXIT_OUTPUT_FAILED, Delivery, OutputPlan, deliver, deliver_no_lock
     from .solve import register
 
     plan = OutputPlan.from_args(args).check()
@@ -166,31 +166,29 @@ def _run_solve(args) -> int:
         try:
             reg = register(slices, geom)
         except NoLock as exc:
-            _report(early)
-            _report(deliver_no_lock(plan, exc.reason, geom, slices, link))
+            _report_failures(early)
+            _report_failures(deliver_no_lock(plan, exc.reason, geom, slices, link))
             raise
+        # the pose is printed first: a failing optional output (overlay, --tfm, --scene, --igtl) must not lose it
+        _print_pose(args, reg, geom)
         out = deliver(plan, reg, geom, slices, link)
     finally:
         if link is not None:
             link.close()
     out.failed[:0] = early.failed
-    code = EXIT_OUTPUT_FAILED if out.failed else 0
-    if args.json:
-        doc = registration_json(reg, geom)
-        doc["outputs"] = {"done": out.done, "failed": out.failed}
-        print(json.dumps(doc, indent=2), flush=True)
-        _report(out)
-        return code
-    _print_pose(reg, geom)
     for note in out.done:
-        print(note)
-    _report(out)
-    return code
+        print(f"chic-register: {note}" if args.json else note, file=sys.stderr if args.json else sys.stdout)
+    _report_failures(out)
+    return EXIT_OUTPUT_FAILED if out.failed else 0
 
 
-def _print_pose(reg, geom) -> None:
-    from .outputs import tool_pose
+def _print_pose(args, reg, geom) -> None:
+    """The pose of ``solve``: one JSON object (``--json``) or the human summary."""
+    from .outputs import registration_json, tool_pose
 
+    if args.json:
+        print(json.dumps(registration_json(reg, geom), indent=2), flush=True)
+        return
     t = reg.timing_ms
     print(f"status: ok ({len(reg.slices)} slice{'s' if len(reg.slices) > 1 else ''} of '{geom.name}', "
           f"{t['total']:.1f} ms: detect {t['detect']:.1f}, pose {t['pose']:.1f})")
@@ -207,6 +205,7 @@ def _print_pose(reg, geom) -> None:
         print(f"{s.source}: depth {s.depth_mm:.3f} mm, tilt {s.tilt_deg:.3f}, azimuth {s.azimuth_deg:.3f}, "
               f"twist {s.twist_deg:.3f} deg; residual RMS {s.residual_rms_mm:.3f} mm over {s.n_tubes} tubes")
         print("  residuals (mm): " + ", ".join(f"{k} {v:.3f}" for k, v in s.residuals_mm.items()))
+    sys.stdout.flush()
 
 
 def _run_simulate(args) -> int:
@@ -316,11 +315,22 @@ def _run_evaluate(args) -> int:
 # --------------------------------------------------------------------------- volumes, outputs, reslice, track
 
 
+def _check_spacing_flag(args) -> None:
+    """A --pixel-spacing outside the physical range is refused before any file is read."""
+    from .imageio import spacing_fault
+
+    if getattr(args, "pixel_spacing", None) is not None:
+        fault = spacing_fault(args.pixel_spacing)
+        if fault:
+            raise ChicRegisterError(f"--pixel-spacing: {fault}")
+
+
 def _read_solve_inputs(args) -> list:
     """The slices of ``solve``: 2-D image files as they are, volumes by their ``--slices`` indices."""
     from .imageio import read_slices
     from .volume import is_volume_path, read_volume
 
+    _check_spacing_flag(args)
     volumes = [p for p in args.images if is_volume_path(p)]
     if volumes and not args.slices:
         raise ChicRegisterError(f"{volumes[0]} is a volume: pick the slices to register with --slices K [K ...]")
@@ -489,6 +499,7 @@ def _run_track(args) -> int:
         raise ChicRegisterError(f"--poll must be > 0 and --settle >= 0 s, got {args.poll:g} and {args.settle:g}")
     if args.max_files is not None and args.max_files < 1:
         raise ChicRegisterError(f"--max-files must be >= 1, got {args.max_files}")
+    _check_spacing_flag(args)
     geom = load_geometry(args.geometry)
     if args.scene and not Path(args.scene).is_dir():
         Path(args.scene).mkdir()  # its parent exists (checked above)
@@ -535,8 +546,9 @@ def _run(args) -> int:
 
 
 def main(argv=None) -> int:
-    args = _parser().parse_args(argv)
+    args = None
     try:
+        args = _parser().parse_args(argv)  # inside: `--help | head` must not traceback either
         return _run(args)
     except NoLock as exc:
         if getattr(args, "json", False):
@@ -545,11 +557,36 @@ def main(argv=None) -> int:
             print(f"chic-register: no lock: {exc.reason}", file=sys.stderr)
         return exc.exit_code
     except ChicRegisterError as exc:
-        print(f"chic-register: error: {exc}", file=sys.stderr)
-        return exc.exit_code
+        return _report(f"error: {exc}", exc.exit_code)
     except KeyboardInterrupt:
-        print("chic-register: interrupted", file=sys.stderr)
-        return 130
+        return _report("interrupted", 130)
+    except BrokenPipeError:  # e.g. `chic-register ... | head`: the reader left; nothing more to say
+        return _quiet_broken_pipe()
+    except OSError as exc:  # an output that cannot be written (disk full, permission, vanished folder)
+        where = f"{exc.filename}: " if exc.filename else ""
+        return _report(f"error: {where}{exc.strerror or exc}", 1)
+
+
+def _report(text: str, code: int) -> int:
+    """Print one ``chic-register: ...`` line on stderr (if stderr is still there) and return ``code``."""
+    try:
+        print(f"chic-register: {text}", file=sys.stderr)
+    except (BrokenPipeError, OSError):
+        pass
+    return code
+
+
+def _quiet_broken_pipe() -> int:
+    """Point stdout at /dev/null so the interpreter's final flush does not fail again; exit 141 (SIGPIPE)."""
+    import os
+
+    try:
+        devnull = os.open(os.devnull, os.O_WRONLY)
+        os.dup2(devnull, sys.stdout.fileno())
+        os.close(devnull)
+    except (OSError, ValueError, AttributeError):
+        pass
+    return 141
 
 
 if __name__ == "__main__":

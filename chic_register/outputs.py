@@ -139,6 +139,8 @@ class Delivery:
             note = action()
         except (ChicRegisterError, OSError, ValueError, RuntimeError) as exc:
             text = str(exc) if isinstance(exc, ChicRegisterError) else (getattr(exc, "strerror", None) or str(exc))
+            if isinstance(exc, OSError) and getattr(exc, "filename", None):
+                text = f"{exc.filename}: {text}"
             self.failed.append(f"{what}: {text}")
         else:
             self.done.append(note)
@@ -162,16 +164,16 @@ def deliver(plan: OutputPlan, reg, geom, slices, link=None) -> Delivery:
     if plan.overlay:
         from .overlay import draw_overlay
 
-        out.attempt(f"--overlay {plan.overlay}", lambda: f"wrote {draw_overlay(plan.overlay, slices, reg)}")
+        out.attempt("--overlay", lambda: f"wrote {draw_overlay(plan.overlay, slices, reg)}")
     if plan.tfm:
         from .transforms import write_tfm
 
-        out.attempt(f"--tfm {plan.tfm}",
+        out.attempt("--tfm",
                     lambda: f"wrote {write_tfm(T, plan.tfm)} (T_fiducial_from_scanner, ITK/LPS)")
     if plan.scene:
         from .scene import write_scene
 
-        out.attempt(f"--scene {plan.scene}", lambda: f"wrote {write_scene(plan.scene, reg, geom, slices, name=plan.igtl_name, geometry_path=plan.geometry_path)}")
+        out.attempt("--scene", lambda: f"wrote {write_scene(plan.scene, reg, geom, slices, name=plan.igtl_name, geometry_path=plan.geometry_path)}")
     if link is not None:
         msgs = pose_messages(T, plan.igtl_name, tool_pose(reg, geom), quality(reg))
         names = ", ".join(f"{m.message_type} {m.device_name}" for m in msgs)
@@ -193,7 +195,7 @@ def deliver_no_lock(plan: OutputPlan, reason: str, geom, slices, link=None) -> D
             blobs = [detect_blobs(sl.pixels, sl.pixel_spacing_mm, d_mm) for sl in slices]
             return f"wrote {draw_overlay(plan.overlay, slices, None, blobs)}"
 
-        out.attempt(f"--overlay {plan.overlay}", overlay)
+        out.attempt("--overlay", overlay)
     if link is not None:
         out.attempt(plan.igtl_flag,
                     lambda: _send(link, no_lock_messages(reason, plan.igtl_name), plan.igtl_wait_s,

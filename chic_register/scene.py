@@ -220,7 +220,7 @@ def write_scene(folder, reg, geom, slices, *, name: str = "CHIC", geometry_path=
     """
     folder = check_parent(Path(folder))
     if folder.exists() and (not folder.is_dir() or (any(folder.iterdir()) and not (folder / SCENE_FILE).is_file())):
-        raise OutputError(f"--scene {folder}: exists and is not an earlier scene (no {SCENE_FILE}); "
+        raise OutputError(f"{folder}: exists and is not an earlier scene (no {SCENE_FILE}); "
                           "give a new folder name")
     tmp = Path(tempfile.mkdtemp(prefix=f".{folder.name}.tmp-", dir=folder.parent))
     try:
