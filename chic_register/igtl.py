@@ -49,6 +49,10 @@ class IgtlError(OutputError):
     """Cannot reach, read from or write to an OpenIGTLink peer."""
 
 
+class NoPeer(IgtlError):
+    """Our server (``--igtl-listen``) has nobody connected to send to."""
+
+
 @dataclass(frozen=True)
 class IgtlAddress:
     host: str
@@ -287,7 +291,7 @@ class IgtlServer:
                 self.peers.remove(peer)
                 peer.close()
         if not sent:
-            raise IgtlError(f"{self}: no peer connected")
+            raise NoPeer(f"{self}: no peer connected")
         return sent
 
     def close(self) -> None:

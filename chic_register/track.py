@@ -156,7 +156,7 @@ class Publisher:
         """Pose messages (or STATUS no_lock): returns ("" | "sent" | error, failures)."""
         if self.link is None:
             return "", []
-        from .igtl import no_lock_messages, pose_messages
+        from .igtl import NoPeer, no_lock_messages, pose_messages
         from .outputs import quality
 
         try:
@@ -165,6 +165,8 @@ class Publisher:
             else:
                 self.link.send(pose_messages(reg.T_scanner_from_fiducial, self.name, self.tool_pose(reg),
                                              quality(reg)))
+        except NoPeer:  # our server with nobody listening yet: a viewer may connect later, nothing failed
+            return "no peer connected", []
         except ChicRegisterError as exc:
             return str(exc), [str(exc)]
         return "sent", []

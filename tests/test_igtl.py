@@ -287,3 +287,50 @@ def test_bad_output_arguments_are_bad_input_before_any_work(tmp_path, neuro_geom
         assert main(["solve", str(img), "--geometry", str(neuro_geometry_file), *extra]) == 2
         assert text in capsys.readouterr().err
     assert not (tmp_path / "nonexistent").exists()
+
+
+def test_quality_carries_predicted_tre_when_the_solver_reports_it():
+    from types import SimpleNamespace
+
+    from chic_register.outputs import quality
+
+    sl = SimpleNamespace(residual_rms_mm=0.02, n_tubes=9)
+    reg = SimpleNamespace(slices=[sl, SimpleNamespace(residual_rms_mm=0.03, n_tubes=8)],
+                          to_dict=lambda: {"status": "ok", "precision": {"predicted_tre_mm": 0.123}})
+    assert quality(reg) == {"residual_rms_mm": 0.03, "n_tubes": 17, "predicted_tre_mm": 0.123}
+    reg = SimpleNamespace(slices=[sl], to_dict=lambda: {"status": "ok"})
+    assert quality(reg) == {"residual_rms_mm": 0.02, "n_tubes": 9}
+
+
+def test_track_folder_serves_poses_to_peers_that_connect(tmp_path, neuro_geometry):
+    import shutil
+
+    from chic_register.simulate import write_simulated
+    from chic_register.simulate import simulate_slice
+    from chic_register.track import track
+
+    sims = [simulate_slice(neuro_geometry, 20.0 + 5 * k, 8.0, 30.0 * k, 10.0, rng=k) for k in range(2)]
+    stage = tmp_path / "stage"
+    stage.mkdir()
+    files = [write_simulated(s, stage / f"{k}.dcm")[0] for k, s in enumerate(sims)]
+    watch = tmp_path / "w"
+    watch.mkdir()
+    shutil.copy(files[0], watch / "0.dcm")  # registered before anybody listens: not a failure
+    with IgtlServer(0, host="127.0.0.1") as srv:
+        events = []
+
+        def on_event(e):
+            events.append(e)
+            if len(events) == 1:  # a viewer connects after the first pose, then the second slice arrives
+                viewer.append(socket.create_connection(("127.0.0.1", srv.port), timeout=5))
+                time.sleep(0.1)
+                shutil.copy(files[1], watch / "1.dcm")
+
+        viewer = []
+        summary = track(watch, neuro_geometry, include_existing=True, max_files=2, timeout_s=60.0, poll_s=0.02,
+                        settle_s=0.0, link=srv, on_event=on_event, on_message=None)
+        got = [read_message(viewer[0], timeout_s=5.0) for _ in range(4)]
+        viewer[0].close()
+    assert [e.igtl for e in events] == ["no peer connected", "sent"] and summary.outputs_failed == 0
+    assert [m.device_name for m in got] == ["CHIC", "CHICToRAS", "CHICQuality", "CHIC"]
+    np.testing.assert_allclose(got[1].matrix, ras_matrix(sims[1].truth.T_scanner_from_fiducial), atol=0.05)
