@@ -279,14 +279,23 @@ def test_track_reports_an_unexpected_failure_and_goes_on(tmp_path, dicom_slice, 
 def test_a_failing_output_does_not_lose_the_pose(tmp_path, capsys, dicom_slice, neuro_geometry_file):
     blocker = tmp_path / "file"
     blocker.write_text("not a folder")
+    # an output path that cannot work is bad input, refused before any work (exit 2, nothing created)
     rc = register_main(["solve", str(dicom_slice[0]), "--geometry", str(neuro_geometry_file), "--json",
                         "--tfm", str(blocker / "pose.tfm")])
     out, err = capsys.readouterr()
-    assert rc == 1
+    assert rc == 2 and out == "" and "is not a folder" in err
+    # an output that fails after the solve (here: --scene over a folder that is not a scene) keeps the pose: exit 4
+    (tmp_path / "notes").mkdir()
+    (tmp_path / "notes" / "thesis.tex").write_text("x")
+    rc = register_main(["solve", str(dicom_slice[0]), "--geometry", str(neuro_geometry_file), "--json",
+                        "--scene", str(tmp_path / "notes"), "--tfm", str(tmp_path / "pose.tfm")])
+    out, err = capsys.readouterr()
+    assert rc == 4
     doc = json.loads(out)
     assert doc["status"] == "ok"
     assert np.allclose(doc["T_scanner_from_fiducial"], dicom_slice[1], atol=0.5)
-    assert err.startswith("chic-register: error: ") and "Traceback" not in err
+    assert "chic-register: output failed: --scene" in err and "Traceback" not in err
+    assert (tmp_path / "pose.tfm").is_file() and (tmp_path / "notes" / "thesis.tex").read_text() == "x"
 
 
 @pytest.mark.parametrize("argv", [
