@@ -12,6 +12,8 @@ import json
 import sys
 
 from . import __version__
+from chic_register.errors import ChicRegisterError
+
 from .errors import ChicDesignError
 
 
@@ -98,15 +100,41 @@ def _run(args) -> int:
 
 
 def main(argv=None) -> int:
-    args = _parser().parse_args(argv)
+    args = None
     try:
+        args = _parser().parse_args(argv)  # inside: `--help | head` must not traceback either
         return _run(args)
-    except ChicDesignError as exc:
-        print(f"chic-design: error: {exc}", file=sys.stderr)
-        return exc.exit_code
+    except (ChicDesignError, ChicRegisterError) as exc:  # the geometry file is chic_register's
+        return _report(f"error: {exc}", exc.exit_code)
     except KeyboardInterrupt:
-        print("chic-design: interrupted", file=sys.stderr)
-        return 130
+        return _report("interrupted", 130)
+    except BrokenPipeError:  # e.g. `chic-design schema | head`: the reader left; nothing more to say
+        return _quiet_broken_pipe()
+    except OSError as exc:  # an output that cannot be written (disk full, permission, vanished folder)
+        where = f"{exc.filename}: " if exc.filename else ""
+        return _report(f"error: {where}{exc.strerror or exc}", 1)
+
+
+def _report(text: str, code: int) -> int:
+    """Print one ``chic-design: ...`` line on stderr (if stderr is still there) and return ``code``."""
+    try:
+        print(f"chic-design: {text}", file=sys.stderr)
+    except (BrokenPipeError, OSError):
+        pass
+    return code
+
+
+def _quiet_broken_pipe() -> int:
+    """Point stdout at /dev/null so the interpreter's final flush does not fail again; exit 141 (SIGPIPE)."""
+    import os
+
+    try:
+        devnull = os.open(os.devnull, os.O_WRONLY)
+        os.dup2(devnull, sys.stdout.fileno())
+        os.close(devnull)
+    except (OSError, ValueError, AttributeError):
+        pass
+    return 141
 
 
 if __name__ == "__main__":
