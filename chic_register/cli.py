@@ -13,8 +13,10 @@ import argparse
 import json
 import sys
 
-from . import __version__
+from . import __version__, exits
 from .errors import ChicRegisterError, NoLock
+
+PROG = "chic-register"
 
 
 def _parser() -> argparse.ArgumentParser:
@@ -216,21 +218,24 @@ def _run_simulate(args) -> int:
     import numpy as np
 
     from .geometry import load_geometry
-    from .imageio import PLAIN_SUFFIXES
+    from .imageio import MAX_SPACING_MM, MIN_SPACING_MM, PLAIN_SUFFIXES
     from .simulate import DICOM_SUFFIXES, simulate_slice, write_simulated
 
     out = Path(args.out)
     checks = [
         (args.size >= 8 and args.size <= 4096, f"--size must be 8..4096 pixels, got {args.size}"),
-        (args.pixel_size > 0 and np.isfinite(args.pixel_size), f"--pixel-size must be > 0 mm, got {args.pixel_size:g}"),
-        (args.slice_thickness >= 0 and np.isfinite(args.slice_thickness),
-         f"--slice-thickness must be >= 0 mm, got {args.slice_thickness:g}"),
+        (np.isfinite(args.pixel_size) and MIN_SPACING_MM <= args.pixel_size <= MAX_SPACING_MM,
+         f"--pixel-size must be {MIN_SPACING_MM:g}..{MAX_SPACING_MM:g} mm, got {args.pixel_size:g}"),
+        (0 <= args.slice_thickness <= 100, f"--slice-thickness must be 0..100 mm, got {args.slice_thickness:g}"),
         (args.noise_level >= 0 and np.isfinite(args.noise_level), f"--noise-level must be >= 0, got {args.noise_level:g}"),
         (args.snr > 0 and np.isfinite(args.snr), f"--snr must be > 0, got {args.snr:g}"),
-        (args.distractors >= 0, f"--distractors must be >= 0, got {args.distractors}"),
+        (0 <= args.distractors <= 1000, f"--distractors must be 0..1000, got {args.distractors}"),
+        (all(np.isfinite(v) and abs(v) <= 1e4 for v in (*args.center_offset, *(args.image_position or ()),
+                                                          *(args.image_orientation or ()))),
+         "--center-offset, --image-position and --image-orientation must be finite numbers within +-10000 mm"),
         (args.bore_signal >= 0 and np.isfinite(args.bore_signal), f"--bore-signal must be >= 0, got {args.bore_signal:g}"),
-        (all(np.isfinite(v) for v in (args.depth, args.tilt, args.azimuth, args.twist)),
-         "--depth, --tilt, --azimuth and --twist must be finite numbers"),
+        (all(np.isfinite(v) and abs(v) <= 1e4 for v in (args.depth, args.tilt, args.azimuth, args.twist)),
+         "--depth, --tilt, --azimuth and --twist must be finite numbers within +-10000"),
         (out.suffix.lower() in DICOM_SUFFIXES or not (args.image_position or args.image_orientation),
          "--image-position/--image-orientation apply to DICOM output only (.dcm)"),
         (not out.is_dir(), f"--out {out} is a directory; give a file name (.dcm, .npy, .png or .tif)"),
@@ -357,12 +362,15 @@ def _load_reference(path) -> "np.ndarray":
     p = Path(path)
     if p.suffix.lower() in SUFFIXES:
         return read_tfm(p)
+    from .errors import InputFileError
+    from .safeload import read_regular_file
+
     try:
-        doc = json.loads(p.read_text(encoding="utf-8"))
-    except FileNotFoundError:
-        raise ChicRegisterError(f"--reference {p}: no such file") from None
-    except (OSError, UnicodeDecodeError, json.JSONDecodeError) as exc:
-        raise ChicRegisterError(f"--reference {p}: not a JSON file ({exc})") from None
+        doc = json.loads(read_regular_file(p, "reference file", max_bytes=1 << 20).decode("utf-8"))
+    except InputFileError as exc:
+        raise ChicRegisterError(f"--reference {exc}") from None
+    except (UnicodeDecodeError, json.JSONDecodeError, RecursionError) as exc:
+        raise ChicRegisterError(f"--reference {p}: not a JSON file ({str(exc).splitlines()[0][:100]})") from None
     T = doc.get("T_scanner_from_fiducial") if isinstance(doc, dict) else None
     try:
         T = np.asarray(T, dtype=float)
@@ -381,9 +389,10 @@ def _run_simulate_volume(args) -> int:
 
     from .atomic import write_json
     from .geometry import load_geometry
+    from .imageio import MAX_SPACING_MM, MIN_SPACING_MM
     from .pose import invert, slice_frame
     from .simulate import truth_path
-    from .volume import simulate_volume, write_volume
+    from .volume import MAX_VOXELS, simulate_volume, write_volume
 
     nx, ny, nz = args.volume_shape
     given = args.voxel_size or [0.5, 0.5, 1.0]
@@ -393,11 +402,13 @@ def _run_simulate_volume(args) -> int:
                                          ("--image-orientation", args.image_orientation)) if on]
     checks = [
         (min(nx, ny, nz) >= 2 and max(nx, ny, nz) <= 1024, f"--volume-shape must be 2..1024 voxels each, got {nx} {ny} {nz}"),
-        (len(vs) == 3 and all(v > 0 and np.isfinite(v) for v in vs),
-         f"--voxel-size takes one or three sizes > 0 mm, got {' '.join(f'{v:g}' for v in given)}"),
+        (nx * ny * nz <= MAX_VOXELS, f"--volume-shape {nx} {ny} {nz} is {nx * ny * nz} voxels; at most {MAX_VOXELS}"),
+        (len(vs) == 3 and all(np.isfinite(v) and MIN_SPACING_MM <= v <= MAX_SPACING_MM for v in vs),
+         f"--voxel-size takes one or three sizes in {MIN_SPACING_MM:g}..{MAX_SPACING_MM:g} mm, "
+         f"got {' '.join(f'{v:g}' for v in given)}"),
         (not unsupported, f"{', '.join(unsupported)}: not available in volume mode"),
-        (all(np.isfinite(v) for v in (args.depth, args.tilt, args.azimuth, args.twist)),
-         "--depth, --tilt, --azimuth and --twist must be finite numbers"),
+        (all(np.isfinite(v) and abs(v) <= 1e4 for v in (args.depth, args.tilt, args.azimuth, args.twist)),
+         "--depth, --tilt, --azimuth and --twist must be finite numbers within +-10000"),
     ]
     for ok, message in checks:
         if not ok:
@@ -422,18 +433,26 @@ def _run_simulate_volume(args) -> int:
 
 
 def _run_reslice(args) -> int:
+    import math
     from pathlib import Path
 
     from .geometry import load_geometry
+    from .imageio import MAX_SPACING_MM, MIN_SPACING_MM
     from .reslice import default_depths, reslice, reslice_study
     from .volume import read_volume
 
     checks = [
         (8 <= args.size <= 4096, f"--size must be 8..4096 pixels, got {args.size}"),
-        (args.pixel_size > 0, f"--pixel-size must be > 0 mm, got {args.pixel_size:g}"),
+        (MIN_SPACING_MM <= args.pixel_size <= MAX_SPACING_MM,
+         f"--pixel-size must be {MIN_SPACING_MM:g}..{MAX_SPACING_MM:g} mm, got {args.pixel_size:g}"),
         (args.slice_thickness >= 0, f"--slice-thickness must be >= 0 mm, got {args.slice_thickness:g}"),
         (0 <= args.tilt < 90, f"--tilt must be in [0, 90) deg, got {args.tilt:g}"),
-        (args.depth_step > 0, f"--depth-step must be > 0 mm, got {args.depth_step:g}"),
+        (0.01 <= args.depth_step <= 1000, f"--depth-step must be 0.01..1000 mm, got {args.depth_step:g}"),
+        (args.depths is None or (len(args.depths) <= 10000 and all(math.isfinite(d) for d in args.depths)),
+         "--depths takes at most 10000 finite depths (mm)"),
+        (all(math.isfinite(v) for v in (args.azimuth, args.twist, args.pixel_size, args.slice_thickness)),
+         "--azimuth, --twist, --pixel-size and --slice-thickness must be finite numbers"),
+        (args.slice_thickness <= 100, f"--slice-thickness must be at most 100 mm, got {args.slice_thickness:g}"),
     ]
     for ok, message in checks:
         if not ok:
@@ -497,36 +516,13 @@ def main(argv=None) -> int:
             print(f"chic-register: no lock: {exc.reason}", file=sys.stderr)
         return exc.exit_code
     except ChicRegisterError as exc:
-        return _report(f"error: {exc}", exc.exit_code)
+        return exits.report(PROG, f"error: {exc}", exc.exit_code)
     except KeyboardInterrupt:
-        return _report("interrupted", 130)
+        return exits.report(PROG, "interrupted", 130)
     except BrokenPipeError:  # e.g. `chic-register ... | head`: the reader left; nothing more to say
-        return _quiet_broken_pipe()
+        return exits.broken_pipe()
     except OSError as exc:  # an output that cannot be written (disk full, permission, vanished folder)
-        where = f"{exc.filename}: " if exc.filename else ""
-        return _report(f"error: {where}{exc.strerror or exc}", 1)
-
-
-def _report(text: str, code: int) -> int:
-    """Print one ``chic-register: ...`` line on stderr (if stderr is still there) and return ``code``."""
-    try:
-        print(f"chic-register: {text}", file=sys.stderr)
-    except (BrokenPipeError, OSError):
-        pass
-    return code
-
-
-def _quiet_broken_pipe() -> int:
-    """Point stdout at /dev/null so the interpreter's final flush does not fail again; exit 141 (SIGPIPE)."""
-    import os
-
-    try:
-        devnull = os.open(os.devnull, os.O_WRONLY)
-        os.dup2(devnull, sys.stdout.fileno())
-        os.close(devnull)
-    except (OSError, ValueError, AttributeError):
-        pass
-    return 141
+        return exits.os_error(PROG, exc)
 
 
 if __name__ == "__main__":

@@ -32,7 +32,7 @@ from .errors import GeometryFileError, InputFileError
 #: Plausibility bounds of a geometry file (mm): a fiducial that fits in an MRI bore.
 MAX_EXTENT_MM = 1000.0
 MAX_TUBE_DIAMETER_MM = 50.0
-MAX_TUBES = 64
+MAX_TUBES = 16  # CHIC has 9, a Z-frame 7; the solver's work grows fast with the count
 MAX_HELIX_TURNS = 10.0
 MAX_SOURCE_CHARS = 10_000  # the canonical JSON of ``source``
 
