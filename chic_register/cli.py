@@ -164,6 +164,9 @@ def _run_solve(args) -> int:
         link = plan.open_link()
     except ChicRegisterError as exc:
         early.failed.append(f"{plan.igtl_flag}: {exc}")
+    if plan.igtl_listen is not None and link is not None:
+        print(f"chic-register: OpenIGTLink server listening on port {link.port} (a peer may connect now; "
+              f"the pose waits up to {plan.igtl_wait_s:g} s for one)", file=sys.stderr, flush=True)
     try:
         try:
             reg = register(slices, geom)
