@@ -35,9 +35,9 @@ import yaml
 
 from .errors import InputFileError
 
-MAX_YAML_BYTES = 1 << 20  # 1 MiB: a geometry file is a few kB, a spec < 2 kB
+MAX_YAML_BYTES = 1 << 18  # 256 KiB: a geometry file is a few kB, a spec < 2 kB (pure-Python parsing: ~2 s worst)
 MAX_DEPTH = 32
-MAX_NODES = 100_000
+MAX_NODES = 20_000  # values in a document, aliases expanded (a 16-tube geometry file has ~250)
 
 
 def _kind(mode: int) -> str:
@@ -127,12 +127,16 @@ class _SafeLoader(yaml.SafeLoader):
     def __init__(self, stream):
         super().__init__(stream)
         self._depth = 0
+        self._nodes = 0
 
     def compose_node(self, parent, index):
         self._depth += 1
+        self._nodes += 1
         try:
             if self._depth > MAX_DEPTH:
                 raise _Error(f"nested deeper than {MAX_DEPTH} levels", self.peek_event())
+            if self._nodes > MAX_NODES:  # stop parsing early: the cost is in the pure-Python parser
+                raise _Error(f"holds more than {MAX_NODES} values", self.peek_event())
             return super().compose_node(parent, index)
         finally:
             self._depth -= 1

@@ -87,7 +87,7 @@ def test_a_50_mb_spec_and_a_fifo_are_refused_before_reading(tmp_path, capsys):
         fh.write(NEURO_TEXT.encode())
         fh.truncate(50 * 2**20)
     assert design_main(["check", str(big)]) == 2
-    assert "a spec file is at most 1048576 bytes" in _one_line_error(capsys, "chic-design: error: ")
+    assert "a spec file is at most 262144 bytes" in _one_line_error(capsys, "chic-design: error: ")
     fifo = tmp_path / "fifo.yaml"
     os.mkfifo(fifo)
     assert design_main(["build", str(fifo), "--out", str(tmp_path / "out")]) == 2
