@@ -221,7 +221,7 @@ def test_tiny_pixel_spacing_flag_and_fifo_image_exit_2(tmp_path, capsys, neuro_g
     os.mkfifo(fifo)
     t0 = time.monotonic()
     assert register_main(["solve", str(fifo), "--geometry", str(neuro_geometry_file)]) == 2
-    assert "is a FIFO (named pipe), not a image file" in _one_line_error(capsys, "chic-register: error: ")
+    assert "is a FIFO (named pipe), not an image file" in _one_line_error(capsys, "chic-register: error: ")
     assert time.monotonic() - t0 < 10
     os.mkfifo(tmp_path / "v.nii")
     assert register_main(["solve", str(tmp_path / "v.nii"), "--geometry", str(neuro_geometry_file),
