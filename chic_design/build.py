@@ -30,7 +30,7 @@ from chic_register.geometry import write_geometry
 from .cad import FiducialParts, build_parts
 from .errors import InfeasibleDesign, SpecError
 from .feasibility import check_design
-from .layout import fiducial_geometry
+from .layout import design_geometry
 from .preview import preview_job, tilt_plot_job
 from .report import build_report
 from .spec import Spec, load_spec, spec_sha256
@@ -84,11 +84,22 @@ class _Steps:
 
 def check_cap_fit(spec: Spec, spec_path) -> None:
     """Caps that would reach each other along the body are a contradictory spec (before CAD)."""
-    if 2 * spec.caps.skirt_height >= spec.body.length:
+    zframe = getattr(spec, "family", "chic") == "zframe"
+    key, length = ("frame.height", spec.frame.height) if zframe else ("body.length", spec.body.length)
+    if 2 * spec.caps.skirt_height >= length:
         raise SpecError(
             f"{spec_path}: caps.skirt_height ({spec.caps.skirt_height:g}) must be less than half of "
-            f"body.length ({spec.body.length:g}): the two caps' skirts would meet"
+            f"{key} ({length:g}): the two caps' skirts would meet"
         )
+
+
+def design_parts(spec, geometry) -> FiducialParts:
+    """The printed parts of any spec family (CHIC: :func:`build_parts`; Z-frame: its own module)."""
+    if getattr(spec, "family", "chic") == "zframe":
+        from .zframe_cad import build_zframe_parts
+
+        return build_zframe_parts(spec, geometry)
+    return build_parts(spec, geometry)
 
 
 def export_parts(parts: FiducialParts, folder: Path, name: str) -> list[str]:
@@ -187,7 +198,7 @@ def build_design(spec_path, out_root="exports", force: bool = False, progress: b
         check_cap_fit(spec, spec_path)
     with steps.step("geometry"):
         source = {"spec": str(spec_path), "spec_sha256": spec_sha256(spec_path)}
-        geometry = fiducial_geometry(spec, source=source)
+        geometry = design_geometry(spec, source=source)
     out_root = Path(out_root)
     out_root.mkdir(parents=True, exist_ok=True)
     final = out_root / spec.name
@@ -201,7 +212,7 @@ def build_design(spec_path, out_root="exports", force: bool = False, progress: b
                 raise InfeasibleDesign(spec_path, feasibility.violations)
             pictures.submit("tilt plot", tilt_plot_job, feasibility, tmp)
         with steps.step("CAD model"):
-            parts = build_parts(spec, geometry)
+            parts = design_parts(spec, geometry)
             volumes = {name: float(p.volume) for name, p in parts.items()}
         with steps.step("export STL/STEP/3MF"):
             write_geometry(geometry, tmp / "geometry.yaml")

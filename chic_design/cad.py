@@ -87,9 +87,9 @@ def channel_volume_mm3(tube: Tube, z_lo_mm: float, z_hi_mm: float) -> float:
 
 
 def annulus_volume_mm3(geometry: FiducialGeometry) -> float:
-    """Volume of the body before the channels are cut (mm^3)."""
+    """Volume of the body before the channels are cut (mm^3): an annulus, or a square frame."""
     b = geometry.body
-    return math.pi / 4 * (b.outer_diameter**2 - b.inner_diameter**2) * b.length
+    return (b.outline_area_mm2 - b.bore_area_mm2) * b.length
 
 
 @dataclass(frozen=True)

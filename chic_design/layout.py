@@ -64,3 +64,12 @@ def fiducial_geometry(spec: Spec, source: dict | None = None) -> FiducialGeometr
     if source is not None:
         source = {**source, "generator": f"chic-design {__version__}"}
     return FiducialGeometry(spec.name, body, tuple(tubes), source)
+
+
+def design_geometry(spec, source: dict | None = None) -> FiducialGeometry:
+    """The geometry model of any spec family: CHIC (:func:`fiducial_geometry`) or Z-frame."""
+    if getattr(spec, "family", "chic") == "zframe":
+        from .zframe_layout import zframe_geometry
+
+        return zframe_geometry(spec, source)
+    return fiducial_geometry(spec, source)

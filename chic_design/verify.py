@@ -131,8 +131,8 @@ def section_clearance_mm(geometry: FiducialGeometry, z_mm) -> np.ndarray:
     z = np.atleast_1d(np.asarray(z_mm, dtype=float))
     body = geometry.body
     centres, half = _section_circles(geometry, z)
-    rho = np.linalg.norm(centres, axis=2)
-    wall = np.minimum(body.outer_diameter / 2 - (rho + half), (rho - half) - body.inner_diameter / 2)
+    flat = centres.reshape(-1, 2)
+    wall = np.minimum(body.outside_gap_mm(flat), body.bore_gap_mm(flat)).reshape(half.shape) - half
     gap = wall.min(axis=1)
     for d in pair_gaps_mm(geometry, z).values():
         gap = np.minimum(gap, d)
@@ -245,13 +245,16 @@ def check_body_sections(mesh: trimesh.Trimesh, geometry: FiducialGeometry, heigh
         (a_in, c_in), holes = inner[k_bore], inner[:k_bore] + inner[k_bore + 1:]
         ring_ok = (
             np.linalg.norm(c_out) < tol_mm and np.linalg.norm(c_in) < tol_mm
-            and abs(a_out / (math.pi * body.outer_diameter**2 / 4) - 1) < AREA_REL_TOL
-            and abs(a_in / (math.pi * body.inner_diameter**2 / 4) - 1) < AREA_REL_TOL
+            and abs(a_out / body.outline_area_mm2 - 1) < AREA_REL_TOL
+            and abs(a_in / body.bore_area_mm2 - 1) < AREA_REL_TOL
         )
+        if body.shape == "square":
+            size = f"sides {math.sqrt(a_out):.3f} / {math.sqrt(a_in):.3f} mm"
+        else:
+            size = f"diameters {2 * math.sqrt(a_out / math.pi):.3f} / {2 * math.sqrt(a_in / math.pi):.3f} mm"
         checks.append(Check(
             f"{label} outer wall and bore", bool(ring_ok),
-            f"diameters {2 * math.sqrt(a_out / math.pi):.3f} / {2 * math.sqrt(a_in / math.pi):.3f} mm, "
-            f"centres off axis by {np.linalg.norm(c_out):.4f} / {np.linalg.norm(c_in):.4f} mm",
+            f"{size}, centres off axis by {np.linalg.norm(c_out):.4f} / {np.linalg.norm(c_in):.4f} mm",
         ))
         centroids = np.array([c for _, c in holes])
         areas = np.array([a for a, _ in holes])

@@ -64,6 +64,9 @@ def _parser() -> argparse.ArgumentParser:
                    help="DICOM only: scanner (LPS) position of pixel (0, 0) (default: image centre at 0)")
     m.add_argument("--image-orientation", nargs=6, type=float, metavar="V",
                    help="DICOM only: col_dir and row_dir in the scanner (default 1 0 0 0 1 0)")
+    m.add_argument("--blob-width", type=float, default=1.0, metavar="FACTOR",
+                   help="draw each blob FACTOR x its tube's nominal width, as real images do (0.7-2.5; "
+                        "> 1 blurs, < 1 narrows; default 1)")
     m.add_argument("--volume-shape", nargs=3, type=int, metavar=("NX", "NY", "NZ"),
                    help="volume mode: write a 3-D volume of NX x NY x NZ voxels (--out .nii, .nii.gz, .nrrd, "
                         ".mha or a folder for a DICOM series); its middle k-plane cuts the fiducial at "
@@ -169,6 +172,13 @@ def _run_solve(args) -> int:
     return 0
 
 
+def _blob_width_check(factor: float) -> tuple[bool, str]:
+    from .simulate import BLOB_WIDTH_RANGE
+
+    lo, hi = BLOB_WIDTH_RANGE
+    return lo <= factor <= hi, f"--blob-width must be {lo:g}..{hi:g} (x the nominal diameter), got {factor:g}"
+
+
 def _run_simulate(args) -> int:
     if args.volume_shape is not None:
         return _run_simulate_volume(args)
@@ -188,6 +198,7 @@ def _run_simulate(args) -> int:
          f"--slice-thickness must be >= 0 mm, got {args.slice_thickness:g}"),
         (args.noise_level >= 0 and np.isfinite(args.noise_level), f"--noise-level must be >= 0, got {args.noise_level:g}"),
         (args.snr > 0 and np.isfinite(args.snr), f"--snr must be > 0, got {args.snr:g}"),
+        _blob_width_check(args.blob_width),
         (args.distractors >= 0, f"--distractors must be >= 0, got {args.distractors}"),
         (args.bore_signal >= 0 and np.isfinite(args.bore_signal), f"--bore-signal must be >= 0, got {args.bore_signal:g}"),
         (all(np.isfinite(v) for v in (args.depth, args.tilt, args.azimuth, args.twist)),
@@ -215,7 +226,7 @@ def _run_simulate(args) -> int:
             missing_tubes=tuple(args.missing),
             image_position=(0.0, 0.0, 0.0) if plain else args.image_position,
             image_orientation=args.image_orientation,
-            rng=np.random.default_rng(args.seed),
+            rng=np.random.default_rng(args.seed), blob_width=args.blob_width,
         )
         extra = {"geometry_file": str(args.geometry), "geometry_sha256": geom.to_dict()["sha256"], "seed": args.seed}
         image_path, truth_file = write_simulated(sim, out, extra)
@@ -368,6 +379,7 @@ def _run_simulate_volume(args) -> int:
         (len(vs) == 3 and all(v > 0 and np.isfinite(v) for v in vs),
          f"--voxel-size takes one or three sizes > 0 mm, got {' '.join(f'{v:g}' for v in given)}"),
         (not unsupported, f"{', '.join(unsupported)}: not available in volume mode"),
+        _blob_width_check(args.blob_width),
         (all(np.isfinite(v) for v in (args.depth, args.tilt, args.azimuth, args.twist)),
          "--depth, --tilt, --azimuth and --twist must be finite numbers"),
     ]
@@ -378,8 +390,8 @@ def _run_simulate_volume(args) -> int:
     # axis-aligned volume centred on the scanner origin: the middle k-plane's frame is the identity
     T = invert(slice_frame(args.depth, args.tilt, args.azimuth, args.twist))
     try:
-        sv = simulate_volume(geom, T, (nx, ny, nz), vs, noise=args.noise,
-                             noise_level=args.noise_level, snr=args.snr, rng=np.random.default_rng(args.seed))
+        sv = simulate_volume(geom, T, (nx, ny, nz), vs, noise=args.noise, noise_level=args.noise_level,
+                             snr=args.snr, rng=np.random.default_rng(args.seed), blob_width=args.blob_width)
     except ValueError as exc:
         raise ChicRegisterError(str(exc)) from None
     out = write_volume(sv.volume, args.out)

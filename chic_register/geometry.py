@@ -6,11 +6,13 @@ solver (which predicts image points from them).
 
 Frame F (CONTRACT.md section 1): millimetres, origin on the cylinder axis in the
 bottom end face, +z along the axis to the top face, +x toward tube ``D0``;
-angles counter-clockwise about +z from +x.
+angles counter-clockwise about +z from +x. For the ``zframe`` family (the
+seven-rod Z-frame), +z runs along the axial rods, the origin is on the frame's
+central axis in its bottom face, x and y as in 3D Slicer's Z-frame ``z001``.
 
 Geometry file (CONTRACT.md section 2): YAML with ``format: chic-geometry``,
-``version: 1``, ``name``, ``units``, ``body``, ``tubes``, ``source`` and
-``sha256``. The hash is the SHA-256 of the canonical JSON of every other key
+``version: 1``, ``name``, ``family`` (only when not ``chic``), ``units``,
+``body``, ``tubes``, ``source`` and ``sha256``. The hash is the SHA-256 of the canonical JSON of every other key
 (see :func:`content_sha256`).
 """
 
@@ -31,7 +33,11 @@ from .errors import GeometryFileError
 
 FORMAT = "chic-geometry"
 VERSION = 1
-ROLES = ("diametric", "helix", "orientation", "other")
+ROLES = ("diametric", "helix", "orientation", "axial", "diagonal", "other")
+#: Fiducial families (CONTRACT.md section 1); a file without ``family`` is ``chic``.
+FAMILIES = ("chic", "zframe")
+#: Body cross-sections: a round annulus (CHIC) or a square frame (Z-frame).
+BODY_SHAPES = ("annulus", "square")
 
 
 def _vec3(values) -> tuple[float, float, float]:
@@ -41,18 +47,67 @@ def _vec3(values) -> tuple[float, float, float]:
 
 @dataclass(frozen=True)
 class Body:
-    """The annular body: ``length`` along z from 0, outer and inner diameters (mm)."""
+    """The body: ``length`` along z from 0, and its cross-section (mm).
+
+    ``shape="annulus"`` (CHIC): a ring of ``outer_diameter`` / ``inner_diameter``.
+    ``shape="square"`` (Z-frame): a square frame of outside side ``outer_side``
+    around a square bore of side ``inner_side``, both centred on the z axis;
+    its ``outer_diameter`` is then the circumscribed circle of the outside and
+    ``inner_diameter`` the circle inscribed in the bore, so a reader that knows
+    only circles still gets one enclosing the body and one inside the bore.
+    """
 
     length: float
     outer_diameter: float
     inner_diameter: float
+    shape: str = "annulus"
+    outer_side: float | None = None
+    inner_side: float | None = None
+
+    @classmethod
+    def square(cls, length: float, outer_side: float, inner_side: float) -> "Body":
+        """A square frame body (see the class docstring for its diameters)."""
+        return cls(float(length), float(outer_side) * math.sqrt(2.0), float(inner_side), "square",
+                   float(outer_side), float(inner_side))
+
+    def bore_gap_mm(self, xy) -> np.ndarray:
+        """Distance (mm) from in-body points ``xy`` (N, 2) to the bore surface; shape (N,)."""
+        xy = np.atleast_2d(np.asarray(xy, dtype=float))
+        if self.shape == "square":
+            h = self.inner_side / 2
+            return np.hypot(np.maximum(np.abs(xy[:, 0]) - h, 0.0), np.maximum(np.abs(xy[:, 1]) - h, 0.0))
+        return np.hypot(xy[:, 0], xy[:, 1]) - self.inner_diameter / 2
+
+    def outside_gap_mm(self, xy) -> np.ndarray:
+        """Distance (mm) from in-body points ``xy`` (N, 2) to the outside surface; shape (N,)."""
+        xy = np.atleast_2d(np.asarray(xy, dtype=float))
+        if self.shape == "square":
+            return self.outer_side / 2 - np.max(np.abs(xy), axis=1)
+        return self.outer_diameter / 2 - np.hypot(xy[:, 0], xy[:, 1])
+
+    @property
+    def outline_area_mm2(self) -> float:
+        """Area enclosed by the outside surface in a section across z."""
+        if self.shape == "square":
+            return self.outer_side ** 2
+        return math.pi * self.outer_diameter ** 2 / 4
+
+    @property
+    def bore_area_mm2(self) -> float:
+        """Area of the bore in a section across z."""
+        if self.shape == "square":
+            return self.inner_side ** 2
+        return math.pi * self.inner_diameter ** 2 / 4
 
     def to_dict(self) -> dict:
-        return {
+        out = {
             "length": float(self.length),
             "outer_diameter": float(self.outer_diameter),
             "inner_diameter": float(self.inner_diameter),
         }
+        if self.shape != "annulus":  # CHIC files keep their content (and hash) unchanged
+            out.update(shape=self.shape, outer_side=float(self.outer_side), inner_side=float(self.inner_side))
+        return out
 
 
 @dataclass(frozen=True)
@@ -243,9 +298,12 @@ class FiducialGeometry:
     tubes: tuple[Tube, ...]
     source: dict | None = None
     units: str = "mm"
+    family: str = "chic"
 
     def __post_init__(self):
         object.__setattr__(self, "tubes", tuple(self.tubes))
+        if self.family not in FAMILIES:
+            raise ValueError(f"family is {self.family!r}; allowed: {', '.join(FAMILIES)}")
         ids = [t.id for t in self.tubes]
         dupes = sorted({i for i in ids if ids.count(i) > 1})
         if dupes:
@@ -274,6 +332,7 @@ class FiducialGeometry:
             "format": FORMAT,
             "version": VERSION,
             "name": self.name,
+            **({"family": self.family} if self.family != "chic" else {}),
             "units": self.units,
             "body": self.body.to_dict(),
             "tubes": [t.to_dict() for t in self.tubes],
@@ -392,6 +451,21 @@ def tube_from_dict(data: dict, path="<geometry>", where: str = "tubes[?]") -> Tu
     raise GeometryFileError(path, f"{where}.kind is {kind!r}; allowed: line, helix")
 
 
+def _body_from_dict(path, b: dict) -> Body:
+    """The ``body`` mapping: an annulus (default) or a square frame (``shape: square``)."""
+    dims = [_positive(path, f"body.{k}", _require(path, b, k, "body."))
+            for k in ("length", "outer_diameter", "inner_diameter")]
+    shape = b.get("shape", "annulus")
+    if shape not in BODY_SHAPES:
+        raise GeometryFileError(path, f"body.shape is {shape!r}; allowed: {', '.join(BODY_SHAPES)}")
+    if shape == "annulus":
+        return Body(*dims)
+    sides = [_positive(path, f"body.{k}", _require(path, b, k, "body.")) for k in ("outer_side", "inner_side")]
+    if sides[1] >= sides[0]:
+        raise GeometryFileError(path, "body.inner_side must be smaller than body.outer_side")
+    return Body(*dims, shape, *sides)
+
+
 def geometry_from_dict(data, path="<geometry>", check_hash: bool = True) -> FiducialGeometry:
     """Validate a parsed geometry file and build the :class:`FiducialGeometry`."""
     if not isinstance(data, dict):
@@ -417,17 +491,16 @@ def geometry_from_dict(data, path="<geometry>", check_hash: bool = True) -> Fidu
     b = _require(path, data, "body", "")
     if not isinstance(b, dict):
         raise GeometryFileError(path, "body must be a mapping")
-    body = Body(
-        _positive(path, "body.length", _require(path, b, "length", "body.")),
-        _positive(path, "body.outer_diameter", _require(path, b, "outer_diameter", "body.")),
-        _positive(path, "body.inner_diameter", _require(path, b, "inner_diameter", "body.")),
-    )
+    family = data.get("family", "chic")
+    if family not in FAMILIES:
+        raise GeometryFileError(path, f"family is {family!r}; allowed: {', '.join(FAMILIES)}")
+    body = _body_from_dict(path, b)
     tubes_raw = _require(path, data, "tubes", "")
     if not isinstance(tubes_raw, list) or not tubes_raw:
         raise GeometryFileError(path, "tubes must be a non-empty list")
     tubes = [tube_from_dict(t, path, f"tubes[{i}]") for i, t in enumerate(tubes_raw)]
     try:
-        return FiducialGeometry(str(name), body, tuple(tubes), data.get("source"), units)
+        return FiducialGeometry(str(name), body, tuple(tubes), data.get("source"), units, family)
     except ValueError as exc:
         raise GeometryFileError(path, str(exc)) from None
 
