@@ -190,6 +190,37 @@ class FiducialBody(BasePartObject):
         self.label = "body"
 
 
+def place_cap(plate: Part, skirt: Part, dims, length_mm: float, end: str, ports_xy=()) -> Part:
+    """A cap from its ``plate`` and ``skirt`` (both made at z = 0 upward), put at ``end``, ports drilled.
+
+    The plate lies on the end face (outside the body), the skirt reaches
+    ``dims.skirt_height`` along the body; ports of ``dims.port_diameter`` go
+    through the plate at ``ports_xy``. Shared by the CHIC and Z-frame caps.
+    """
+    if end not in ("top", "bottom"):
+        raise ValueError(f"end must be 'top' or 'bottom', got {end!r}")
+    d = dims
+    if end == "top":
+        solid = Pos(0, 0, length_mm) * plate + Pos(0, 0, length_mm - d.skirt_height) * skirt
+        z_plate = length_mm
+    else:
+        solid = Pos(0, 0, -d.thickness) * plate + skirt
+        z_plate = -d.thickness
+    if d.port_diameter > 0 and len(ports_xy):
+        solid -= [
+            Pos(float(x), float(y), z_plate) * Cylinder(d.port_diameter / 2, d.thickness, align=_BOTTOM)
+            for x, y in ports_xy
+        ]
+    return solid
+
+
+def assemble_parts(body: Part, cap_class, dims, geometry: FiducialGeometry, ports_xy) -> "FiducialParts":
+    """Body plus a top cap with ``ports_xy`` and a solid bottom cap of ``cap_class(dims, ...)``."""
+    length = geometry.body.length
+    return FiducialParts(body=body, cap_top=cap_class(dims, length, "top", ports_xy=ports_xy),
+                         cap_bottom=cap_class(dims, length, "bottom"))
+
+
 class Cap(BasePartObject):
     """An end cap: plate over the end face at ``end`` ("top" z = length, "bottom" z = 0) plus skirt.
 
@@ -203,24 +234,12 @@ class Cap(BasePartObject):
 
 
     def __init__(self, dims: CapDims, length_mm: float, end: str, ports_xy=(), mode: Mode = Mode.ADD):
-        if end not in ("top", "bottom"):
-            raise ValueError(f"end must be 'top' or 'bottom', got {end!r}")
         d = dims
         plate = Cylinder(d.outer_radius, d.thickness, align=_BOTTOM)
         plate -= Cylinder(d.inner_radius, d.thickness, align=_BOTTOM)
         skirt = Cylinder(d.outer_radius, d.skirt_height, align=_BOTTOM)
         skirt -= Cylinder(d.skirt_inner_radius, d.skirt_height, align=_BOTTOM)
-        if end == "top":
-            solid = Pos(0, 0, length_mm) * plate + Pos(0, 0, length_mm - d.skirt_height) * skirt
-            z_plate = length_mm
-        else:
-            solid = Pos(0, 0, -d.thickness) * plate + skirt
-            z_plate = -d.thickness
-        if d.port_diameter > 0 and len(ports_xy):
-            solid -= [
-                Pos(float(x), float(y), z_plate) * Cylinder(d.port_diameter / 2, d.thickness, align=_BOTTOM)
-                for x, y in ports_xy
-            ]
+        solid = place_cap(plate, skirt, d, length_mm, end, ports_xy)
         super().__init__(part=solid, rotation=(0, 0, 0), align=None, mode=mode)
         self.label = f"cap_{end}"
 
@@ -244,10 +263,5 @@ class FiducialParts:
 def build_parts(spec, geometry: FiducialGeometry) -> FiducialParts:
     """Body, top cap (one fill port over each channel's top opening) and bottom cap (solid)."""
     dims = CapDims.from_spec(spec, geometry)
-    length = geometry.body.length
-    ports = list(channel_openings_xy(geometry, length).values())
-    return FiducialParts(
-        body=FiducialBody(geometry),
-        cap_top=Cap(dims, length, "top", ports_xy=ports),
-        cap_bottom=Cap(dims, length, "bottom"),
-    )
+    ports = list(channel_openings_xy(geometry, geometry.body.length).values())
+    return assemble_parts(FiducialBody(geometry), Cap, dims, geometry, ports)

@@ -213,11 +213,11 @@ def quadrant_bounds_deg(diametric_deg, q: int) -> tuple[float, float]:
     return float(lo), float(hi)
 
 
-def json_schema() -> dict:
-    """JSON Schema of the spec (for editors)."""
-    schema = Spec.model_json_schema()
+def json_schema(family: str = "chic") -> dict:
+    """JSON Schema of the spec of ``family`` (for editors)."""
+    schema = spec_model(family).model_json_schema()
     schema["$schema"] = "https://json-schema.org/draft/2020-12/schema"
-    schema["title"] = "CHIC fiducial design spec"
+    schema["title"] = "CHIC fiducial design spec" if family == "chic" else f"{family} fiducial design spec"
     return schema
 
 

@@ -20,11 +20,11 @@ from __future__ import annotations
 from dataclasses import dataclass
 
 import numpy as np
-from build123d import Align, BasePartObject, Box, Cylinder, Mode, Pos
+from build123d import Align, BasePartObject, Box, Mode
 
 from chic_register.geometry import FiducialGeometry
 
-from .cad import FiducialParts, channel_openings_xy, channel_solid
+from .cad import FiducialParts, assemble_parts, channel_openings_xy, channel_solid, place_cap
 
 _BOTTOM = (Align.CENTER, Align.CENTER, Align.MIN)
 
@@ -75,20 +75,9 @@ class SquareCap(BasePartObject):
     """An end cap of the square frame at ``end`` ("top": z = length, "bottom": z = 0)."""
 
     def __init__(self, dims: SquareCapDims, length_mm: float, end: str, ports_xy=(), mode: Mode = Mode.ADD):
-        if end not in ("top", "bottom"):
-            raise ValueError(f"end must be 'top' or 'bottom', got {end!r}")
-        d = dims
-        plate = _square_ring(d.outer_side, d.inner_side, d.thickness)
-        skirt = _square_ring(d.outer_side, d.skirt_inner_side, d.skirt_height)
-        if end == "top":
-            solid = Pos(0, 0, length_mm) * plate + Pos(0, 0, length_mm - d.skirt_height) * skirt
-            z_plate = length_mm
-        else:
-            solid = Pos(0, 0, -d.thickness) * plate + skirt
-            z_plate = -d.thickness
-        if d.port_diameter > 0 and len(ports_xy):
-            solid -= [Pos(float(x), float(y), z_plate) * Cylinder(d.port_diameter / 2, d.thickness, align=_BOTTOM)
-                      for x, y in ports_xy]
+        plate = _square_ring(dims.outer_side, dims.inner_side, dims.thickness)
+        skirt = _square_ring(dims.outer_side, dims.skirt_inner_side, dims.skirt_height)
+        solid = place_cap(plate, skirt, dims, length_mm, end, ports_xy)
         super().__init__(part=solid, rotation=(0, 0, 0), align=None, mode=mode)
         self.label = f"cap_{end}"
 
@@ -105,10 +94,5 @@ def distinct_points(points, tol_mm: float = 1e-6) -> list[np.ndarray]:
 def build_zframe_parts(spec, geometry: FiducialGeometry) -> FiducialParts:
     """Body, top cap (a fill port over each distinct rod opening) and bottom cap (solid)."""
     dims = SquareCapDims.from_spec(spec, geometry)
-    length = geometry.body.length
-    ports = distinct_points(channel_openings_xy(geometry, length).values())
-    return FiducialParts(
-        body=ZFrameBody(geometry),
-        cap_top=SquareCap(dims, length, "top", ports_xy=ports),
-        cap_bottom=SquareCap(dims, length, "bottom"),
-    )
+    ports = distinct_points(channel_openings_xy(geometry, geometry.body.length).values())
+    return assemble_parts(ZFrameBody(geometry), SquareCap, dims, geometry, ports)
