@@ -148,8 +148,10 @@ class Clearance:
     ``b`` is a tube id or ``bore``, ``outside``, ``bottom_face``, ``top_face``.
     ``gap_mm`` < 0 means overlap. ``status``: ok, thin, intersect, open (a
     channel that runs through an end face by design), too_thin (a wall violation).
-    ``intersect_z_mm`` / ``thin_z_mm``: z-ranges (on channel ``a``) where they
-    intersect / are closer than the minimum wall.
+    ``intersect_z_mm``: z-ranges where they intersect (where their sections by
+    planes z = const overlap: :func:`chic_design.contacts.channel_contacts`, the
+    answer the report gives too); ``thin_z_mm``: z-ranges (on channel ``a``)
+    where they are closer than the minimum wall.
     """
 
     a: str
@@ -957,9 +959,14 @@ def channel_clearances(geom: FiducialGeometry, min_wall_mm: float, spacing_mm: f
     warn: list[Finding] = []
     body = geom.body
     length = body.length
+    from .contacts import channel_contacts
+
+    # z-ranges where two channels touch: the one answer (contacts), also used by the report
+    touch = {frozenset((c.a, c.b)): c.z_ranges_mm for c in channel_contacts(geom)}
     for i, j in _pair_order(geom):
         a, b = geom.tubes[i], geom.tubes[j]
         gap, z, inter, thin = _pair_gap(a, b, min_wall_mm, spacing_mm)
+        inter = touch.get(frozenset((a.id, b.id)), inter)
         if gap < 0:
             status = "intersect"
             warn.append(Finding("channels_intersect", f"channels {a.id} and {b.id} intersect (overlap "

@@ -140,19 +140,14 @@ def section_clearance_mm(geometry: FiducialGeometry, z_mm) -> np.ndarray:
 
 
 def touching_channels(geometry: FiducialGeometry, step_mm: float = 0.05) -> list[tuple[str, str, float, float]]:
-    """Pairs of channels whose section circles meet: ``[(id, id, z_lo, z_hi)]`` (mm, sampled).
+    """Pairs of channels that touch: ``[(id, id, z_lo, z_hi)]`` (mm, sampled), from :mod:`chic_design.contacts`.
 
     Such channels are connected where they meet (they fill together) and
-    their images merge there.
+    their images merge there. The same answer as the feasibility report's.
     """
-    length = geometry.body.length
-    z = np.linspace(0.0, length, int(round(length / step_mm)) + 1)
-    out = []
-    for (a, b), gap in pair_gaps_mm(geometry, z).items():
-        hit = gap < 0
-        if hit.any():
-            out.append((a, b, float(z[hit].min()), float(z[hit].max())))
-    return out
+    from .contacts import channel_contacts
+
+    return [(c.a, c.b, c.z_lo, c.z_hi) for c in channel_contacts(geometry, step_mm)]
 
 
 def section_heights(geometry: FiducialGeometry, n: int = 5, margin_mm: float = SECTION_MARGIN_MM) -> np.ndarray:

@@ -103,6 +103,23 @@ def test_chic_geometry_content_is_unchanged(spec_path):
     assert content_sha256(content) == CHIC_CONTENT_SHA256[spec_path]
 
 
+def test_diagonals_touch_their_corner_rods_near_the_faces_by_hand(zgeom, zcheck):
+    """Z+x's section at height z: ellipse at (30, 30 - z), semi-axes 1.5 sqrt(2) along y and 1.5;
+    A1's a 1.5 mm circle at (30, 30): they overlap while z < 1.5 (1 + sqrt(2)) = 3.62 mm."""
+    from chic_design.contacts import channel_contacts
+
+    got = {(c.a, c.b): c.z_ranges_mm for c in channel_contacts(zgeom)}
+    top = 1.5 * (1 + 2**0.5)
+    assert len(got) == 6
+    for (a, b), ranges in got.items():
+        (lo, hi), = ranges
+        assert {a[0], b[0]} == {"A", "Z"}
+        assert (lo, hi) == pytest.approx((0.0, top), abs=0.05) or (lo, hi) == pytest.approx((60 - top, 60), abs=0.05)
+    # the feasibility report gives the same ranges (one answer)
+    clear = {(c.a, c.b): c for c in zcheck.clearances if c.status == "intersect"}
+    assert {frozenset(k): v.intersect_z_mm for k, v in clear.items()} == {frozenset(k): v for k, v in got.items()}
+
+
 def test_square_body_gaps_by_hand():
     b = Body.square(60.0, 67.0, 53.0)
     assert b.outer_diameter == pytest.approx(67.0 * 2**0.5) and b.inner_diameter == 53.0
