@@ -50,17 +50,12 @@ _BOTTOM = (Align.CENTER, Align.CENTER, Align.MIN)
 
 
 def extended_tube(tube: Tube, ext_mm: float) -> Tube:
-    """The same centreline continued by ``ext_mm`` past both ends (same line / same helix).
+    """The same centreline continued by ``ext_mm`` (arc length) past both ends: ``tube.extended``.
 
     Sweeping the extended tube and cutting it with the body gives channels
     whose openings are exactly the tube's sections by the end-face planes.
     """
-    if isinstance(tube, LineTube):
-        d = tube.direction
-        return LineTube(tube.id, tube.role, np.asarray(tube.p0) - ext_mm * d,
-                        np.asarray(tube.p1) + ext_mm * d, tube.diameter)
-    z0 = tube.z0 - ext_mm
-    return replace(tube, theta0_deg=float(tube.angle_deg_at(z0)), z0=z0, z1=tube.z1 + ext_mm)
+    return tube.extended(ext_mm)
 
 
 def channel_openings_xy(geometry: FiducialGeometry, z_mm: float) -> dict[str, np.ndarray]:
@@ -164,10 +159,13 @@ def centreline_edge(tube: Tube) -> Edge:
 def channel_solid(tube: Tube, ext_mm: float | None = None) -> Part:
     """The channel of ``tube``: its circle swept along its (extended) centreline.
 
-    The default extension, one diameter past each end, puts the swept end disk
-    (z-extent <= its radius for any helix) wholly outside the body.
+    The default extension, one diameter in z past each end face, puts the swept
+    end disk (z-extent <= its radius) wholly outside the body.
     """
-    ext = tube.diameter if ext_mm is None else ext_mm
+    if ext_mm is None:  # one diameter past each end face, in z
+        cos_min = float(np.min(np.abs(tube.tangents(np.linspace(0.0, 1.0, 9))[:, 2])))
+        ext_mm = tube.diameter / max(cos_min, 1e-3)
+    ext = ext_mm
     path = centreline_edge(extended_tube(tube, ext))
     profile = Plane(origin=path @ 0, z_dir=path % 0) * Circle(tube.diameter / 2)
     return sweep(profile, path, is_frenet=True)

@@ -18,7 +18,7 @@ from dataclasses import dataclass
 
 import numpy as np
 
-from chic_register.geometry import FiducialGeometry, LineTube, Tube
+from chic_register.geometry import FiducialGeometry, Tube
 
 BOUNDARY_POINTS = 256
 
@@ -44,11 +44,7 @@ def z_sections(tube: Tube, z_mm: np.ndarray):
     """Ellipse of the channel's section by each plane z: centres (N, 2), unit major axes (N, 2), semi-axes (N,), r."""
     z = np.atleast_1d(np.asarray(z_mm, dtype=float))
     centre = tube.point_at_z(z)[:, :2]
-    if isinstance(tube, LineTube):
-        t = np.tile(tube.direction, (z.size, 1))
-    else:
-        z0, z1 = tube.z_range
-        t = tube.tangents((z - z0) / (z1 - z0))
+    t = tube.tangents_at_z(z)
     r = tube.diameter / 2
     txy = np.hypot(t[:, 0], t[:, 1])
     u = np.where(txy[:, None] > 1e-12, t[:, :2] / np.maximum(txy, 1e-12)[:, None], [1.0, 0.0])

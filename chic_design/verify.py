@@ -24,7 +24,7 @@ from pathlib import Path
 import numpy as np
 import trimesh
 
-from chic_register.geometry import FiducialGeometry, HelixTube, LineTube, Tube, load_geometry
+from chic_register.geometry import FiducialGeometry, Tube, load_geometry
 
 from .errors import BuildCheckError
 
@@ -93,13 +93,7 @@ class VerifyResult:
 
 def tube_slope_cos(tube: Tube, z_mm) -> np.ndarray:
     """cos of the angle between the tube's centreline and +z at heights ``z_mm``; shape (N,)."""
-    z = np.atleast_1d(np.asarray(z_mm, dtype=float))
-    if isinstance(tube, LineTube):
-        return np.full(z.shape, abs(tube.direction[2]))
-    if isinstance(tube, HelixTube):
-        t = (z - tube.z0) / (tube.z1 - tube.z0)
-        return np.abs(tube.tangents(t)[:, 2])
-    raise TypeError(type(tube).__name__)
+    return np.abs(tube.tangents_at_z(z_mm)[:, 2])
 
 
 def _section_circles(geometry: FiducialGeometry, z: np.ndarray) -> tuple[np.ndarray, np.ndarray]:

@@ -156,6 +156,16 @@ class LineTube:
             raise ValueError(f"tube {self.id} is horizontal: no unique point at a given z")
         return self.points((np.atleast_1d(z_mm) - self.p0[2]) / dz)
 
+    def tangents_at_z(self, z_mm) -> np.ndarray:
+        """Unit tangents at heights ``z_mm`` (toward p1); shape (N, 3)."""
+        return np.tile(self.direction, (np.atleast_1d(z_mm).size, 1))
+
+    def extended(self, ext_mm: float) -> "LineTube":
+        """The same line continued by ``ext_mm`` of length past both ends."""
+        d = self.direction
+        return LineTube(self.id, self.role, np.asarray(self.p0) - ext_mm * d, np.asarray(self.p1) + ext_mm * d,
+                        self.diameter)
+
     def intersect_plane(self, origin, normal) -> np.ndarray:
         """Where the centreline crosses the plane through ``origin`` with ``normal``.
 
@@ -243,6 +253,16 @@ class HelixTube:
         w = math.radians(self.pitch_deg_per_mm) * self.radius
         v = np.stack([-w * np.sin(th), w * np.cos(th), np.ones_like(th)], axis=1)
         return v / np.linalg.norm(v, axis=1, keepdims=True)
+
+    def tangents_at_z(self, z_mm) -> np.ndarray:
+        """Unit tangents at heights ``z_mm`` (toward increasing z); shape (N, 3)."""
+        return self.tangents((np.atleast_1d(np.asarray(z_mm, dtype=float)) - self.z0) / (self.z1 - self.z0))
+
+    def extended(self, ext_mm: float) -> "HelixTube":
+        """The same helix continued by ``ext_mm`` of arc length past both ends."""
+        dz = ext_mm * (self.z1 - self.z0) / self.length_mm
+        return HelixTube(self.id, self.role, self.radius, float(self.angle_deg_at(self.z0 - dz)),
+                         self.pitch_deg_per_mm, self.z0 - dz, self.z1 + dz, self.diameter)
 
     def intersect_plane(self, origin, normal) -> np.ndarray:
         """Every crossing of the centreline with the plane through ``origin`` with ``normal``.

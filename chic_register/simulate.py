@@ -70,12 +70,7 @@ def _crossing_params(tube, origin_F: np.ndarray, normal_F: np.ndarray, margin_mm
         u = d0 / (d0 - d1) if abs(d0 - d1) > 1e-12 else 0.5
         return np.array([min(1.0, max(0.0, u))])
     if isinstance(tube, HelixTube):
-        dz = margin_mm * (tube.z1 - tube.z0) / length
-        ext = HelixTube(
-            tube.id, tube.role, tube.radius, float(tube.angle_deg_at(tube.z0 - dz)),
-            tube.pitch_deg_per_mm, tube.z0 - dz, tube.z1 + dz, tube.diameter,
-        )
-        pts = ext.intersect_plane(origin_F, normal_F)
+        pts = tube.extended(margin_mm).intersect_plane(origin_F, normal_F)
         return (pts[:, 2] - tube.z0) / (tube.z1 - tube.z0)
     raise TypeError(f"cannot render tube kind {getattr(tube, 'kind', type(tube).__name__)!r}")
 
