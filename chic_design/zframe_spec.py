@@ -15,7 +15,17 @@ from typing import Literal
 
 from pydantic import Field, model_validator
 
-from .spec import CapSpec, ImagingSpec, PositiveMM, PrintSpec, _Strict
+from .spec import (
+    MAX_CHANNEL_MM,
+    MAX_DIAMETER_MM,
+    MAX_LENGTH_MM,
+    MAX_NAME_CHARS,
+    CapSpec,
+    ImagingSpec,
+    PositiveMM,
+    PrintSpec,
+    _Strict,
+)
 
 #: The four side faces of the frame, by the axis their outward normal points along.
 FACES = ("+x", "+y", "-x", "-y")
@@ -25,17 +35,17 @@ Face = Literal["+x", "+y", "-x", "-y"]
 class FrameSpec(_Strict):
     """The frame: rod spacing, height and wall thickness."""
 
-    side: PositiveMM = Field(60.0, description="Distance between opposite rod planes (mm): the axial "
+    side: PositiveMM = Field(60.0, le=MAX_DIAMETER_MM, description="Distance between opposite rod planes (mm): the axial "
                              "rods sit at x, y = +-side/2.")
-    height: PositiveMM = Field(60.0, description="Frame height along z (mm): rod length.")
-    wall: PositiveMM = Field(7.0, description="Wall thickness (mm), centred on the rod planes; the "
+    height: PositiveMM = Field(60.0, le=MAX_LENGTH_MM, description="Frame height along z (mm): rod length.")
+    wall: PositiveMM = Field(7.0, le=MAX_CHANNEL_MM * 2, description="Wall thickness (mm), centred on the rod planes; the "
                              "rods run inside the walls.")
 
 
 class RodSpec(_Strict):
     """The fluid channels (rods)."""
 
-    diameter: PositiveMM = Field(3.0, description="Rod (channel) diameter (mm).")
+    diameter: PositiveMM = Field(3.0, le=MAX_CHANNEL_MM, description="Rod (channel) diameter (mm).")
 
 
 class DiagonalSpec(_Strict):
@@ -66,8 +76,9 @@ class ZFrameSpec(_Strict):
     """A Z-frame fiducial design (``family: zframe``)."""
 
     family: Literal["zframe"]
-    name: str = Field(pattern=r"^[A-Za-z0-9][A-Za-z0-9_.-]*$", description="Design name: the export folder.")
-    description: str = ""
+    name: str = Field(pattern=r"^[A-Za-z0-9][A-Za-z0-9_.-]*$", max_length=MAX_NAME_CHARS, strict=True,
+                      description="Design name: the export folder (letters, digits, _ . -).")
+    description: str = Field("", max_length=2000, strict=True)
     frame: FrameSpec = Field(default_factory=FrameSpec)
     rods: RodSpec = Field(default_factory=RodSpec)
     diagonals: DiagonalSpec = Field(default_factory=DiagonalSpec)
