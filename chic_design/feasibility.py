@@ -1155,7 +1155,7 @@ def check_geometry(geom: FiducialGeometry, *, pixel_size_mm: float, slice_thickn
     if geom.family == "zframe":
         from .zframe_check import zframe_unambiguity
 
-        unamb, w = zframe_unambiguity(geom, syms, mismatch, crossings, tol)
+        unamb, w = zframe_unambiguity(geom, usable[0].ranges_mm, mismatch, crossings, tol)
         warnings += w
         syms = ()  # reported as warnings above
     for sym in syms:

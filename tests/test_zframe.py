@@ -6,6 +6,7 @@ import numpy as np
 import pytest
 import yaml
 from scipy import ndimage
+from scipy.spatial.transform import Rotation
 
 from chic_design.cli import main as design_main
 from chic_design.errors import SpecError
@@ -173,7 +174,8 @@ def zcheck():
 def test_check_reports_usable_range_and_ambiguity_honestly(zcheck):
     assert zcheck.feasible, zcheck.violations
     codes = {w.code for w in zcheck.warnings}
-    assert {"symmetric_frame", "ambiguous_slices", "channels_intersect"} <= codes
+    assert {"symmetric_frame", "channels_intersect"} <= codes
+    assert "ambiguous_slices" not in codes  # every slice is ambiguous already: said once, for the frame
     d = zcheck.to_dict()
     assert d["unambiguity"]["unambiguous"] is False
     assert "half turn about the y axis" in d["unambiguity"]["frame_symmetries"][0]["what"]
@@ -269,3 +271,47 @@ def test_simulate_cli_on_a_zframe_geometry_slices_and_volume(zgeom, tmp_path, ca
     assert register_main(["simulate", "--geometry", str(geo), "--depth", "30", "--out", str(tmp_path / "x.npy"),
                           "--blob-width", "0"]) == 2
     assert "--blob-width must be 0.2..5" in capsys.readouterr().err
+
+
+# ----------------------------------------------------------------------------- round trip
+
+
+def test_check_and_solver_agree_on_ambiguity(zgeom, zcheck, tmp_path):
+    """design -> geometry.yaml -> simulated slice (SNR 20, 2x wide blobs, tilted) -> solve.
+
+    z001, which check calls ambiguous, is refused without an orientation prior and registers
+    with one; with the -x diagonal reversed, which check calls unambiguous, it registers alone.
+    """
+    from chic_register.errors import NoLock
+    from chic_register.solve import register
+
+    centre = np.array([0.0, 0.0, 30.0, 1.0])
+
+    def tre(reg, sim):
+        return np.linalg.norm((reg.T_scanner_from_fiducial @ centre)[:3] - (sim.truth.T_scanner_from_fiducial @ centre)[:3])
+
+    geom = load_geometry(write_geometry(zgeom, tmp_path / "geometry.yaml"))
+    sim = simulate_slice(geom, 22.0, 10.0, 40.0, 15.0, noise="rician", snr=20, blob_width=2.0, rng=7)
+    assert zcheck.unambiguity.unambiguous is False
+    with pytest.raises(NoLock, match="ambiguous"):
+        register([sim.slice], geom)
+    T = sim.truth.T_scanner_from_fiducial
+    prior = T.copy()
+    prior[:3, :3] = Rotation.from_rotvec(np.radians(15.0) * np.array([0.6, 0.8, 0.0])).as_matrix() @ T[:3, :3]
+    assert tre(register([sim.slice], geom, prior=prior), sim) < 0.3
+
+    spec = parse_spec(_zframe_data(diagonals__reversed_faces=["-x"]))
+    asym = design_geometry(spec)
+    report = check_design(spec)
+    assert report.unambiguity.frame_symmetries == ()
+    # no whole-frame symmetry, but slices near mid-height have a flipped twin (hand: tilt atan(2s / (30 - s)))
+    (band,) = [w for w in report.warnings if w.code == "ambiguous_slices"]
+    (sym,) = report.unambiguity.symmetries
+    lo, hi = sym.depth_range_mm
+    assert 26 <= lo < 30 < hi <= 34 and sym.mismatch_mm < 1e-6 and sym.at_depth_mm == 30.0
+    # outside the band a single slice registers without a prior; inside it the solver refuses
+    sim = simulate_slice(asym, 38.0, 15.0, 120.0, 15.0, noise="rician", snr=20, blob_width=2.0, rng=8)
+    assert tre(register([sim.slice], asym), sim) < 0.3
+    sim = simulate_slice(asym, 30.0, 0.0, 0.0, 15.0, noise="rician", snr=20, rng=9)
+    with pytest.raises(NoLock, match="ambiguous"):
+        register([sim.slice], asym)
