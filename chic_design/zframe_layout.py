@@ -19,6 +19,7 @@ from __future__ import annotations
 from chic_register import __version__
 from chic_register.geometry import Body, FiducialGeometry, LineTube
 
+from .layout import spec_tool_frame
 from .zframe_spec import FACES, ZFrameSpec
 
 #: Corner unit signs (x, y), counter-clockwise from (+, -) as z001's fiducials 1, 3, 5, 7.
@@ -71,4 +72,4 @@ def zframe_geometry(spec: ZFrameSpec, source: dict | None = None) -> FiducialGeo
     body = Body.square(spec.frame.height, spec.outer_side, spec.inner_side)
     if source is not None:
         source = {**source, "generator": f"chic-design {__version__}"}
-    return FiducialGeometry(spec.name, body, zframe_tubes(spec), source, family="zframe")
+    return FiducialGeometry(spec.name, body, zframe_tubes(spec), source, tool=spec_tool_frame(spec), family="zframe")

@@ -24,6 +24,7 @@ from .spec import (
     ImagingSpec,
     PositiveMM,
     PrintSpec,
+    ToolSpec,
     _Strict,
 )
 
@@ -85,6 +86,8 @@ class ZFrameSpec(_Strict):
     caps: CapSpec = Field(default_factory=CapSpec)
     print: PrintSpec = Field(default_factory=PrintSpec)
     imaging: ImagingSpec = Field(default_factory=ImagingSpec)
+    tool: ToolSpec | None = Field(None, description="Where the tool tip is in F (optional): written to "
+                                  "geometry.yaml so the solver can report the tip's pose.")
 
     @model_validator(mode="after")
     def _fits(self):
