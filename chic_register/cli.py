@@ -27,7 +27,7 @@ def _parser() -> argparse.ArgumentParser:
     s = sub.add_parser("solve", help="register one or more slices: one pose from all of them")
     s.add_argument("images", nargs="+", metavar="IMAGE", help="DICOM, PNG, TIFF or NPY slices")
     s.add_argument("--geometry", required=True, help="geometry.yaml written by chic-design build")
-    s.add_argument("--json", action="store_true", help="print one JSON object (CONTRACT.md section 4)")
+    s.add_argument("--json", action="store_true", help="print one JSON object (docs/interfaces.md section 4)")
     s.add_argument("--pixel-spacing", nargs=2, type=float, metavar=("ROW", "COL"),
                    help="pixel spacing (mm) for PNG/TIFF/NPY images")
     s.add_argument("--overlay", metavar="PNG", help="draw the slice with detections, ellipse and labels")
