@@ -272,12 +272,14 @@ def _check_outputs(args) -> None:
     """Reject bad --tfm / --igtl values before any work (solve)."""
     from pathlib import Path
 
-    from .igtl import parse_address
-    from .transforms import SUFFIXES
+    if getattr(args, "tfm", None):  # (each import only when its option is used: SimpleITK, pyigtl are slow)
+        from .transforms import SUFFIXES
 
-    if getattr(args, "tfm", None) and Path(args.tfm).suffix.lower() not in SUFFIXES:
-        raise ChicRegisterError(f"--tfm {args.tfm}: transform file must end in {', '.join(SUFFIXES)}")
+        if Path(args.tfm).suffix.lower() not in SUFFIXES:
+            raise ChicRegisterError(f"--tfm {args.tfm}: transform file must end in {', '.join(SUFFIXES)}")
     if getattr(args, "igtl", None):
+        from .igtl import parse_address
+
         parse_address(args.igtl)
 
 

@@ -31,11 +31,11 @@ import time
 from dataclasses import dataclass, field
 
 import numpy as np
-from scipy.optimize import linear_sum_assignment
 
-from .detect import Blobs, _dilate, detect_blobs
+from .detect import Blobs, _dilate, detect_blobs, median
 from .errors import NoLock
 from .geometry import FiducialGeometry, HelixTube, LineTube, content_sha256
+from .matching import gated_matching
 from .pose import invert, rigid, slice_angles
 from .slices import Slice
 
@@ -606,10 +606,8 @@ def _assign(pred: np.ndarray, ok: np.ndarray, blobs_xy: np.ndarray, gate_mm: flo
         r, c = np.nonzero(within)
         out[r] = c
         return out
-    cost = np.where(within, d2, 1e6)
-    r, c = linear_sum_assignment(cost)
-    good = cost[r, c] < 1e6
-    out[r[good]] = c[good]
+    r, c = gated_matching(d2, within)
+    out[r] = c
     return out
 
 
@@ -1087,7 +1085,7 @@ def _solve_one(model: TubeModel, xy: np.ndarray, S: np.ndarray, opts: SolveOptio
         raise NoLock(f"found {xy.shape[0]} candidate tube cross-sections; need at least {opts.min_tubes}",
                      {"n_candidates": int(xy.shape[0])})
     ring = model.axis_radius_mm[model.axial | model.is_helix]
-    radius = float(np.median(ring)) if ring.size else float(np.median(model.axis_radius_mm))
+    radius = median(ring) if ring.size else median(model.axis_radius_mm)
     ell_fit = fit_ellipse_robust(xy, radius, max_tilt_deg=opts.max_tilt_deg,
                                  tol_mm=max(0.08 * radius, 1.5 * pixel_mm))
     if ell_fit is None:
@@ -1214,7 +1212,7 @@ def register(slices: list[Slice], geom: FiducialGeometry, *, options: SolveOptio
         raise NoLock("no slices given")
     t0 = time.perf_counter()
     model, geom_sha = prepare_geometry(geom)
-    d_mm = float(np.median(model.diameter_mm))
+    d_mm = median(model.diameter_mm)
     blob_sets, xys = [], []
     for sl in slices:
         b = detect_blobs(sl.pixels, sl.pixel_spacing_mm, d_mm, **(detect_options or {}))
