@@ -614,7 +614,8 @@ def _assign(pred: np.ndarray, ok: np.ndarray, blobs_xy: np.ndarray, gate_mm: flo
 def refine(model: TubeModel, blobs_xy: list[np.ndarray], T_scanner_from_image: list[np.ndarray],
            T_F_from_scanner: np.ndarray, *, gates_mm=(3.0, 1.5, 1.0, 1.0), iters_per_gate: int = 3,
            final_iters: int = 4, damping: float = 1e-6, exclude: list | None = None,
-           assign0: list | None = None, offsets_mm: list | None = None, strict_ends: bool = True) -> _Fit:
+           assign0: list | None = None, offsets_mm: list | None = None, strict_ends: bool = True,
+           weights: list | None = None) -> _Fit:
     """Gauss-Newton on all six DOF of ``T_F_from_scanner`` with re-assignment.
 
     ``blobs_xy``: per slice, detected centres in image mm (N_j, 2). Each gate
@@ -626,6 +627,10 @@ def refine(model: TubeModel, blobs_xy: list[np.ndarray], T_scanner_from_image: l
     the centroid of a tube's image section minus its centreline crossing).
     ``strict_ends``: leave out crossings whose section a tube end cuts
     (their blob centre is biased) unless the offsets model that cut.
+    ``weights``: per slice (K, 2, 2) or None, each tube's square-root
+    information ``L`` (``L^T L`` = the inverse covariance of its measured
+    position, mm^-2): the fit then minimises the sum of ``|L (predicted -
+    measured)|^2`` (the maximum-likelihood pose for Gaussian position errors).
     """
     end_margin = 0.0 if strict_ends else 1e-9
     X = T_F_from_scanner.copy()
@@ -651,8 +656,14 @@ def refine(model: TubeModel, blobs_xy: list[np.ndarray], T_scanner_from_image: l
                 k = np.flatnonzero((a >= 0) & inside)
                 if k.size == 0:
                     continue
-                rs.append((qm[k] - xy[a[k]]).ravel())
-                Js.append((_crossing_jacobian(q[k], tan[k]) @ ads[j]).reshape(-1, 6))
+                res = qm[k] - xy[a[k]]
+                Jk = _crossing_jacobian(q[k], tan[k]) @ ads[j]
+                if weights is not None and weights[j] is not None:
+                    L = weights[j][k]
+                    res = np.einsum("kij,kj->ki", L, res)
+                    Jk = np.einsum("kij,kjl->kil", L, Jk)
+                rs.append(res.ravel())
+                Js.append(Jk.reshape(-1, 6))
             if not rs:
                 break
             J = Js[0] if len(Js) == 1 else np.concatenate(Js)
@@ -951,6 +962,53 @@ def _template_refine(model: TubeModel, tubes, fit: _Fit, assign, xys, Ss, slices
     return fit
 
 
+def _section_refine(model: TubeModel, fit: _Fit, xys, Ss, slices, blob_sets, opts) -> _Fit:
+    """Refit ``fit`` on section-fitted tube positions (:func:`~chic_register.section.fit_sections`).
+
+    ``section_iterations`` times: fit every matched tube's section model at
+    the current pose, then refit the pose on the fitted positions, each
+    weighted by its information matrix. A tube whose section cannot be fitted
+    (window too small, no positive gain) is left out, and so is one whose
+    fitted section lies more than ``section_max_shift_px`` from where the
+    pose predicts it or has less than half the median gain (not the clean
+    section the model expects); fewer than ``min_tubes`` left is
+    :class:`NoLock`.
+    """
+    from .section import fit_sections
+
+    assign = [a.copy() for a in fit.assignments]
+    for it in range(opts.section_iterations):
+        X0 = fit.T_F_from_scanner
+        new_xys, Ls = [], []
+        for j, (sl, S, b) in enumerate(zip(slices, Ss, blob_sets)):
+            a = assign[j]
+            sf = fit_sections(model, X0 @ S, a, np.asarray(sl.pixels), sl.pixel_spacing_mm,
+                              float(sl.slice_thickness_mm), b.noise_sigma, footprints=b.footprints,
+                              thickness_samples=opts.section_thickness_samples)
+            ok = sf.fitted.copy()
+            if ok.any():  # a section far from where the locked pose puts it, or faint, is not the tube's
+                shift = np.linalg.norm(sf.position_mm - sf.predicted_mm, axis=1)
+                ok &= (shift <= opts.section_max_shift_px * _pixel_mm(sl)) & (sf.gain >= 0.5 * median(sf.gain[ok]))
+            a[(a >= 0) & ~ok] = -1
+            k = np.flatnonzero(a >= 0)
+            xy = xys[j].copy()
+            xy[a[k]] = sf.position_mm[k]
+            new_xys.append(xy)
+            L = np.zeros_like(sf.info)
+            L[k] = np.swapaxes(np.linalg.cholesky(sf.info[k]), 1, 2)
+            Ls.append(L)
+        n_all = sum(int((a >= 0).sum()) for a in assign)
+        if n_all < opts.min_tubes:
+            raise NoLock(f"only {n_all} tube sections could be fitted; need at least {opts.min_tubes}",
+                         {"n_tubes": n_all})
+        fit = refine(model, new_xys, Ss, X0, gates_mm=(), final_iters=6, assign0=assign, strict_ends=False,
+                     weights=Ls)
+        d = invert(X0) @ fit.T_F_from_scanner
+        if max(abs(d[:3, 3]).max(), abs(d[:3, :3] - np.eye(3)).max()) < 1e-6:
+            break
+    return fit
+
+
 # --------------------------------------------------------------------------- public API
 
 
@@ -1052,6 +1110,10 @@ class SolveOptions:
     centroid_min_purity: float = 0.93
     template_iterations: int = 1
     template_max_disagreement_px: float = 0.5
+    section_fit: bool = True
+    section_iterations: int = 2
+    section_thickness_samples: int = 5
+    section_max_shift_px: float = 1.0
 
 
 def _pixel_mm(sl: Slice) -> float:
@@ -1240,6 +1302,13 @@ def register(slices: list[Slice], geom: FiducialGeometry, *, options: SolveOptio
         if best.n_matched < sum(f.n_matched for f, _ in per_slice):
             raise NoLock("the slices disagree: the joint pose matches fewer tubes than the slices alone",
                          {"n_tubes": best.n_matched})
+    if opts.section_fit and not opts.centroid_model:
+        fine = _section_refine(model, best, xys, Ss, slices, blob_sets, opts)
+        _check_trust(fine, [], model, slices, opts, Ss)
+        if _distinct(fine.T_F_from_scanner, best.T_F_from_scanner, model):
+            raise NoLock("the section fit moved the pose by more than 1 mm or 1 degree: the fit is not stable",
+                         {"n_tubes": fine.n_matched})
+        best = fine
     if opts.centroid_model:
         corrected = _centroid_refine(model, geom.tubes, best, xys, Ss, slices, blob_sets, opts)
         _check_trust(corrected, [], model, slices, opts, Ss)  # only ever stricter: the lock was checked above
