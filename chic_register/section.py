@@ -81,135 +81,247 @@ def tube_frames(model, T_F_from_I: np.ndarray, q: np.ndarray, tan_I: np.ndarray)
     return kappa_F @ R, s_lo, s_hi
 
 
+# the products summed per window: (i, j) of [1, S, Sx, Sy] for i <= j, then each with the pixel value y
+_PAIR_I = np.array([0, 0, 0, 0, 1, 1, 1, 2, 2, 3, 0, 1, 2, 3])
+_PAIR_J = np.array([0, 1, 2, 3, 1, 2, 3, 2, 3, 3, 4, 4, 4, 4])
+_SYM = np.array([[0, 1, 2, 3], [1, 4, 5, 6], [2, 5, 7, 8], [3, 6, 8, 9]])
+
+
+@dataclass(frozen=True, eq=False)
+class Windows:
+    """The pixels each tube's fit uses: ``rows``, ``cols`` (P,) and ``owner`` (P,), the tube index."""
+
+    rows: np.ndarray
+    cols: np.ndarray
+    owner: np.ndarray
+
+
+def section_windows(model, q: np.ndarray, tan: np.ndarray, found: np.ndarray, todo: np.ndarray, shape,
+                    pixel_spacing_mm, slice_thickness_mm: float, assignment=None, footprints=(),
+                    margin_px: float = 1.5) -> Windows:
+    """Each tube in ``todo``'s section box grown by ``margin_px``, less what another tube or blob reaches.
+
+    ``q``, ``tan``, ``found``: :func:`~chic_register.solve.plane_crossings`
+    at the pose. Pixels within half a pixel of another tube's section box,
+    or inside the footprint of a blob that is not the tube's own (nor
+    overlaps it), are left out.
+    """
+    from .solve import _section_extent  # (solve imports this module lazily)
+
+    rs, cs = (float(v) for v in pixel_spacing_mm)
+    H, W = shape
+    half_len, _, u = _section_extent(model, tan, slice_thickness_mm)
+    half_wid = 0.5 * model.diameter_mm  # across its length a section is the tube's width
+    u = np.where((np.abs(u).sum(axis=1) > 0)[:, None], u, [1.0, 0.0])  # a round section: any direction
+    m_mm = margin_px * max(rs, cs)
+    ex = np.abs(u[:, 0]) * half_len + np.abs(u[:, 1]) * half_wid + m_mm
+    ey = np.abs(u[:, 1]) * half_len + np.abs(u[:, 0]) * half_wid + m_mm
+    i0 = np.maximum(0, np.ceil((q[todo, 1] - ey[todo]) / rs)).astype(int)
+    i1 = np.minimum(H - 1, np.floor((q[todo, 1] + ey[todo]) / rs)).astype(int)
+    j0 = np.maximum(0, np.ceil((q[todo, 0] - ex[todo]) / cs)).astype(int)
+    j1 = np.minimum(W - 1, np.floor((q[todo, 0] + ex[todo]) / cs)).astype(int)
+    h, w = np.maximum(i1 - i0 + 1, 0), np.maximum(j1 - j0 + 1, 0)
+    n = h * w
+    idx = np.repeat(np.arange(todo.size), n)
+    local = np.arange(int(n.sum())) - np.repeat(np.cumsum(n) - n, n)
+    rr = i0[idx] + local // np.maximum(w[idx], 1)
+    cc = j0[idx] + local % np.maximum(w[idx], 1)
+    own = todo[idx]
+    # leave out what another tube's section (grown by half a pixel) reaches
+    others = np.flatnonzero(found)
+    dx = (cc * cs)[:, None] - q[others, 0][None]
+    dy = (rr * rs)[:, None] - q[others, 1][None]
+    grow = max(rs, cs)
+    along = np.abs(dx * u[others, 0] + dy * u[others, 1])
+    across = np.abs(dx * u[others, 1] - dy * u[others, 0])
+    mine = others[None] == own[:, None]
+    hit = (along < half_len[others] + grow) & (across < half_wid[others] + grow) & ~mine
+    # and the corners of the bounding box that lie beyond the margin of the tube's own (rotated) section box
+    far = ((along > half_len[others] + m_mm) | (across > half_wid[others] + m_mm)) & mine
+    keep = ~(hit | far).any(axis=1)
+    if len(footprints) and assignment is not None:
+        _drop_foreign_blobs(keep, rr, cc, own, assignment, footprints)
+    return Windows(rr[keep], cc[keep], own[keep])
+
+
+def _drop_foreign_blobs(keep, rr, cc, own, assignment, footprints) -> None:
+    """Clear ``keep`` on window pixels inside an unassigned blob's footprint that does not overlap the tube's own."""
+    assigned = {int(b) for b in assignment if b >= 0}
+    for n, (r0, c0, m) in enumerate(footprints):
+        if n in assigned:
+            continue
+        h, w = m.shape
+        inside = (rr >= r0) & (rr < r0 + h) & (cc >= c0) & (cc < c0 + w)
+        if not inside.any():
+            continue
+        for k in np.unique(own[inside]).tolist():
+            R0, C0, M = footprints[int(assignment[k])]
+            a0, b0 = max(r0, R0), max(c0, C0)
+            a1, b1 = min(r0 + h, R0 + M.shape[0]), min(c0 + w, C0 + M.shape[1])
+            if a0 < a1 and b0 < b1 and (m[a0 - r0:a1 - r0, b0 - c0:b1 - c0] & M[a0 - R0:a1 - R0, b0 - C0:b1 - C0]).any():
+                continue  # a split half of the tube's own blob, or the whole of it
+            sel = np.flatnonzero(inside & (own == k))
+            keep[sel[m[rr[sel] - r0, cc[sel] - c0]]] = False
+
+
+def section_model(model, T_F_from_I: np.ndarray, q: np.ndarray, tan: np.ndarray, win: Windows, pixel_spacing_mm,
+                  slice_thickness_mm: float, thickness_samples: int = 5, exact: bool = True):
+    """The model image of each window pixel's tube and its derivatives for the section moving in the image.
+
+    Returns ``(S, Sx, Sy)`` (P,): the fluid fraction of the pixel and its
+    derivatives (per mm) for the section shifted along x (columns) and y (rows).
+    ``exact=False``: without the edge-curvature term (a first approximation,
+    for a pass whose only job is to bring the next one close).
+    """
+    rs, cs = (float(v) for v in pixel_spacing_mm)
+    thick = float(slice_thickness_mm)
+    kappa, s_lo, s_hi = tube_frames(model, T_F_from_I, q, tan)
+    r_tube = 0.5 * model.diameter_mm
+    own = win.owner
+    # ---- pixels no edge crosses in any plane are wholly fluid (1) or wholly outside (0), with no slope: from
+    # the middle plane, the distance to the centreline moving by at most |t_xy| T / 2 across the slab, plus the
+    # half-diagonal of the pixel and the helix's sag over the window
+    dx0, dy0 = win.cols * cs - q[own, 0], win.rows * rs - q[own, 1]
+    txy = np.hypot(tan[:, 0], tan[:, 1])
+    s00 = dx0 * tan[own, 0] + dy0 * tan[own, 1]
+    dist0 = np.sqrt(np.maximum(dx0 * dx0 + dy0 * dy0 - s00 * s00, 0.0))
+    reach = np.hypot(dx0, dy0) + 0.5 * thick + 0.5 * math.hypot(cs, rs)
+    slack = ((txy * 0.5 * thick)[own] + 0.5 * np.linalg.norm(kappa[own], axis=1) * reach * reach
+             + 0.5 * math.hypot(cs, rs) + 1e-6)
+    clear_end = np.minimum(s_lo[own] + s00, s_hi[own] - s00) - reach
+    S = np.zeros(own.size)
+    Sx, Sy = np.zeros(own.size), np.zeros(own.size)
+    S[(r_tube[own] - dist0 > slack) & (clear_end > 0)] = 1.0
+    band = np.flatnonzero((np.abs(r_tube[own] - dist0) <= slack) | ((r_tube[own] - dist0 > slack) & (clear_end <= 0)))
+    if band.size:
+        S[band], Sx[band], Sy[band] = _section_band(tan, kappa, s_lo, s_hi, r_tube, own[band], dx0[band], dy0[band],
+                                                    cs, rs, thick, thickness_samples,
+                                                    ends=bool((clear_end[band] <= 0).any()), curved=exact)
+    return S, Sx, Sy
+
+
+def _section_band(tan, kappa, s_lo, s_hi, r_tube, own, dx0, dy0, cs: float, rs: float, thick: float,
+                  thickness_samples: int, ends: bool = True, curved: bool = True):
+    """:func:`section_model` at pixels an edge may cross: every plane across the slice, the exact pixel coverage.
+
+    The distance of a point to the centreline is measured from the curve
+    point ``s0 t + kappa s0^2 / 2`` at its arc length ``s0`` along the
+    tangent (the re-projection onto the curve moves it by a second-order
+    amount, below 1e-3 mm for these curvatures). ``ends``: model the end faces;
+    ``curved``: correct the coverage for the curvature of the section's edge.
+    """
+    nz = thickness_samples if thick > 0 else 1
+    sz = (((np.arange(nz) + 0.5) / nz - 0.5) * thick)[None]
+    t, kap = tan[own], kappa[own]
+    tx, ty, tz = t[:, 0:1], t[:, 1:2], t[:, 2:3]
+    dxs, dys = dx0[:, None], dy0[:, None]
+    s0 = (dx0 * tan[own, 0] + dy0 * tan[own, 1])[:, None] + sz * tz  # arc length along the tangent
+    h = 0.5 * s0 * s0
+    ex_ = dxs - s0 * tx - h * kap[:, 0:1]
+    ey_ = dys - s0 * ty - h * kap[:, 1:2]
+    ez_ = sz - s0 * tz - h * kap[:, 2:3]
+    pxy2 = ex_ * ex_ + ey_ * ey_
+    dist = np.sqrt(pxy2 + ez_ * ez_)
+    inv_p = 1.0 / np.sqrt(np.maximum(pxy2, 1e-24))
+    nx, ny = ex_ * inv_p, ey_ * inv_p  # the section edge's in-plane outward normal
+    # in-plane signed distance to the edge (inside > 0), and the pixel's exact coverage of a straight edge
+    delta = (r_tube[own][:, None] - dist) * (dist * inv_p)
+    cov, dcov = _box_edge(delta, cs * np.abs(nx), rs * np.abs(ny))
+    # the edge is curved (curvature of the section's outline at the pixel): the inside loses kappa tau^2 / 2
+    # along the chord of the pixel at the edge, tau its coordinate along the edge from the foot point
+    if curved:
+        cross = (ex_ * ty - ey_ * tx) * inv_p
+        cov -= dcov * _chord_m2(delta, nx, ny, cs, rs) * (0.5 * (1.0 - cross * cross) * inv_p)
+    if ends:  # the tube's end faces: a ramp across the pixel along the centreline
+        inside = np.minimum(s_lo[own][:, None] + s0, s_hi[own][:, None] - s0)
+        end = np.clip(0.5 + inside / np.maximum(cs * np.abs(tx) + rs * np.abs(ty), 1e-12), 0.0, 1.0)
+        cov *= end
+        dcov *= end
+    inv_nz = 1.0 / nz
+    # moving the section by (dx, dy) raises delta by n . (dx, dy)
+    return cov.sum(axis=1) * inv_nz, np.einsum("ij,ij->i", dcov, nx) * inv_nz, np.einsum("ij,ij->i", dcov, ny) * inv_nz
+
+
 def fit_sections(model, T_F_from_I: np.ndarray, assignment: np.ndarray, pixels: np.ndarray, pixel_spacing_mm,
                  slice_thickness_mm: float, noise_sigma: float, *, footprints=(), thickness_samples: int = 5,
-                 margin_px: float = 1.5) -> SectionFit:
+                 margin_px: float = 1.5, windows: Windows | None = None,
+                 shift_iterations: int = 1, exact: bool = True) -> tuple[SectionFit, Windows]:
     """Fit each matched tube's section model to ``pixels`` (rows, cols) at the pose ``T_F_from_I`` (4x4).
 
     ``assignment`` (K,): blob index per tube, -1 for unmatched (not fitted);
     ``footprints``: the detector's ``(row0, col0, mask)`` per blob, whose
     pixels are left out of every other tube's window; ``noise_sigma`` scales
-    the information matrices. See the module docstring.
+    the information matrices; ``windows``: the pixels to use (from an earlier
+    call at a nearby pose), else :func:`section_windows`;
+    ``shift_iterations``: fits per tube, each with the model drawn where the
+    previous one put the section (the first-order fit is then refined to
+    second order); ``exact``: see :func:`section_model`. Returns the fit and
+    the windows. See the module docstring.
     """
-    from .solve import _section_extent, plane_crossings  # (solve imports this module lazily)
+    from .solve import plane_crossings  # (solve imports this module lazily)
 
-    rs, cs = (float(v) for v in pixel_spacing_mm)
-    H, W = pixels.shape
     q, tan, _, found = plane_crossings(model, T_F_from_I, margin_mm=1e-9)
     K = q.shape[0]
     out_pos = np.full((K, 2), np.nan)
     out_info, out_gain = np.zeros((K, 2, 2)), np.zeros(K)
     n_pix, fitted = np.zeros(K, int), np.zeros(K, bool)
     todo = np.flatnonzero((assignment >= 0) & found)
-    if todo.size == 0:
-        return SectionFit(q, out_pos, out_info, out_gain, n_pix, fitted)
-    half_len, _, u = _section_extent(model, tan, slice_thickness_mm)
-    half_wid = 0.5 * model.diameter_mm  # across its length a section is the tube's width
-    u = np.where((np.abs(u).sum(axis=1) > 0)[:, None], u, [1.0, 0.0])  # a round section: any direction
-    kappa, s_lo, s_hi = tube_frames(model, T_F_from_I, q, tan)
-    r_tube = 0.5 * model.diameter_mm
-    # ---- windows: each matched tube's section box grown by the margin, in pixels
-    m_mm = margin_px * max(rs, cs)
-    ex = np.abs(u[:, 0]) * half_len + np.abs(u[:, 1]) * half_wid + m_mm
-    ey = np.abs(u[:, 1]) * half_len + np.abs(u[:, 0]) * half_wid + m_mm
-    rows, cols, owner = [], [], []
-    for k in todo.tolist():
-        i0, i1 = max(0, math.ceil((q[k, 1] - ey[k]) / rs)), min(H - 1, math.floor((q[k, 1] + ey[k]) / rs))
-        j0, j1 = max(0, math.ceil((q[k, 0] - ex[k]) / cs)), min(W - 1, math.floor((q[k, 0] + ex[k]) / cs))
-        if i1 < i0 or j1 < j0:
-            continue
-        ii, jj = np.mgrid[i0:i1 + 1, j0:j1 + 1]
-        rows.append(ii.ravel())
-        cols.append(jj.ravel())
-        owner.append(np.full(ii.size, k))
-    if not rows:
-        return SectionFit(q, out_pos, out_info, out_gain, n_pix, fitted)
-    rr, cc, own = np.concatenate(rows), np.concatenate(cols), np.concatenate(owner)
-    px, py = cc * cs, rr * rs
-    # ---- leave out what another tube's section (grown by half a pixel) or another blob reaches
-    others = np.flatnonzero(found)
-    dx = px[:, None] - q[others, 0][None]
-    dy = py[:, None] - q[others, 1][None]
-    along = np.abs(dx * u[others, 0] + dy * u[others, 1])
-    across = np.abs(dx * u[others, 1] - dy * u[others, 0])
-    grow = 0.5 * max(rs, cs) + 0.5 * max(rs, cs)
-    hit = (along < half_len[others] + grow) & (across < half_wid[others] + grow) & (others[None] != own[:, None])
-    keep = ~hit.any(axis=1)
-    if footprints:
-        keep &= ~_foreign_blob_pixels(rr, cc, own, assignment, footprints, H, W)
-    rr, cc, own, px, py = rr[keep], cc[keep], own[keep], px[keep], py[keep]
-    # ---- the model at every plane of every kept pixel: (P, M)
-    nz = thickness_samples if slice_thickness_mm > 0 else 1
-    sz = ((np.arange(nz) + 0.5) / nz - 0.5) * float(slice_thickness_mm)
-    t = tan[own]
-    kap = kappa[own]
-    dxs = (px - q[own, 0])[:, None]
-    dys = (py - q[own, 1])[:, None]
-    dzs = sz[None]
-    tx, ty, tz = t[:, 0:1], t[:, 1:2], t[:, 2:3]
-    kx, ky, kz = kap[:, 0:1], kap[:, 1:2], kap[:, 2:3]
-    s0 = dxs * tx + dys * ty + dzs * tz  # arc length along the tangent
-    h = 0.5 * s0 * s0
-    ex_, ey_, ez_ = dxs - s0 * tx - h * kx, dys - s0 * ty - h * ky, dzs - s0 * tz - h * kz  # from the curve point
-    ux, uy, uz = tx + s0 * kx, ty + s0 * ky, tz + s0 * kz  # its tangent (unit to first order)
-    al = ex_ * ux + ey_ * uy + ez_ * uz
-    ex_ -= al * ux
-    ey_ -= al * uy
-    ez_ -= al * uz
-    dist = np.sqrt(ex_ * ex_ + ey_ * ey_ + ez_ * ez_)
-    pxy = np.maximum(np.sqrt(ex_ * ex_ + ey_ * ey_), 1e-12)
-    nx, ny = ex_ / pxy, ey_ / pxy  # the section edge's in-plane outward normal
-    # in-plane signed distance to the edge (inside > 0), then the pixel's exact coverage of a straight edge
-    delta = (r_tube[own][:, None] - dist) * (dist / pxy)
-    cov, dcov = _box_edge(delta, cs * np.abs(nx), rs * np.abs(ny))
-    # the edge is curved (curvature of the section's outline at the pixel): the inside loses kappa tau^2 / 2
-    # along the chord of the pixel at the edge, tau its coordinate along the edge from the foot point
-    kap_edge = (pxy * pxy - (ex_ * ty - ey_ * tx) ** 2) / (pxy * pxy * pxy)
-    cov = cov - dcov * _chord_m2(delta, nx, ny, cs, rs) * (0.5 * kap_edge)
-    gx, gy = dcov * nx, dcov * ny  # moving the section by (dx, dy) raises delta by n . (dx, dy)
-    # the tube's end faces: a ramp across the pixel along the centreline
-    s_along = s0 + al
-    inside = np.minimum(s_lo[own][:, None] + s_along, s_hi[own][:, None] - s_along)
-    w_e = np.maximum(cs * np.abs(tx) + rs * np.abs(ty), 1e-12)
-    end = np.clip(0.5 + inside / w_e, 0.0, 1.0)
-    S = (cov * end).mean(axis=1)
-    Sx = (gx * end).mean(axis=1)
-    Sy = (gy * end).mean(axis=1)
-    y = np.asarray(pixels, dtype=float)[rr, cc]
-    # ---- per tube linear least squares y = b + a S + (a dx) Sx + (a dy) Sy, from segment sums
-    feats = (np.ones_like(S), S, Sx, Sy)
-    N = np.empty((K, 4, 4))
-    rhs = np.empty((K, 4))
-    for i in range(4):
-        rhs[:, i] = np.bincount(own, feats[i] * y, minlength=K)
-        for j in range(i, 4):
-            N[:, i, j] = N[:, j, i] = np.bincount(own, feats[i] * feats[j], minlength=K)
-    counts = np.bincount(own, minlength=K)
-    sel = todo[counts[todo] >= 8]
-    if sel.size == 0:
-        return SectionFit(q, out_pos, out_info, out_gain, n_pix, fitted)
-    Ns = N[sel]
-    good = np.linalg.cond(Ns) < 1e12
-    sel, Ns = sel[good], Ns[good]
-    if sel.size == 0:
-        return SectionFit(q, out_pos, out_info, out_gain, n_pix, fitted)
-    Ninv = np.linalg.inv(Ns)
-    theta = np.einsum("kij,kj->ki", Ninv, rhs[sel])
-    a = theta[:, 1]
-    ok = a > 0
-    shift = np.zeros((sel.size, 2))
-    shift[ok] = theta[ok, 2:4] / a[ok, None]  # (x, y) mm: the sample offsets were in mm
-    # information of the shift: (a / sigma)^2 times the inverse of its block of N^-1
-    blk = Ninv[:, 2:4, 2:4]
-    info = np.linalg.inv(blk) * ((a / max(noise_sigma, 1e-12)) ** 2)[:, None, None]
-    out_pos[sel] = q[sel] + shift
+    if windows is None:
+        windows = section_windows(model, q, tan, found, todo, pixels.shape, pixel_spacing_mm, slice_thickness_mm,
+                                  assignment, footprints, margin_px)
+    own = windows.owner
+    if todo.size == 0 or own.size == 0:
+        return SectionFit(q, out_pos, out_info, out_gain, n_pix, fitted), windows
+    y = np.asarray(pixels, dtype=float)[windows.rows, windows.cols]
+    starts = np.flatnonzero(np.r_[True, own[1:] != own[:-1]])  # windows are contiguous, one per tube
+    at = q.copy()  # where each section model is drawn: the crossing, then the fitted position
+    sel = todo
+    for _ in range(max(1, int(shift_iterations))):
+        S, Sx, Sy = section_model(model, T_F_from_I, at, tan, windows, pixel_spacing_mm, slice_thickness_mm,
+                                  thickness_samples, exact)
+        sel, shift, info, a, n_pix = _linear_fit(S, Sx, Sy, y, own, starts, K, sel, noise_sigma)
+        if sel.size == 0:
+            return SectionFit(q, out_pos, out_info, out_gain, n_pix, fitted), windows
+        at[sel] += shift
+    out_pos[sel] = at[sel]
     out_info[sel] = info
     out_gain[sel] = a
-    n_pix[: K] = counts[: K]
-    fitted[sel] = ok
-    out_pos[~fitted] = np.nan
-    out_info[~fitted] = 0.0
-    return SectionFit(q, out_pos, out_info, out_gain, n_pix, fitted)
+    fitted[sel] = True
+    return SectionFit(q, out_pos, out_info, out_gain, n_pix, fitted), windows
+
+
+def _linear_fit(S, Sx, Sy, y, own, starts, K: int, todo, noise_sigma: float):
+    """Per tube least squares ``y = b + a S + (a dx) Sx + (a dy) Sy`` from sums over each window.
+
+    Returns ``(tubes fitted, shift (n, 2) mm, information (n, 2, 2), gain (n,), pixels per tube (K,))``.
+    """
+    F = np.column_stack([np.ones_like(S), S, Sx, Sy, y])
+    prods = F[:, _PAIR_I] * F[:, _PAIR_J]  # (P, 14): the normal matrix's 10 entries, then the right-hand side
+    sums = np.zeros((K, _PAIR_I.size))
+    sums[own[starts]] = np.add.reduceat(prods, starts, axis=0)
+    N = sums[:, _SYM]  # (K, 4, 4)
+    rhs = sums[:, 10:14]
+    n_pix = np.rint(N[:, 0, 0]).astype(int)
+    sel = todo[(n_pix[todo] >= 8) & (N[todo, 1, 1] > 0) & (N[todo, 2, 2] + N[todo, 3, 3] > 0)]
+    Ninv = np.zeros((sel.size, 4, 4))
+    try:
+        Ninv[:] = np.linalg.inv(N[sel])
+    except np.linalg.LinAlgError:  # one singular window: invert one by one
+        for i, k in enumerate(sel.tolist()):
+            try:
+                Ninv[i] = np.linalg.inv(N[k])
+            except np.linalg.LinAlgError:
+                Ninv[i] = np.nan
+    theta = np.einsum("kij,kj->ki", Ninv, rhs[sel])
+    a = theta[:, 1]
+    blk = Ninv[:, 2:4, 2:4]
+    det = blk[:, 0, 0] * blk[:, 1, 1] - blk[:, 0, 1] * blk[:, 1, 0]
+    ok = (a > 0) & np.isfinite(det) & (det > 0)
+    sel, theta, a, blk, det = sel[ok], theta[ok], a[ok], blk[ok], det[ok]
+    # the shift (x, y) mm, and its information: (a / sigma)^2 times the inverse of its block of N^-1
+    inv_blk = np.stack([np.stack([blk[:, 1, 1], -blk[:, 0, 1]], -1), np.stack([-blk[:, 1, 0], blk[:, 0, 0]], -1)], 1)
+    info = inv_blk / det[:, None, None] * ((a / max(noise_sigma, 1e-12)) ** 2)[:, None, None]
+    return sel, theta[:, 2:4] / a[:, None], info, a, n_pix
 
 
 def _box_edge(delta: np.ndarray, A: np.ndarray, B: np.ndarray):
@@ -218,61 +330,34 @@ def _box_edge(delta: np.ndarray, A: np.ndarray, B: np.ndarray):
     ``A``, ``B``: the pixel's two sides projected on the edge normal. The
     share is the distribution function of ``n . p`` for ``p`` uniform over
     the pixel: the convolution of two boxes of widths ``A`` and ``B`` (a
-    trapezoid), so linear in the middle and quadratic in the corners.
+    trapezoid), so linear in the middle and quadratic in the corners:
+    ``(R(d + hi) - R(d + lo) - R(d - lo) + R(d - hi)) / (2 A B)`` with
+    ``R(x) = max(x, 0)^2``, ``hi = (A + B) / 2``, ``lo = |A - B| / 2``.
     """
-    m = np.maximum(np.maximum(A, B), 1e-12)
-    ab = np.maximum(A * B, 1e-12)
-    lo, hi = 0.5 * np.abs(A - B), 0.5 * (A + B)
-    ad = np.abs(delta)
-    tail = hi - ad
-    corner = ad > lo
-    half = np.where(corner, 0.5 - 0.5 * tail * tail / ab, ad / m)  # the share beyond 1/2, from |delta|
-    slope = np.where(corner, tail / ab, 1.0 / m)
-    out = ad >= hi
-    half = np.where(out, 0.5, half)
-    slope = np.where(out, 0.0, slope)
-    return 0.5 + np.copysign(half, delta), slope
+    A = np.maximum(A, 1e-4 * (A + B) + 1e-9)  # (a side along the edge: the limit, a linear ramp)
+    B = np.maximum(B, 1e-4 * (A + B) + 1e-9)
+    hi, lo = 0.5 * (A + B), 0.5 * np.abs(A - B)
+    p1, p2 = np.maximum(delta + hi, 0), np.maximum(delta + lo, 0)
+    p3, p4 = np.maximum(delta - lo, 0), np.maximum(delta - hi, 0)
+    inv = 1.0 / (A * B)
+    share = (p1 * p1 - p2 * p2 - p3 * p3 + p4 * p4) * (0.5 * inv)
+    slope = (p1 - p2 - p3 + p4) * inv
+    return np.minimum(share, 1.0), slope
 
 
 def _chord_m2(delta, nx, ny, cs: float, rs: float):
     """Mean of tau^2 over the chord ``n . p = delta`` of the pixel ``|x| <= cs/2, |y| <= rs/2``; tau along the edge.
 
-    On the chord ``p = delta n + tau (-ny, nx)``; each pair of pixel sides
-    bounds tau to an interval, and over ``[t1, t2]`` the mean of tau^2 is
-    ``(t1^2 + t1 t2 + t2^2) / 3``.
+    On the chord ``p = delta n + tau (-ny, nx)`` each pair of pixel sides
+    bounds tau to an interval (centre, half-width); over their intersection
+    ``[t1, t2]`` the mean of tau^2 is ``(t1^2 + t1 t2 + t2^2) / 3``.
     """
     big = 1e6
-    with np.errstate(divide="ignore", invalid="ignore"):
-        # |delta nx - tau ny| <= cs / 2
-        a1, a2 = (delta * nx - 0.5 * cs) / ny, (delta * nx + 0.5 * cs) / ny
-        b1, b2 = (-0.5 * rs - delta * ny) / nx, (0.5 * rs - delta * ny) / nx
-    ok_a, ok_b = np.abs(ny) > 1e-9, np.abs(nx) > 1e-9
-    lo = np.maximum(np.where(ok_a, np.minimum(a1, a2), -big), np.where(ok_b, np.minimum(b1, b2), -big))
-    hi = np.minimum(np.where(ok_a, np.maximum(a1, a2), big), np.where(ok_b, np.maximum(b1, b2), big))
-    hi = np.maximum(hi, lo)
-    return (lo * lo + lo * hi + hi * hi) / 3.0
-
-
-def _foreign_blob_pixels(rr, cc, own, assignment, footprints, H, W) -> np.ndarray:
-    """Window pixels (P,) inside the footprint of a blob that is not the tube's own (nor overlaps it)."""
-    owner_map = np.full((H, W), -1, dtype=np.int32)
-    assigned = {int(b) for b in assignment if b >= 0}
-    for n, (r0, c0, m) in enumerate(footprints):
-        if n in assigned:
-            continue
-        view = owner_map[r0:r0 + m.shape[0], c0:c0 + m.shape[1]]
-        view[m] = n
-    hit = owner_map[rr, cc] >= 0
-    if not hit.any():
-        return hit
-    # a blob that overlaps the tube's own blob (a split half, or the whole of a split) is not foreign
-    for k in np.unique(own[hit]).tolist():
-        r0, c0, m = footprints[int(assignment[k])]
-        mine = np.zeros((H, W), bool)
-        mine[r0:r0 + m.shape[0], c0:c0 + m.shape[1]] = m
-        sel = hit & (own == k)
-        overl = {int(n) for n in np.unique(owner_map[rr[sel], cc[sel]])
-                 if (owner_map[mine] == n).any()}
-        if overl:
-            hit[sel] &= ~np.isin(owner_map[rr[sel], cc[sel]], list(overl))
-    return hit
+    sy, sx = np.abs(ny) > 1e-6, np.abs(nx) > 1e-6
+    inv_y = 1.0 / np.where(sy, ny, 1.0)
+    inv_x = 1.0 / np.where(sx, nx, 1.0)
+    ca, wa = np.where(sy, delta * nx * inv_y, 0.0), np.where(sy, 0.5 * cs * np.abs(inv_y), big)
+    cb, wb = np.where(sx, -delta * ny * inv_x, 0.0), np.where(sx, 0.5 * rs * np.abs(inv_x), big)
+    lo = np.maximum(ca - wa, cb - wb)
+    hi = np.maximum(np.minimum(ca + wa, cb + wb), lo)
+    return (lo * lo + lo * hi + hi * hi) * (1.0 / 3.0)

@@ -965,9 +965,9 @@ def _template_refine(model: TubeModel, tubes, fit: _Fit, assign, xys, Ss, slices
 def _section_refine(model: TubeModel, fit: _Fit, xys, Ss, slices, blob_sets, opts) -> _Fit:
     """Refit ``fit`` on section-fitted tube positions (:func:`~chic_register.section.fit_sections`).
 
-    ``section_iterations`` times: fit every matched tube's section model at
-    the current pose, then refit the pose on the fitted positions, each
-    weighted by its information matrix. A tube whose section cannot be fitted
+    Up to ``section_iterations`` passes: fit every matched tube's section
+    model at the current pose, then refit the pose on the fitted positions,
+    each weighted by its information matrix. A tube whose section cannot be fitted
     (window too small, no positive gain) is left out, and so is one whose
     fitted section lies more than ``section_max_shift_px`` from where the
     pose predicts it or has less than half the median gain (not the clean
@@ -977,14 +977,24 @@ def _section_refine(model: TubeModel, fit: _Fit, xys, Ss, slices, blob_sets, opt
     from .section import fit_sections
 
     assign = [a.copy() for a in fit.assignments]
+    wins = [None] * len(slices)  # each tube's pixels: chosen at the first pass, kept (the pose barely moves)
+    reach = float(np.max(model.axis_radius_mm, initial=0.0)) + model.length_mm
+    last = False
     for it in range(opts.section_iterations):
         X0 = fit.T_F_from_scanner
         new_xys, Ls = [], []
+        # the passes before the last only bring the last one close: a coarser model (3 planes, straight edges)
+        # and one Gauss-Newton step of the pose do for them; the last pass's model alone sets the result, and
+        # runs once a coarse pass has moved the pose by less than section_close_px (its first-order fit is
+        # then good to a few thousandths of a pixel)
+        last = last or it == opts.section_iterations - 1
         for j, (sl, S, b) in enumerate(zip(slices, Ss, blob_sets)):
             a = assign[j]
-            sf = fit_sections(model, X0 @ S, a, np.asarray(sl.pixels), sl.pixel_spacing_mm,
-                              float(sl.slice_thickness_mm), b.noise_sigma, footprints=b.footprints,
-                              thickness_samples=opts.section_thickness_samples)
+            sf, wins[j] = fit_sections(model, X0 @ S, a, np.asarray(sl.pixels), sl.pixel_spacing_mm,
+                                       float(sl.slice_thickness_mm), b.noise_sigma, footprints=b.footprints,
+                                       thickness_samples=(opts.section_thickness_samples if last
+                                                          else min(3, opts.section_thickness_samples)),
+                                       windows=wins[j], exact=last)
             ok = sf.fitted.copy()
             if ok.any():  # a section far from where the locked pose puts it, or faint, is not the tube's
                 shift = np.linalg.norm(sf.position_mm - sf.predicted_mm, axis=1)
@@ -1001,11 +1011,14 @@ def _section_refine(model: TubeModel, fit: _Fit, xys, Ss, slices, blob_sets, opt
         if n_all < opts.min_tubes:
             raise NoLock(f"only {n_all} tube sections could be fitted; need at least {opts.min_tubes}",
                          {"n_tubes": n_all})
-        fit = refine(model, new_xys, Ss, X0, gates_mm=(), final_iters=6, assign0=assign, strict_ends=False,
-                     weights=Ls)
-        d = invert(X0) @ fit.T_F_from_scanner
-        if max(abs(d[:3, 3]).max(), abs(d[:3, :3] - np.eye(3)).max()) < 1e-6:
+        fit = refine(model, new_xys, Ss, X0, gates_mm=(), final_iters=6 if last else 1, assign0=assign,
+                     strict_ends=False, weights=Ls)
+        if last:
             break
+        d = invert(X0) @ fit.T_F_from_scanner
+        angle = math.acos(min(1.0, max(-1.0, (float(np.trace(d[:3, :3])) - 1) / 2)))
+        moved = float(np.linalg.norm(d[:3, 3])) + angle * reach  # bounds the move of any tube crossing
+        last = moved < opts.section_close_px * min(_pixel_mm(sl) for sl in slices)
     return fit
 
 
@@ -1094,6 +1107,14 @@ class SolveOptions:
     precise than a centroid in white noise) and the pose refitted on those;
     a template landing more than ``template_max_disagreement_px`` from the
     centroid model's position gives :class:`NoLock`. 0 turns it off.
+    ``section_fit`` (the default mode, unless ``centroid_model``): after the
+    lock, each matched tube's section is located by fitting an analytic
+    model of it to its pixels (:mod:`chic_register.section`, with
+    ``section_thickness_samples`` planes across the slice) and the pose is
+    refitted on those positions, weighted by their information; up to
+    ``section_iterations`` passes (see :func:`_section_refine`); tubes whose
+    fit lands more than ``section_max_shift_px`` from the pose's prediction
+    are left out. Off: the pose fitted to blob centroids (faster, biased).
     """
 
     max_rms_px: float = 0.5
@@ -1111,7 +1132,8 @@ class SolveOptions:
     template_iterations: int = 1
     template_max_disagreement_px: float = 0.5
     section_fit: bool = True
-    section_iterations: int = 2
+    section_iterations: int = 5
+    section_close_px: float = 0.2
     section_thickness_samples: int = 5
     section_max_shift_px: float = 1.0
 
