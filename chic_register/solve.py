@@ -329,7 +329,7 @@ def refine(model: TubeModel, blobs_xy: list[np.ndarray], T_scanner_from_image: l
            T_F_from_scanner: np.ndarray, *, gates_mm=(3.0, 1.5, 1.0, 1.0), iters_per_gate: int = 3,
            final_iters: int = 4, damping: float = 1e-6, exclude: list | None = None,
            assign0: list | None = None, offsets_mm: list | None = None, strict_ends: bool = True,
-           weights: list | None = None) -> _Fit:
+           weights: list | None = None, tol: float = 1e-6) -> _Fit:
     """Gauss-Newton on all six DOF of ``T_F_from_scanner`` with re-assignment.
 
     ``blobs_xy``: per slice, detected centres in image mm (N_j, 2). Each gate
@@ -345,6 +345,7 @@ def refine(model: TubeModel, blobs_xy: list[np.ndarray], T_scanner_from_image: l
     information ``L`` (``L^T L`` = the inverse covariance of its measured
     position, mm^-2): the fit then minimises the sum of ``|L (predicted -
     measured)|^2`` (the maximum-likelihood pose for Gaussian position errors).
+    ``tol``: the final iterations stop once a step is below it (rad and mm).
     """
     end_margin = 0.0 if strict_ends else 1e-9
     X = T_F_from_scanner.copy()
@@ -393,7 +394,7 @@ def refine(model: TubeModel, blobs_xy: list[np.ndarray], T_scanner_from_image: l
             X = X @ _exp_se3(xi)
             step = float(np.abs(xi).max())
             # rad and mm: under a gate, close enough to re-assign; at the end, far below any error that matters
-            if step < (1e-3 if gate is not None else 1e-6):
+            if step < (1e-3 if gate is not None else tol):
                 break
         if step > 1e-2:  # still wandering after a whole gate: a hopeless guess, give up
             break
@@ -692,23 +693,21 @@ def _section_refine(model: TubeModel, fit: _Fit, xys, Ss, slices, blob_sets, opt
 
     assign = [a.copy() for a in fit.assignments]
     wins = [None] * len(slices)  # each tube's pixels: chosen at the first pass, kept (the pose barely moves)
-    reach = float(np.max(model.axis_radius_mm, initial=0.0)) + model.length_mm
-    last = False
+    px = min(_pixel_mm(sl) for sl in slices)
+    exact = True
     for it in range(opts.section_iterations):
         X0 = fit.T_F_from_scanner
         new_xys, Ls = [], []
-        # the passes before the last only bring the last one close: a coarser model (3 planes, straight edges)
-        # and one Gauss-Newton step of the pose do for them; the last pass's model alone sets the result, and
-        # runs once a coarse pass has moved the pose by less than section_close_px (its first-order fit is
-        # then good to a few thousandths of a pixel)
-        last = last or it == opts.section_iterations - 1
+        # a pass far from the fit's fixed point only has to bring the next one close: a coarser model (3 planes,
+        # straight edges) and one Gauss-Newton step of the pose do for it; exact passes repeat until one moves
+        # the tube crossings by less than section_done_px (its first-order fit is then exact to ~1e-3 px)
         for j, (sl, S, b) in enumerate(zip(slices, Ss, blob_sets)):
             a = assign[j]
             sf, wins[j] = fit_sections(model, X0 @ S, a, np.asarray(sl.pixels), sl.pixel_spacing_mm,
                                        float(sl.slice_thickness_mm), b.noise_sigma, footprints=b.footprints,
-                                       thickness_samples=(opts.section_thickness_samples if last
+                                       thickness_samples=(opts.section_thickness_samples if exact
                                                           else min(3, opts.section_thickness_samples)),
-                                       windows=wins[j], exact=last)
+                                       windows=wins[j], exact=exact)
             ok = sf.fitted.copy()
             if ok.any():  # a section far from where the locked pose puts it, or faint, is not the tube's
                 shift = np.linalg.norm(sf.position_mm - sf.predicted_mm, axis=1)
@@ -725,14 +724,17 @@ def _section_refine(model: TubeModel, fit: _Fit, xys, Ss, slices, blob_sets, opt
         if n_all < opts.min_tubes:
             raise NoLock(f"only {n_all} tube sections could be fitted; need at least {opts.min_tubes}",
                          {"n_tubes": n_all})
-        fit = refine(model, new_xys, Ss, X0, gates_mm=(), final_iters=6 if last else 1, assign0=assign,
-                     strict_ends=False, weights=Ls)
-        if last:
+        fit = refine(model, new_xys, Ss, X0, gates_mm=(), final_iters=6 if exact else 1, assign0=assign,
+                     strict_ends=False, weights=Ls, tol=1e-5)  # (1e-5 rad, mm: far below the noise)
+        moved = 0.0  # how far the matched tubes' crossings moved in this pass (mm)
+        for j, S in enumerate(Ss):
+            k = np.flatnonzero(assign[j] >= 0)
+            q0 = plane_crossings(model, X0 @ S, margin_mm=5.0)[0][k]
+            q1 = plane_crossings(model, fit.T_F_from_scanner @ S, margin_mm=5.0)[0][k]
+            moved = max(moved, float(np.max(np.linalg.norm(q1 - q0, axis=1), initial=0.0)))
+        if exact and moved < opts.section_done_px * px:
             break
-        d = invert(X0) @ fit.T_F_from_scanner
-        angle = math.acos(min(1.0, max(-1.0, (float(np.trace(d[:3, :3])) - 1) / 2)))
-        moved = float(np.linalg.norm(d[:3, 3])) + angle * reach  # bounds the move of any tube crossing
-        last = moved < opts.section_close_px * min(_pixel_mm(sl) for sl in slices)
+        exact = moved < opts.section_close_px * px
     return fit
 
 
@@ -853,6 +855,7 @@ class SolveOptions:
     section_fit: bool = True
     section_iterations: int = 5
     section_close_px: float = 0.2
+    section_done_px: float = 0.05
     section_thickness_samples: int = 5
     section_max_shift_px: float = 1.0
     prior: np.ndarray | None = None
