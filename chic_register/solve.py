@@ -697,7 +697,7 @@ def _section_refine(model: TubeModel, fit: _Fit, xys, Ss, slices, blob_sets, opt
     exact = True
     for it in range(opts.section_iterations):
         X0 = fit.T_F_from_scanner
-        new_xys, Ls = [], []
+        new_xys, Ls, q_before = [], [], []
         # a pass far from the fit's fixed point only has to bring the next one close: a coarser model (3 planes,
         # straight edges) and one Gauss-Newton step of the pose do for it; exact passes repeat until one moves
         # the tube crossings by less than section_done_px (its first-order fit is then exact to ~1e-3 px)
@@ -708,6 +708,7 @@ def _section_refine(model: TubeModel, fit: _Fit, xys, Ss, slices, blob_sets, opt
                                        thickness_samples=(opts.section_thickness_samples if exact
                                                           else min(3, opts.section_thickness_samples)),
                                        windows=wins[j], exact=exact)
+            q_before.append(sf.predicted_mm)
             ok = sf.fitted.copy()
             if ok.any():  # a section far from where the locked pose puts it, or faint, is not the tube's
                 shift = np.linalg.norm(sf.position_mm - sf.predicted_mm, axis=1)
@@ -729,8 +730,8 @@ def _section_refine(model: TubeModel, fit: _Fit, xys, Ss, slices, blob_sets, opt
         moved = 0.0  # how far the matched tubes' crossings moved in this pass (mm)
         for j, S in enumerate(Ss):
             k = np.flatnonzero(assign[j] >= 0)
-            q0 = plane_crossings(model, X0 @ S, margin_mm=5.0)[0][k]
-            q1 = plane_crossings(model, fit.T_F_from_scanner @ S, margin_mm=5.0)[0][k]
+            q0 = q_before[j][k]
+            q1 = plane_crossings(model, fit.T_F_from_scanner @ S, margin_mm=1e-9)[0][k]
             moved = max(moved, float(np.max(np.linalg.norm(q1 - q0, axis=1), initial=0.0)))
         if exact and moved < opts.section_done_px * px:
             break
