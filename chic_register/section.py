@@ -11,15 +11,19 @@ tubes at once (no renders):
 - the tube near its crossing is a cylinder of radius ``diameter / 2`` about
   the centreline's second-order expansion (tangent and curvature: exact for a
   line, a helix bends by ``kappa s^2 / 2``), with its end faces;
-- a pixel's value is the fluid fraction of the voxel: the mean over
-  ``supersample``² points across the pixel and ``thickness_samples`` planes
-  across the slice thickness of an anti-aliased inside test (a linear ramp
-  across each sample's footprint, as the simulator renders).
+- a pixel's value is the fluid fraction of the voxel, averaged over
+  ``thickness_samples`` planes across the slice thickness (as the simulator
+  renders); in each plane, the exact share of the pixel inside the section's
+  edge taken as straight (a trapezoid in the signed distance,
+  :func:`_box_edge`) less the edge's curvature times the second moment of
+  the pixel's chord along it (:func:`_chord_m2`); pixels no edge crosses are
+  1 or 0 without that work.
 
 For tube ``k`` the window's pixels ``y`` are fitted, to first order in a
 small in-plane shift ``d`` of the section, by ``y = b + a (S(x - d))``
 (``S``: the model at the current pose; offset ``b`` and gain ``a`` free), a
-linear least-squares problem in ``(b, a, a d)``. The tube's measured position
+linear least-squares problem in ``(b, a, a d)`` (solved for all tubes at
+once from per-window sums). The tube's measured position
 is its crossing plus ``d``; its 2 x 2 information matrix (from the same
 normal equations, scaled by ``(a / sigma)^2``) weights it in the pose fit
 (elongated sections locate a tube poorly along their length). The caller
@@ -158,8 +162,10 @@ def _drop_foreign_blobs(keep, rr, cc, own, assignment, footprints) -> None:
             R0, C0, M = footprints[int(assignment[k])]
             a0, b0 = max(r0, R0), max(c0, C0)
             a1, b1 = min(r0 + h, R0 + M.shape[0]), min(c0 + w, C0 + M.shape[1])
-            if a0 < a1 and b0 < b1 and (m[a0 - r0:a1 - r0, b0 - c0:b1 - c0] & M[a0 - R0:a1 - R0, b0 - C0:b1 - C0]).any():
-                continue  # a split half of the tube's own blob, or the whole of it
+            if a0 < a1 and b0 < b1:
+                theirs, mine = m[a0 - r0:a1 - r0, b0 - c0:b1 - c0], M[a0 - R0:a1 - R0, b0 - C0:b1 - C0]
+                if (theirs & mine).any():
+                    continue  # a split half of the tube's own blob, or the whole of it
             sel = np.flatnonzero(inside & (own == k))
             keep[sel[m[rr[sel] - r0, cc[sel] - c0]]] = False
 

@@ -120,3 +120,19 @@ def test_cli_track_igtl_images(stream, neuro_geometry_file, capsys, tmp_path):
     assert (tmp_path / "scenes" / "image_00001" / "scene.mrml").is_file()
     assert main(["track", "somewhere", "--geometry", str(neuro_geometry_file), "--igtl-images", "h:1"]) == 2
     assert "give '-'" in capsys.readouterr().err
+
+
+def test_a_bad_image_is_answered_with_status_and_tracking_goes_on(stream, neuro_geometry):
+    import pyigtl
+
+    bridge = Bridge()
+    tiny = pyigtl.ImageMessage(np.zeros((1, 4, 4), dtype=np.int16), device_name="MRI")  # 4x4: not a slice
+    good = slice_to_image_message(stream[0].slice, "MRI")
+    result = {}
+    th = threading.Thread(target=lambda: result.update(replies=bridge.serve([tiny, good], 6)), daemon=True)
+    th.start()
+    summary = track_images(neuro_geometry, connect=f"127.0.0.1:{bridge.port}", max_images=2, timeout_s=60.0)
+    th.join(30)
+    bad, ok = result["replies"]
+    assert bad[-1].code == 4 and bad[-1].status_string.startswith("bad IMAGE:") and "8x8" in bad[-1].status_string
+    assert ok[-1].code == 1 and [e.status for e in summary.events] == ["no_lock", "ok"]
