@@ -69,6 +69,9 @@ def _parser() -> argparse.ArgumentParser:
                    help="DICOM only: scanner (LPS) position of pixel (0, 0) (default: image centre at 0)")
     m.add_argument("--image-orientation", nargs=6, type=float, metavar="V",
                    help="DICOM only: col_dir and row_dir in the scanner (default 1 0 0 0 1 0)")
+    m.add_argument("--blob-width", type=float, default=1.0, metavar="FACTOR",
+                   help="draw each blob FACTOR x its tube's nominal width, as real images do (0.7-2.5; "
+                        "> 1 blurs, < 1 narrows; default 1)")
     m.add_argument("--volume-shape", nargs=3, type=int, metavar=("NX", "NY", "NZ"),
                    help="volume mode: write a 3-D volume of NX x NY x NZ voxels (--out .nii, .nii.gz, .nrrd, "
                         ".mha or a folder for a DICOM series); its middle k-plane cuts the fiducial at "
@@ -210,6 +213,13 @@ def _print_pose(args, reg, geom) -> None:
     sys.stdout.flush()
 
 
+def _blob_width_check(factor: float) -> tuple[bool, str]:
+    from .simulate import BLOB_WIDTH_RANGE
+
+    lo, hi = BLOB_WIDTH_RANGE
+    return lo <= factor <= hi, f"--blob-width must be {lo:g}..{hi:g} (x the nominal diameter), got {factor:g}"
+
+
 def _run_simulate(args) -> int:
     if args.volume_shape is not None:
         return _run_simulate_volume(args)
@@ -229,6 +239,7 @@ def _run_simulate(args) -> int:
         (0 <= args.slice_thickness <= 100, f"--slice-thickness must be 0..100 mm, got {args.slice_thickness:g}"),
         (args.noise_level >= 0 and np.isfinite(args.noise_level), f"--noise-level must be >= 0, got {args.noise_level:g}"),
         (args.snr > 0 and np.isfinite(args.snr), f"--snr must be > 0, got {args.snr:g}"),
+        _blob_width_check(args.blob_width),
         (0 <= args.distractors <= 1000, f"--distractors must be 0..1000, got {args.distractors}"),
         (all(np.isfinite(v) and abs(v) <= 1e4 for v in (*args.center_offset, *(args.image_position or ()),
                                                           *(args.image_orientation or ()))),
@@ -259,7 +270,7 @@ def _run_simulate(args) -> int:
             missing_tubes=tuple(args.missing),
             image_position=(0.0, 0.0, 0.0) if plain else args.image_position,
             image_orientation=args.image_orientation,
-            rng=np.random.default_rng(args.seed),
+            rng=np.random.default_rng(args.seed), blob_width=args.blob_width,
         )
         n_in_view = len(sim.truth.centres_px)
         if n_in_view == 0 and not args.allow_empty:  # issue 10: an empty image was written with exit 0 in silence
@@ -407,6 +418,7 @@ def _run_simulate_volume(args) -> int:
          f"--voxel-size takes one or three sizes in {MIN_SPACING_MM:g}..{MAX_SPACING_MM:g} mm, "
          f"got {' '.join(f'{v:g}' for v in given)}"),
         (not unsupported, f"{', '.join(unsupported)}: not available in volume mode"),
+        _blob_width_check(args.blob_width),
         (all(np.isfinite(v) and abs(v) <= 1e4 for v in (args.depth, args.tilt, args.azimuth, args.twist)),
          "--depth, --tilt, --azimuth and --twist must be finite numbers within +-10000"),
     ]
@@ -417,8 +429,8 @@ def _run_simulate_volume(args) -> int:
     # axis-aligned volume centred on the scanner origin: the middle k-plane's frame is the identity
     T = invert(slice_frame(args.depth, args.tilt, args.azimuth, args.twist))
     try:
-        sv = simulate_volume(geom, T, (nx, ny, nz), vs, noise=args.noise,
-                             noise_level=args.noise_level, snr=args.snr, rng=np.random.default_rng(args.seed))
+        sv = simulate_volume(geom, T, (nx, ny, nz), vs, noise=args.noise, noise_level=args.noise_level,
+                             snr=args.snr, rng=np.random.default_rng(args.seed), blob_width=args.blob_width)
     except ValueError as exc:
         raise ChicRegisterError(str(exc)) from None
     out = write_volume(sv.volume, args.out)
