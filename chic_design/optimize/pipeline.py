@@ -88,9 +88,9 @@ def _chosen_pictures(req: Requirements, name: str, result: dict, folder: Path) -
     from .precision import protocol_of
 
     t1 = req.required.tilt_deg[1]
-    tilts = sorted({0.0, round(t1 / 2, 1), float(t1), round(1.5 * t1, 1)}) if t1 > 0 else [0.0, 10.0, 20.0]
+    tilts = sorted({0.0, float(t1), round(1.5 * t1, 1)}) if t1 > 0 else [0.0, 10.0, 20.0]
     L = spec.body.length
-    pmap = precision_map(geom, protocol_of(req), depths_mm=[round(L * f, 1) for f in (0.1, 0.25, 0.4, 0.55, 0.7, 0.85)],
+    pmap = precision_map(geom, protocol_of(req), depths_mm=[round(L * f, 1) for f in (0.1, 0.3, 0.5, 0.7, 0.9)],
                          tilts_deg=tilts, target_F_mm=req.required.target_mm)
     write_json(folder / "precision_map.json", pmap.to_dict())
     save_precision_map(pmap, report.tilt_limits, folder / "precision_map.png",
@@ -111,6 +111,7 @@ def optimize(req_path, out_dir=None, trials: int | None = None, seed: int = 0, s
         bspec = load_spec(bpath)
         baseline = score_spec(bspec, req, None)
         start = space.params_from_spec(bspec, req)
+    start = start if start is not None else space.default_start(req)
     engine = make_engine(scheduler, workers)
     try:
         with ResultStore(out / "candidates.sqlite") as store:

@@ -144,6 +144,21 @@ def neighbours(params: dict, req: Requirements) -> list[dict]:
     return out
 
 
+def default_start(req: Requirements) -> dict:
+    """Where the search starts without a baseline: the roomiest body with the shipped marker layout.
+
+    Largest allowed outer diameter and length, narrowest printable channel on
+    a circle three quarters of the way out (more room between the tubes),
+    and the layout of ``designs/needle-guide.yaml``: helix offset 15 deg,
+    orientation tubes 24 and 60 deg into the free quadrant 3.
+    """
+    r = int_ranges(req)
+    return {"od_halfmm": r["od_halfmm"][1], "length_mm": r["length_mm"][1],
+            "channel_tenthmm": r["channel_tenthmm"][0], "circle_pos": (3 * CIRCLE_STEPS) // 4,
+            "offset_deg": 15, "direction": 1, "free_quadrant": 3, "n_orientation": 2,
+            "orient_a_deg": 24, "orient_b_deg": 60}
+
+
 def params_from_spec(spec, req: Requirements) -> dict | None:
     """The candidate parameters that reproduce ``spec``'s design, or None if it is outside the space.
 
