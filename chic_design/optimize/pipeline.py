@@ -27,6 +27,7 @@ from .confirm import confirm_design
 from .engine import make_engine
 from .errors import NoFeasibleDesign
 from .report import report_markdown, table_row, write_csv, write_spec
+from .precision import method as precision_method
 from .requirements import Requirements, baseline_path, load_requirements
 from .score import dominates, score_spec
 from .search import SearchResult, run_search
@@ -97,6 +98,15 @@ def _chosen_pictures(req: Requirements, name: str, result: dict, folder: Path) -
                        f"{name}: predicted TRE at {list(req.required.target_mm)} mm (CRLB)")
 
 
+def _beats_baseline(named, baseline):
+    """The first design in choice order better than the baseline somewhere and worse nowhere; else an equal one."""
+    if baseline is None or not baseline["feasible"]:
+        return None
+    strict = [(n, r) for n, r in named if dominates(r["objectives"], baseline["objectives"])]
+    equal = [(n, r) for n, r in named if weakly_dominating([r], baseline)]
+    return (strict or equal or [None])[0]
+
+
 def optimize(req_path, out_dir=None, trials: int | None = None, seed: int = 0, scheduler: str | None = None,
              workers: int | None = None, progress: bool = True, confirm: int | None = None,
              pictures: bool = True) -> OptimizeResult:
@@ -109,7 +119,7 @@ def optimize(req_path, out_dir=None, trials: int | None = None, seed: int = 0, s
     baseline, start = None, None
     if bpath is not None:
         bspec = load_spec(bpath)
-        baseline = score_spec(bspec, req, None)
+        baseline = score_spec(bspec, req, bspec.model_dump())
         start = space.params_from_spec(bspec, req)
     start = start if start is not None else space.default_start(req)
     engine = make_engine(scheduler, workers)
@@ -124,7 +134,12 @@ def optimize(req_path, out_dir=None, trials: int | None = None, seed: int = 0, s
         for rank, i in enumerate(order, 1):
             nm = f"{req.name}-p{rank:02d}"
             named.append((nm, {**front[i], "spec": {**front[i]["spec"], "name": nm}}))
+        beats = _beats_baseline(named, baseline)
         finalists = named[:n_confirm]
+        if n_confirm and beats is not None and beats not in finalists:
+            finalists.append(beats)
+        if n_confirm and baseline is not None and baseline["feasible"]:
+            finalists.append(("baseline", baseline))
         jobs = [(r["spec"], req.model_dump(), req.search.confirm_draws, seed) for _, r in finalists]
         confirmed = {}
         if jobs:
@@ -132,13 +147,6 @@ def optimize(req_path, out_dir=None, trials: int | None = None, seed: int = 0, s
                 confirmed[finalists[i][0]] = res
     finally:
         engine.close()
-    beats = None
-    if baseline is not None and baseline["feasible"]:
-        # the first design in choice order that beats the baseline (better somewhere, worse nowhere);
-        # else one that equals it
-        strict = [(n, r) for n, r in named if dominates(r["objectives"], baseline["objectives"])]
-        equal = [(n, r) for n, r in named if r in weakly_dominating([r], baseline)]
-        beats = (strict or equal or [None])[0]
     specs = out / "specs"
     specs.mkdir(parents=True, exist_ok=True)
     wanted = {f"{n}.yaml" for n, _ in named}
@@ -157,7 +165,7 @@ def optimize(req_path, out_dir=None, trials: int | None = None, seed: int = 0, s
     ctx = {"req": req, "req_path": str(req_path), "search": search, "named": named, "rows": rows,
            "baseline": baseline, "baseline_path": str(bpath) if bpath else None, "beats_baseline": beats,
            "confirmed": confirmed, "confirm_named": finalists, "pictures": pictures, "distances": dist,
-           "precision_method": named[0][1]["precision"]["method"]}
+           "precision_method": precision_method(req)}
     write_text(out / "report.md", report_markdown(ctx))
     result = OptimizeResult(out, search, tuple(named), baseline, beats, confirmed)
     write_json(out / "result.json", {
