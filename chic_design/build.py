@@ -31,12 +31,13 @@ from chic_register.geometry import write_geometry
 from .cad import FiducialParts, build_parts
 from .errors import InfeasibleDesign
 from .feasibility import check_design
-from .layout import fiducial_geometry
+from .layout import design_geometry
 from .lifeline import die_with_parent
 from .preview import preview_job, tilt_plot_job
 from .printability import HARD_CODES
 from .report import build_report
 from .spec import Spec, load_spec, spec_sha256
+from chic_register.stl import declare_space
 from .verify import STL_ANGULAR_TOLERANCE_RAD, STL_TOLERANCE_MM, VerifyResult, verify_export
 
 TMP_PREFIX = ".{name}.tmp-"  # + "<owner pid>-<random>"
@@ -86,6 +87,15 @@ class _Steps:
             print(f"chic-design: [{len(self.timings)}/{self.total}] {name} {dt:.2f} s", file=sys.stderr, flush=True)
 
 
+def design_parts(spec, geometry) -> FiducialParts:
+    """The printed parts of any spec family (CHIC: :func:`build_parts`; Z-frame: its own module)."""
+    if getattr(spec, "family", "chic") == "zframe":
+        from .zframe_cad import build_zframe_parts
+
+        return build_zframe_parts(spec, geometry)
+    return build_parts(spec, geometry)
+
+
 def export_parts(parts: FiducialParts, folder: Path, name: str) -> list[str]:
     """Write each part as STL, STEP and 3MF (mm, named) plus ``assembly.step``; returns file names."""
     written = []
@@ -99,6 +109,7 @@ def export_parts(parts: FiducialParts, folder: Path, name: str) -> list[str]:
                          angular_deflection=STL_ANGULAR_TOLERANCE_RAD, part_number=part_name)
         mesher.write(str(folder / f"{part_name}.3mf"))
         mesher.write(str(folder / f"{part_name}.stl"))
+        declare_space(folder / f"{part_name}.stl")  # SPACE=LPS: Slicer reads F as the .tfm expects
         written += [f"{part_name}.stl", f"{part_name}.step", f"{part_name}.3mf"]
     if not export_step(parts.assembly(name), folder / "assembly.step"):
         raise OSError(f"{folder}/assembly.step: STEP export failed")
@@ -231,7 +242,7 @@ def build_design(spec_path, out_root="exports", force: bool = False, progress: b
         spec = load_spec(spec_path)
     with steps.step("geometry"):
         source = {"spec": str(spec_path), "spec_sha256": spec_sha256(spec_path)}
-        geometry = fiducial_geometry(spec, source=source)
+        geometry = design_geometry(spec, source=source)
     out_root = Path(out_root)
     out_root.mkdir(parents=True, exist_ok=True)
     final = out_root / spec.name
@@ -248,7 +259,7 @@ def build_design(spec_path, out_root="exports", force: bool = False, progress: b
                 raise InfeasibleDesign(spec_path, hard or feasibility.violations, forceable=not hard)
             pictures.submit("tilt plot", tilt_plot_job, feasibility, tmp)
         with steps.step("CAD model"):
-            parts = build_parts(spec, geometry)
+            parts = design_parts(spec, geometry)
             volumes = {name: float(p.volume) for name, p in parts.items()}
         with steps.step("export STL/STEP/3MF"):
             write_geometry(geometry, tmp / "geometry.yaml")

@@ -38,6 +38,10 @@ class ImageReadError(ChicRegisterError):
         super().__init__(f"{self.path}: {message}")
 
 
+class OutputError(ChicRegisterError):
+    """An output that cannot be written or sent (a missing folder, a closed OpenIGTLink peer)."""
+
+
 class NoLock(ChicRegisterError):
     """No trustworthy pose: the solver refuses rather than guess (exit 3)."""
 
@@ -47,3 +51,7 @@ class NoLock(ChicRegisterError):
         self.reason = reason
         self.detail = detail or {}
         super().__init__(reason)
+
+
+class ImprecisePose(NoLock):
+    """A pose that verifies but whose predicted error exceeds the trust limits (the solver may refine it first)."""
