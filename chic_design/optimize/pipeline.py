@@ -25,7 +25,7 @@ from . import space
 from .choose import compare, ideal_distances, knee_order, weakly_dominating
 from .confirm import confirm_design
 from .engine import make_engine
-from .errors import NoFeasibleDesign
+from .errors import NoFeasibleDesign, RequirementsError
 from .report import report_markdown, table_row, write_csv, write_spec
 from .precision import method as precision_method
 from .requirements import Requirements, baseline_path, load_requirements
@@ -119,6 +119,9 @@ def optimize(req_path, out_dir=None, trials: int | None = None, seed: int = 0, s
     baseline, start = None, None
     if bpath is not None:
         bspec = load_spec(bpath)
+        if getattr(bspec, "family", "chic") != "chic":
+            raise RequirementsError(f"{req_path}: search.baseline: {bpath} is a {bspec.family} design; the "
+                                    "optimiser searches CHIC designs, so the baseline must be one")
         baseline = score_spec(bspec, req, bspec.model_dump())
         start = space.params_from_spec(bspec, req)
     start = start if start is not None else space.default_start(req)

@@ -35,7 +35,7 @@ from . import space
 from .precision import predicted_precision
 from .requirements import Requirements
 
-SCORER_VERSION = "2"
+SCORER_VERSION = "3"
 OBJECTIVES = ("outer_diameter_mm", "usable_region_deg_mm", "tre_mm")
 DIRECTIONS = ("minimize", "maximize", "minimize")
 N_CONSTRAINTS = 4
@@ -107,7 +107,9 @@ def evaluate_candidate(params: dict, req_data: dict) -> dict:
     try:
         spec = parse_spec(data, "<candidate>")
     except SpecError as exc:
-        return _infeasible([str(exc).removeprefix("<candidate>: ")], [1.0, 0.0, 0.0, 0.0], data, t0)
+        # graded, so the optimiser learns which way the wall is too thin for the channels
+        c0 = 1.0 + space.wall_deficit_mm(params, req)
+        return _infeasible([str(exc).removeprefix("<candidate>: ")], [c0, 0.0, 0.0, 0.0], data, t0)
     out = score_spec(spec, req, data)
     out["cpu_s"] = time.process_time() - t0
     return out

@@ -88,6 +88,13 @@ def circle_span_mm(req: Requirements, od_mm: float, channel_mm: float) -> tuple[
     return req.tool.bore_mm + channel_mm + 2 * w, od_mm - channel_mm - 2 * w
 
 
+def wall_deficit_mm(params: dict, req: Requirements) -> float:
+    """How much wider the body must be for the channels to fit with ``min_wall`` both sides (0 = fits)."""
+    p = canonical(params)
+    lo, hi = circle_span_mm(req, p["od_halfmm"] / 2, p["channel_tenthmm"] / 10)
+    return max(0.0, lo - hi)
+
+
 def spec_dict(params: dict, req: Requirements, name: str) -> dict:
     """The design spec (as a YAML-ready mapping) of a candidate; validated by ``chic_design.spec``."""
     p = canonical(params)
