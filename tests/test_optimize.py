@@ -28,7 +28,7 @@ SMALL_START = {"od_halfmm": 32, "length_mm": 28, "channel_tenthmm": 16, "circle_
 
 
 def _data(path=SMALL) -> dict:
-    return yaml.safe_load(Path(path).read_text())
+    return yaml.safe_load(Path(path).read_text(encoding="utf-8"))
 
 
 # ----------------------------------------------------------------------------- requirements

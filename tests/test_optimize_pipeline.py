@@ -38,7 +38,7 @@ def test_optimize_specs_validate_and_the_chosen_one_builds_and_registers(tmp_pat
                  "--quiet"]) == 0
     summary = capsys.readouterr().out
     assert "chosen: small-p01" in summary
-    rows = list(csv.DictReader((out / "pareto.csv").open()))
+    rows = list(csv.DictReader((out / "pareto.csv").open(encoding="utf-8")))
     specs = sorted((out / "specs").glob("*.yaml"))
     assert sorted(r["name"] for r in rows) == [p.stem for p in specs]
     for p in specs:  # every spec written validates and is feasible for its protocol
@@ -47,7 +47,7 @@ def test_optimize_specs_validate_and_the_chosen_one_builds_and_registers(tmp_pat
     for f in ("report.md", "pareto.png", "chosen/preview.png", "chosen/tilt_limits.png",
               "chosen/precision_map.png", "confirm.json", "candidates.sqlite"):
         assert (out / f).is_file(), f
-    report = (out / "report.md").read_text()
+    report = (out / "report.md").read_text(encoding="utf-8")
     assert "Against the baseline" in report and "Confirmed by simulation" in report
     # the chosen design builds, and its geometry file registers a simulated slice
     res = build_design(out / "specs" / "small-p01.yaml", out_root=tmp_path / "exports", progress=False)

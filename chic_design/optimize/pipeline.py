@@ -167,6 +167,8 @@ def optimize(req_path, out_dir=None, trials: int | None = None, seed: int = 0, s
     dist = [float(d) for d in ideal_distances([r for _, r in named])]
     ctx = {"req": req, "req_path": str(req_path), "search": search, "named": named, "rows": rows,
            "baseline": baseline, "baseline_path": str(bpath) if bpath else None, "beats_baseline": beats,
+           "all_beating": [(n, r) for n, r in named if baseline is not None and baseline["feasible"]
+                           and dominates(r["objectives"], baseline["objectives"])],
            "confirmed": confirmed, "confirm_named": finalists, "pictures": pictures, "distances": dist,
            "precision_method": precision_method(req)}
     write_text(out / "report.md", report_markdown(ctx))

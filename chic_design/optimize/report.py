@@ -143,6 +143,16 @@ def report_markdown(ctx: dict) -> str:
                 L += [f"`{best[0]}` is at least as good as the baseline on every objective:", ""]
                 L += _cmp_lines(compare(best[1], b), best[0], "baseline")
                 L.append("")
+                beating = ctx.get("all_beating") or []
+                if beating:
+                    L += [f"All {len(beating)} Pareto designs that beat the baseline (better somewhere, worse "
+                          "nowhere), difference to it:", "",
+                          "| design | " + " | ".join(LABELS[k][0] for k in OBJECTIVES) + " |",
+                          "|---|" + "---|" * len(OBJECTIVES)]
+                    for n, r in beating:
+                        cells = [f"{c['diff']:+.4g} {c['unit']} ({100 * c['rel']:+.1f} %)" for c in compare(r, b)]
+                        L.append(f"| {n} | " + " | ".join(cells) + " |")
+                    L.append("")
     if ctx.get("confirmed"):
         L += ["## Confirmed by simulation", "",
               "Simulated slices (Rician noise at the required SNR, the required pixel size and slice "
