@@ -1,4 +1,4 @@
-"""``chic-design``: build a CHIC fiducial from a spec, check its feasibility, print the spec schema.
+"""``chic-design``: build a CHIC fiducial from a spec, check its feasibility, print the spec schema, search designs.
 
 A thin layer over the library: :func:`chic_design.build.build_design`,
 :func:`chic_design.feasibility.check_design`, :func:`chic_design.spec.json_schema`.
