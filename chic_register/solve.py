@@ -34,7 +34,7 @@ import numpy as np
 from scipy.optimize import linear_sum_assignment
 
 from .detect import Blobs, _dilate, detect_blobs
-from .errors import NoLock
+from .errors import ImprecisePose, NoLock
 from .geometry import FiducialGeometry, HelixTube, LineTube, content_sha256
 from .hypotheses import (  # noqa: F401  (the first-guess stage; its public names stay importable from here)
     Ellipse,
@@ -692,9 +692,11 @@ class SliceResult:
     blobs_rc: np.ndarray = field(repr=False, default=None)
     predicted_rc: dict = field(repr=False, default=None)
     ellipse: Ellipse | None = field(repr=False, default=None)
+    missing_tubes: tuple[str, ...] = ()
 
     def to_dict(self) -> dict:
         return {
+            **({"missing_tubes": list(self.missing_tubes)} if self.missing_tubes else {}),
             "source": self.source,
             "depth_mm": round(self.depth_mm, 6),
             "tilt_deg": round(self.tilt_deg, 6),
@@ -752,6 +754,15 @@ class SolveOptions:
     precise than a centroid in white noise) and the pose refitted on those;
     a template landing more than ``template_max_disagreement_px`` from the
     centroid model's position gives :class:`NoLock`. 0 turns it off.
+    ``verify``: before ``ok``, prove the pose against the image
+    (:mod:`chic_register.verify_pose`: envelope, every predicted section
+    present with its shape, nothing unexplained on the tubes' circle, pixel
+    spacing, no rival that explains the pixels nearly as well, and a
+    predicted error (3 sigma) within ``trust_tre_mm`` at the frame centre and
+    ``trust_rot_deg``; when only that last test fails in the fast mode and
+    ``refine_when_imprecise``, the accuracy mode's refinement is tried before
+    refusing); off only for
+    studies of the raw fit.
     ``prior``: an approximate ``T_scanner_from_fiducial`` (4x4, only its
     rotation is used): poses turned more than ``prior_max_deg`` from it are
     never considered. It is what resolves a geometry that maps onto itself
@@ -773,6 +784,10 @@ class SolveOptions:
     centroid_min_purity: float = 0.93
     template_iterations: int = 1
     template_max_disagreement_px: float = 0.5
+    verify: bool = True
+    trust_tre_mm: float = 0.5
+    trust_rot_deg: float = 0.5
+    refine_when_imprecise: bool = True
     prior: np.ndarray | None = None
     prior_max_deg: float = 60.0
 
@@ -992,7 +1007,7 @@ def register(slices: list[Slice], geom: FiducialGeometry, *, options: SolveOptio
         xys.append(_to_xy_mm(b, sl))
     t1 = time.perf_counter()
     Ss = [sl.T_scanner_from_image() for sl in slices]
-    per_slice = []
+    per_slice, rivals = [], []
     for sl, xy, S in zip(slices, xys, Ss):
         try:
             fits, ell = _solve_one(model, xy, S, opts, _pixel_mm(sl))
@@ -1002,6 +1017,7 @@ def register(slices: list[Slice], geom: FiducialGeometry, *, options: SolveOptio
                 raise NoLock(f"{sl.source}: {exc.reason}", exc.detail) from None
             raise
         per_slice.append((fits[0], ell))
+        rivals.append(fits[1:])
     if len(slices) == 1:
         best = per_slice[0][0]
     else:
@@ -1019,6 +1035,24 @@ def register(slices: list[Slice], geom: FiducialGeometry, *, options: SolveOptio
             raise NoLock("the centroid model moved the pose by more than 1 mm or 1 degree: the fit is not stable",
                          {"n_tubes": corrected.n_matched})
         best = corrected
+    checks = None
+    if opts.verify:  # the last word: the pose proved against the pixels (chic_register.verify_pose)
+        from .verify_pose import verify_fit
+
+        try:
+            checks = verify_fit(geom, model, best, rivals, slices, Ss, blob_sets, opts)
+        except ImprecisePose:
+            if opts.centroid_model or not opts.refine_when_imprecise:
+                raise
+            # verified but not precise enough from the centroids: fit the sections themselves (the accuracy
+            # mode), then decide on that
+            accurate = _centroid_refine(model, geom.tubes, best, xys, Ss, slices, blob_sets, opts)
+            _check_trust(accurate, [], model, slices, opts, Ss)
+            if _distinct(accurate.T_F_from_scanner, best.T_F_from_scanner, model):
+                raise NoLock("the accuracy refinement moved the pose by more than 1 mm or 1 degree: the fit is "
+                             "not stable", {"n_tubes": accurate.n_matched}) from None
+            best = accurate
+            checks = verify_fit(geom, model, best, rivals, slices, Ss, blob_sets, opts)
     t2 = time.perf_counter()
     T_sf = invert(best.T_F_from_scanner)
     results = []
@@ -1041,6 +1075,7 @@ def register(slices: list[Slice], geom: FiducialGeometry, *, options: SolveOptio
             predicted_rc={model.ids[i]: (float(q[i, 1] / px[0]), float(q[i, 0] / px[1]))
                           for i in np.flatnonzero(inside)},
             ellipse=per_slice[j][1],
+            missing_tubes=checks[j].missing if checks else (),
         ))
     t3 = time.perf_counter()
     timing = {"detect": (t1 - t0) * 1e3, "pose": (t2 - t1) * 1e3, "total": (t3 - t0) * 1e3}
