@@ -150,8 +150,10 @@ class Clearance:
     ``b`` is a tube id or ``bore``, ``outside``, ``bottom_face``, ``top_face``.
     ``gap_mm`` < 0 means overlap. ``status``: ok, thin, intersect, open (a
     channel that runs through an end face by design), too_thin (a wall violation).
-    ``intersect_z_mm`` / ``thin_z_mm``: z-ranges (on channel ``a``) where they
-    intersect / are closer than the minimum wall.
+    ``intersect_z_mm``: z-ranges where they intersect (where their sections by
+    planes z = const overlap: :func:`chic_design.contacts.channel_contacts`, the
+    answer the report gives too); ``thin_z_mm``: z-ranges (on channel ``a``)
+    where they are closer than the minimum wall.
     """
 
     a: str
@@ -228,15 +230,28 @@ class Unambiguity:
     min_mismatch_mm: float | None
     symmetries: tuple[Symmetry, ...]
     helix_crossings: tuple[Finding, ...]
+    frame_symmetries: tuple | None = None  # 3-D (Z-frame family): chic_design.frame_symmetry
+    frame_min_mismatch_mm: float | None = None
+
+    @property
+    def unambiguous(self) -> bool:
+        """No symmetry of the slice pattern or (where checked) of the whole fiducial."""
+        return not self.symmetries and not self.helix_crossings and not self.frame_symmetries
 
     def to_dict(self) -> dict:
-        return {
+        out = {
             "tolerance_mm": round(self.tolerance_mm, 4),
             "tolerance_rule": "max(pixel size, 5% of the tube diameter)",
             "min_mismatch_mm": None if self.min_mismatch_mm is None else round(self.min_mismatch_mm, 4),
             "symmetries": [s.to_dict() for s in self.symmetries],
             "helix_leaves_quadrant": [f.to_dict() for f in self.helix_crossings],
         }
+        if self.frame_symmetries is not None:
+            out["frame_symmetries"] = [f.to_dict() for f in self.frame_symmetries]
+            out["frame_min_mismatch_mm"] = (None if self.frame_min_mismatch_mm is None
+                                            else round(self.frame_min_mismatch_mm, 4))
+            out["unambiguous"] = self.unambiguous
+        return out
 
 
 @dataclass(frozen=True)
@@ -285,6 +300,8 @@ class FeasibilityReport:
     unambiguity: Unambiguity
     depth_sensitivity: DepthSensitivity
     plot_name: str = "tilt_limits.png"
+    family: str = "chic"
+    n_tubes: int = 0
 
     @property
     def feasible(self) -> bool:
@@ -328,6 +345,9 @@ class FeasibilityReport:
             f"limited by {mid.limited_by} (worst azimuth {mid.azimuth_deg:.1f} deg); "
             f"visibility alone (every tube inside the body) allows {mid.visibility_tilt_deg:.1f} deg",
         ]
+        if self.family == "zframe":  # what a Z-frame user asks: where are all rods seen apart
+            lines.append(f"usable = all {self.n_tubes} rods visible and separate (one blob each, at least one "
+                         "pixel apart), for every azimuth:")
         for u in self.usable_depth:
             rng = ", ".join(f"{a:g}-{b:g} mm" for a, b in u.ranges_mm) or "none"
             lines.append(f"usable depth at tilt {u.tilt_deg:g} deg: {rng} ({u.total_mm:g} mm)")
@@ -561,10 +581,15 @@ def channel_clearances(geom: FiducialGeometry, min_wall_mm: float, spacing_mm: f
     viol: list[Finding] = []
     warn: list[Finding] = []
     body = geom.body
-    r_in, r_out, length = body.inner_diameter / 2, body.outer_diameter / 2, body.length
+    length = body.length
+    from .contacts import channel_contacts
+
+    # z-ranges where two channels touch: the one answer (contacts), also used by the report
+    touch = {frozenset((c.a, c.b)): c.z_ranges_mm for c in channel_contacts(geom)}
     for i, j in _pair_order(geom):
         a, b = geom.tubes[i], geom.tubes[j]
         gap, z, inter, thin = _pair_gap(a, b, min_wall_mm, spacing_mm)
+        inter = touch.get(frozenset((a.id, b.id)), inter)
         if gap < 0:
             status = "intersect"
             warn.append(Finding("channels_intersect", f"channels {a.id} and {b.id} intersect (overlap "
@@ -580,8 +605,7 @@ def channel_clearances(geom: FiducialGeometry, min_wall_mm: float, spacing_mm: f
     for tube in geom.tubes:
         r = tube.diameter / 2
         _, p, _ = _samples(tube, spacing_mm)
-        rho = np.hypot(p[:, 0], p[:, 1])
-        for name, gaps in (("bore", rho - r_in - r), ("outside", r_out - rho - r)):
+        for name, gaps in (("bore", body.bore_gap_mm(p[:, :2]) - r), ("outside", body.outside_gap_mm(p[:, :2]) - r)):
             k = int(np.argmin(gaps))
             g = float(gaps[k])
             bad = g < min_wall_mm - _WALL_TOL_MM
@@ -751,6 +775,12 @@ def check_geometry(geom: FiducialGeometry, *, pixel_size_mm: float, slice_thickn
     usable_z = np.concatenate([np.linspace(a, b, max(2, int(math.ceil((b - a) / 0.1)) + 1))
                                for a, b in usable[0].ranges_mm] or [np.empty(0)])
     syms, mismatch = pattern_symmetries(geom, usable_z, tol)
+    if geom.family == "zframe":
+        from .zframe_check import zframe_unambiguity
+
+        unamb, w = zframe_unambiguity(geom, usable[0].ranges_mm, mismatch, crossings, tol)
+        warnings += w
+        syms = ()  # reported as warnings above
     for sym in syms:
         a, b = sym.depth_range_mm
         violations.append(Finding("symmetric_pattern", f"the tilt-0 marker pattern maps onto itself under a "
@@ -758,7 +788,8 @@ def check_geometry(geom: FiducialGeometry, *, pixel_size_mm: float, slice_thickn
                                   f"{sym.at_depth_mm:.2f} mm; tolerance {tol:.2f} mm): twist/depth are "
                                   "ambiguous; move the orientation tubes so that no tube is equally far "
                                   "from its two neighbours", f"z {a:.2f}-{b:.2f} mm"))
-    unamb = Unambiguity(tol, mismatch, syms, crossings)
+    if geom.family != "zframe":
+        unamb = Unambiguity(tol, mismatch, syms, crossings)
     sens = depth_sensitivity(geom, pixel_size_mm)
     return FeasibilityReport(
         name=geom.name,
@@ -775,6 +806,8 @@ def check_geometry(geom: FiducialGeometry, *, pixel_size_mm: float, slice_thickn
         overhangs=overhangs,
         unambiguity=unamb,
         depth_sensitivity=sens,
+        family=geom.family,
+        n_tubes=len(geom.tubes),
     )
 
 
@@ -792,10 +825,10 @@ def symmetry_tolerance(geom: FiducialGeometry, pixel_size_mm: float) -> float:
 def check_design(spec: Spec, pixel_size_mm: float | None = None,
                  slice_thickness_mm: float | None = None) -> FeasibilityReport:
     """Feasibility of ``spec`` for its imaging protocol (pixel size / slice thickness overridable)."""
-    from .layout import fiducial_geometry
+    from .layout import design_geometry
     from .printability import build_violations
 
-    geom = fiducial_geometry(spec)
+    geom = design_geometry(spec)
     pixel = spec.imaging.pixel_size if pixel_size_mm is None else float(pixel_size_mm)
     report = check_geometry(
         geom,
