@@ -80,10 +80,11 @@ class OutputPlan:
 
     @classmethod
     def from_args(cls, args) -> "OutputPlan":
+        wait = getattr(args, "igtl_wait", None)
         return cls(**{k: getattr(args, k, None) for k in ("tfm", "scene", "overlay", "igtl", "igtl_listen")},
-                   igtl_name=getattr(args, "igtl_name", "CHIC") or "CHIC",
-                   igtl_wait_s=getattr(args, "igtl_wait", 10.0) if getattr(args, "igtl_wait", None) is not None
-                   else 10.0, geometry_path=getattr(args, "geometry", None))
+                   igtl_name=getattr(args, "igtl_name", None) or "CHIC",
+                   igtl_wait_s=10.0 if wait is None else float(wait),
+                   geometry_path=getattr(args, "geometry", None))
 
     def check(self) -> "OutputPlan":
         """Reject bad output arguments before any work (bad input, exit 2)."""
@@ -174,7 +175,8 @@ def deliver(plan: OutputPlan, reg, geom, slices, link=None) -> Delivery:
     if plan.scene:
         from .scene import write_scene
 
-        out.attempt("--scene", lambda: f"wrote {write_scene(plan.scene, reg, geom, slices, name=plan.igtl_name, geometry_path=plan.geometry_path)}")
+        out.attempt("--scene", lambda: "wrote " + str(write_scene(plan.scene, reg, geom, slices, name=plan.igtl_name,
+                                                                   geometry_path=plan.geometry_path)))
     if link is not None:
         from .igtl import pose_messages
 
