@@ -1114,6 +1114,7 @@ def register(slices: list[Slice], geom: FiducialGeometry, *, options: SolveOptio
         if best.n_matched < sum(f.n_matched for f, _ in per_slice):
             raise NoLock("the slices disagree: the joint pose matches fewer tubes than the slices alone",
                          {"n_tubes": best.n_matched})
+    locked = best  # the pose fitted to the blob centres
     if opts.section_fit and not opts.centroid_model:
         fine = _section_refine(model, best, xys, Ss, slices, blob_sets, opts)
         _check_trust(fine, [], model, slices, opts, Ss)
@@ -1137,9 +1138,20 @@ def register(slices: list[Slice], geom: FiducialGeometry, *, options: SolveOptio
         except ImprecisePose:
             if opts.centroid_model or not opts.refine_when_imprecise:
                 raise
+            checks = None
+            if best is not locked:
+                # the precision test estimates the noise from the residual scatter, unweighted: the section fit's
+                # residuals along elongated sections make it pessimistic, so the centroid fit is judged as it is
+                # without the section fit (never a refusal the centroid-only solver would not make)
+                try:
+                    checks = verify_fit(geom, model, locked, rivals, slices, Ss, blob_sets, opts)
+                    best = locked
+                except ImprecisePose:
+                    pass
+        if checks is None:
             # verified but not precise enough from the centroids: fit the sections themselves (the accuracy
             # mode), then decide on that
-            accurate = _centroid_refine(model, geom.tubes, best, xys, Ss, slices, blob_sets, opts)
+            accurate = _centroid_refine(model, geom.tubes, locked, xys, Ss, slices, blob_sets, opts)
             _check_trust(accurate, [], model, slices, opts, Ss)
             if _distinct(accurate.T_F_from_scanner, best.T_F_from_scanner, model):
                 raise NoLock("the accuracy refinement moved the pose by more than 1 mm or 1 degree: the fit is "
