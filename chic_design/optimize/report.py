@@ -122,8 +122,14 @@ def report_markdown(ctx: dict) -> str:
         L += [f"### Why it beat the runner-up `{ru_name}`", "",
               f"Distance to the ideal point {ctx['distances'][0]:.3f} vs {ctx['distances'][1]:.3f} "
               "(0 = best on every objective at once). Objective by objective:", ""]
-        L += _cmp_lines(compare(chosen, ru), chosen_name, ru_name)
-        L.append("")
+        cmp = compare(chosen, ru)
+        L += _cmp_lines(cmp, chosen_name, ru_name)
+        gains = [c["label"] for c in cmp if c["verdict"] == "better"]
+        losses = [c["label"] for c in cmp if c["verdict"] == "worse"]
+        L += ["", f"`{chosen_name}` is better on {', '.join(gains) or 'nothing'}"
+              + (f" and worse on {', '.join(losses)}" if losses else "")
+              + "; with each objective scaled over the Pareto set and weighted equally, "
+              + ("its gains outweigh that loss." if losses else "it is better or equal everywhere."), ""]
     if ctx.get("baseline") is not None:
         b = ctx["baseline"]
         L += [f"## Against the baseline `{ctx['baseline_path']}`", ""]
@@ -137,6 +143,16 @@ def report_markdown(ctx: dict) -> str:
                 L += [f"`{best[0]}` is at least as good as the baseline on every objective:", ""]
                 L += _cmp_lines(compare(best[1], b), best[0], "baseline")
                 L.append("")
+                beating = ctx.get("all_beating") or []
+                if beating:
+                    L += [f"All {len(beating)} Pareto designs that beat the baseline (better somewhere, worse "
+                          "nowhere), difference to it:", "",
+                          "| design | " + " | ".join(LABELS[k][0] for k in OBJECTIVES) + " |",
+                          "|---|" + "---|" * len(OBJECTIVES)]
+                    for n, r in beating:
+                        cells = [f"{c['diff']:+.4g} {c['unit']} ({100 * c['rel']:+.1f} %)" for c in compare(r, b)]
+                        L.append(f"| {n} | " + " | ".join(cells) + " |")
+                    L.append("")
     if ctx.get("confirmed"):
         L += ["## Confirmed by simulation", "",
               "Simulated slices (Rician noise at the required SNR, the required pixel size and slice "
