@@ -33,7 +33,7 @@ def _parser() -> argparse.ArgumentParser:
 
     c = sub.add_parser("check", help="feasibility limits of a design, without building")
     c.add_argument("spec", help="design spec (YAML)")
-    c.add_argument("--json", action="store_true", help="print one JSON object (CONTRACT.md section 4)")
+    c.add_argument("--json", action="store_true", help="print one JSON object (docs/interfaces.md section 4)")
     c.add_argument("--slice-thickness", type=float, metavar="MM", help="override imaging.slice_thickness")
     c.add_argument("--pixel-size", type=float, metavar="MM", help="override imaging.pixel_size")
     c.add_argument("--plot", metavar="PNG", help="also save the max-tilt-vs-depth plot here")

@@ -300,6 +300,8 @@ class FeasibilityReport:
     unambiguity: Unambiguity
     depth_sensitivity: DepthSensitivity
     plot_name: str = "tilt_limits.png"
+    family: str = "chic"
+    n_tubes: int = 0
 
     @property
     def feasible(self) -> bool:
@@ -343,6 +345,9 @@ class FeasibilityReport:
             f"limited by {mid.limited_by} (worst azimuth {mid.azimuth_deg:.1f} deg); "
             f"visibility alone (every tube inside the body) allows {mid.visibility_tilt_deg:.1f} deg",
         ]
+        if self.family == "zframe":  # what a Z-frame user asks: where are all rods seen apart
+            lines.append(f"usable = all {self.n_tubes} rods visible and separate (one blob each, at least one "
+                         "pixel apart), for every azimuth:")
         for u in self.usable_depth:
             rng = ", ".join(f"{a:g}-{b:g} mm" for a, b in u.ranges_mm) or "none"
             lines.append(f"usable depth at tilt {u.tilt_deg:g} deg: {rng} ({u.total_mm:g} mm)")
@@ -801,6 +806,8 @@ def check_geometry(geom: FiducialGeometry, *, pixel_size_mm: float, slice_thickn
         overhangs=overhangs,
         unambiguity=unamb,
         depth_sensitivity=sens,
+        family=geom.family,
+        n_tubes=len(geom.tubes),
     )
 
 

@@ -27,7 +27,7 @@ def _parser() -> argparse.ArgumentParser:
     s = sub.add_parser("solve", help="register one or more slices: one pose from all of them")
     s.add_argument("images", nargs="+", metavar="IMAGE", help="DICOM, PNG, TIFF or NPY slices")
     s.add_argument("--geometry", required=True, help="geometry.yaml written by chic-design build")
-    s.add_argument("--json", action="store_true", help="print one JSON object (CONTRACT.md section 4)")
+    s.add_argument("--json", action="store_true", help="print one JSON object (docs/interfaces.md section 4)")
     s.add_argument("--pixel-spacing", nargs=2, type=float, metavar=("ROW", "COL"),
                    help="pixel spacing (mm) for PNG/TIFF/NPY images")
     s.add_argument("--overlay", metavar="PNG", help="draw the slice with detections, ellipse and labels")
@@ -167,6 +167,9 @@ def _run_solve(args) -> int:
         link = plan.open_link()
     except ChicRegisterError as exc:
         early.failed.append(f"{plan.igtl_flag}: {exc}")
+    if plan.igtl_listen is not None and link is not None:
+        print(f"chic-register: OpenIGTLink server listening on port {link.port} (a peer may connect now; "
+              f"the pose waits up to {plan.igtl_wait_s:g} s for one)", file=sys.stderr, flush=True)
     try:
         try:
             reg = register(slices, geom)

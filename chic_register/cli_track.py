@@ -69,6 +69,8 @@ def run_track(args) -> int:
         from .track import track
 
         link = plan.open_link()
+        if plan.igtl_listen is not None:
+            on_message(f"OpenIGTLink server listening on port {link.port}")
         if not args.json:
             print(f"watching {args.folder} (Ctrl-C to stop)", file=sys.stderr, flush=True)
         summary = track(args.folder, geom, pixel_spacing=args.pixel_spacing, poll_s=args.poll, settle_s=args.settle,

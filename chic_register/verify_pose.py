@@ -45,7 +45,7 @@ from dataclasses import dataclass
 
 import numpy as np
 
-from .detect import Blobs, _dilate
+from .detect import Blobs, _dilate, median
 from .envelope import plane_status
 from .errors import ImprecisePose, NoLock
 from .pose import slice_angles
@@ -231,10 +231,10 @@ def verify_slice(geom, model, T_F_from_I: np.ndarray, pixels: np.ndarray, spacin
             fits[w.k] = (w, *f)
     matched = [k for k in fits if assignment[k] >= 0]
     gains = np.array([fits[k][1][1] for k in matched])
-    if gains.size == 0 or not np.median(gains) > 0:
+    if gains.size == 0 or not median(gains) > 0:
         raise NoLock(f"{source}: the rendered model at the pose ({where}) does not match the pixels of the "
                      f"tubes it was fitted to", {"n_tubes": len(matched)})
-    level = float(np.median(gains))
+    level = median(gains)
     present, missing, cut_missing = [], [], []
     scales = []
     L = model.length_mm
@@ -278,10 +278,10 @@ def verify_slice(geom, model, T_F_from_I: np.ndarray, pixels: np.ndarray, spacin
     if len(scales) >= 3:
         s = np.array(scales)  # (n, 2): row, col scale seen / predicted
         ratio = s[:, 1] / s[:, 0]
-        mean = float(np.median(ratio))
+        mean = median(ratio)
         se = float(np.std(ratio) / math.sqrt(len(ratio)))
         tol = max(SPACING_TOL, 3 * se)
-        scale = (float(np.median(s[:, 0])), float(np.median(s[:, 1])))
+        scale = (median(s[:, 0]), median(s[:, 1]))
         if abs(mean - 1.0) > tol:
             raise NoLock(f"{source}: the tube sections are {abs(mean - 1) * 100:.0f} % "
                          f"{'wider' if mean > 1 else 'narrower'} along the columns than along the rows relative to "

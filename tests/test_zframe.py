@@ -188,6 +188,8 @@ def test_check_reports_usable_range_and_ambiguity_honestly(zcheck):
     # the diagonals leave their corners' axial rods a few mm from the faces: 3.6 mm touch + blob size
     assert 4 <= lo <= 8 and 52 <= hi <= 56
     assert 25 < zcheck.mid_depth_limit.max_tilt_deg < 40
+    text = zcheck.summary_text()
+    assert "all 7 rods visible and separate" in text and "usable depth at tilt 0 deg: 6-54 mm" in text
 
 
 def _n_blobs(geom, depth, tilt, azimuth, pixel=0.5, thickness=2.0):
