@@ -217,7 +217,7 @@ def _print_pose(args, reg, geom) -> None:
 
 
 def _blob_width_check(factor: float) -> tuple[bool, str]:
-    from .simulate import BLOB_WIDTH_RANGE
+    from .blob_width import BLOB_WIDTH_RANGE
 
     lo, hi = BLOB_WIDTH_RANGE
     return lo <= factor <= hi, f"--blob-width must be {lo:g}..{hi:g} (x the nominal diameter), got {factor:g}"

@@ -31,8 +31,11 @@ slice (:func:`verify_fit`):
    ``--pixel-spacing``) shows as an anisotropic scale of every section
    (:data:`SPACING_TOL`, or three standard errors of its estimate over the
    tubes if larger).
-6. **Rivals**: a distinct rival pose that also verifies makes the slice
-   ambiguous.
+6. **Rivals**: a distinct rival pose (the solver's other hypotheses, and the
+   pose turned about the axis by each near-symmetry of the straight tubes)
+   that explains the pixels nearly as well makes the slice ambiguous.
+7. **Precision**: the predicted 3-sigma error must be within the trust
+   limits (:func:`pose_precision`).
 
 Every threshold is in units of what the image resolves (pixels, noise sigma,
 the section's own size); each has its reason beside it.
@@ -90,6 +93,9 @@ EXPLAINED_SHARE = 0.3
 #: A rival pose must explain the pixels worse by this many noise variances (a log-likelihood margin of half of
 #: it) plus the model's own error, else the slice is ambiguous.
 RIVAL_MARGIN = 50.0
+#: Straight tubes this close in angle after a turn about the axis count as mapped onto each other (the turn is a
+#: near-symmetry whose pose is tried as a rival).
+SYMMETRY_TOL_DEG = 3.0
 #: Render settings: sub-samples per pixel side (the renderer's coverage ramp anti-aliases edges already) and at
 #: most this many sub-planes over the slab.
 SUPERSAMPLE = 1
@@ -434,15 +440,18 @@ def verify_fit(geom, model, fit, rivals, slices, Ss, blob_sets, opts) -> list[Sl
     (``solve._Fit`` in the slice's own scanner frame, as ``fit``). Raises
     :class:`NoLock` with the first failure; returns one :class:`SliceCheck` per slice.
     """
-    from .solve import _distinct
+    from .solve import _distinct, _to_xy_mm
 
     out = []
     for j, (sl, S, b) in enumerate(zip(slices, Ss, blob_sets)):
         T_F_from_I = fit.T_F_from_scanner @ S
         check = verify_slice(geom, model, T_F_from_I, np.asarray(sl.pixels), sl.pixel_spacing_mm,
                              float(sl.slice_thickness_mm), b, fit.assignments[j], sl.source)
-        for other in (rivals[j] if rivals is not None else ()):
-            if other.n_matched < opts.min_tubes or not _distinct(other.T_F_from_scanner, fit.T_F_from_scanner, model):
+        px = float(max(sl.pixel_spacing_mm))
+        turned = _turned_rivals(model, fit.T_F_from_scanner, _to_xy_mm(b, sl), S, px)
+        for other in list(rivals[j] if rivals is not None else ()) + turned:
+            if (other.n_matched < opts.min_tubes or other.rms_mm > opts.max_rms_px * px
+                    or not _distinct(other.T_F_from_scanner, fit.T_F_from_scanner, model)):
                 continue
             _compare_rival(geom, model, check, other.T_F_from_scanner @ S, sl)
         out.append(check)
@@ -454,6 +463,37 @@ def verify_fit(geom, model, fit, rivals, slices, Ss, blob_sets, opts) -> list[Sl
         raise ImprecisePose(f"the pose is not precise enough to trust: {k:g} sigma of its predicted error is "
                             f"{k * tre:.2f} mm at the frame centre and {k * rot:.2f} deg (limits {tre_tol:g} mm, "
                             f"{rot_tol:g} deg)", {"sigma_tre_mm": round(tre, 4), "sigma_rot_deg": round(rot, 4)})
+    return out
+
+
+def _turned_rivals(model, T_F_from_scanner: np.ndarray, xy: np.ndarray, S: np.ndarray, pixel_mm: float) -> list:
+    """The pose turned about the fiducial axis by each near-symmetry of its straight tubes, each refined.
+
+    A turn that maps three or more axial tubes onto axial tubes (within
+    :data:`SYMMETRY_TOL_DEG`) is a pose the first-guess stage may never have
+    offered (the 90 deg turns of four diametric tubes, say); refined against
+    the same blobs, it is a rival for :func:`_compare_rival`.
+    """
+    from .solve import refine
+
+    ang = model.angle_rad[model.axial]
+    tol = math.radians(SYMMETRY_TOL_DEG)
+    turns = []
+    for a in ang:
+        for b in ang:
+            d = float((b - a + math.pi) % (2 * math.pi) - math.pi)
+            if abs(d) < tol or any(abs(d - t) < tol for t in turns):
+                continue
+            moved = (ang[:, None] + d - ang[None, :] + math.pi) % (2 * math.pi) - math.pi
+            if int(np.sum(np.min(np.abs(moved), axis=1) < tol)) >= 3:
+                turns.append(d)
+    gate = max(float(model.diameter_mm.max()), 2 * pixel_mm)
+    out = []
+    for d in turns:
+        c, s_ = math.cos(d), math.sin(d)
+        Rz = np.array([[c, -s_, 0, 0], [s_, c, 0, 0], [0, 0, 1, 0], [0, 0, 0, 1.0]])
+        out.append(refine(model, [xy], [S], Rz @ T_F_from_scanner, gates_mm=(2 * gate, 0.6 * gate),
+                          iters_per_gate=3, final_iters=2))
     return out
 
 
