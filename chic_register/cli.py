@@ -28,9 +28,16 @@ def _parser() -> argparse.ArgumentParser:
     s.add_argument("--pixel-spacing", nargs=2, type=float, metavar=("ROW", "COL"),
                    help="pixel spacing (mm) for PNG/TIFF/NPY images")
     s.add_argument("--overlay", metavar="PNG", help="draw the slice with detections, ellipse and labels")
-    s.add_argument("--slices", nargs="+", type=int, metavar="K",
+    s.add_argument("--slices", nargs="+", metavar="K",
                    help="for a volume IMAGE (.nii, .nii.gz, .nrrd, .mha or a DICOM series folder): "
-                        "indices of its slices to register jointly")
+                        "indices (5) or ranges (5-11) of its slices to register jointly; each must lock. "
+                        "Default: every slice that shows the fiducial (the others are listed as skipped)")
+    s.add_argument("--prior", metavar="FILE",
+                   help="an approximate pose of the fiducial (JSON with T_scanner_from_fiducial, or .tfm): "
+                        "only poses turned less than --prior-max-deg from it are considered. Needed for a "
+                        "geometry that maps onto itself under a rotation (the classic Z-frame)")
+    s.add_argument("--prior-max-deg", type=float, default=60.0, metavar="DEG",
+                   help="largest rotation from --prior (default 60)")
     s.add_argument("--tfm", metavar="FILE", help="also write the pose as an ITK transform file for 3D Slicer "
                    "(holds T_fiducial_from_scanner, LPS; see README)")
     s.add_argument("--igtl", metavar="HOST:PORT", help="also send the pose as an OpenIGTLink TRANSFORM (RAS) "
@@ -130,9 +137,14 @@ def _run_solve(args) -> int:
     if args.overlay and not args.overlay.lower().endswith(".png"):
         raise ChicRegisterError(f"--overlay {args.overlay}: the overlay is a PNG file (name it *.png)")
     geom = load_geometry(args.geometry)
-    slices = _read_solve_inputs(args)
+    options = {}
+    if args.prior:
+        if not (0 < args.prior_max_deg <= 180):
+            raise ChicRegisterError(f"--prior-max-deg must be in (0, 180] deg, got {args.prior_max_deg:g}")
+        options = {"prior": _load_reference(args.prior, "--prior"), "prior_max_deg": args.prior_max_deg}
+    slices, skip = _read_solve_inputs(args)
     try:
-        reg = register(slices, geom)
+        reg = register(slices, geom, skip_failed=skip, **options)
     except NoLock:
         if args.overlay:
             from .detect import detect_blobs
@@ -153,8 +165,9 @@ def _run_solve(args) -> int:
             print(f"chic-register: {note}", file=sys.stderr)
         return 0
     t = reg.timing_ms
-    print(f"status: ok ({len(reg.slices)} slice{'s' if len(reg.slices) > 1 else ''} of '{geom.name}', "
-          f"{t['total']:.1f} ms: detect {t['detect']:.1f}, pose {t['pose']:.1f})")
+    print(f"status: ok ({len(reg.slices)} slice{'s' if len(reg.slices) > 1 else ''} of '{geom.name}'"
+          + (f" used, {len(reg.skipped)} skipped" if reg.skipped else "")
+          + f", {t['total']:.1f} ms: detect {t['detect']:.1f}, pose {t['pose']:.1f})")
     print("T_scanner_from_fiducial (mm):")
     for row in reg.T_scanner_from_fiducial:
         print("  " + "  ".join(f"{v:11.5f}" for v in row))
@@ -162,6 +175,8 @@ def _run_solve(args) -> int:
         print(f"{s.source}: depth {s.depth_mm:.3f} mm, tilt {s.tilt_deg:.3f}, azimuth {s.azimuth_deg:.3f}, "
               f"twist {s.twist_deg:.3f} deg; residual RMS {s.residual_rms_mm:.3f} mm over {s.n_tubes} tubes")
         print("  residuals (mm): " + ", ".join(f"{k} {v:.3f}" for k, v in s.residuals_mm.items()))
+    for s in reg.skipped:
+        print(f"skipped {s.source}: {s.reason}")
     if args.overlay:
         print(f"wrote {args.overlay}")
     for note in notes:
@@ -281,25 +296,31 @@ def _check_outputs(args) -> None:
         parse_address(args.igtl)
 
 
-def _read_solve_inputs(args) -> list:
-    """The slices of ``solve``: 2-D image files as they are, volumes by their ``--slices`` indices."""
+def _read_solve_inputs(args) -> tuple[list, bool]:
+    """The slices of ``solve`` and whether failing ones may be skipped.
+
+    2-D image files as they are; a volume by its ``--slices`` indices and
+    ranges, or, without them, every native slice (those that do not lock are
+    then skipped and reported).
+    """
     from .imageio import read_slices
     from .volume import is_volume_path, read_volume
+    from .volume_register import parse_slice_indices
 
     _check_outputs(args)
     volumes = [p for p in args.images if is_volume_path(p)]
-    if volumes and not args.slices:
-        raise ChicRegisterError(f"{volumes[0]} is a volume: pick the slices to register with --slices K [K ...]")
     if args.slices and not volumes:
         raise ChicRegisterError("--slices applies to volume inputs (.nii, .nii.gz, .nrrd, .mha, DICOM series folder)")
     slices = []
     for path in args.images:
         if is_volume_path(path):
             vol = read_volume(path)
-            slices.extend(vol.native_slice(k) for k in args.slices)
+            nk = vol.shape[0]
+            ks = parse_slice_indices(args.slices, nk) if args.slices else range(nk)
+            slices.extend(vol.native_slice(k) for k in ks)
         else:
             slices.extend(read_slices([path], args.pixel_spacing))
-    return slices
+    return slices, bool(volumes) and not args.slices
 
 
 def _write_outputs(args, T_scanner_from_fiducial) -> list[str]:
@@ -318,7 +339,7 @@ def _write_outputs(args, T_scanner_from_fiducial) -> list[str]:
     return notes
 
 
-def _load_reference(path) -> "np.ndarray":
+def _load_reference(path, flag: str = "--reference") -> "np.ndarray":
     """T_scanner_from_fiducial from a JSON file (any object with that key) or a .tfm file."""
     from pathlib import Path
 
@@ -332,16 +353,16 @@ def _load_reference(path) -> "np.ndarray":
     try:
         doc = json.loads(p.read_text(encoding="utf-8"))
     except FileNotFoundError:
-        raise ChicRegisterError(f"--reference {p}: no such file") from None
+        raise ChicRegisterError(f"{flag} {p}: no such file") from None
     except (OSError, UnicodeDecodeError, json.JSONDecodeError) as exc:
-        raise ChicRegisterError(f"--reference {p}: not a JSON file ({exc})") from None
+        raise ChicRegisterError(f"{flag} {p}: not a JSON file ({exc})") from None
     T = doc.get("T_scanner_from_fiducial") if isinstance(doc, dict) else None
     try:
         T = np.asarray(T, dtype=float)
     except (TypeError, ValueError):
         T = np.zeros(0)
     if T.shape != (4, 4) or not np.all(np.isfinite(T)) or not np.allclose(T[:3, :3].T @ T[:3, :3], np.eye(3), atol=1e-5):
-        raise ChicRegisterError(f"--reference {p}: needs key 'T_scanner_from_fiducial' holding a rigid 4x4 matrix")
+        raise ChicRegisterError(f"{flag} {p}: needs key 'T_scanner_from_fiducial' holding a rigid 4x4 matrix")
     return T
 
 

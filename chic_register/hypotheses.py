@@ -363,9 +363,11 @@ class ParallelFamily:
     non-degenerate cross-section triangle (indices into ``idx``) and
     ``side_min_mm`` (T,) their shortest side; ``depth_idx``: the tubes not
     parallel to ``u`` (they fix the plane's position along ``u``) with their
-    centreline ``samples``: per tube, cross-section coordinates (M, 2),
-    heights along ``u`` (M,) and the depth tolerance factor (height per mm of
-    cross-section travel: 1 for a 45-degree diagonal, more for a shallow helix).
+    centreline samples, all tubes' concatenated: cross-section coordinates
+    ``sample_q`` (M, 2), heights along ``u`` ``sample_h`` (M,), each tube's
+    ``(start, stop)`` in them and its depth tolerance factor ``sample_rise``
+    (height per mm of cross-section travel: 1 for a 45-degree diagonal, more
+    for a shallow helix).
     """
 
     idx: np.ndarray
@@ -375,7 +377,10 @@ class ParallelFamily:
     triples: np.ndarray
     side_min_mm: np.ndarray
     depth_idx: np.ndarray
-    samples: tuple
+    sample_q: np.ndarray
+    sample_h: np.ndarray
+    sample_slices: tuple
+    sample_rise: tuple
 
 
 def _basis_normal_to(u: np.ndarray) -> np.ndarray:
@@ -387,7 +392,7 @@ def _basis_normal_to(u: np.ndarray) -> np.ndarray:
 
 
 @functools.lru_cache(maxsize=8)
-def parallel_family(model: "TubeModel", sample_step_mm: float = 0.25) -> ParallelFamily | None:
+def parallel_family(model: "TubeModel", sample_step_mm: float = 0.5) -> ParallelFamily | None:
     """The largest family of >= 3 parallel straight tubes not all in one plane, or None (memoised per model)."""
     li = model.line_idx
     if li.size < 3:
@@ -419,14 +424,21 @@ def parallel_family(model: "TubeModel", sample_step_mm: float = 0.25) -> Paralle
     for k in li:
         parallel[k] |= abs(model.d[k] @ u) / np.linalg.norm(model.d[k]) > _PARALLEL_COS
     depth_idx = np.flatnonzero(~parallel)
-    samples = []
+    qs, hs, spans, rises = [], [], [], []
+    start = 0
     for k in depth_idx:
         S = sample_centreline(model.tubes[k], sample_step_mm)
         Q, h = S @ E, S @ u
         travel = float(np.sum(np.linalg.norm(np.diff(Q, axis=0), axis=1)))
         rise = float(abs(h[-1] - h[0])) if h.size > 1 else 0.0
-        samples.append((Q, h, rise / travel if travel > 1e-9 else math.inf))
-    return ParallelFamily(idx, u, E, c, np.array(triples, int), np.array(sides), depth_idx, tuple(samples))
+        qs.append(Q)
+        hs.append(h)
+        spans.append((start, start + h.size))
+        rises.append(rise / travel if travel > 1e-9 else math.inf)
+        start += h.size
+    return ParallelFamily(idx, u, E, c, np.array(triples, int), np.array(sides), depth_idx,
+                          np.concatenate(qs) if qs else np.zeros((0, 2)), np.concatenate(hs) if hs else np.zeros(0),
+                          tuple(spans), tuple(rises))
 
 
 def _affine_candidates(fam: ParallelFamily, xy: np.ndarray, gate_mm: float, cos_max: float, max_pairs: int,
@@ -451,13 +463,15 @@ def _affine_candidates(fam: ParallelFamily, xy: np.ndarray, gate_mm: float, cos_
 
 
 def family_hypotheses(model: "TubeModel", xy_mm: np.ndarray, *, gate_mm: float, max_tilt_deg: float = 75.0,
-                      max_hypotheses: int = 8, max_pairs: int = 400_000, rng_seed: int = 0) -> list[np.ndarray]:
+                      max_hypotheses: int = 8, max_affines: int = 96, max_pairs: int = 400_000,
+                      rng_seed: int = 0) -> list[np.ndarray]:
     """Generic pose guesses ``T_F_from_I`` from blob centres (N, 2), best first (see the module docstring).
 
     ``gate_mm``: how far a blob may lie from a predicted crossing to count.
-    Consensus at two levels: an affine map is kept when the family's other
-    tubes land on blobs too, and a depth when the most non-family tubes agree
-    on it. Returns ``[]`` when the layout has no usable family, no tube
+    Consensus at two levels: affine maps are ranked by how many of the
+    family's tubes land on blobs (the best ``max_affines`` distinct ones are
+    kept: a missing tube and a stray blob can reorder them), and depths by
+    how many non-family tubes agree on them. Returns ``[]`` when the layout has no usable family, no tube
     outside it (the depth is then under-determined) or no consistent guess.
     """
     fam = parallel_family(model)
@@ -497,7 +511,7 @@ def family_hypotheses(model: "TubeModel", xy_mm: np.ndarray, *, gate_mm: float, 
     floor = max(3, int(n_hit.max()) - 1)
     seen, affines = [], []
     for o in order:
-        if n_hit[o] < floor or len(affines) >= 4 * max_hypotheses:
+        if n_hit[o] < floor or len(affines) >= max_affines:
             break
         Ao, bo, used = _refit_affine(fam, xy, A[o], b[o], gate_mm)
         if any(np.abs(Ao - As).max() < 0.02 and np.abs(bo - bs).max() < 0.5 for As, bs in seen):
@@ -508,8 +522,9 @@ def family_hypotheses(model: "TubeModel", xy_mm: np.ndarray, *, gate_mm: float, 
     for n_fam, Ao, bo, used in affines:
         free = np.ones(xy.shape[0], bool)
         free[used] = False  # blobs taken by the family vote for no depth (they sit where diagonals end)
-        for R, w in _rotations_from_affine(Ao, fam, cos_max):
-            for lam, n_depth in _depth_votes(fam, xy[free], Ao, bo, w, gate_mm):
+        rots = _rotations_from_affine(Ao, fam, cos_max)
+        for (R, _), votes in zip(rots, _depth_votes(fam, xy[free], Ao, bo, [w for _, w in rots], gate_mm)):
+            for lam, n_depth in votes:
                 rows.append((n_fam + n_depth, n_depth, R, fam.E @ bo + lam * fam.u))
     rows.sort(key=lambda r: (-r[0], -r[1]))
     return [rigid(R, t) for _, _, R, t in rows[:max_hypotheses]]
@@ -552,38 +567,46 @@ def _rotations_from_affine(A: np.ndarray, fam: ParallelFamily, cos_max: float):
     return out
 
 
-def _depth_votes(fam: ParallelFamily, xy: np.ndarray, A: np.ndarray, b: np.ndarray, w: np.ndarray, gate_mm: float,
-                 n_best: int = 2):
-    """Positions ``lam`` of the plane along ``u`` that the non-family tubes vote for: ``[(lam, n_tubes)]``.
+def _depth_votes(fam: ParallelFamily, xy: np.ndarray, A: np.ndarray, b: np.ndarray, ws: list, gate_mm: float,
+                 n_best: int = 2) -> list:
+    """Positions ``lam`` of the plane along ``u`` that the non-family tubes vote for, per ``w`` in ``ws``.
 
     A blob at image point p sits, for the plane at ``lam``, at section point
     ``A p + b`` and height ``w . p + lam``; each non-family tube passing
     within the gate of that section point votes for the ``lam`` putting the
     blob on it. Votes agreeing within each tube's depth tolerance are pooled.
+    Returns, for each ``w``, up to ``n_best`` ``(lam, n_tubes)``, most tubes first.
     """
+    if xy.shape[0] == 0:
+        return [[] for _ in ws]
     c = xy @ A.T + b
-    wp = xy @ w
-    lam, tube, tol = [], [], []
-    for k, (Q, h, rise) in enumerate(fam.samples):
-        d = np.linalg.norm(Q[:, None, :] - c[None], axis=-1)  # (M, N)
-        m = d.argmin(axis=0)
-        near = d[m, np.arange(c.shape[0])] < gate_mm
-        lam.extend((h[m[near]] - wp[near]).tolist())
-        tube.extend([k] * int(near.sum()))
-        tol.extend([max(0.5 * gate_mm * min(rise, 10.0), 0.5)] * int(near.sum()))
-    if not lam:
-        return []
-    lam, tube, tol = np.array(lam), np.array(tube), np.array(tol)
-    close = np.abs(lam[:, None] - lam[None]) <= np.maximum(tol[:, None], tol[None])
-    onehot = tube[:, None] == np.arange(len(fam.samples))[None]
-    n = ((close.astype(float) @ onehot) > 0).sum(axis=1)
+    Q, h = fam.sample_q, fam.sample_h
+    d2 = (Q * Q).sum(axis=1)[:, None] - 2.0 * (Q @ c.T) + (c * c).sum(axis=1)[None]  # (M, N)
+    idx, blob, tube, tol = [], [], [], []
+    for k, (lo, hi) in enumerate(fam.sample_slices):
+        m = lo + d2[lo:hi].argmin(axis=0)
+        near = np.flatnonzero(d2[m, np.arange(c.shape[0])] < gate_mm * gate_mm)
+        idx.append(m[near])
+        blob.append(near)
+        tube.append(np.full(near.size, k))
+        tol.append(np.full(near.size, max(0.5 * gate_mm * min(fam.sample_rise[k], 10.0), 0.5)))
+    idx, blob, tube, tol = (np.concatenate(v) for v in (idx, blob, tube, tol))
+    if idx.size == 0:
+        return [[] for _ in ws]
+    onehot = (tube[:, None] == np.arange(len(fam.sample_slices))[None]).astype(float)
+    tol_pair = np.maximum(tol[:, None], tol[None])
     out = []
-    for i in np.argsort(-n, kind="stable"):
-        sel = close[i]
-        value = float(np.median(lam[sel]))
-        if any(abs(value - v) < 2 * tol[i] for v, _ in out):
-            continue
-        out.append((value, int(n[i])))
-        if len(out) >= n_best:
-            break
+    for w in ws:
+        lam = h[idx] - xy[blob] @ w
+        close = np.abs(lam[:, None] - lam[None]) <= tol_pair
+        n = ((close @ onehot) > 0).sum(axis=1)
+        votes = []
+        for i in np.argsort(-n, kind="stable"):
+            value = float(np.median(lam[close[i]]))
+            if any(abs(value - v) < 2 * tol[i] for v, _ in votes):
+                continue
+            votes.append((value, int(n[i])))
+            if len(votes) >= n_best:
+                break
+        out.append(votes)
     return out
