@@ -12,6 +12,8 @@ import json
 import sys
 
 from . import __version__
+from chic_register.errors import ChicRegisterError
+
 from .errors import ChicDesignError
 
 
@@ -34,6 +36,15 @@ def _parser() -> argparse.ArgumentParser:
     c.add_argument("--plot", metavar="PNG", help="also save the max-tilt-vs-depth plot here")
 
     sub.add_parser("schema", help="print the spec's JSON Schema")
+
+    o = sub.add_parser("optimize", help="search designs for a tool and protocol; Pareto set, specs and report")
+    o.add_argument("requirements", help="requirements (YAML), e.g. designs/requirements/neuro.yaml")
+    o.add_argument("--out", help="output folder (default: exports/optimize-<name>)")
+    o.add_argument("--trials", type=int, help="candidates to evaluate (default: the file's search.trials)")
+    o.add_argument("--seed", type=int, default=0, help="optimiser seed (default: 0)")
+    o.add_argument("--scheduler", help="run on Dask: tcp://HOST:PORT, or local:N for a LocalCluster of N workers")
+    o.add_argument("--workers", type=int, help="local worker processes (default: the CPU count)")
+    o.add_argument("--quiet", action="store_true", help="no progress bar")
     return p
 
 
@@ -66,6 +77,19 @@ def _run(args) -> int:
         else:
             print(report.summary_text())
         return 0 if report.feasible else 1
+    if args.command == "optimize":
+        from .optimize.engine import parse_scheduler
+        from .optimize.pipeline import optimize
+
+        if args.trials is not None and args.trials < 1:
+            raise ChicDesignError(f"--trials must be >= 1, got {args.trials}")
+        if args.workers is not None and args.workers < 1:
+            raise ChicDesignError(f"--workers must be >= 1, got {args.workers}")
+        result = optimize(args.requirements, out_dir=args.out, trials=args.trials, seed=args.seed,
+                          scheduler=parse_scheduler(args.scheduler), workers=args.workers,
+                          progress=not args.quiet)
+        print(result.summary_text())
+        return 0
     if args.command == "build":
         from .build import build_design
 
@@ -76,15 +100,41 @@ def _run(args) -> int:
 
 
 def main(argv=None) -> int:
-    args = _parser().parse_args(argv)
+    args = None
     try:
+        args = _parser().parse_args(argv)  # inside: `--help | head` must not traceback either
         return _run(args)
-    except ChicDesignError as exc:
-        print(f"chic-design: error: {exc}", file=sys.stderr)
-        return exc.exit_code
+    except (ChicDesignError, ChicRegisterError) as exc:  # the geometry file is chic_register's
+        return _report(f"error: {exc}", exc.exit_code)
     except KeyboardInterrupt:
-        print("chic-design: interrupted", file=sys.stderr)
-        return 130
+        return _report("interrupted", 130)
+    except BrokenPipeError:  # e.g. `chic-design schema | head`: the reader left; nothing more to say
+        return _quiet_broken_pipe()
+    except OSError as exc:  # an output that cannot be written (disk full, permission, vanished folder)
+        where = f"{exc.filename}: " if exc.filename else ""
+        return _report(f"error: {where}{exc.strerror or exc}", 1)
+
+
+def _report(text: str, code: int) -> int:
+    """Print one ``chic-design: ...`` line on stderr (if stderr is still there) and return ``code``."""
+    try:
+        print(f"chic-design: {text}", file=sys.stderr)
+    except (BrokenPipeError, OSError):
+        pass
+    return code
+
+
+def _quiet_broken_pipe() -> int:
+    """Point stdout at /dev/null so the interpreter's final flush does not fail again; exit 141 (SIGPIPE)."""
+    import os
+
+    try:
+        devnull = os.open(os.devnull, os.O_WRONLY)
+        os.dup2(devnull, sys.stdout.fileno())
+        os.close(devnull)
+    except (OSError, ValueError, AttributeError):
+        pass
+    return 141
 
 
 if __name__ == "__main__":

@@ -21,12 +21,11 @@ class InfeasibleDesign(ChicDesignError):
 
     exit_code = 4
 
-    def __init__(self, spec_path, violations):
+    def __init__(self, spec_path, violations, forceable: bool = True):
         self.violations = list(violations)
         names = "; ".join(f"{v.code} ({v.where}): {v.message}" for v in self.violations)
-        super().__init__(
-            f"{spec_path}: design is infeasible: {names}. Fix the spec or build anyway with --force"
-        )
+        hint = "Fix the spec or build anyway with --force" if forceable else "Fix the spec (--force cannot build it)"
+        super().__init__(f"{spec_path}: design is infeasible: {names}. {hint}")
 
 
 class BuildCheckError(ChicDesignError):

@@ -150,20 +150,29 @@ def _run_solve(args) -> int:
             from .detect import detect_blobs
             from .overlay import draw_overlay
 
-            d_mm = min(t.diameter for t in geom.tubes)
-            blobs = [detect_blobs(sl.pixels, sl.pixel_spacing_mm, d_mm) for sl in slices]
+            diameters = [t.diameter for t in geom.tubes]
+            blobs = [detect_blobs(sl.pixels, sl.pixel_spacing_mm, diameters) for sl in slices]
             draw_overlay(args.overlay, slices, None, blobs)
         raise
+    # the pose is printed first: a failing optional output (overlay, --tfm, --igtl) must not lose it
+    _print_pose(args, reg, geom)
+    notes = []
     if args.overlay:
         from .overlay import draw_overlay
 
         draw_overlay(args.overlay, slices, reg)
-    notes = _write_outputs(args, reg.T_scanner_from_fiducial)
+        notes.append(f"wrote {args.overlay}")
+    notes += _write_outputs(args, reg.T_scanner_from_fiducial)
+    for note in notes:
+        print(f"chic-register: {note}" if args.json else note, file=sys.stderr if args.json else sys.stdout)
+    return 0
+
+
+def _print_pose(args, reg, geom) -> None:
+    """The pose of ``solve``: one JSON object (``--json``) or the human summary."""
     if args.json:
-        print(json.dumps(reg.to_dict(), indent=2))
-        for note in notes:
-            print(f"chic-register: {note}", file=sys.stderr)
-        return 0
+        print(json.dumps(reg.to_dict(), indent=2), flush=True)
+        return
     t = reg.timing_ms
     print(f"status: ok ({len(reg.slices)} slice{'s' if len(reg.slices) > 1 else ''} of '{geom.name}'"
           + (f" used, {len(reg.skipped)} skipped" if reg.skipped else "")
@@ -177,11 +186,7 @@ def _run_solve(args) -> int:
         print("  residuals (mm): " + ", ".join(f"{k} {v:.3f}" for k, v in s.residuals_mm.items()))
     for s in reg.skipped:
         print(f"skipped {s.source}: {s.reason}")
-    if args.overlay:
-        print(f"wrote {args.overlay}")
-    for note in notes:
-        print(note)
-    return 0
+    sys.stdout.flush()
 
 
 def _run_simulate(args) -> int:
@@ -296,6 +301,16 @@ def _check_outputs(args) -> None:
         parse_address(args.igtl)
 
 
+def _check_spacing_flag(args) -> None:
+    """A --pixel-spacing outside the physical range is refused before any file is read."""
+    from .imageio import spacing_fault
+
+    if getattr(args, "pixel_spacing", None) is not None:
+        fault = spacing_fault(args.pixel_spacing)
+        if fault:
+            raise ChicRegisterError(f"--pixel-spacing: {fault}")
+
+
 def _read_solve_inputs(args) -> tuple[list, bool]:
     """The slices of ``solve`` and whether failing ones may be skipped.
 
@@ -308,6 +323,7 @@ def _read_solve_inputs(args) -> tuple[list, bool]:
     from .volume_register import parse_slice_indices
 
     _check_outputs(args)
+    _check_spacing_flag(args)
     volumes = [p for p in args.images if is_volume_path(p)]
     if args.slices and not volumes:
         raise ChicRegisterError("--slices applies to volume inputs (.nii, .nii.gz, .nrrd, .mha, DICOM series folder)")
@@ -472,6 +488,7 @@ def _run_track(args) -> int:
         raise ChicRegisterError(f"--poll must be > 0 and --settle >= 0 s, got {args.poll:g} and {args.settle:g}")
     if args.max_files is not None and args.max_files < 1:
         raise ChicRegisterError(f"--max-files must be >= 1, got {args.max_files}")
+    _check_spacing_flag(args)
     geom = load_geometry(args.geometry)
 
     def on_event(event):
@@ -499,8 +516,9 @@ def _run(args) -> int:
 
 
 def main(argv=None) -> int:
-    args = _parser().parse_args(argv)
+    args = None
     try:
+        args = _parser().parse_args(argv)  # inside: `--help | head` must not traceback either
         return _run(args)
     except NoLock as exc:
         if getattr(args, "json", False):
@@ -509,11 +527,36 @@ def main(argv=None) -> int:
             print(f"chic-register: no lock: {exc.reason}", file=sys.stderr)
         return exc.exit_code
     except ChicRegisterError as exc:
-        print(f"chic-register: error: {exc}", file=sys.stderr)
-        return exc.exit_code
+        return _report(f"error: {exc}", exc.exit_code)
     except KeyboardInterrupt:
-        print("chic-register: interrupted", file=sys.stderr)
-        return 130
+        return _report("interrupted", 130)
+    except BrokenPipeError:  # e.g. `chic-register ... | head`: the reader left; nothing more to say
+        return _quiet_broken_pipe()
+    except OSError as exc:  # an output that cannot be written (disk full, permission, vanished folder)
+        where = f"{exc.filename}: " if exc.filename else ""
+        return _report(f"error: {where}{exc.strerror or exc}", 1)
+
+
+def _report(text: str, code: int) -> int:
+    """Print one ``chic-register: ...`` line on stderr (if stderr is still there) and return ``code``."""
+    try:
+        print(f"chic-register: {text}", file=sys.stderr)
+    except (BrokenPipeError, OSError):
+        pass
+    return code
+
+
+def _quiet_broken_pipe() -> int:
+    """Point stdout at /dev/null so the interpreter's final flush does not fail again; exit 141 (SIGPIPE)."""
+    import os
+
+    try:
+        devnull = os.open(os.devnull, os.O_WRONLY)
+        os.dup2(devnull, sys.stdout.fileno())
+        os.close(devnull)
+    except (OSError, ValueError, AttributeError):
+        pass
+    return 141
 
 
 if __name__ == "__main__":

@@ -35,7 +35,11 @@ RETRY_MAX_S = 10.0
 
 @dataclass(frozen=True)
 class TrackEvent:
-    """The outcome for one file: ``status`` is ``"ok"`` (with a pose) or ``"no_lock"`` (with a reason)."""
+    """The outcome for one file: ``status`` is ``"ok"`` (with a pose), ``"no_lock"`` or ``"error"`` (with a reason).
+
+    ``"error"``: the file read, but registering it failed in an unexpected way
+    (a bug, or an input no check caught); tracking goes on with the next file.
+    """
 
     source: str
     status: str
@@ -66,7 +70,7 @@ class TrackEvent:
         name = Path(self.source).name
         lat = f"latency {self.latency_ms:.0f} ms (solve {self.solve_ms:.0f} ms)"
         if self.status != "ok":
-            return f"{name}: no lock: {self.reason}; {lat}"
+            return f"{name}: {self.status.replace('_', ' ')}: {self.reason}; {lat}"
         s = self.slices[0]
         o = np.asarray(self.T_scanner_from_fiducial)[:3, 3]
         line = (f"{name}: depth {s.depth_mm:.2f} mm, tilt {s.tilt_deg:.2f}, azimuth {s.azimuth_deg:.2f}, "
@@ -97,7 +101,8 @@ class TrackSummary:
             "stopped_by": self.stopped_by,
             "files": len(self.events),
             "ok": self.n_ok,
-            "no_lock": len(self.events) - self.n_ok,
+            "no_lock": sum(e.status == "no_lock" for e in self.events),
+            "errors": sum(e.status == "error" for e in self.events),
             "pending": list(self.pending),
             "latency_ms": {"median": float(np.median(lat)), "max": float(np.max(lat))} if lat else None,
             "duration_s": round(self.duration_s, 3),
@@ -107,6 +112,8 @@ class TrackSummary:
         d = self.to_dict()
         line = (f"stopped ({self.stopped_by}) after {self.duration_s:.1f} s: {d['files']} files, "
                 f"{d['ok']} registered, {d['no_lock']} without lock")
+        if d["errors"]:
+            line += f", {d['errors']} failed"
         if d["latency_ms"]:
             line += f", latency median {d['latency_ms']['median']:.0f} ms, max {d['latency_ms']['max']:.0f} ms"
         if self.pending:
@@ -236,11 +243,19 @@ def track(
             state.failed_sig = state.sig
             state.retry_at = now + state.retry_s
             return None
+        except Exception as exc:  # noqa: BLE001 - one bad file must not end a tracking session
+            slices, failure = None, f"{type(exc).__name__}: {exc}".splitlines()[0]
         t1 = time.perf_counter()
-        try:
-            reg = register(slices, geom, **register_options)
-        except NoLock as exc:
-            reg, reason = None, exc.reason
+        status, reg, reason = "ok", None, ""
+        if slices is None:
+            status, reason = "error", f"cannot read: {failure}"
+        else:
+            try:
+                reg = register(slices, geom, **register_options)
+            except NoLock as exc:
+                status, reason = "no_lock", exc.reason
+            except Exception as exc:  # noqa: BLE001 - as above: report it, go on with the next file
+                status, reason = "error", f"{type(exc).__name__}: {exc}".splitlines()[0]
         t2 = time.perf_counter()
         wall = time.time()
         mtime = state.sig[1] / 1e9
@@ -259,7 +274,7 @@ def track(
             igtl=igtl_status,
         )
         if reg is None:
-            return TrackEvent(path, "no_lock", None, (), reason, **common)
+            return TrackEvent(path, status, None, (), reason, **common)
         return TrackEvent(path, "ok", reg.T_scanner_from_fiducial, tuple(reg.slices), **common)
 
     try:

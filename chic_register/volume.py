@@ -24,9 +24,10 @@ import numpy as np
 import SimpleITK as sitk
 
 from .atomic import atomic_path
-from .errors import ChicRegisterError, ImageReadError
+from .errors import ChicRegisterError, ImageReadError, InputFileError
 from .slices import Slice
 
+MAX_VOXELS = 1024**3 // 4  # 256 M voxels: 1 GiB as float32 (a 512 x 512 x 1000 volume)
 FILE_SUFFIXES = (".nii", ".nii.gz", ".nrrd", ".nhdr", ".mha", ".mhd")
 WRITE_SUFFIXES = (".nii", ".nii.gz", ".nrrd", ".mha")
 MR_IMAGE_STORAGE = "1.2.840.10008.5.1.4.1.1.4"  # MR Image Storage SOP class
@@ -122,6 +123,15 @@ def volume_from_sitk(img: sitk.Image, source: str = "<sitk>") -> Volume:
         raise ImageReadError(source, f"expected a 3-D volume, got {img.GetDimension()}-D")
     if img.GetNumberOfComponentsPerPixel() != 1:
         raise ImageReadError(source, f"expected scalar voxels, got {img.GetNumberOfComponentsPerPixel()} components")
+    from .imageio import MAX_SPACING_MM, MIN_SPACING_MM
+
+    spacing, origin = np.array(img.GetSpacing()), np.array(img.GetOrigin())
+    if not np.all(np.isfinite(spacing) & (spacing >= MIN_SPACING_MM) & (spacing <= MAX_SPACING_MM)):
+        raise ImageReadError(source, f"voxel spacing must be three numbers in {MIN_SPACING_MM:g}..{MAX_SPACING_MM:g} "
+                                     f"mm, got {spacing.tolist()}")
+    direction = np.array(img.GetDirection()).reshape(3, 3)
+    if not (np.all(np.isfinite(origin)) and np.allclose(direction.T @ direction, np.eye(3), atol=1e-3)):
+        raise ImageReadError(source, "volume origin/direction are not a finite position and an orthonormal frame")
     return Volume(
         voxels=sitk.GetArrayFromImage(img),
         spacing_mm=img.GetSpacing(),
@@ -168,8 +178,21 @@ def read_volume(path, series_id: str | None = None) -> Volume:
     else:
         if _suffix(path) not in FILE_SUFFIXES:
             raise ImageReadError(path, f"not a volume file; allowed: {', '.join(FILE_SUFFIXES)} or a DICOM series folder")
+        from .safeload import open_regular_file
+
         try:
-            img = sitk.ReadImage(str(path))
+            open_regular_file(path, "volume file").close()  # a FIFO or device is refused, not waited on
+        except InputFileError as exc:
+            raise ImageReadError(path, exc.detail) from None
+        try:
+            reader = sitk.ImageFileReader()
+            reader.SetFileName(str(path))
+            reader.ReadImageInformation()
+            n = int(np.prod([int(v) for v in reader.GetSize()], dtype=object)) * reader.GetNumberOfComponents()
+            if n > MAX_VOXELS:
+                raise ImageReadError(path, f"volume of size {tuple(reader.GetSize())} is too large "
+                                           f"(at most {MAX_VOXELS} voxels)")
+            img = reader.Execute()
         except RuntimeError as exc:
             raise ImageReadError(path, f"cannot read volume: {_last_line(exc)}") from None
     if img.GetDimension() == 4 and img.GetSize()[3] == 1:

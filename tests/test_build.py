@@ -276,11 +276,14 @@ def test_invalid_spec_fails_before_cad_and_writes_nothing(tmp_path, monkeypatch)
     assert main(["build", str(bad), "--out", str(out), "--quiet"]) == 2
 
 
-def test_skirts_that_would_meet_are_a_spec_error(tmp_path):
+def test_skirts_that_would_meet_are_refused_even_with_force(tmp_path):
     bad = tmp_path / "long-skirt.yaml"
     bad.write_text(NEURO.read_text().replace("skirt_height: 4.0", "skirt_height: 30.0"))
-    with pytest.raises(SpecError, match="caps.skirt_height"):
-        build_design(bad, out_root=tmp_path / "exports", progress=False)
+    with pytest.raises(InfeasibleDesign, match="caps_meet .caps.skirt_height.") as err:
+        build_design(bad, out_root=tmp_path / "exports", force=True, progress=False)
+    assert "--force cannot" in str(err.value)
+    assert not (tmp_path / "exports" / "neuro").exists()
+    assert not any((tmp_path / "exports").iterdir())
 
 
 def test_replace_folder_swaps_and_cleans_up(tmp_path):
