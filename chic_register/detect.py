@@ -180,6 +180,7 @@ def detect_blobs(
     dilate_px: int | None = None,
     split_touching: bool = True,
     size_from_image: bool = True,
+    flatten_background: bool = False,
 ) -> Blobs:
     """Candidate tube cross-sections in ``pixels`` (rows, cols).
 
@@ -194,25 +195,41 @@ def detect_blobs(
     nominal diameter by more than a quarter, the detection is redone at the
     measured size: smoothing, area window and the test for two touching
     tubes all follow what the image shows, so a wide blob is one blob.
+    ``flatten_background`` first subtracts the image's morphological opening
+    at three blob widths (a white top-hat): tissue and other structures wider
+    than a tube, and slow intensity changes (coil sensitivity), are removed,
+    so tubes touching them or lying in a dim part of the image stay separate
+    blobs (centres are then weighted by the flattened image). The solver
+    retries a slice this way when it does not lock as it is.
     """
     diam = np.atleast_1d(np.asarray(tube_diameter_mm, dtype=float))
     d_lo, d_mid, d_hi = float(diam.min()), float(np.median(diam)), float(diam.max())
     kw = dict(smooth_sigma_px=smooth_sigma_px, min_contrast=min_contrast, dilate_px=dilate_px,
               split_touching=split_touching)
+    if flatten_background:
+        pixels = _flatten(pixels, pixel_spacing_mm, d_mid, smooth_sigma_px, min_area_factor, max_area_factor,
+                          min_contrast)
+        kw["threshold_fraction"] = 0.45
     blobs = _detect(pixels, pixel_spacing_mm, d_mid, min_area_factor * (d_lo / d_mid) ** 2,
                     max_area_factor * (d_hi / d_mid) ** 2, **kw)
     width = blobs.width_mm
     if size_from_image and math.isfinite(width) and not 0.8 <= width / d_mid <= 1.25:
         f = width / d_mid
-        again = _detect(pixels, pixel_spacing_mm, d_mid * f, min_area_factor * (d_lo / d_mid) ** 2,
+        # wider blobs: the area window grows at the top only (a tube half hidden in tissue stays small)
+        again = _detect(pixels, pixel_spacing_mm, d_mid * f, min_area_factor * (d_lo / d_mid) ** 2 / max(f, 1.0) ** 2,
                         max_area_factor * (d_hi / d_mid) ** 2, **kw)
         return dataclasses.replace(again, width_mm=width)
     return blobs
 
 
 def _detect(pixels, pixel_spacing_mm, tube_diameter_mm: float, min_area_factor: float, max_area_factor: float, *,
-            smooth_sigma_px, min_contrast, dilate_px, split_touching) -> Blobs:
-    """One detection pass at the blob size of a tube of ``tube_diameter_mm`` (see :func:`detect_blobs`)."""
+            smooth_sigma_px, min_contrast, dilate_px, split_touching, threshold_fraction: float = 1.0) -> Blobs:
+    """One detection pass at the blob size of a tube of ``tube_diameter_mm`` (see :func:`detect_blobs`).
+
+    ``threshold_fraction``: the level used, as a fraction of the way from the
+    median to Otsu's threshold (below 1 on flattened images, where tubes in
+    tissue stand out less than tubes in air).
+    """
     img = np.asarray(pixels, dtype=float)
     if img.ndim != 2 or img.size == 0:
         return Blobs.empty()
@@ -227,10 +244,11 @@ def _detect(pixels, pixel_spacing_mm, tube_diameter_mm: float, min_area_factor: 
     sig = smooth_sigma_px if smooth_sigma_px is not None else max(0.5, 0.3 * r_px)
     smooth = _smooth(img, sig)
     thr = otsu_threshold(smooth[::2, ::2])
+    base = float(np.median(smooth[::4, ::4]))
+    thr = base + threshold_fraction * (thr - base)
     mask = smooth > thr
     labels, n = ndi.label(mask, _CROSS)
     # background and noise: the pixels well below the threshold (mean and spread)
-    base = float(np.median(smooth[::4, ::4]))
     sub_img, sub_smooth = img[::2, ::2], smooth[::2, ::2]
     bg_pixels = sub_img[sub_smooth < base + 0.25 * (thr - base)]
     if bg_pixels.size < 16:
@@ -243,10 +261,13 @@ def _detect(pixels, pixel_spacing_mm, tube_diameter_mm: float, min_area_factor: 
     width_mm = blob_width_mm(labels, mask, img, area, a0, bg, sigma_n, min_contrast, (rs, cs))
     objs = ndi.find_objects(labels)
     keep = np.flatnonzero((area >= min_area_factor * a0) & (area <= max_area_factor * a0))
+    # a component too large for one tube may be several blurred ones run together (wide blobs of close tubes):
+    # it is offered split at higher levels, never whole
+    merged = set(np.flatnonzero((area > max_area_factor * a0) & (area <= 150 * a0)).tolist()) if split_touching else set()
     k = dilate_px if dilate_px is not None else 1
     centres, areas, means, ratios, contrasts, feet = [], [], [], [], [], []
     H, W = img.shape
-    for i in keep:
+    for i in sorted(set(keep.tolist()) | merged):
         sl = objs[i]
         r0, r1 = max(0, sl[0].start - k), min(H, sl[0].stop + k)
         c0, c1 = max(0, sl[1].start - k), min(W, sl[1].stop + k)
@@ -259,7 +280,11 @@ def _detect(pixels, pixel_spacing_mm, tube_diameter_mm: float, min_area_factor: 
             continue
         ratio = _moments(blob.astype(float))[2]
         parts = [blob]
-        if split_touching and area[i] > 1.4 * a0:
+        if i in merged:
+            parts = _split_levels(blob, smooth[r0:r1, c0:c1], thr, min_area_factor * a0, max_area_factor * a0)
+            if not parts:
+                continue
+        elif split_touching and area[i] > 1.4 * a0:
             parts = _split(blob, smooth[r0:r1, c0:c1], r_px) or [blob]
             if len(parts) > 1:
                 parts = [blob] + parts
@@ -306,6 +331,21 @@ def _detect(pixels, pixel_spacing_mm, tube_diameter_mm: float, min_area_factor: 
     )
 
 
+def _flatten(pixels, pixel_spacing_mm, d_mm: float, smooth_sigma_px, min_area_factor, max_area_factor,
+             min_contrast) -> np.ndarray:
+    """``pixels`` less their grey opening by a square three blob widths wide (the blob width as the image shows it)."""
+    img = np.asarray(pixels, dtype=float)
+    if img.ndim != 2 or img.size == 0 or not np.all(np.isfinite(img)):
+        return img
+    first = _detect(img, pixel_spacing_mm, d_mm, min_area_factor, max_area_factor, smooth_sigma_px=smooth_sigma_px,
+                    min_contrast=min_contrast, dilate_px=None, split_touching=False)
+    width = max(d_mm, first.width_mm) if math.isfinite(first.width_mm) else 2.0 * d_mm
+    px = math.sqrt(float(pixel_spacing_mm[0]) * float(pixel_spacing_mm[1]))
+    size = int(2 * math.ceil(1.5 * width / px) + 1)
+    base = ndi.grey_opening(_smooth(img, 1.0), size=(size, size), mode="nearest")
+    return np.maximum(img - base, 0.0)
+
+
 def blob_width_mm(labels: np.ndarray, mask: np.ndarray, img: np.ndarray, area_px: np.ndarray, a0_px: float,
                   background: float, noise_sigma: float, min_contrast: float, pixel_spacing_mm) -> float:
     """The median width (mm) of the thresholded components that could be tube sections; NaN if fewer than 3.
@@ -338,6 +378,38 @@ def blob_width_mm(labels: np.ndarray, mask: np.ndarray, img: np.ndarray, area_px
         return float("nan")
     width_px = 4 * np.sqrt(np.maximum(minor[ok] - 1 / 12, 0.0))  # less a pixel's own spread
     return float(np.median(width_px)) * math.sqrt(float(pixel_spacing_mm[0]) * float(pixel_spacing_mm[1]))
+
+
+def _split_levels(blob: np.ndarray, smooth: np.ndarray, threshold: float, min_area_px: float, max_area_px: float):
+    """A component of several run-together blobs, cut into one region per blob; [] if it does not come apart.
+
+    Raised levels (30, 50, 70 % of the way from the threshold to the peak)
+    are tried in turn; at the first where the component breaks into two or
+    more seeds, each of its pixels goes to a seed by a watershed of the
+    smoothed image (the cut runs along the valleys between the blobs). The
+    split is kept when every region is at most ``max_area_px`` (regions under
+    ``min_area_px`` are dropped).
+    """
+    peak = float(smooth[blob].max())
+    for frac in (0.3, 0.5, 0.7):
+        seeds, n = ndi.label(blob & (smooth > threshold + frac * (peak - threshold)), _CROSS)
+        if n < 2:
+            continue
+        size = np.bincount(seeds.ravel(), minlength=n + 1)
+        size[0] = 0
+        good = np.flatnonzero(size >= max(2, 0.1 * min_area_px))
+        if good.size < 2:
+            continue
+        markers = np.where(np.isin(seeds, good), seeds, 0).astype(np.int32)
+        markers[~blob] = -1
+        depth = np.clip((peak - smooth) / max(peak - threshold, 1e-12) * 1000, 0, 65535).astype(np.uint16)
+        ws = ndi.watershed_ift(depth, markers)
+        regions = [(ws == g) & blob for g in good]
+        sizes = [int(r.sum()) for r in regions]
+        if max(sizes) > max_area_px:
+            continue
+        return [r for r, a in zip(regions, sizes) if a >= min_area_px]
+    return []
 
 
 def _split(blob: np.ndarray, smooth: np.ndarray, r_px: float):

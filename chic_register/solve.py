@@ -1059,8 +1059,19 @@ def register(slices: list[Slice], geom: FiducialGeometry, *, options: SolveOptio
                 per_slice[j] = (fit, None)
                 continue
         try:
-            fits, ell = _solve_one(model, xy, S, opts, res_mm[j])
-            _check_trust(fits[0], fits[1:], model, [sl], opts, [S], [res_mm[j]])
+            try:
+                fits, ell = _solve_one(model, xy, S, opts, res_mm[j])
+                _check_trust(fits[0], fits[1:], model, [sl], opts, [S], [res_mm[j]])
+            except NoLock:
+                if (detect_options or {}).get("flatten_background") or not _worth_flattening(blob_sets[j], model):
+                    raise
+                # tissue touching the tubes or a dim side of the image: once more on the flattened image
+                b = detect_blobs(sl.pixels, sl.pixel_spacing_mm, model.diameter_mm, flatten_background=True,
+                                 **(detect_options or {}))
+                xy = xys[j] = _to_xy_mm(b, sl)
+                blob_sets[j], res_mm[j] = b, _resolution_mm(sl, b)
+                fits, ell = _solve_one(model, xy, S, opts, res_mm[j])
+                _check_trust(fits[0], fits[1:], model, [sl], opts, [S], [res_mm[j]])
         except NoLock as exc:
             reason = exc.reason if exc.reason.startswith(f"{sl.source}: ") else f"{sl.source}: {exc.reason}"
             if skip_failed:
@@ -1120,6 +1131,11 @@ def register(slices: list[Slice], geom: FiducialGeometry, *, options: SolveOptio
     t3 = time.perf_counter()
     timing = {"detect": (t1 - t0) * 1e3, "pose": (t2 - t1) * 1e3, "total": (t3 - t0) * 1e3}
     return Registration("ok", T_sf, tuple(results), timing, geom.name, geom_sha, tuple(skipped))
+
+
+def _worth_flattening(blobs: Blobs, model: TubeModel) -> bool:
+    """A slice whose detection may have lost tubes to their surroundings: something bright, but not a blank image."""
+    return math.isfinite(blobs.threshold) and blobs.noise_sigma > 0 and len(blobs) < 3 * len(model.ids)
 
 
 def _solve_order(xys: list, model: TubeModel, skip_failed: bool) -> list[int]:

@@ -215,3 +215,24 @@ def test_slice_index_ranges():
     for bad, msg in (("7-5", "low to high"), ("a", "not a slice index"), ("3-12", "outside 0..9")):
         with pytest.raises(ChicRegisterError, match=msg):
             parse_slice_indices([bad], 10)
+
+
+@pytest.mark.parametrize("pose", [(30, 0, 0, 0), (22, 12, 70, 25)])
+def test_zframe_in_tissue_with_intensity_falloff_registers(zf, pose):
+    """Wide blobs, a bright body region swallowing two rods and a 2:1 coil-sensitivity ramp across the image.
+
+    As it is, the rods in the tissue merge with it and are lost: the solver
+    retries on the flattened image (top-hat at three blob widths) and locks.
+    """
+    rng = np.random.default_rng(11)
+    sim = simulate_slice(zf, *pose, noise="none", rng=rng, slice_thickness_mm=3.0)
+    img = ndi.gaussian_filter(sim.slice.pixels, 2.5)  # blobs about twice as wide as the rods
+    img /= img.max()
+    rows, cols = np.mgrid[0:img.shape[0], 0:img.shape[1]]
+    tissue = 0.6 * ndi.gaussian_filter(((cols - 128) / 120.0) ** 2 + ((rows - 250) / 90.0) ** 2 < 1.0, 4.0)
+    img = add_rician_noise(np.maximum(img, tissue) * (1.0 - 0.5 * cols / img.shape[1]), 20.0, rng)
+    sl = dataclasses.replace(sim.slice, pixels=img)
+    T_true = sim.truth.T_scanner_from_fiducial
+    assert len(detect_blobs(img, sl.pixel_spacing_mm, 3.0)) < 7  # the plain detector loses rods here
+    reg = register([sl], zf, prior=rigid(T_true[:3, :3], (0, 0, 0)))
+    assert _tre_mm(reg.T_scanner_from_fiducial, T_true, ZF_CENTRE) < 0.3 and reg.slices[0].n_tubes >= 6
