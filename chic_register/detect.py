@@ -37,7 +37,7 @@ class Blobs:
     mask placed at row0, col0) whose intensity made its centre, so that a
     model can predict that centre the same way (see ``solve``);
     ``width_mm``: the typical width of the tube blobs measured in this image
-    (:func:`blob_width_mm`; NaN when too few blobs to tell).
+    (the median minor axis of the candidate components; NaN when fewer than 3).
     """
 
     centres_rc: np.ndarray
@@ -146,6 +146,21 @@ def _binomial_cols(x: np.ndarray, y: np.ndarray, pair: np.ndarray) -> None:
     y *= 0.25
 
 
+def _shape(mask: np.ndarray) -> tuple[float, float]:
+    """Minor/major axis ratio of a bool mask's second moments and its variance across (px^2), from row/column sums."""
+    w = mask.astype(float)
+    wr, wc = w.sum(axis=1), w.sum(axis=0)
+    total = float(wr.sum())
+    rr = np.arange(w.shape[0], dtype=float)
+    cc = np.arange(w.shape[1], dtype=float)
+    dr, dc = rr - float(wr @ rr) / total, cc - float(wc @ cc) / total
+    srr, scc, src = float(wr @ (dr * dr)) / total, float(wc @ (dc * dc)) / total, float(dr @ w @ dc) / total
+    half_tr, det = (srr + scc) / 2, srr * scc - src * src
+    root = math.sqrt(max(half_tr * half_tr - det, 0.0))
+    big, small = half_tr + root, max(half_tr - root, 0.0)
+    return (math.sqrt(small / big) if big > 0 else 1.0), small
+
+
 def _moments(w: np.ndarray):
     """Centroid (row, col) of weights ``w`` (h, w) and the minor/major axis ratio of their spread.
 
@@ -189,7 +204,7 @@ def detect_blobs(
     components with an area outside ``[min_area_factor, max_area_factor] *
     A0`` or a contrast below ``min_contrast`` noise sigmas are dropped. Blank
     images give no blobs. With ``size_from_image`` the blobs' width is
-    measured in the image first (:func:`blob_width_mm`: blur, partial volume,
+    measured in the image first (``Blobs.width_mm``: blur, partial volume,
     thick slices and fluid around a printed channel widen them, 0.7 to 2.5
     times the nominal diameter is usual) and, when it differs from the
     nominal diameter by more than a quarter, the detection is redone at the
@@ -258,14 +273,13 @@ def _detect(pixels, pixel_spacing_mm, tube_diameter_mm: float, min_area_factor: 
     if n == 0:
         return Blobs.empty(bg, sigma_n, thr)
     area = np.bincount(labels[mask], minlength=n + 1)[1:]  # only the labelled pixels: far fewer
-    width_mm = blob_width_mm(labels, mask, img, area, a0, bg, sigma_n, min_contrast, (rs, cs))
     objs = ndi.find_objects(labels)
     keep = np.flatnonzero((area >= min_area_factor * a0) & (area <= max_area_factor * a0))
     # a component too large for one tube may be several blurred ones run together (wide blobs of close tubes):
     # it is offered split at higher levels, never whole
     merged = set(np.flatnonzero((area > max_area_factor * a0) & (area <= 150 * a0)).tolist()) if split_touching else set()
     k = dilate_px if dilate_px is not None else 1
-    centres, areas, means, ratios, contrasts, feet = [], [], [], [], [], []
+    centres, areas, means, ratios, contrasts, feet, widths = [], [], [], [], [], [], []
     H, W = img.shape
     for i in sorted(set(keep.tolist()) | merged):
         sl = objs[i]
@@ -278,7 +292,9 @@ def _detect(pixels, pixel_spacing_mm, tube_diameter_mm: float, min_area_factor: 
         contrast = (mean_i - bg) / sigma_n if sigma_n > 0 else math.inf
         if contrast < min_contrast:
             continue
-        ratio = _moments(blob.astype(float))[2]
+        ratio, minor_var = _shape(blob)
+        if i not in merged:
+            widths.append(4 * math.sqrt(max(minor_var - 1 / 12, 0.0)))  # a disc's diameter, less a pixel's spread
         parts = [blob]
         if i in merged:
             parts = _split_levels(blob, smooth[r0:r1, c0:c1], thr, min_area_factor * a0, max_area_factor * a0)
@@ -315,6 +331,9 @@ def _detect(pixels, pixel_spacing_mm, tube_diameter_mm: float, min_area_factor: 
                 ratios.append(_moments(part.astype(float))[2])
             contrasts.append(contrast)
             feet.append((r0, c0, foot))
+    # the blobs' width: the median minor axis of the single components with a tube's contrast (a tilted or
+    # thick-slice section only grows along the tube, so the minor axis is the blob's diameter whatever the cut)
+    width_mm = float(np.median(widths)) * math.sqrt(rs * cs) if len(widths) >= 3 else float("nan")
     if not centres:
         return dataclasses.replace(Blobs.empty(bg, sigma_n, thr), width_mm=width_mm)
     return Blobs(
@@ -344,40 +363,6 @@ def _flatten(pixels, pixel_spacing_mm, d_mm: float, smooth_sigma_px, min_area_fa
     size = int(2 * math.ceil(1.5 * width / px) + 1)
     base = ndi.grey_opening(_smooth(img, 1.0), size=(size, size), mode="nearest")
     return np.maximum(img - base, 0.0)
-
-
-def blob_width_mm(labels: np.ndarray, mask: np.ndarray, img: np.ndarray, area_px: np.ndarray, a0_px: float,
-                  background: float, noise_sigma: float, min_contrast: float, pixel_spacing_mm) -> float:
-    """The median width (mm) of the thresholded components that could be tube sections; NaN if fewer than 3.
-
-    A component's width is its minor axis: ``4 sqrt(variance)`` across it is
-    the diameter of a disc, and a tilted or thick-slice section only grows
-    along the tube, so the width is the blob's diameter whatever the cut.
-    Components of 0.15 to 25 times ``a0_px`` (0.4 to 5 times the nominal
-    diameter) with the contrast of a tube count. All components at once, from
-    per-label sums of the thresholded pixels.
-    """
-    lab = labels[mask]
-    rr, cc = np.nonzero(mask)
-    n = area_px.size
-    cnt = np.maximum(area_px, 1).astype(float)
-
-    def total(w):
-        return np.bincount(lab, weights=w, minlength=n + 1)[1:]
-
-    mr, mc = total(rr) / cnt, total(cc) / cnt
-    vrr = total(rr * rr.astype(float)) / cnt - mr * mr
-    vcc = total(cc * cc.astype(float)) / cnt - mc * mc
-    vrc = total(rr * cc.astype(float)) / cnt - mr * mc
-    mean = total(img[mask]) / cnt
-    half_tr = (vrr + vcc) / 2
-    minor = half_tr - np.sqrt(np.maximum(half_tr * half_tr - (vrr * vcc - vrc * vrc), 0.0))
-    contrast = (mean - background) / noise_sigma if noise_sigma > 0 else np.full(n, np.inf)
-    ok = (area_px >= 0.15 * a0_px) & (area_px <= 25 * a0_px) & (contrast >= min_contrast)
-    if ok.sum() < 3:
-        return float("nan")
-    width_px = 4 * np.sqrt(np.maximum(minor[ok] - 1 / 12, 0.0))  # less a pixel's own spread
-    return float(np.median(width_px)) * math.sqrt(float(pixel_spacing_mm[0]) * float(pixel_spacing_mm[1]))
 
 
 def _split_levels(blob: np.ndarray, smooth: np.ndarray, threshold: float, min_area_px: float, max_area_px: float):

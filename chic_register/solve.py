@@ -1062,16 +1062,20 @@ def register(slices: list[Slice], geom: FiducialGeometry, *, options: SolveOptio
             try:
                 fits, ell = _solve_one(model, xy, S, opts, res_mm[j])
                 _check_trust(fits[0], fits[1:], model, [sl], opts, [S], [res_mm[j]])
-            except NoLock:
+            except NoLock as first:
                 if (detect_options or {}).get("flatten_background") or not _worth_flattening(blob_sets[j], model):
                     raise
                 # tissue touching the tubes or a dim side of the image: once more on the flattened image
                 b = detect_blobs(sl.pixels, sl.pixel_spacing_mm, model.diameter_mm, flatten_background=True,
                                  **(detect_options or {}))
-                xy = xys[j] = _to_xy_mm(b, sl)
-                blob_sets[j], res_mm[j] = b, _resolution_mm(sl, b)
-                fits, ell = _solve_one(model, xy, S, opts, res_mm[j])
-                _check_trust(fits[0], fits[1:], model, [sl], opts, [S], [res_mm[j]])
+                xy2, res2 = _to_xy_mm(b, sl), _resolution_mm(sl, b)
+                try:
+                    fits, ell = _solve_one(model, xy2, S, opts, res2)
+                    _check_trust(fits[0], fits[1:], model, [sl], opts, [S], [res2])
+                except NoLock:
+                    raise first from None  # the plain image's reason says more
+                xy = xys[j] = xy2
+                blob_sets[j], res_mm[j] = b, res2
         except NoLock as exc:
             reason = exc.reason if exc.reason.startswith(f"{sl.source}: ") else f"{sl.source}: {exc.reason}"
             if skip_failed:
@@ -1135,7 +1139,8 @@ def register(slices: list[Slice], geom: FiducialGeometry, *, options: SolveOptio
 
 def _worth_flattening(blobs: Blobs, model: TubeModel) -> bool:
     """A slice whose detection may have lost tubes to their surroundings: something bright, but not a blank image."""
-    return math.isfinite(blobs.threshold) and blobs.noise_sigma > 0 and len(blobs) < 3 * len(model.ids)
+    bright = blobs.threshold - blobs.background > 4 * blobs.noise_sigma  # Otsu split more than noise
+    return math.isfinite(blobs.threshold) and blobs.noise_sigma > 0 and bright and len(blobs) < 3 * len(model.ids)
 
 
 def _solve_order(xys: list, model: TubeModel, skip_failed: bool) -> list[int]:
