@@ -37,6 +37,7 @@ from .preview import preview_job, tilt_plot_job
 from .printability import HARD_CODES
 from .report import build_report
 from .spec import Spec, load_spec, spec_sha256
+from chic_register.stl import declare_space
 from .verify import STL_ANGULAR_TOLERANCE_RAD, STL_TOLERANCE_MM, VerifyResult, verify_export
 
 TMP_PREFIX = ".{name}.tmp-"  # + "<owner pid>-<random>"
@@ -99,6 +100,7 @@ def export_parts(parts: FiducialParts, folder: Path, name: str) -> list[str]:
                          angular_deflection=STL_ANGULAR_TOLERANCE_RAD, part_number=part_name)
         mesher.write(str(folder / f"{part_name}.3mf"))
         mesher.write(str(folder / f"{part_name}.stl"))
+        declare_space(folder / f"{part_name}.stl")  # SPACE=LPS: Slicer reads F as the .tfm expects
         written += [f"{part_name}.stl", f"{part_name}.step", f"{part_name}.3mf"]
     if not export_step(parts.assembly(name), folder / "assembly.step"):
         raise OSError(f"{folder}/assembly.step: STEP export failed")

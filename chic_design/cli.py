@@ -11,10 +11,13 @@ import argparse
 import json
 import sys
 
-from . import __version__
+from chic_register import exits
 from chic_register.errors import ChicRegisterError
 
+from . import __version__
 from .errors import ChicDesignError
+
+PROG = "chic-design"
 
 
 def _parser() -> argparse.ArgumentParser:
@@ -48,12 +51,6 @@ def _parser() -> argparse.ArgumentParser:
     return p
 
 
-def _non_negative(value, flag: str) -> float | None:
-    if value is not None and (value < 0 or value != value):
-        raise ChicDesignError(f"{flag} must be >= 0 mm, got {value}")
-    return value
-
-
 def _run(args) -> int:
     if args.command == "schema":
         from .spec import json_schema
@@ -62,14 +59,16 @@ def _run(args) -> int:
         return 0
     if args.command == "check":
         from .feasibility import check_design, save_tilt_plot
-        from .spec import load_spec
+        from .spec import load_spec, parse_spec
 
         spec = load_spec(args.spec)
-        report = check_design(
-            spec,
-            pixel_size_mm=_non_negative(args.pixel_size, "--pixel-size"),
-            slice_thickness_mm=_non_negative(args.slice_thickness, "--slice-thickness"),
-        )
+        overrides = {k: v for k, v in (("pixel_size", args.pixel_size), ("slice_thickness", args.slice_thickness))
+                     if v is not None}
+        if overrides:  # the flags meet the spec's own ranges (finite, physical)
+            data = spec.model_dump()
+            data["imaging"].update(overrides)
+            spec = parse_spec(data, f"{args.spec} with --pixel-size/--slice-thickness")
+        report = check_design(spec)
         if args.plot:
             save_tilt_plot(report, args.plot)
         if args.json:
@@ -105,36 +104,13 @@ def main(argv=None) -> int:
         args = _parser().parse_args(argv)  # inside: `--help | head` must not traceback either
         return _run(args)
     except (ChicDesignError, ChicRegisterError) as exc:  # the geometry file is chic_register's
-        return _report(f"error: {exc}", exc.exit_code)
+        return exits.report(PROG, f"error: {exc}", exc.exit_code)
     except KeyboardInterrupt:
-        return _report("interrupted", 130)
+        return exits.report(PROG, "interrupted", 130)
     except BrokenPipeError:  # e.g. `chic-design schema | head`: the reader left; nothing more to say
-        return _quiet_broken_pipe()
+        return exits.broken_pipe()
     except OSError as exc:  # an output that cannot be written (disk full, permission, vanished folder)
-        where = f"{exc.filename}: " if exc.filename else ""
-        return _report(f"error: {where}{exc.strerror or exc}", 1)
-
-
-def _report(text: str, code: int) -> int:
-    """Print one ``chic-design: ...`` line on stderr (if stderr is still there) and return ``code``."""
-    try:
-        print(f"chic-design: {text}", file=sys.stderr)
-    except (BrokenPipeError, OSError):
-        pass
-    return code
-
-
-def _quiet_broken_pipe() -> int:
-    """Point stdout at /dev/null so the interpreter's final flush does not fail again; exit 141 (SIGPIPE)."""
-    import os
-
-    try:
-        devnull = os.open(os.devnull, os.O_WRONLY)
-        os.dup2(devnull, sys.stdout.fileno())
-        os.close(devnull)
-    except (OSError, ValueError, AttributeError):
-        pass
-    return 141
+        return exits.os_error(PROG, exc)
 
 
 if __name__ == "__main__":

@@ -183,6 +183,38 @@ class ImagingSpec(_Strict):
     slice_thickness: Number = Field(2.0, ge=0, le=20.0, description="Slice thickness (mm); 0 = ideal.")
 
 
+class ToolSpec(_Strict):
+    """Where the tool tip is, relative to the fiducial frame F (optional; give one of the two keys)."""
+
+    tip_offset_mm: float | None = Field(
+        None, description="Tip on the axis at this z of F (mm; negative: below the bottom end face); "
+        "tool axes = F's axes.")
+    T_fiducial_from_tool: list[list[float]] | None = Field(
+        None, description="Full rigid transform from the tool frame (origin = tip) to F, 4x4 row-major (mm).")
+
+    @model_validator(mode="after")
+    def _one(self):
+        import math
+
+        import numpy as np
+
+        if (self.tip_offset_mm is None) == (self.T_fiducial_from_tool is None):
+            raise ValueError("give exactly one of tip_offset_mm and T_fiducial_from_tool")
+        if self.tip_offset_mm is not None and not math.isfinite(self.tip_offset_mm):
+            raise ValueError("tip_offset_mm must be a finite number")
+        if self.T_fiducial_from_tool is not None:
+            T = np.asarray(self.T_fiducial_from_tool, dtype=float) if all(
+                isinstance(r, list) and len(r) == 4 for r in self.T_fiducial_from_tool) else np.zeros(0)
+            ok = T.shape == (4, 4) and np.all(np.isfinite(T)) and np.allclose(T[3], [0, 0, 0, 1])
+            if ok:
+                R = T[:3, :3]
+                ok = np.allclose(R.T @ R, np.eye(3), atol=1e-6) and np.linalg.det(R) > 0
+            if not ok:
+                raise ValueError("T_fiducial_from_tool must be a rigid 4x4 matrix (orthonormal rotation, "
+                                 "det +1, last row [0, 0, 0, 1])")
+        return self
+
+
 class Spec(_Strict):
     """A CHIC fiducial design."""
 
@@ -197,6 +229,7 @@ class Spec(_Strict):
     caps: CapSpec = Field(default_factory=CapSpec)
     print: PrintSpec = Field(default_factory=PrintSpec)
     imaging: ImagingSpec = Field(default_factory=ImagingSpec)
+    tool: ToolSpec | None = Field(None, description="Optional tool frame: the tip a robot needs.")
 
     @model_validator(mode="after")
     def _fits(self):

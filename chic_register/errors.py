@@ -38,6 +38,10 @@ class ImageReadError(ChicRegisterError):
         super().__init__(f"{self.path}: {message}")
 
 
+class OutputError(ChicRegisterError):
+    """An output that cannot be written or sent (a missing folder, a closed OpenIGTLink peer)."""
+
+
 class NoLock(ChicRegisterError):
     """No trustworthy pose: the solver refuses rather than guess (exit 3)."""
 

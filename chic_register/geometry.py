@@ -32,7 +32,7 @@ from .errors import GeometryFileError, InputFileError
 #: Plausibility bounds of a geometry file (mm): a fiducial that fits in an MRI bore.
 MAX_EXTENT_MM = 1000.0
 MAX_TUBE_DIAMETER_MM = 50.0
-MAX_TUBES = 64
+MAX_TUBES = 16  # CHIC has 9, a Z-frame 7; the solver's work grows fast with the count
 MAX_HELIX_TURNS = 10.0
 MAX_SOURCE_CHARS = 10_000  # the canonical JSON of ``source``
 
@@ -241,6 +241,52 @@ class HelixTube:
 Tube = LineTube | HelixTube
 
 
+def _rigid_4x4(values) -> np.ndarray | None:
+    """``values`` as a proper rigid 4x4 matrix (last row 0 0 0 1), or None."""
+    try:
+        T = np.asarray(values, dtype=float)
+    except (TypeError, ValueError):
+        return None
+    if T.shape != (4, 4) or not np.all(np.isfinite(T)) or not np.allclose(T[3], [0, 0, 0, 1]):
+        return None
+    R = T[:3, :3]
+    if not np.allclose(R.T @ R, np.eye(3), atol=1e-6) or np.linalg.det(R) < 0:
+        return None
+    return T
+
+
+@dataclass(frozen=True, eq=False)
+class ToolFrame:
+    """The tool's frame relative to F: ``T_fiducial_from_tool`` (4x4, mm); its origin is the tool tip.
+
+    Optional key ``tool`` of the geometry file (written only when the spec
+    has a tool, so files without it keep their hash).
+    """
+
+    T_fiducial_from_tool: np.ndarray
+
+    def __post_init__(self):
+        T = _rigid_4x4(self.T_fiducial_from_tool)
+        if T is None:
+            raise ValueError("tool.T_fiducial_from_tool must be a rigid 4x4 matrix (rotation, translation, 0 0 0 1)")
+        object.__setattr__(self, "T_fiducial_from_tool", T)
+
+    @classmethod
+    def tip_offset(cls, tip_offset_mm: float) -> "ToolFrame":
+        """A tool whose axes are F's and whose tip is on the axis at z = ``tip_offset_mm``."""
+        T = np.eye(4)
+        T[2, 3] = float(tip_offset_mm)
+        return cls(T)
+
+    @property
+    def tip_mm(self) -> np.ndarray:
+        """The tip in F (mm)."""
+        return self.T_fiducial_from_tool[:3, 3].copy()
+
+    def to_dict(self) -> dict:
+        return {"T_fiducial_from_tool": [[float(v) for v in row] for row in self.T_fiducial_from_tool]}
+
+
 @dataclass(frozen=True)
 class FiducialGeometry:
     """Everything the solver knows about a fiducial: its body and its tube centrelines."""
@@ -250,6 +296,7 @@ class FiducialGeometry:
     tubes: tuple[Tube, ...]
     source: dict | None = None
     units: str = "mm"
+    tool: ToolFrame | None = None
 
     def __post_init__(self):
         object.__setattr__(self, "tubes", tuple(self.tubes))
@@ -287,6 +334,8 @@ class FiducialGeometry:
         }
         if self.source is not None:
             out["source"] = dict(self.source)
+        if self.tool is not None:
+            out["tool"] = self.tool.to_dict()
         return out
 
     def to_dict(self) -> dict:
@@ -464,11 +513,25 @@ def check_plausible(geom: "FiducialGeometry", path="<geometry>") -> None:
                                           f"body.outer_diameter ({b.outer_diameter:g})")
 
 
+def tool_from_dict(data, path="<geometry>") -> ToolFrame:
+    """Parse the optional ``tool`` entry: ``{T_fiducial_from_tool: 4x4}``."""
+    if not isinstance(data, dict) or set(data) != {"T_fiducial_from_tool"}:
+        raise GeometryFileError(path, f"tool must be a mapping with the one key T_fiducial_from_tool, got {_short(data)}")
+    T = _rigid_4x4(data["T_fiducial_from_tool"])
+    if T is None:
+        raise GeometryFileError(path, "tool.T_fiducial_from_tool must be a rigid 4x4 matrix "
+                                "(orthonormal rotation, det +1, last row 0 0 0 1)")
+    return ToolFrame(T)
+
+
 def geometry_from_dict(data, path="<geometry>", check_hash: bool = True) -> FiducialGeometry:
     """Validate a parsed geometry file and build the :class:`FiducialGeometry`."""
     if not isinstance(data, dict):
         raise GeometryFileError(path, "not a chic-geometry file (top level is not a mapping)")
     if data.get("format") != FORMAT:
+        if "format" not in data and ("channels" in data or "markers" in data or "tubes" not in data):
+            raise GeometryFileError(path, "not a geometry file (no 'format: chic-geometry'); it looks like a design "
+                                    "spec: run 'chic-design build SPEC' and pass exports/<name>/geometry.yaml")
         raise GeometryFileError(path, f"format is {data.get('format')!r}; expected '{FORMAT}'")
     version = data.get("version")
     if type(version) is not int or version != VERSION:  # 1.0 and true are not the integer 1
@@ -512,8 +575,9 @@ def geometry_from_dict(data, path="<geometry>", check_hash: bool = True) -> Fidu
     if not isinstance(tubes_raw, list) or not tubes_raw or len(tubes_raw) > MAX_TUBES:
         raise GeometryFileError(path, f"tubes must be a list of 1..{MAX_TUBES} tubes")
     tubes = [tube_from_dict(t, path, f"tubes[{i}]") for i, t in enumerate(tubes_raw)]
+    tool = tool_from_dict(data["tool"], path) if "tool" in data else None
     try:
-        geom = FiducialGeometry(str(name), body, tuple(tubes), source, units)
+        geom = FiducialGeometry(str(name), body, tuple(tubes), source, units, tool)
     except ValueError as exc:
         raise GeometryFileError(path, str(exc)) from None
     check_plausible(geom, path)

@@ -30,8 +30,8 @@ from .slices import Slice
 #: Physical range of a pixel spacing (mm): 10 um (microscopy-grade MRI) to 50 mm.
 MIN_SPACING_MM = 0.01
 MAX_SPACING_MM = 50.0
-#: Largest slice read (pixels over all frames): 8192 x 8192; as float64 that is 512 MiB.
-MAX_PIXELS = 8192 * 8192
+#: Largest slice read (pixels over all frames): 4096 x 4096 (128 MiB as float64; solving one took 0.5 GiB).
+MAX_PIXELS = 4096 * 4096
 #: Largest slice thickness taken from a file (mm); beyond it the value is refused.
 MAX_THICKNESS_MM = 100.0
 

@@ -869,11 +869,21 @@ def _solve_one(model: TubeModel, xy: np.ndarray, S: np.ndarray, opts: SolveOptio
         else:
             hyps = family_hypotheses(model, xy, gate_mm=gate, max_tilt_deg=opts.max_tilt_deg,
                                      max_hypotheses=6 * opts.max_hypotheses)
-            fits = _rank(fits + _refine_guesses(model, xy, S, hyps, opts, pixel_mm, gate), limit)
+            extra = _refine_guesses(model, xy, S, hyps, opts, pixel_mm, gate)
+            if ell is not None or ellipse_layout(model):
+                # a fallback where the closed form applies but found nothing: only a fit that explains
+                # (nearly) every tube it puts in the slice, as the closed form's fits would
+                extra = [f for f in extra if _unexplained(f) <= 1]
+            fits = _rank(fits + extra, limit)
     if not fits:
         raise NoLock("the detected centres do not match the geometry's tube pattern",
                      {"n_candidates": int(xy.shape[0])})
     return fits, ell
+
+
+def _unexplained(fit: _Fit) -> int:
+    """Tubes a fit puts wholly inside the slice (every slice) that no blob is assigned to."""
+    return sum(int(np.sum(ins & (a < 0))) for ins, a in zip(fit.inside, fit.assignments))
 
 
 def _refine_guesses(model: TubeModel, xy: np.ndarray, S: np.ndarray, hyps: list, opts: SolveOptions,
@@ -1072,6 +1082,8 @@ def register(slices: list[Slice], geom: FiducialGeometry, *, options: SolveOptio
                 try:
                     fits, ell = _solve_one(model, xy2, S, opts, res2)
                     _check_trust(fits[0], fits[1:], model, [sl], opts, [S], [res2])
+                    if _unexplained(fits[0]) > 1:  # a second look is held to explaining (nearly) every tube
+                        raise NoLock("more than one predicted tube unexplained on the flattened image")
                 except NoLock:
                     raise first from None  # the plain image's reason says more
                 xy = xys[j] = xy2

@@ -27,7 +27,7 @@ from .atomic import atomic_path
 from .errors import ChicRegisterError, ImageReadError, InputFileError
 from .slices import Slice
 
-MAX_VOXELS = 1024**3 // 4  # 256 M voxels: 1 GiB as float32 (a 512 x 512 x 1000 volume)
+MAX_VOXELS = 2**26  # 64 M voxels (512 x 512 x 256): 256 MiB as float32, read and copied once
 FILE_SUFFIXES = (".nii", ".nii.gz", ".nrrd", ".nhdr", ".mha", ".mhd")
 WRITE_SUFFIXES = (".nii", ".nii.gz", ".nrrd", ".mha")
 MR_IMAGE_STORAGE = "1.2.840.10008.5.1.4.1.1.4"  # MR Image Storage SOP class
@@ -146,6 +146,16 @@ def _last_line(exc: Exception) -> str:
     return lines[-1] if lines else type(exc).__name__
 
 
+def _check_voxels(path, size, components: int) -> None:
+    """Refuse a volume too large to read (from its header, before any voxel is decoded)."""
+    n = components
+    for v in size:
+        n *= int(v)
+    if n > MAX_VOXELS:
+        raise ImageReadError(path, f"volume of size {tuple(int(v) for v in size)} is too large "
+                                   f"(at most {MAX_VOXELS} voxels)")
+
+
 def read_volume(path, series_id: str | None = None) -> Volume:
     """Read a NIfTI / NRRD / MetaImage file, or a folder holding one DICOM series.
 
@@ -172,6 +182,10 @@ def read_volume(path, series_id: str | None = None) -> Volume:
             raise ImageReadError(path, "DICOM series has a single slice: read it as a slice, not a volume")
         reader.SetFileNames(files)
         try:
+            first = sitk.ImageFileReader()
+            first.SetFileName(files[0])
+            first.ReadImageInformation()
+            _check_voxels(path, (*first.GetSize()[:2], len(files)), first.GetNumberOfComponents())
             img = reader.Execute()
         except RuntimeError as exc:
             raise ImageReadError(path, f"cannot read DICOM series: {_last_line(exc)}") from None
@@ -188,10 +202,7 @@ def read_volume(path, series_id: str | None = None) -> Volume:
             reader = sitk.ImageFileReader()
             reader.SetFileName(str(path))
             reader.ReadImageInformation()
-            n = int(np.prod([int(v) for v in reader.GetSize()], dtype=object)) * reader.GetNumberOfComponents()
-            if n > MAX_VOXELS:
-                raise ImageReadError(path, f"volume of size {tuple(reader.GetSize())} is too large "
-                                           f"(at most {MAX_VOXELS} voxels)")
+            _check_voxels(path, reader.GetSize(), reader.GetNumberOfComponents())
             img = reader.Execute()
         except RuntimeError as exc:
             raise ImageReadError(path, f"cannot read volume: {_last_line(exc)}") from None

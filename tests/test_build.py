@@ -102,6 +102,13 @@ def test_meshes_are_printable_and_in_frame_F(built):
     assert list(scene.geometry) == ["cap_bottom"]
 
 
+def test_stl_parts_declare_lps_for_slicer(built):
+    """Slicer reads SPACE= from the STL header: F is declared LPS, the convention of the .tfm (issue 10)."""
+    _, result, _ = built
+    for part in ("body", "cap_top", "cap_bottom"):
+        assert (result.folder / f"{part}.stl").read_bytes()[:9] == b"SPACE=LPS"
+
+
 def test_assembly_step_has_labelled_parts(built):
     _, result, _ = built
     text = (result.folder / "assembly.step").read_text(errors="replace")

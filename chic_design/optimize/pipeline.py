@@ -26,10 +26,9 @@ from .choose import compare, ideal_distances, knee_order, weakly_dominating
 from .confirm import confirm_design
 from .engine import make_engine
 from .errors import NoFeasibleDesign
-from .precision import crlb_available
 from .report import report_markdown, table_row, write_csv, write_spec
 from .requirements import Requirements, baseline_path, load_requirements
-from .score import score_spec
+from .score import dominates, score_spec
 from .search import SearchResult, run_search
 from .store import ResultStore
 from .plots import save_pareto_plot, save_precision_map
@@ -48,8 +47,10 @@ class OptimizeResult:
         s = self.search
         name, best = self.pareto[0]
         o = best["objectives"]
+        again = len(s.candidates) - s.evaluated - s.cached
         lines = [f"chic-design optimize: {len(s.candidates)} candidates ({s.evaluated} evaluated, {s.cached} "
-                 f"from the store), {s.feasible} feasible, {len(self.pareto)} Pareto designs",
+                 f"from the store{f', {again} asked twice in one generation' if again else ''}), {s.feasible} "
+                 f"feasible, {len(self.pareto)} Pareto designs",
                  f"chosen: {name}: OD {o['outer_diameter_mm']:g} mm, usable region "
                  f"{o['usable_region_deg_mm']:.0f} deg mm, predicted TRE {o['tre_mm']:.3f} mm"]
         if self.beats_baseline is not None:
@@ -70,8 +71,8 @@ def _no_feasible_message(req: Requirements, search: SearchResult) -> str:
             f"(most common reasons: {common}); relax the limits or the required tilt/depth, or search longer")
 
 
-def _chosen_pictures(req: Requirements, name: str, result: dict, folder: Path) -> bool:
-    """Preview, tilt plot and (with the CRLB) precision map of the chosen design; True if the map was made."""
+def _chosen_pictures(req: Requirements, name: str, result: dict, folder: Path) -> None:
+    """Preview, tilt plot and precision map (CRLB over depth x tilt) of the chosen design."""
     from ..preview import render_preview
 
     spec = parse_spec(result["spec"], name)
@@ -82,8 +83,6 @@ def _chosen_pictures(req: Requirements, name: str, result: dict, folder: Path) -
                             slice_thickness_mm=req.imaging.slice_thickness, min_wall_mm=req.printer.min_wall,
                             max_overhang_deg=req.printer.max_overhang_deg)
     save_tilt_plot(report, folder / "tilt_limits.png")
-    if not crlb_available():
-        return False
     from chic_register.crlb import precision_map
 
     from .precision import protocol_of
@@ -96,7 +95,6 @@ def _chosen_pictures(req: Requirements, name: str, result: dict, folder: Path) -
     write_json(folder / "precision_map.json", pmap.to_dict())
     save_precision_map(pmap, report.tilt_limits, folder / "precision_map.png",
                        f"{name}: predicted TRE at {list(req.required.target_mm)} mm (CRLB)")
-    return True
 
 
 def optimize(req_path, out_dir=None, trials: int | None = None, seed: int = 0, scheduler: str | None = None,
@@ -135,10 +133,11 @@ def optimize(req_path, out_dir=None, trials: int | None = None, seed: int = 0, s
         engine.close()
     beats = None
     if baseline is not None and baseline["feasible"]:
-        dom = weakly_dominating([r for _, r in named], baseline)
-        if dom:
-            best = min(dom, key=lambda r: r["objectives"]["tre_mm"])
-            beats = next((n, r) for n, r in named if r is best)
+        # the first design in choice order that beats the baseline (better somewhere, worse nowhere);
+        # else one that equals it
+        strict = [(n, r) for n, r in named if dominates(r["objectives"], baseline["objectives"])]
+        equal = [(n, r) for n, r in named if r in weakly_dominating([r], baseline)]
+        beats = (strict or equal or [None])[0]
     specs = out / "specs"
     specs.mkdir(parents=True, exist_ok=True)
     wanted = {f"{n}.yaml" for n, _ in named}
@@ -149,15 +148,14 @@ def optimize(req_path, out_dir=None, trials: int | None = None, seed: int = 0, s
         write_spec(r["spec"], specs / f"{n}.yaml")
     rows = [table_row(n, r) for n, r in named]
     write_csv(rows, out / "pareto.csv")
-    has_map = False
     if pictures:
         save_pareto_plot(search.candidates, [r for _, r in named], named[0][1], baseline, out / "pareto.png")
-        has_map = _chosen_pictures(req, named[0][0], named[0][1], out / "chosen")
+        _chosen_pictures(req, named[0][0], named[0][1], out / "chosen")
     write_json(out / "confirm.json", confirmed)
     dist = [float(d) for d in ideal_distances([r for _, r in named])]
     ctx = {"req": req, "req_path": str(req_path), "search": search, "named": named, "rows": rows,
            "baseline": baseline, "baseline_path": str(bpath) if bpath else None, "beats_baseline": beats,
-           "confirmed": confirmed, "confirm_named": finalists, "precision_map": has_map, "distances": dist,
+           "confirmed": confirmed, "confirm_named": finalists, "pictures": pictures, "distances": dist,
            "precision_method": named[0][1]["precision"]["method"]}
     write_text(out / "report.md", report_markdown(ctx))
     result = OptimizeResult(out, search, tuple(named), baseline, beats, confirmed)

@@ -34,6 +34,7 @@ def sample_poses(req: Requirements) -> list[tuple[float, float, float]]:
 
 
 def protocol_of(req: Requirements):
+    """The bound's imaging protocol from the requirements (slices ``slice_thickness`` apart by default)."""
     from chic_register.crlb import Protocol
 
     im = req.imaging
@@ -42,33 +43,8 @@ def protocol_of(req: Requirements):
                     n_slices=im.n_slices, slice_spacing_mm=spacing)
 
 
-def crlb_available() -> bool:
-    """Whether :mod:`chic_register.crlb` is installed (it comes from a separate branch)."""
-    try:
-        from chic_register.crlb import pose_crlb  # noqa: F401
-    except ImportError:
-        return False
-    return True
-
-
-def _quantisation_precision(geom: FiducialGeometry, req: Requirements) -> dict:
-    """Stand-in while :mod:`chic_register.crlb` is missing: the feasibility check's depth bound.
-
-    Only the depth SD (centroid quantisation, tilt 0) is known; it is reported
-    as ``tre_mm`` too, and ``method`` says so.
-    """
-    from ..feasibility import depth_sensitivity
-
-    sd = depth_sensitivity(geom, req.imaging.pixel_size).combined_sigma_z_mm
-    nan = float("nan")
-    return {"tre_mm": sd, "sd_depth_mm": sd, "sd_normal_deg": nan, "sd_twist_deg": nan,
-            "worst_pose": None, "method": "centroid quantisation depth SD (chic_register.crlb missing)"}
-
-
 def predicted_precision(geom: FiducialGeometry, req: Requirements) -> dict:
     """Worst case over :func:`sample_poses` of the bound's SDs and TRE at the target (mm, deg)."""
-    if not crlb_available():
-        return _quantisation_precision(geom, req)
     from chic_register.crlb import pose_crlb
 
     protocol = protocol_of(req)

@@ -23,7 +23,7 @@ def table_row(name: str, r: dict) -> dict:
     s, p, o = r["spec"], r["precision"], r["objectives"]
     return {"name": name, "outer_diameter_mm": o["outer_diameter_mm"], "envelope_od_mm": r["envelope_od_mm"],
             "length_mm": r["length_mm"], "usable_region_deg_mm": round(o["usable_region_deg_mm"], 1),
-            "usable_15deg_mm": r["usable_depth_mm"].get("15"), "tre_mm": round(o["tre_mm"], 4),
+            "usable_15deg_mm": round(r["usable_depth_mm"].get("15", 0.0), 1), "tre_mm": round(o["tre_mm"], 4),
             "sd_depth_mm": round(p["sd_depth_mm"], 4), "sd_normal_deg": round(p["sd_normal_deg"], 4),
             "sd_twist_deg": round(p["sd_twist_deg"], 4), "channel_mm": s["channels"]["diameter"],
             "circle_mm": s["channels"]["circle_diameter"], "offset_deg": s["helix"]["offset_deg"],
@@ -113,9 +113,10 @@ def report_markdown(ctx: dict) -> str:
           f"{chosen['spec']['channels']['circle_diameter']:g} mm, helix offset "
           f"{chosen['spec']['helix']['offset_deg']:g} deg, orientation tubes at "
           f"{chosen['spec']['markers']['orientation_deg']} deg.", "",
-          "![preview](chosen/preview.png)", "", "![tilt limits](chosen/tilt_limits.png)", ""]
-    if ctx.get("precision_map"):
-        L += ["![precision map](chosen/precision_map.png)", ""]
+          ]
+    if ctx.get("pictures"):
+        L += ["![preview](chosen/preview.png)", "", "![tilt limits](chosen/tilt_limits.png)", "",
+              "![precision map](chosen/precision_map.png)", ""]
     if len(ctx["named"]) > 1:
         ru_name, ru = ctx["named"][1]
         L += [f"### Why it beat the runner-up `{ru_name}`", "",

@@ -58,8 +58,9 @@ def run_search(req: Requirements, engine, store, trials: int, seed: int = 0, pop
     """Search ``trials`` candidates; returns all of them and the Pareto set of the feasible ones."""
     population = population or req.search.population
     study = make_study(seed, population)
-    if start_params is not None:
-        study.enqueue_trial(start_params)
+    if start_params is not None:  # the start design and its neighbours open the first generation
+        for p in [start_params] + space.neighbours(start_params, req)[:population - 1]:
+            study.enqueue_trial(p)
     req_data = req.model_dump()
     bar = None
     if progress:

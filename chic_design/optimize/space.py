@@ -120,6 +120,30 @@ def spec_dict(params: dict, req: Requirements, name: str) -> dict:
     }
 
 
+#: One-step moves around a start design (the first generation's seeds): parameter, step.
+NEIGHBOUR_STEPS = (("orient_a_deg", 5), ("orient_b_deg", 5), ("channel_tenthmm", 2), ("circle_pos", 3),
+                   ("offset_deg", 1), ("length_mm", 2), ("od_halfmm", 1))
+
+
+def neighbours(params: dict, req: Requirements) -> list[dict]:
+    """The start design moved one step up and one step down along each of :data:`NEIGHBOUR_STEPS`.
+
+    Seeding the first generation with these lets NSGA-II's crossover work
+    near a known good design (its own mutation resamples a parameter anywhere
+    in its range, so it rarely makes small moves). Out-of-range moves are dropped.
+    """
+    ranges = int_ranges(req)
+    out = []
+    for name, step in NEIGHBOUR_STEPS:
+        for sign in (-1, 1):
+            p = dict(params)
+            p[name] = params[name] + sign * step
+            lo, hi = ranges[name]
+            if lo <= p[name] <= hi and canonical(p) != canonical(params):
+                out.append(p)
+    return out
+
+
 def params_from_spec(spec, req: Requirements) -> dict | None:
     """The candidate parameters that reproduce ``spec``'s design, or None if it is outside the space.
 
