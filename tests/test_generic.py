@@ -19,7 +19,7 @@ from chic_register.detect import detect_blobs
 from chic_register.errors import ChicRegisterError, NoLock
 from chic_register.geometry import Body, FiducialGeometry, LineTube, write_geometry
 from chic_register.hypotheses import _rotations_from_affine, family_hypotheses, parallel_family
-from chic_register.pose import apply, invert, rigid, rot_y, rot_z, slice_frame
+from chic_register.pose import apply, rigid, rot_y, rot_z, slice_frame
 from chic_register.simulate import add_rician_noise, simulate_slice
 from chic_register.solve import _depth_tube_name, plane_crossings, prepare_geometry, register
 from chic_register.volume import simulate_volume, write_volume
@@ -236,3 +236,14 @@ def test_zframe_in_tissue_with_intensity_falloff_registers(zf, pose):
     assert len(detect_blobs(img, sl.pixel_spacing_mm, 3.0)) < 7  # the plain detector loses rods here
     reg = register([sl], zf, prior=rigid(T_true[:3, :3], (0, 0, 0)))
     assert _tre_mm(reg.T_scanner_from_fiducial, T_true, ZF_CENTRE) < 0.3 and reg.slices[0].n_tubes >= 6
+
+
+def test_no_lock_without_the_depth_tubes_or_with_the_wrong_geometry(zf, neuro_geometry):
+    """The generic stage never invents a pose: rods without their diagonals (plus stray blobs), a CHIC slice."""
+    for seed, pose in enumerate([(30, 5, 40, 0), (25, 15, 200, 30)]):
+        sl, T_true = _slice(zf, pose, seed=seed, distractors=6, missing=("Z0", "Z1", "Z2"))
+        with pytest.raises(NoLock):
+            register([sl], zf, prior=T_true)
+        chic, _ = _slice(neuro_geometry, (25, pose[1], pose[2], 0), seed=seed, distractors=3)
+        with pytest.raises(NoLock):
+            register([chic], zf, prior=rigid(np.eye(3), (0, 0, 0)), prior_max_deg=180)
