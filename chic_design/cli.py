@@ -38,7 +38,9 @@ def _parser() -> argparse.ArgumentParser:
     c.add_argument("--pixel-size", type=float, metavar="MM", help="override imaging.pixel_size")
     c.add_argument("--plot", metavar="PNG", help="also save the max-tilt-vs-depth plot here")
 
-    sub.add_parser("schema", help="print the spec's JSON Schema")
+    sc = sub.add_parser("schema", help="print the spec's JSON Schema")
+    sc.add_argument("--family", default="chic", choices=["chic", "zframe"],
+                    help="which spec family's schema (default chic)")
 
     o = sub.add_parser("optimize", help="search designs for a tool and protocol; Pareto set, specs and report")
     o.add_argument("requirements", help="requirements (YAML), e.g. designs/requirements/neuro.yaml")
@@ -55,7 +57,7 @@ def _run(args) -> int:
     if args.command == "schema":
         from .spec import json_schema
 
-        print(json.dumps(json_schema(), indent=2))
+        print(json.dumps(json_schema(args.family), indent=2))
         return 0
     if args.command == "check":
         from .feasibility import check_design, save_tilt_plot

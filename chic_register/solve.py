@@ -34,7 +34,7 @@ import numpy as np
 from scipy.optimize import linear_sum_assignment
 
 from .detect import Blobs, _dilate, detect_blobs
-from .errors import NoLock
+from .errors import ImprecisePose, NoLock
 from .geometry import FiducialGeometry, HelixTube, LineTube, content_sha256
 from .hypotheses import (  # noqa: F401  (the first-guess stage; its public names stay importable from here)
     Ellipse,
@@ -692,9 +692,11 @@ class SliceResult:
     blobs_rc: np.ndarray = field(repr=False, default=None)
     predicted_rc: dict = field(repr=False, default=None)
     ellipse: Ellipse | None = field(repr=False, default=None)
+    missing_tubes: tuple[str, ...] = ()
 
     def to_dict(self) -> dict:
         return {
+            **({"missing_tubes": list(self.missing_tubes)} if self.missing_tubes else {}),
             "source": self.source,
             "depth_mm": round(self.depth_mm, 6),
             "tilt_deg": round(self.tilt_deg, 6),
@@ -770,6 +772,15 @@ class SolveOptions:
     precise than a centroid in white noise) and the pose refitted on those;
     a template landing more than ``template_max_disagreement_px`` from the
     centroid model's position gives :class:`NoLock`. 0 turns it off.
+    ``verify``: before ``ok``, prove the pose against the image
+    (:mod:`chic_register.verify_pose`: envelope, every predicted section
+    present with its shape, nothing unexplained on the tubes' circle, pixel
+    spacing, no rival that explains the pixels nearly as well, and a
+    predicted error (3 sigma) within ``trust_tre_mm`` at the frame centre and
+    ``trust_rot_deg``; when only that last test fails in the fast mode and
+    ``refine_when_imprecise``, the accuracy mode's refinement is tried before
+    refusing); off only for
+    studies of the raw fit.
     ``prior``: an approximate ``T_scanner_from_fiducial`` (4x4, only its
     rotation is used): poses turned more than ``prior_max_deg`` from it are
     never considered. It is what resolves a geometry that maps onto itself
@@ -791,6 +802,10 @@ class SolveOptions:
     centroid_min_purity: float = 0.93
     template_iterations: int = 1
     template_max_disagreement_px: float = 0.5
+    verify: bool = True
+    trust_tre_mm: float = 0.5
+    trust_rot_deg: float = 0.5
+    refine_when_imprecise: bool = True
     prior: np.ndarray | None = None
     prior_max_deg: float = 60.0
 
@@ -1059,6 +1074,7 @@ def register(slices: list[Slice], geom: FiducialGeometry, *, options: SolveOptio
     Ss = [sl.T_scanner_from_image() for sl in slices]
     res_mm = [_resolution_mm(sl, b) for sl, b in zip(slices, blob_sets)]
     per_slice = [None] * len(slices)
+    rivals = [[] for _ in slices]  # per slice: the distinct fits that came close (for the verification)
     skipped = []
     anchor = None
     for j in _solve_order(xys, model, skip_failed):
@@ -1097,14 +1113,15 @@ def register(slices: list[Slice], geom: FiducialGeometry, *, options: SolveOptio
                 raise NoLock(reason, exc.detail) from None
             raise
         per_slice[j] = (fits[0], ell)
+        rivals[j] = fits[1:]
         if skip_failed and anchor is None:
             anchor = fits[0].T_F_from_scanner
     skipped = [s for _, s in sorted(skipped, key=lambda js: js[0])]  # in the slices' order
     used = [j for j in range(len(slices)) if per_slice[j] is not None]
     if not used:
         raise NoLock(_no_slice_locked(skipped), {"n_skipped": len(skipped)})
-    slices, xys, Ss, blob_sets, res_mm = ([seq[j] for j in used] for seq in (slices, xys, Ss, blob_sets, res_mm))
-    per_slice = [per_slice[j] for j in used]
+    slices, xys, Ss, blob_sets, res_mm, per_slice, rivals = (
+        [seq[j] for j in used] for seq in (slices, xys, Ss, blob_sets, res_mm, per_slice, rivals))
     if len(slices) == 1:
         best = per_slice[0][0]
     else:
@@ -1112,8 +1129,8 @@ def register(slices: list[Slice], geom: FiducialGeometry, *, options: SolveOptio
         if dropped:
             skipped += [SkippedSlice(slices[j].source, why, rms) for j, why, rms in dropped]
             keep = [j for j in range(len(slices)) if j not in {d[0] for d in dropped}]  # the fit's slices, in order
-            slices, xys, Ss, blob_sets, res_mm, per_slice = (
-                [seq[j] for j in keep] for seq in (slices, xys, Ss, blob_sets, res_mm, per_slice))
+            slices, xys, Ss, blob_sets, res_mm, per_slice, rivals = (
+                [seq[j] for j in keep] for seq in (slices, xys, Ss, blob_sets, res_mm, per_slice, rivals))
     if opts.centroid_model:
         corrected = _centroid_refine(model, geom.tubes, best, xys, Ss, slices, blob_sets, opts)
         _check_trust(corrected, [], model, slices, opts, Ss)  # only ever stricter: the lock was checked above
@@ -1121,6 +1138,24 @@ def register(slices: list[Slice], geom: FiducialGeometry, *, options: SolveOptio
             raise NoLock("the centroid model moved the pose by more than 1 mm or 1 degree: the fit is not stable",
                          {"n_tubes": corrected.n_matched})
         best = corrected
+    checks = None
+    if opts.verify:  # the last word: the pose proved against the pixels (chic_register.verify_pose)
+        from .verify_pose import verify_fit
+
+        try:
+            checks = verify_fit(geom, model, best, rivals, slices, Ss, blob_sets, opts)
+        except ImprecisePose:
+            if opts.centroid_model or not opts.refine_when_imprecise:
+                raise
+            # verified but not precise enough from the centroids: fit the sections themselves (the accuracy
+            # mode), then decide on that
+            accurate = _centroid_refine(model, geom.tubes, best, xys, Ss, slices, blob_sets, opts)
+            _check_trust(accurate, [], model, slices, opts, Ss)
+            if _distinct(accurate.T_F_from_scanner, best.T_F_from_scanner, model):
+                raise NoLock("the accuracy refinement moved the pose by more than 1 mm or 1 degree: the fit is "
+                             "not stable", {"n_tubes": accurate.n_matched}) from None
+            best = accurate
+            checks = verify_fit(geom, model, best, rivals, slices, Ss, blob_sets, opts)
     t2 = time.perf_counter()
     T_sf = invert(best.T_F_from_scanner)
     results = []
@@ -1143,6 +1178,7 @@ def register(slices: list[Slice], geom: FiducialGeometry, *, options: SolveOptio
             predicted_rc={model.ids[i]: (float(q[i, 1] / px[0]), float(q[i, 0] / px[1]))
                           for i in np.flatnonzero(inside)},
             ellipse=per_slice[j][1],
+            missing_tubes=checks[j].missing if checks else (),
         ))
     t3 = time.perf_counter()
     timing = {"detect": (t1 - t0) * 1e3, "pose": (t2 - t1) * 1e3, "total": (t3 - t0) * 1e3}

@@ -375,6 +375,7 @@ def simulate_volume(
     rng=None,
     supersample: int = 3,
     thickness_samples: int = 3,
+    blob_width: float = 1.0,
 ) -> SimulatedVolume:
     """A synthetic MRI volume of ``geom`` at a known pose.
 
@@ -385,7 +386,8 @@ def simulate_volume(
     noise as in :mod:`chic_register.simulate` (``"none"``, ``"uniform"``
     amplitude ``noise_level`` x signal, ``"rician"`` at ``snr``).
     Default placement: ``direction`` identity and the volume centre at the
-    scanner origin.
+    scanner origin. ``blob_width`` widens every blob in each k-plane as
+    :func:`chic_register.simulate.render_tubes_widened` does.
     """
     from . import simulate
 
@@ -410,9 +412,9 @@ def simulate_volume(
     voxels = np.empty((nz, ny, nx))
     for k in range(nz):
         T_F_from_S = T_fs @ plane_frame(grid, k)
-        voxels[k] = simulate.render_slice(
-            geom, T_F_from_S, (ny, nx), (sj, si), sk, center_px=(0.0, 0.0),
-            supersample=supersample, thickness_samples=thickness_samples,
+        voxels[k] = simulate.render_tubes_widened(
+            geom.tubes, T_F_from_S, (ny, nx), (sj, si), sk, center_px=(0.0, 0.0),
+            supersample=supersample, thickness_samples=thickness_samples, blob_width=blob_width,
         )
     if noise == "uniform":
         voxels = simulate.add_uniform_noise(voxels, noise_level, rng)
@@ -427,5 +429,6 @@ def simulate_volume(
         "snr": float(snr) if noise == "rician" else None,
         "supersample": int(supersample),
         "thickness_samples": int(thickness_samples),
+        "blob_width": float(blob_width),
     }
     return SimulatedVolume(vol, T_sf, settings)
