@@ -53,7 +53,7 @@ from .envelope import plane_status
 from .errors import ImprecisePose, NoLock
 from .pose import slice_angles
 from .simulate import render_tubes
-from .solve import _section_extent, plane_crossings
+from .solve import _near_prior, _section_extent, plane_crossings
 
 #: A present tube's fitted fluid level, as a share of the median of the tubes the solver matched. A correctly
 #: placed section (partial volume and slab smear are in the model) gives ~1 at any SNR above a few; a section
@@ -451,7 +451,8 @@ def verify_fit(geom, model, fit, rivals, slices, Ss, blob_sets, opts) -> list[Sl
         turned = _turned_rivals(model, fit.T_F_from_scanner, _to_xy_mm(b, sl), S, px)
         for other in list(rivals[j] if rivals is not None else ()) + turned:
             if (other.n_matched < opts.min_tubes or other.rms_mm > opts.max_rms_px * px
-                    or not _distinct(other.T_F_from_scanner, fit.T_F_from_scanner, model)):
+                    or not _distinct(other.T_F_from_scanner, fit.T_F_from_scanner, model)
+                    or not _near_prior(other.T_F_from_scanner, opts)):  # the user's prior orientation excludes it
                 continue
             _compare_rival(geom, model, check, other.T_F_from_scanner @ S, sl)
         out.append(check)
