@@ -1,4 +1,4 @@
-"""Cramér-Rao lower bound (CRLB) of the fiducial's pose from its MRI slices.
+"""Cramer-Rao lower bound (CRLB) of the fiducial's pose from its MRI slices.
 
 What the best unbiased estimator could reach, for a design and an imaging
 protocol, from the pixels themselves (not from detected centres):

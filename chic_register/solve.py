@@ -1003,15 +1003,18 @@ class Registration:
     timing_ms: dict
     geometry_name: str = ""
     geometry_sha256: str = ""
+    uncertainty: object = field(repr=False, default=None)  # chic_register.uncertainty.PoseUncertainty
 
     def to_dict(self) -> dict:
-        """JSON-ready object, CONTRACT.md section 4 plus extra keys."""
+        """JSON-ready object, CONTRACT.md section 4 plus extra keys (``covariance``, ``noise``,
+        ``target_F_mm``, ``predicted_tre_mm``: :meth:`~chic_register.uncertainty.PoseUncertainty.to_dict`)."""
         return {
             "status": self.status,
             "T_scanner_from_fiducial": [[float(v) for v in row] for row in self.T_scanner_from_fiducial],
             "slices": [s.to_dict() for s in self.slices],
             "timing_ms": {k: round(v, 3) for k, v in self.timing_ms.items()},
             "geometry": {"name": self.geometry_name, "sha256": self.geometry_sha256},
+            **(self.uncertainty.to_dict() if self.uncertainty is not None else {}),
         }
 
 
@@ -1038,6 +1041,10 @@ class SolveOptions:
     precise than a centroid in white noise) and the pose refitted on those;
     a template landing more than ``template_max_disagreement_px`` from the
     centroid model's position gives :class:`NoLock`. 0 turns it off.
+    ``uncertainty``: compute the pose's covariance and predicted TRE
+    (:mod:`~chic_register.uncertainty`; a few ms per slice; always when
+    ``max_tre_mm`` is finite); ``max_tre_mm``: a pose whose predicted TRE at
+    the registration's target exceeds it gives :class:`NoLock` (``imprecise``).
     """
 
     max_rms_px: float = 0.5
@@ -1054,6 +1061,8 @@ class SolveOptions:
     centroid_min_purity: float = 0.93
     template_iterations: int = 1
     template_max_disagreement_px: float = 0.5
+    max_tre_mm: float = math.inf
+    uncertainty: bool = True
 
 
 def _pixel_mm(sl: Slice) -> float:
@@ -1200,14 +1209,16 @@ def _check_trust(fit: _Fit, others: list[_Fit], model: TubeModel, slices: list[S
 
 
 def register(slices: list[Slice], geom: FiducialGeometry, *, options: SolveOptions | None = None,
-             detect_options: dict | None = None, **overrides) -> Registration:
+             detect_options: dict | None = None, target_F_mm=None, **overrides) -> Registration:
     """Register one or more slices of the fiducial: one ``T_scanner_from_fiducial`` from all.
 
     Each slice is detected and solved on its own (every slice must lock),
     then all correspondences are refined jointly. ``overrides`` set fields
     of :class:`SolveOptions` (e.g. ``max_rms_px=0.4``); ``detect_options``
-    go to :func:`~chic_register.detect.detect_blobs`. Raises :class:`NoLock`
-    with a reason when no trustworthy pose exists.
+    go to :func:`~chic_register.detect.detect_blobs`. ``target_F_mm``: the
+    point of F whose predicted TRE is reported (default: the geometry's tool
+    tip, else the body's centre on its axis). Raises :class:`NoLock` with a
+    reason when no trustworthy pose exists.
     """
     opts = dataclasses.replace(options or SolveOptions(), **overrides)
     if not slices:
@@ -1273,5 +1284,18 @@ def register(slices: list[Slice], geom: FiducialGeometry, *, options: SolveOptio
             ellipse=per_slice[j][1],
         ))
     t3 = time.perf_counter()
-    timing = {"detect": (t1 - t0) * 1e3, "pose": (t2 - t1) * 1e3, "total": (t3 - t0) * 1e3}
-    return Registration("ok", T_sf, tuple(results), timing, geom.name, geom_sha)
+    unc = None
+    if opts.uncertainty or math.isfinite(opts.max_tre_mm):
+        from .uncertainty import registration_uncertainty, target_point
+
+        unc = registration_uncertainty(model, best, xys, Ss, slices, blob_sets, target_point(geom, target_F_mm),
+                                       "centroid" if not opts.centroid_model else "template (centroid covariance)")
+        if unc.predicted_tre_mm > opts.max_tre_mm:
+            raise NoLock(f"imprecise: predicted TRE {unc.predicted_tre_mm:.3f} mm at "
+                         f"({', '.join(f'{v:g}' for v in unc.target_F_mm)}) exceeds {opts.max_tre_mm:g} mm",
+                         {"code": "imprecise", "predicted_tre_mm": round(unc.predicted_tre_mm, 4),
+                          "max_tre_mm": opts.max_tre_mm})
+    t4 = time.perf_counter()
+    timing = {"detect": (t1 - t0) * 1e3, "pose": (t2 - t1) * 1e3, "uncertainty": (t4 - t3) * 1e3,
+              "total": (t4 - t0) * 1e3}
+    return Registration("ok", T_sf, tuple(results), timing, geom.name, geom_sha, unc)
