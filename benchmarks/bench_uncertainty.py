@@ -2,9 +2,9 @@
 
     OMP_NUM_THREADS=1 .venv/bin/python benchmarks/bench_uncertainty.py [--draws 50] [--seeds 21 5 11] [--snr 20]
 
-For ``designs/neuro.yaml`` (the full solver, ``register``) and 3D Slicer's
-z001 Z-frame (detection and the solver's refinement from the truth: its first
-guess is another helper's work) at four poses each, ``--draws`` Rician slices
+For ``designs/neuro.yaml`` and 3D Slicer's z001 Z-frame (the full solver,
+``register``; the Z-frame with the true pose as its orientation prior, which
+resolves its half-turn symmetry) at four poses each, ``--draws`` Rician slices
 per pose and seed: the mean squared Mahalanobis length of the pose error
 under the reported covariance (6 when calibrated), and predicted over
 measured RMS TRE at the default target (1 when calibrated). Then the CPU
@@ -44,12 +44,12 @@ def main() -> None:
     args = ap.parse_args()
     print(f"load average at start: {os.getloadavg()[0]:.2f} (2 cores shared)")
     neuro = fiducial_geometry(load_spec(ROOT / "designs" / "neuro.yaml"))
-    for name, geom, poses, solver in (("neuro", neuro, CHIC_POSES, "register"),
-                                      ("zframe-z001", z001_geometry(), Z_POSES, "refine")):
+    for name, geom, poses, prior in (("neuro", neuro, CHIC_POSES, False),
+                                     ("zframe-z001", z001_geometry(), Z_POSES, True)):
         all_m2, ratios = [], []
         for seed in args.seeds:
             c0 = time.process_time()
-            cal = run_calibration(geom, poses, args.draws, seed, snr=args.snr, solver=solver)
+            cal = run_calibration(geom, poses, args.draws, seed, snr=args.snr, prior=prior)
             all_m2.append(cal.mahalanobis2)
             ratios.append(cal.tre_ratio)
             print(f"{name:12s} seed {seed:3d}: {cal.mahalanobis2.size} draws ({cal.n_no_lock} no-lock), "

@@ -14,6 +14,7 @@ import functools
 import json
 import multiprocessing
 import os
+import re
 import shutil
 import sys
 import tempfile
@@ -28,16 +29,20 @@ from build123d import Mesher, export_step
 from chic_register.geometry import write_geometry
 
 from .cad import FiducialParts, build_parts
-from .errors import InfeasibleDesign, SpecError
+from .errors import InfeasibleDesign
 from .feasibility import check_design
 from .layout import fiducial_geometry
+from .lifeline import die_with_parent
 from .preview import precision_job, preview_job, tilt_plot_job
+from .printability import HARD_CODES
 from .report import build_report
 from .spec import Spec, load_spec, spec_sha256
+from chic_register.stl import declare_space
 from .verify import STL_ANGULAR_TOLERANCE_RAD, STL_TOLERANCE_MM, VerifyResult, verify_export
 
-TMP_PREFIX = ".{name}.tmp-"
+TMP_PREFIX = ".{name}.tmp-"  # + "<owner pid>-<random>"
 OLD_PREFIX = ".{name}.old-"
+_OWNER = re.compile(r"^(\d+)-[A-Za-z0-9_]+$")  # owner pid, then mkdtemp's random letters
 
 
 @dataclass(frozen=True)
@@ -82,15 +87,6 @@ class _Steps:
             print(f"chic-design: [{len(self.timings)}/{self.total}] {name} {dt:.2f} s", file=sys.stderr, flush=True)
 
 
-def check_cap_fit(spec: Spec, spec_path) -> None:
-    """Caps that would reach each other along the body are a contradictory spec (before CAD)."""
-    if 2 * spec.caps.skirt_height >= spec.body.length:
-        raise SpecError(
-            f"{spec_path}: caps.skirt_height ({spec.caps.skirt_height:g}) must be less than half of "
-            f"body.length ({spec.body.length:g}): the two caps' skirts would meet"
-        )
-
-
 def export_parts(parts: FiducialParts, folder: Path, name: str) -> list[str]:
     """Write each part as STL, STEP and 3MF (mm, named) plus ``assembly.step``; returns file names."""
     written = []
@@ -104,6 +100,7 @@ def export_parts(parts: FiducialParts, folder: Path, name: str) -> list[str]:
                          angular_deflection=STL_ANGULAR_TOLERANCE_RAD, part_number=part_name)
         mesher.write(str(folder / f"{part_name}.3mf"))
         mesher.write(str(folder / f"{part_name}.stl"))
+        declare_space(folder / f"{part_name}.stl")  # SPACE=LPS: Slicer reads F as the .tfm expects
         written += [f"{part_name}.stl", f"{part_name}.step", f"{part_name}.3mf"]
     if not export_step(parts.assembly(name), folder / "assembly.step"):
         raise OSError(f"{folder}/assembly.step: STEP export failed")
@@ -126,11 +123,60 @@ def _default_permissions(folder: Path) -> None:
             os.chmod(path, 0o666 & ~umask)
 
 
+def _pid_alive(pid: int) -> bool:
+    """True when a process ``pid`` exists (also when it belongs to another user)."""
+    if pid <= 0:
+        return False
+    try:
+        os.kill(pid, 0)
+    except ProcessLookupError:
+        return False
+    except PermissionError:
+        return True
+    return True
+
+
+def remove_stale_temporaries(out_root, name: str) -> list[Path]:
+    """Remove the temporary folders of earlier builds of ``name`` whose owner process is dead.
+
+    A build killed hard (SIGKILL, power loss) cannot clean up. Its
+    ``.<name>.tmp-<pid>-*`` folder is removed here; a ``.<name>.old-<pid>-*``
+    folder (the previous export, moved aside just before the final rename) is
+    renamed back to ``<name>`` if that is missing, else removed. Folders of a
+    live process (a build running now) are left alone. Returns what was removed.
+    """
+    out_root = Path(out_root)
+    removed = []
+    try:
+        entries = sorted(out_root.iterdir(), key=lambda p: p.stat().st_mtime if p.exists() else 0.0)
+    except OSError:
+        return removed
+    for path in entries:
+        for prefix in (TMP_PREFIX.format(name=name), OLD_PREFIX.format(name=name)):
+            if not path.name.startswith(prefix) or not path.is_dir():
+                continue
+            m = _OWNER.match(path.name[len(prefix):])
+            if m is None or _pid_alive(int(m.group(1))):
+                continue
+            final = out_root / name
+            if prefix.endswith(".old-") and not final.exists():
+                os.rename(path, final)  # the kill came between the two renames: restore the export
+            else:
+                shutil.rmtree(path, ignore_errors=True)
+                removed.append(path)
+    return removed
+
+
+def _owned_mkdtemp(prefix: str, parent: Path) -> Path:
+    """``mkdtemp`` with this process's pid in the name, so a later build can tell a stale folder."""
+    return Path(tempfile.mkdtemp(prefix=f"{prefix}{os.getpid()}-", dir=parent))
+
+
 def _replace_folder(tmp: Path, final: Path) -> None:
     """Put ``tmp`` at ``final``: move an old ``final`` aside, rename ``tmp`` in, delete the old one."""
     old = None
     if final.exists():
-        old = Path(tempfile.mkdtemp(prefix=OLD_PREFIX.format(name=final.name), dir=final.parent))
+        old = _owned_mkdtemp(OLD_PREFIX.format(name=final.name), final.parent)
         os.rmdir(old)
         os.rename(final, old)
     try:
@@ -152,7 +198,8 @@ class _Pictures:
     """
 
     def __init__(self, in_worker: bool):
-        self.executor = (ProcessPoolExecutor(max_workers=1, mp_context=multiprocessing.get_context("spawn"))
+        self.executor = (ProcessPoolExecutor(max_workers=1, mp_context=multiprocessing.get_context("spawn"),
+                                             initializer=die_with_parent, initargs=(os.getpid(),))
                          if in_worker else None)
         self.jobs: list[tuple[str, object]] = []
 
@@ -184,21 +231,23 @@ def build_design(spec_path, out_root="exports", force: bool = False, progress: b
     steps = _Steps(progress, total=9)
     with steps.step("spec"):
         spec = load_spec(spec_path)
-        check_cap_fit(spec, spec_path)
     with steps.step("geometry"):
         source = {"spec": str(spec_path), "spec_sha256": spec_sha256(spec_path)}
         geometry = fiducial_geometry(spec, source=source)
     out_root = Path(out_root)
     out_root.mkdir(parents=True, exist_ok=True)
     final = out_root / spec.name
-    tmp = Path(tempfile.mkdtemp(prefix=TMP_PREFIX.format(name=spec.name), dir=out_root))
+    remove_stale_temporaries(out_root, spec.name)
+    tmp = _owned_mkdtemp(TMP_PREFIX.format(name=spec.name), out_root)
     pictures = _Pictures(pictures_in_worker)
     try:
         pictures.submit("preview", preview_job, geometry, tmp)
         with steps.step("feasibility"):
             feasibility = check_design(spec)
-            if not feasibility.feasible and not force:
-                raise InfeasibleDesign(spec_path, feasibility.violations)
+            hard = [v for v in feasibility.violations if v.code in HARD_CODES]
+            if hard or (not feasibility.feasible and not force):
+                # the printability rules make the build fail or its output useless: --force cannot help
+                raise InfeasibleDesign(spec_path, hard or feasibility.violations, forceable=not hard)
             pictures.submit("tilt plot", tilt_plot_job, feasibility, tmp)
             pictures.submit("precision", precision_job, geometry, spec.imaging.pixel_size,
                             spec.imaging.slice_thickness, tmp)

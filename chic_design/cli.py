@@ -11,8 +11,13 @@ import argparse
 import json
 import sys
 
+from chic_register import exits
+from chic_register.errors import ChicRegisterError
+
 from . import __version__
 from .errors import ChicDesignError
+
+PROG = "chic-design"
 
 
 def _parser() -> argparse.ArgumentParser:
@@ -38,13 +43,16 @@ def _parser() -> argparse.ArgumentParser:
     c.add_argument("--precision-plot", metavar="PNG", help="with --precision: save the precision plot here")
 
     sub.add_parser("schema", help="print the spec's JSON Schema")
+
+    o = sub.add_parser("optimize", help="search designs for a tool and protocol; Pareto set, specs and report")
+    o.add_argument("requirements", help="requirements (YAML), e.g. designs/requirements/neuro.yaml")
+    o.add_argument("--out", help="output folder (default: exports/optimize-<name>)")
+    o.add_argument("--trials", type=int, help="candidates to evaluate (default: the file's search.trials)")
+    o.add_argument("--seed", type=int, default=0, help="optimiser seed (default: 0)")
+    o.add_argument("--scheduler", help="run on Dask: tcp://HOST:PORT, or local:N for a LocalCluster of N workers")
+    o.add_argument("--workers", type=int, help="local worker processes (default: the CPU count)")
+    o.add_argument("--quiet", action="store_true", help="no progress bar")
     return p
-
-
-def _non_negative(value, flag: str) -> float | None:
-    if value is not None and (value < 0 or value != value):
-        raise ChicDesignError(f"{flag} must be >= 0 mm, got {value}")
-    return value
 
 
 def _precision(args, spec, report):
@@ -74,14 +82,16 @@ def _run(args) -> int:
         return 0
     if args.command == "check":
         from .feasibility import check_design, save_tilt_plot
-        from .spec import load_spec
+        from .spec import load_spec, parse_spec
 
         spec = load_spec(args.spec)
-        report = check_design(
-            spec,
-            pixel_size_mm=_non_negative(args.pixel_size, "--pixel-size"),
-            slice_thickness_mm=_non_negative(args.slice_thickness, "--slice-thickness"),
-        )
+        overrides = {k: v for k, v in (("pixel_size", args.pixel_size), ("slice_thickness", args.slice_thickness))
+                     if v is not None}
+        if overrides:  # the flags meet the spec's own ranges (finite, physical)
+            data = spec.model_dump()
+            data["imaging"].update(overrides)
+            spec = parse_spec(data, f"{args.spec} with --pixel-size/--slice-thickness")
+        report = check_design(spec)
         if args.plot:
             save_tilt_plot(report, args.plot)
         pm = _precision(args, spec, report) if args.precision else None
@@ -98,6 +108,19 @@ def _run(args) -> int:
                 print(format_map(pm, spec.name) if pm is not None else
                       "precision: not computed (ideal 0 mm pixels have no noise model)")
         return 0 if report.feasible else 1
+    if args.command == "optimize":
+        from .optimize.engine import parse_scheduler
+        from .optimize.pipeline import optimize
+
+        if args.trials is not None and args.trials < 1:
+            raise ChicDesignError(f"--trials must be >= 1, got {args.trials}")
+        if args.workers is not None and args.workers < 1:
+            raise ChicDesignError(f"--workers must be >= 1, got {args.workers}")
+        result = optimize(args.requirements, out_dir=args.out, trials=args.trials, seed=args.seed,
+                          scheduler=parse_scheduler(args.scheduler), workers=args.workers,
+                          progress=not args.quiet)
+        print(result.summary_text())
+        return 0
     if args.command == "build":
         from .build import build_design
 
@@ -108,15 +131,18 @@ def _run(args) -> int:
 
 
 def main(argv=None) -> int:
-    args = _parser().parse_args(argv)
+    args = None
     try:
+        args = _parser().parse_args(argv)  # inside: `--help | head` must not traceback either
         return _run(args)
-    except ChicDesignError as exc:
-        print(f"chic-design: error: {exc}", file=sys.stderr)
-        return exc.exit_code
+    except (ChicDesignError, ChicRegisterError) as exc:  # the geometry file is chic_register's
+        return exits.report(PROG, f"error: {exc}", exc.exit_code)
     except KeyboardInterrupt:
-        print("chic-design: interrupted", file=sys.stderr)
-        return 130
+        return exits.report(PROG, "interrupted", 130)
+    except BrokenPipeError:  # e.g. `chic-design schema | head`: the reader left; nothing more to say
+        return exits.broken_pipe()
+    except OSError as exc:  # an output that cannot be written (disk full, permission, vanished folder)
+        return exits.os_error(PROG, exc)
 
 
 if __name__ == "__main__":

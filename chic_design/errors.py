@@ -21,12 +21,13 @@ class InfeasibleDesign(ChicDesignError):
 
     exit_code = 4
 
-    def __init__(self, spec_path, violations):
+    def __init__(self, spec_path, violations, forceable: bool = True):
         self.violations = list(violations)
-        names = "; ".join(f"{v.code} ({v.where}): {v.message}" for v in self.violations)
-        super().__init__(
-            f"{spec_path}: design is infeasible: {names}. Fix the spec or build anyway with --force"
-        )
+        # one line per violation: 18 of them on one line were unreadable (issue 10)
+        lines = "".join(f"\n  - {v.code} ({v.where}): {v.message}" for v in self.violations)
+        n = len(self.violations)
+        hint = "fix the spec or build anyway with --force" if forceable else "fix the spec; --force cannot build it"
+        super().__init__(f"{spec_path}: design is infeasible ({n} violation{'s' if n != 1 else ''}; {hint}):{lines}")
 
 
 class BuildCheckError(ChicDesignError):

@@ -1175,15 +1175,19 @@ def check_design(spec: Spec, pixel_size_mm: float | None = None,
                  slice_thickness_mm: float | None = None) -> FeasibilityReport:
     """Feasibility of ``spec`` for its imaging protocol (pixel size / slice thickness overridable)."""
     from .layout import fiducial_geometry
+    from .printability import build_violations
 
     geom = fiducial_geometry(spec)
-    return check_geometry(
+    pixel = spec.imaging.pixel_size if pixel_size_mm is None else float(pixel_size_mm)
+    report = check_geometry(
         geom,
-        pixel_size_mm=spec.imaging.pixel_size if pixel_size_mm is None else float(pixel_size_mm),
+        pixel_size_mm=pixel,
         slice_thickness_mm=spec.imaging.slice_thickness if slice_thickness_mm is None else float(slice_thickness_mm),
         min_wall_mm=spec.print.min_wall,
         max_overhang_deg=spec.print.max_overhang_deg,
     )
+    extra = build_violations(spec, geom, pixel)  # caps, output checks, depth precision (check == build)
+    return replace(report, violations=report.violations + tuple(extra)) if extra else report
 
 
 # ----------------------------------------------------------------------------- plot

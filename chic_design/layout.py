@@ -9,7 +9,7 @@ from __future__ import annotations
 import math
 
 from chic_register import __version__
-from chic_register.geometry import Body, FiducialGeometry, HelixTube, LineTube
+from chic_register.geometry import Body, FiducialGeometry, HelixTube, LineTube, ToolFrame
 
 from .spec import Spec, quadrant_bounds_deg
 
@@ -63,4 +63,8 @@ def fiducial_geometry(spec: Spec, source: dict | None = None) -> FiducialGeometr
     body = Body(spec.body.length, spec.body.outer_diameter, spec.body.inner_diameter)
     if source is not None:
         source = {**source, "generator": f"chic-design {__version__}"}
-    return FiducialGeometry(spec.name, body, tuple(tubes), source)
+    tool = None
+    if spec.tool is not None:
+        tool = (ToolFrame.tip_offset(spec.tool.tip_offset_mm) if spec.tool.tip_offset_mm is not None
+                else ToolFrame(spec.tool.T_fiducial_from_tool))
+    return FiducialGeometry(spec.name, body, tuple(tubes), source, tool=tool)

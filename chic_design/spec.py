@@ -16,12 +16,28 @@ import json
 from pathlib import Path
 from typing import Annotated
 
-import yaml
 from pydantic import BaseModel, ConfigDict, Field, ValidationError, model_validator
+
+from chic_register.errors import InputFileError
+from chic_register.safeload import MAX_YAML_BYTES, load_yaml_file, read_regular_file
 
 from .errors import SpecError
 
-PositiveMM = Annotated[float, Field(gt=0)]
+#: Physical ranges (mm, deg) of the spec's values; documented in the JSON Schema.
+MAX_LENGTH_MM = 200.0  # body length: an MRI head/knee coil is ~250 mm; check time grows with it
+MAX_DIAMETER_MM = 150.0
+MAX_CHANNEL_MM = 20.0
+MAX_CAP_MM = 20.0
+MAX_PITCH_DEG_PER_MM = 90.0
+MAX_HELIX_TURN_DEG = 360.0  # |pitch| * length: more is outside its quadrant anyway
+MAX_NAME_CHARS = 64
+
+#: A finite number (no .inf/.nan), never a bool or a string: YAML ``yes`` or ``"5"`` is a type error.
+Number = Annotated[float, Field(strict=True, allow_inf_nan=False)]
+PositiveMM = Annotated[Number, Field(gt=0)]
+Angle360 = Annotated[Number, Field(ge=0, lt=360)]
+SignedAngle = Annotated[Number, Field(gt=-360, lt=360)]
+Quadrant = Annotated[int, Field(strict=True, ge=0, le=3)]
 
 
 class _Strict(BaseModel):
@@ -31,9 +47,10 @@ class _Strict(BaseModel):
 class BodySpec(_Strict):
     """The annular body that mounts coaxially on the tool."""
 
-    length: PositiveMM = Field(description="Body length along the axis (mm).")
-    outer_diameter: PositiveMM = Field(description="Outer diameter (mm).")
-    inner_diameter: PositiveMM = Field(description="Diameter of the central bore for the tool (mm).")
+    length: PositiveMM = Field(ge=2, le=MAX_LENGTH_MM, description="Body length along the axis (mm).")
+    outer_diameter: PositiveMM = Field(ge=2, le=MAX_DIAMETER_MM, description="Outer diameter (mm).")
+    inner_diameter: PositiveMM = Field(ge=0.5, le=MAX_DIAMETER_MM,
+                                       description="Diameter of the central bore for the tool (mm).")
 
     @model_validator(mode="after")
     def _wall(self):
@@ -52,8 +69,8 @@ class BodySpec(_Strict):
 class ChannelSpec(_Strict):
     """The fluid channels (tubes) in the wall."""
 
-    diameter: PositiveMM = Field(description="Channel diameter (mm).")
-    circle_diameter: PositiveMM | None = Field(
+    diameter: PositiveMM = Field(ge=0.2, le=MAX_CHANNEL_MM, description="Channel diameter (mm).")
+    circle_diameter: Annotated[PositiveMM, Field(le=MAX_DIAMETER_MM)] | None = Field(
         None,
         description="Diameter of the circle the channel centrelines lie on (mm); "
         "default: the middle of the wall.",
@@ -63,16 +80,16 @@ class ChannelSpec(_Strict):
 class HelixSpec(_Strict):
     """The three depth-encoding helices (the paper's omega and angular offset phi)."""
 
-    offset_deg: float = Field(
+    offset_deg: Number = Field(
         10.0, ge=0, lt=45, description="Angular offset of each helix from its quadrant's "
         "diametric tube at the bottom end (deg)."
     )
-    offset_top_deg: float | None = Field(
+    offset_top_deg: Number | None = Field(
         None, ge=0, lt=45, description="Angular offset at the top end (deg); default: offset_deg. "
         "Ignored when pitch_deg_per_mm is given (then the pitch fixes the top angle)."
     )
-    pitch_deg_per_mm: float | None = Field(
-        None, description="Helix pitch d(theta)/dz (deg/mm), sign = direction; default: each "
+    pitch_deg_per_mm: Number | None = Field(
+        None, ge=-MAX_PITCH_DEG_PER_MM, le=MAX_PITCH_DEG_PER_MM, description="Helix pitch d(theta)/dz (deg/mm), sign = direction; default: each "
         "helix runs from offset_deg at the bottom to (quadrant - offset_top_deg) at the top."
     )
 
@@ -92,16 +109,16 @@ class HelixSpec(_Strict):
 class MarkerSpec(_Strict):
     """Marker layout (paper Fig. 1): four diametric tubes, three helices, orientation tubes."""
 
-    diametric_deg: tuple[float, float, float, float] = Field(
+    diametric_deg: tuple[Angle360, Angle360, Angle360, Angle360] = Field(
         (0.0, 90.0, 180.0, 270.0),
         description="Angles of the four straight diametric tubes D0..D3 (deg, increasing, "
         "D0 at 0: it defines +x of the fiducial frame).",
     )
-    helix_quadrants: tuple[int, int, int] = Field(
+    helix_quadrants: tuple[Quadrant, Quadrant, Quadrant] = Field(
         (0, 1, 2), description="Quadrants that hold helices H0..H2; quadrant q lies between "
         "diametric tubes Dq and D(q+1)."
     )
-    orientation_deg: tuple[float, ...] = Field(
+    orientation_deg: tuple[SignedAngle, ...] = Field(
         (290.0, 330.0), min_length=1, max_length=3,
         description="Angles of the straight orientation tubes O0.. (deg); they must lie in "
         "the quadrant without a helix, placed asymmetrically so the pattern fixes twist.",
@@ -136,14 +153,15 @@ class MarkerSpec(_Strict):
 class CapSpec(_Strict):
     """The two caps that seal the channels (see README: filling)."""
 
-    thickness: PositiveMM = Field(2.0, description="Thickness of the cap plate over the end face (mm).")
-    clearance: float = Field(
+    thickness: PositiveMM = Field(2.0, le=MAX_CAP_MM, description="Thickness of the cap plate over the end face (mm).")
+    clearance: Number = Field(
         0.2, ge=0, le=1.0, description="Radial fit clearance between cap skirt and body (mm)."
     )
-    skirt_height: PositiveMM = Field(4.0, description="How far the cap's skirt reaches down the body (mm).")
-    skirt_wall: PositiveMM = Field(1.6, description="Wall thickness of the cap's skirt (mm).")
-    fill_port_diameter: float = Field(
-        1.2, ge=0, description="Diameter of the fill port over each channel in the top cap (mm); "
+    skirt_height: PositiveMM = Field(4.0, le=MAX_LENGTH_MM / 2,
+                                     description="How far the cap's skirt reaches down the body (mm).")
+    skirt_wall: PositiveMM = Field(1.6, le=MAX_CAP_MM, description="Wall thickness of the cap's skirt (mm).")
+    fill_port_diameter: Number = Field(
+        1.2, ge=0, le=MAX_CHANNEL_MM, description="Diameter of the fill port over each channel in the top cap (mm); "
         "0 gives a top cap without ports (fill before capping).",
     )
 
@@ -151,8 +169,9 @@ class CapSpec(_Strict):
 class PrintSpec(_Strict):
     """Printer limits the design is checked against."""
 
-    min_wall: PositiveMM = Field(0.8, description="Thinnest wall the printer makes watertight (mm).")
-    max_overhang_deg: float = Field(
+    min_wall: PositiveMM = Field(0.8, ge=0.1, le=10.0,
+                                 description="Thinnest wall the printer makes watertight (mm).")
+    max_overhang_deg: Number = Field(
         45.0, gt=0, lt=90, description="Steepest overhang from the build direction (the axis) (deg)."
     )
 
@@ -160,15 +179,49 @@ class PrintSpec(_Strict):
 class ImagingSpec(_Strict):
     """The imaging protocol the feasibility checks assume."""
 
-    pixel_size: float = Field(0.5, ge=0, description="In-plane pixel size (mm); 0 = ideal.")
-    slice_thickness: float = Field(2.0, ge=0, description="Slice thickness (mm); 0 = ideal.")
+    pixel_size: Number = Field(0.5, ge=0, le=10.0, description="In-plane pixel size (mm); 0 = ideal.")
+    slice_thickness: Number = Field(2.0, ge=0, le=20.0, description="Slice thickness (mm); 0 = ideal.")
+
+
+class ToolSpec(_Strict):
+    """Where the tool tip is, relative to the fiducial frame F (optional; give one of the two keys)."""
+
+    tip_offset_mm: float | None = Field(
+        None, description="Tip on the axis at this z of F (mm; negative: below the bottom end face); "
+        "tool axes = F's axes.")
+    T_fiducial_from_tool: list[list[float]] | None = Field(
+        None, description="Full rigid transform from the tool frame (origin = tip) to F, 4x4 row-major (mm).")
+
+    @model_validator(mode="after")
+    def _one(self):
+        import math
+
+        import numpy as np
+
+        if (self.tip_offset_mm is None) == (self.T_fiducial_from_tool is None):
+            raise ValueError("give exactly one of tip_offset_mm and T_fiducial_from_tool")
+        if self.tip_offset_mm is not None and not math.isfinite(self.tip_offset_mm):
+            raise ValueError("tip_offset_mm must be a finite number")
+        if self.T_fiducial_from_tool is not None:
+            T = np.asarray(self.T_fiducial_from_tool, dtype=float) if all(
+                isinstance(r, list) and len(r) == 4 for r in self.T_fiducial_from_tool) else np.zeros(0)
+            ok = T.shape == (4, 4) and np.all(np.isfinite(T)) and np.allclose(T[3], [0, 0, 0, 1])
+            if ok:
+                R = T[:3, :3]
+                ok = np.allclose(R.T @ R, np.eye(3), atol=1e-6) and np.linalg.det(R) > 0
+            if not ok:
+                raise ValueError("T_fiducial_from_tool must be a rigid 4x4 matrix (orthonormal rotation, "
+                                 "det +1, last row [0, 0, 0, 1])")
+        return self
 
 
 class Spec(_Strict):
     """A CHIC fiducial design."""
 
-    name: str = Field(pattern=r"^[A-Za-z0-9][A-Za-z0-9_.-]*$", description="Design name: the export folder.")
-    description: str = ""
+    name: str = Field(pattern=r"^[A-Za-z0-9][A-Za-z0-9_.-]*$", max_length=MAX_NAME_CHARS, strict=True,
+                      description="Design name: the export folder (letters, digits, _ . -; at most "
+                      f"{MAX_NAME_CHARS} characters, so that every file name under it fits the file system).")
+    description: str = Field("", max_length=2000, strict=True)
     body: BodySpec
     channels: ChannelSpec
     helix: HelixSpec = Field(default_factory=HelixSpec)
@@ -176,9 +229,16 @@ class Spec(_Strict):
     caps: CapSpec = Field(default_factory=CapSpec)
     print: PrintSpec = Field(default_factory=PrintSpec)
     imaging: ImagingSpec = Field(default_factory=ImagingSpec)
+    tool: ToolSpec | None = Field(None, description="Optional tool frame: the tip a robot needs.")
 
     @model_validator(mode="after")
     def _fits(self):
+        pitch = self.helix.pitch_deg_per_mm
+        if pitch is not None and abs(pitch) * self.body.length > MAX_HELIX_TURN_DEG:
+            raise ValueError(
+                f"helix.pitch_deg_per_mm ({pitch:g}) turns the helix {abs(pitch) * self.body.length:g} deg "
+                f"over body.length ({self.body.length:g}); allowed: at most {MAX_HELIX_TURN_DEG:g} deg"
+            )
         r_in, r_out = self.body.inner_diameter / 2, self.body.outer_diameter / 2
         rc = self.channel_radius
         a = self.channels.diameter / 2
@@ -239,7 +299,8 @@ def _format_error(path: Path, err: dict) -> str:
     shown = err.get("input")
     if isinstance(shown, (dict, list)) or kind.startswith("value_error"):
         return f"{path}: {loc}: {msg}"
-    return f"{path}: {loc}: {msg} (got {shown!r})"
+    shown = repr(shown)
+    return f"{path}: {loc}: {msg} (got {shown if len(shown) <= 60 else shown[:57] + '...'})"
 
 
 def parse_spec(data, path="<spec>") -> Spec:
@@ -256,20 +317,19 @@ def parse_spec(data, path="<spec>") -> Spec:
 def load_spec(path) -> Spec:
     """Read and validate a spec file; raises :class:`SpecError` with a one-line message."""
     path = Path(path)
-    if not path.is_file():
-        raise SpecError(f"{path}: no such spec file")
     try:
-        data = yaml.safe_load(path.read_text(encoding="utf-8"))
-    except (yaml.YAMLError, UnicodeDecodeError) as exc:
-        mark = getattr(exc, "problem_mark", None)
-        where = f" at line {mark.line + 1}" if mark is not None else ""
-        raise SpecError(f"{path}: not valid YAML{where} ({getattr(exc, 'problem', exc)})") from None
+        data = load_yaml_file(path, "spec file")
+    except InputFileError as exc:
+        raise SpecError(str(exc)) from None
     return parse_spec(data, path)
 
 
 def spec_sha256(path) -> str:
     """SHA-256 of the spec file's bytes (recorded in the geometry file's ``source``)."""
-    return hashlib.sha256(Path(path).read_bytes()).hexdigest()
+    try:
+        return hashlib.sha256(read_regular_file(path, "spec file", MAX_YAML_BYTES)).hexdigest()
+    except InputFileError as exc:
+        raise SpecError(str(exc)) from None
 
 
 def spec_to_json(spec: Spec) -> str:

@@ -58,10 +58,11 @@ class Calibration:
 
 
 def run_calibration(geom: FiducialGeometry, poses, draws_per_pose: int, seed: int, *, snr: float = 20.0,
-                    solver: str = "register", target_F_mm=None) -> Calibration:
+                    solver: str = "register", target_F_mm=None, prior: bool = False) -> Calibration:
     """Simulate ``draws_per_pose`` Rician slices at each (depth, tilt, azimuth, twist) and compare errors with
     the reported covariance. ``solver``: ``"register"`` (the full solver) or ``"refine"`` (detection and the
-    solver's Gauss-Newton refinement started at the truth: for layouts whose first guess is not built yet)."""
+    solver's Gauss-Newton refinement started at the truth). ``prior``: give ``register`` the true pose as its
+    orientation prior (what resolves a self-symmetric layout such as the Z-frame; see ``SolveOptions.prior``)."""
     from .detect import detect_blobs
     from .errors import NoLock
     from .simulate import simulate_slice
@@ -78,7 +79,8 @@ def run_calibration(geom: FiducialGeometry, poses, draws_per_pose: int, seed: in
             sl = sim.slice
             if solver == "register":
                 try:
-                    reg = register([sl], geom, target_F_mm=target)
+                    extra = {"prior": sim.truth.T_scanner_from_fiducial} if prior else {}
+                    reg = register([sl], geom, target_F_mm=target, **extra)
                 except NoLock:
                     fails += 1
                     continue

@@ -2,8 +2,9 @@
 
 A thin layer over the library (:mod:`chic_register.solve`,
 :mod:`chic_register.simulate`, :mod:`chic_register.evaluate`).
-``main(argv) -> int`` is testable in-process. Exit codes (CONTRACT.md section 4):
-0 ok, 2 bad input, 3 no trustworthy pose (``no_lock``).
+``main(argv) -> int`` is testable in-process. Exit codes (docs/interfaces.md section 4):
+0 ok, 2 bad input, 3 no trustworthy pose (``no_lock``), 4 pose ok but an output (``--tfm``,
+``--scene``, ``--overlay``, OpenIGTLink) failed: the pose is still printed.
 """
 
 from __future__ import annotations
@@ -13,8 +14,10 @@ import json
 import math
 import sys
 
-from . import __version__
+from . import __version__, exits
 from .errors import ChicRegisterError, NoLock
+
+PROG = "chic-register"
 
 
 def _parser() -> argparse.ArgumentParser:
@@ -33,10 +36,10 @@ def _parser() -> argparse.ArgumentParser:
                    help="for a volume IMAGE (.nii, .nii.gz, .nrrd, .mha or a DICOM series folder): "
                         "indices of its slices to register jointly")
     s.add_argument("--tfm", metavar="FILE", help="also write the pose as an ITK transform file for 3D Slicer "
-                   "(holds T_fiducial_from_scanner, LPS; see README)")
-    s.add_argument("--igtl", metavar="HOST:PORT", help="also send the pose as an OpenIGTLink TRANSFORM (RAS) "
-                   "to a listening server, e.g. 3D Slicer's OpenIGTLinkIF at 127.0.0.1:18944")
-    s.add_argument("--igtl-name", default="CHIC", metavar="NAME", help="OpenIGTLink device name (default CHIC)")
+                   "(holds T_fiducial_from_scanner, LPS; see docs/interfaces.md)")
+    s.add_argument("--scene", metavar="DIR", help="also write a 3D Slicer scene (DIR/scene.mrml with the slices, "
+                   "the fiducial and tool models under their transforms, detected and predicted tube centres)")
+    _add_igtl_args(s)
     s.add_argument("--target", nargs=3, type=float, metavar=("X", "Y", "Z"),
                    help="point of F (mm) whose predicted TRE is reported (default: the tool tip, else the body centre)")
     s.add_argument("--max-tre", type=float, metavar="MM",
@@ -80,6 +83,8 @@ def _parser() -> argparse.ArgumentParser:
     m.add_argument("--bore-signal", type=float, default=0.0, metavar="X",
                    help="brightness of a tool in the bore (default 0: none)")
     m.add_argument("--missing", nargs="+", default=[], metavar="ID", help="tube ids left unfilled")
+    m.add_argument("--allow-empty", action="store_true",
+                   help="write the slice even when no tube crosses it (a missed slice, to test refusals)")
     m.add_argument("--center-offset", nargs=2, type=float, default=(0.0, 0.0), metavar=("X", "Y"),
                    help="axis crossing from the image centre, mm along columns and rows (default 0 0)")
     m.add_argument("--image-position", nargs=3, type=float, metavar=("X", "Y", "Z"),
@@ -128,13 +133,19 @@ def _parser() -> argparse.ArgumentParser:
     r.add_argument("--save-slices", metavar="DIR", help="also write the reformatted slices as DICOM files")
     r.add_argument("--json", action="store_true", help="print one JSON object: settings, summary, every slice")
 
-    t = sub.add_parser("track", help="watch a folder; register each new slice as it arrives")
-    t.add_argument("folder", metavar="FOLDER", help="folder the scanner writes slices into")
+    t = sub.add_parser("track", help="register each new slice as it arrives (a watched folder or OpenIGTLink IMAGEs)")
+    t.add_argument("folder", metavar="FOLDER", nargs="?", help="folder the scanner writes slices into "
+                   "('-' or none with --igtl-images)")
     t.add_argument("--geometry", required=True, help="geometry.yaml")
     t.add_argument("--pixel-spacing", nargs=2, type=float, metavar=("ROW", "COL"),
                    help="pixel spacing (mm) for PNG/TIFF/NPY images")
-    t.add_argument("--igtl", metavar="HOST:PORT", help="send each pose as an OpenIGTLink TRANSFORM (RAS)")
-    t.add_argument("--igtl-name", default="CHIC", metavar="NAME", help="OpenIGTLink device name (default CHIC)")
+    _add_igtl_args(t)
+    t.add_argument("--igtl-images", metavar="HOST:PORT",
+                   help="instead of watching FOLDER (give '-'), connect to a scanner bridge at HOST:PORT, register "
+                        "every IMAGE message it sends and send the pose back on the same connection")
+    t.add_argument("--igtl-images-listen", type=int, metavar="PORT",
+                   help="as --igtl-images, but listen on PORT for the scanner bridge to connect")
+    t.add_argument("--scene", metavar="DIR", help="write a 3D Slicer scene of each pose into DIR/<image name>/")
     t.add_argument("--existing", action="store_true", help="also register files already in the folder")
     t.add_argument("--poll", type=float, default=0.05, metavar="S", help="polling interval (default 0.05 s)")
     t.add_argument("--settle", type=float, default=0.2, metavar="S",
@@ -145,12 +156,28 @@ def _parser() -> argparse.ArgumentParser:
     return p
 
 
+def _add_igtl_args(p) -> None:
+    p.add_argument("--igtl", metavar="HOST:PORT", help="also send the pose over OpenIGTLink to a listening server, "
+                   "e.g. 3D Slicer's OpenIGTLinkIF at 127.0.0.1:18944 (TRANSFORMs, quality STRING, STATUS)")
+    p.add_argument("--igtl-listen", type=int, metavar="PORT", help="be the OpenIGTLink server instead: listen on "
+                   "PORT and send to every peer that connects (0: any free port)")
+    p.add_argument("--igtl-wait", type=float, default=10.0, metavar="S",
+                   help="with --igtl-listen: wait this long for a first peer before sending (default 10 s)")
+    p.add_argument("--igtl-name", default="CHIC", metavar="NAME",
+                   help="OpenIGTLink device name (default CHIC; also NAMEToRAS, NAMETool, NAMEToolToRAS, NAMEQuality)")
+
+
+def _report_failures(delivery) -> None:
+    for note in delivery.failed:
+        print(f"chic-register: output failed: {note}", file=sys.stderr, flush=True)
+
+
 def _run_solve(args) -> int:
     from .geometry import load_geometry
+    from .outputs import EXIT_OUTPUT_FAILED, Delivery, OutputPlan, deliver, deliver_no_lock
     from .solve import register
 
-    if args.overlay and not args.overlay.lower().endswith(".png"):
-        raise ChicRegisterError(f"--overlay {args.overlay}: the overlay is a PNG file (name it *.png)")
+    plan = OutputPlan.from_args(args).check()
     geom = load_geometry(args.geometry)
     slices = _read_solve_inputs(args)
     extra = {}
@@ -162,33 +189,51 @@ def _run_solve(args) -> int:
         if not (args.max_tre > 0 and math.isfinite(args.max_tre)):
             raise ChicRegisterError(f"--max-tre must be a positive number of mm, got {args.max_tre:g}")
         extra["max_tre_mm"] = args.max_tre
+    early = Delivery()  # a server that cannot listen is an output failure: the pose still comes
+    link = None
     try:
-        reg = register(slices, geom, **extra)
-    except NoLock:
-        if args.overlay:
-            from .detect import detect_blobs
-            from .overlay import draw_overlay
+        link = plan.open_link()
+    except ChicRegisterError as exc:
+        early.failed.append(f"{plan.igtl_flag}: {exc}")
+    try:
+        try:
+            reg = register(slices, geom, **extra)
+        except NoLock as exc:
+            _report_failures(early)
+            _report_failures(deliver_no_lock(plan, exc.reason, geom, slices, link))
+            raise
+        # the pose is printed first: a failing optional output (overlay, --tfm, --scene, --igtl) must not lose it
+        _print_pose(args, reg, geom)
+        out = deliver(plan, reg, geom, slices, link)
+    finally:
+        if link is not None:
+            link.close()
+    out.failed[:0] = early.failed
+    for note in out.done:
+        print(f"chic-register: {note}" if args.json else note, file=sys.stderr if args.json else sys.stdout)
+    _report_failures(out)
+    return EXIT_OUTPUT_FAILED if out.failed else 0
 
-            d_mm = min(t.diameter for t in geom.tubes)
-            blobs = [detect_blobs(sl.pixels, sl.pixel_spacing_mm, d_mm) for sl in slices]
-            draw_overlay(args.overlay, slices, None, blobs)
-        raise
-    if args.overlay:
-        from .overlay import draw_overlay
 
-        draw_overlay(args.overlay, slices, reg)
-    notes = _write_outputs(args, reg.T_scanner_from_fiducial)
+def _print_pose(args, reg, geom) -> None:
+    """The pose of ``solve``: one JSON object (``--json``) or the human summary."""
+    from .outputs import registration_json, tool_pose
+
     if args.json:
-        print(json.dumps(reg.to_dict(), indent=2))
-        for note in notes:
-            print(f"chic-register: {note}", file=sys.stderr)
-        return 0
+        print(json.dumps(registration_json(reg, geom), indent=2), flush=True)
+        return
     t = reg.timing_ms
     print(f"status: ok ({len(reg.slices)} slice{'s' if len(reg.slices) > 1 else ''} of '{geom.name}', "
           f"{t['total']:.1f} ms: detect {t['detect']:.1f}, pose {t['pose']:.1f})")
     print("T_scanner_from_fiducial (mm):")
     for row in reg.T_scanner_from_fiducial:
         print("  " + "  ".join(f"{v:11.5f}" for v in row))
+    T_tool = tool_pose(reg, geom)
+    if T_tool is not None:
+        print("T_scanner_from_tool (mm):")
+        for row in T_tool:
+            print("  " + "  ".join(f"{v:11.5f}" for v in row))
+        print("tool tip (scanner, mm): " + ", ".join(f"{v:.3f}" for v in T_tool[:3, 3]))
     for s in reg.slices:
         print(f"{s.source}: depth {s.depth_mm:.3f} mm, tilt {s.tilt_deg:.3f}, azimuth {s.azimuth_deg:.3f}, "
               f"twist {s.twist_deg:.3f} deg; residual RMS {s.residual_rms_mm:.3f} mm over {s.n_tubes} tubes")
@@ -199,11 +244,7 @@ def _run_solve(args) -> int:
         print(f"predicted TRE {u.predicted_tre_mm:.3f} mm at ({', '.join(f'{v:g}' for v in u.target_F_mm)}) in F; "
               f"SD rotation {max(sd[:3]):.3f} deg, translation {max(sd[3:]):.3f} mm (largest axis); "
               f"image noise sigma {', '.join(f'{n.sigma:.4g}' for n in u.noise)}")
-    if args.overlay:
-        print(f"wrote {args.overlay}")
-    for note in notes:
-        print(note)
-    return 0
+    sys.stdout.flush()
 
 
 def _run_simulate(args) -> int:
@@ -214,21 +255,24 @@ def _run_simulate(args) -> int:
     import numpy as np
 
     from .geometry import load_geometry
-    from .imageio import PLAIN_SUFFIXES
+    from .imageio import MAX_SPACING_MM, MIN_SPACING_MM, PLAIN_SUFFIXES
     from .simulate import DICOM_SUFFIXES, simulate_slice, write_simulated
 
     out = Path(args.out)
     checks = [
         (args.size >= 8 and args.size <= 4096, f"--size must be 8..4096 pixels, got {args.size}"),
-        (args.pixel_size > 0 and np.isfinite(args.pixel_size), f"--pixel-size must be > 0 mm, got {args.pixel_size:g}"),
-        (args.slice_thickness >= 0 and np.isfinite(args.slice_thickness),
-         f"--slice-thickness must be >= 0 mm, got {args.slice_thickness:g}"),
+        (np.isfinite(args.pixel_size) and MIN_SPACING_MM <= args.pixel_size <= MAX_SPACING_MM,
+         f"--pixel-size must be {MIN_SPACING_MM:g}..{MAX_SPACING_MM:g} mm, got {args.pixel_size:g}"),
+        (0 <= args.slice_thickness <= 100, f"--slice-thickness must be 0..100 mm, got {args.slice_thickness:g}"),
         (args.noise_level >= 0 and np.isfinite(args.noise_level), f"--noise-level must be >= 0, got {args.noise_level:g}"),
         (args.snr > 0 and np.isfinite(args.snr), f"--snr must be > 0, got {args.snr:g}"),
-        (args.distractors >= 0, f"--distractors must be >= 0, got {args.distractors}"),
+        (0 <= args.distractors <= 1000, f"--distractors must be 0..1000, got {args.distractors}"),
+        (all(np.isfinite(v) and abs(v) <= 1e4 for v in (*args.center_offset, *(args.image_position or ()),
+                                                          *(args.image_orientation or ()))),
+         "--center-offset, --image-position and --image-orientation must be finite numbers within +-10000 mm"),
         (args.bore_signal >= 0 and np.isfinite(args.bore_signal), f"--bore-signal must be >= 0, got {args.bore_signal:g}"),
-        (all(np.isfinite(v) for v in (args.depth, args.tilt, args.azimuth, args.twist)),
-         "--depth, --tilt, --azimuth and --twist must be finite numbers"),
+        (all(np.isfinite(v) and abs(v) <= 1e4 for v in (args.depth, args.tilt, args.azimuth, args.twist)),
+         "--depth, --tilt, --azimuth and --twist must be finite numbers within +-10000"),
         (out.suffix.lower() in DICOM_SUFFIXES or not (args.image_position or args.image_orientation),
          "--image-position/--image-orientation apply to DICOM output only (.dcm)"),
         (not out.is_dir(), f"--out {out} is a directory; give a file name (.dcm, .npy, .png or .tif)"),
@@ -254,6 +298,12 @@ def _run_simulate(args) -> int:
             image_orientation=args.image_orientation,
             rng=np.random.default_rng(args.seed),
         )
+        n_in_view = len(sim.truth.centres_px)
+        if n_in_view == 0 and not args.allow_empty:  # issue 10: an empty image was written with exit 0 in silence
+            raise ChicRegisterError(
+                f"--depth {args.depth:g} --tilt {args.tilt:g}: no tube crosses the image (the body spans "
+                f"z = 0..{geom.body.length:g} mm; check --depth, --tilt, --center-offset, or pass --allow-empty "
+                "for a deliberately missed slice); nothing written")
         extra = {"geometry_file": str(args.geometry), "geometry_sha256": geom.to_dict()["sha256"], "seed": args.seed}
         image_path, truth_file = write_simulated(sim, out, extra)
     except ValueError as exc:
@@ -264,8 +314,10 @@ def _run_simulate(args) -> int:
     print(
         f"wrote {image_path} ({args.size}x{args.size}, {args.pixel_size:g} mm pixels, "
         f"depth {a.depth_mm:.3f} mm, tilt {a.tilt_deg:.3f}, azimuth {a.azimuth_deg:.3f}, twist {a.twist_deg:.3f} deg, "
-        f"{len(sim.truth.centres_px)} tubes in view) and {truth_file}"
+        f"{n_in_view} tubes in view) and {truth_file}"
     )
+    if n_in_view < len(geom.tubes):
+        print(f"chic-register: warning: only {n_in_view} of {len(geom.tubes)} tubes in view", file=sys.stderr)
     return 0
 
 
@@ -305,17 +357,14 @@ def _run_evaluate(args) -> int:
 # --------------------------------------------------------------------------- volumes, outputs, reslice, track
 
 
-def _check_outputs(args) -> None:
-    """Reject bad --tfm / --igtl values before any work (solve)."""
-    from pathlib import Path
+def _check_spacing_flag(args) -> None:
+    """A --pixel-spacing outside the physical range is refused before any file is read."""
+    from .imageio import spacing_fault
 
-    from .igtl import parse_address
-    from .transforms import SUFFIXES
-
-    if getattr(args, "tfm", None) and Path(args.tfm).suffix.lower() not in SUFFIXES:
-        raise ChicRegisterError(f"--tfm {args.tfm}: transform file must end in {', '.join(SUFFIXES)}")
-    if getattr(args, "igtl", None):
-        parse_address(args.igtl)
+    if getattr(args, "pixel_spacing", None) is not None:
+        fault = spacing_fault(args.pixel_spacing)
+        if fault:
+            raise ChicRegisterError(f"--pixel-spacing: {fault}")
 
 
 def _read_solve_inputs(args) -> list:
@@ -323,7 +372,7 @@ def _read_solve_inputs(args) -> list:
     from .imageio import read_slices
     from .volume import is_volume_path, read_volume
 
-    _check_outputs(args)
+    _check_spacing_flag(args)
     volumes = [p for p in args.images if is_volume_path(p)]
     if volumes and not args.slices:
         raise ChicRegisterError(f"{volumes[0]} is a volume: pick the slices to register with --slices K [K ...]")
@@ -339,22 +388,6 @@ def _read_solve_inputs(args) -> list:
     return slices
 
 
-def _write_outputs(args, T_scanner_from_fiducial) -> list[str]:
-    """Write --tfm and send --igtl for a pose; returns notes for the human output."""
-    notes = []
-    if getattr(args, "tfm", None):
-        from .transforms import write_tfm
-
-        notes.append(f"wrote {write_tfm(T_scanner_from_fiducial, args.tfm)} (T_fiducial_from_scanner, ITK/LPS)")
-    if getattr(args, "igtl", None):
-        from .igtl import parse_address, send_pose
-
-        a = parse_address(args.igtl)
-        send_pose(T_scanner_from_fiducial, a.host, a.port, name=args.igtl_name)
-        notes.append(f"sent TRANSFORM {args.igtl_name!r} (RAS) to {a}")
-    return notes
-
-
 def _load_reference(path) -> "np.ndarray":
     """T_scanner_from_fiducial from a JSON file (any object with that key) or a .tfm file."""
     from pathlib import Path
@@ -366,12 +399,15 @@ def _load_reference(path) -> "np.ndarray":
     p = Path(path)
     if p.suffix.lower() in SUFFIXES:
         return read_tfm(p)
+    from .errors import InputFileError
+    from .safeload import read_regular_file
+
     try:
-        doc = json.loads(p.read_text(encoding="utf-8"))
-    except FileNotFoundError:
-        raise ChicRegisterError(f"--reference {p}: no such file") from None
-    except (OSError, UnicodeDecodeError, json.JSONDecodeError) as exc:
-        raise ChicRegisterError(f"--reference {p}: not a JSON file ({exc})") from None
+        doc = json.loads(read_regular_file(p, "reference file", max_bytes=1 << 20).decode("utf-8"))
+    except InputFileError as exc:
+        raise ChicRegisterError(f"--reference {exc}") from None
+    except (UnicodeDecodeError, json.JSONDecodeError, RecursionError) as exc:
+        raise ChicRegisterError(f"--reference {p}: not a JSON file ({str(exc).splitlines()[0][:100]})") from None
     T = doc.get("T_scanner_from_fiducial") if isinstance(doc, dict) else None
     try:
         T = np.asarray(T, dtype=float)
@@ -390,9 +426,10 @@ def _run_simulate_volume(args) -> int:
 
     from .atomic import write_json
     from .geometry import load_geometry
+    from .imageio import MAX_SPACING_MM, MIN_SPACING_MM
     from .pose import invert, slice_frame
     from .simulate import truth_path
-    from .volume import simulate_volume, write_volume
+    from .volume import MAX_VOXELS, simulate_volume, write_volume
 
     nx, ny, nz = args.volume_shape
     given = args.voxel_size or [0.5, 0.5, 1.0]
@@ -402,11 +439,13 @@ def _run_simulate_volume(args) -> int:
                                          ("--image-orientation", args.image_orientation)) if on]
     checks = [
         (min(nx, ny, nz) >= 2 and max(nx, ny, nz) <= 1024, f"--volume-shape must be 2..1024 voxels each, got {nx} {ny} {nz}"),
-        (len(vs) == 3 and all(v > 0 and np.isfinite(v) for v in vs),
-         f"--voxel-size takes one or three sizes > 0 mm, got {' '.join(f'{v:g}' for v in given)}"),
+        (nx * ny * nz <= MAX_VOXELS, f"--volume-shape {nx} {ny} {nz} is {nx * ny * nz} voxels; at most {MAX_VOXELS}"),
+        (len(vs) == 3 and all(np.isfinite(v) and MIN_SPACING_MM <= v <= MAX_SPACING_MM for v in vs),
+         f"--voxel-size takes one or three sizes in {MIN_SPACING_MM:g}..{MAX_SPACING_MM:g} mm, "
+         f"got {' '.join(f'{v:g}' for v in given)}"),
         (not unsupported, f"{', '.join(unsupported)}: not available in volume mode"),
-        (all(np.isfinite(v) for v in (args.depth, args.tilt, args.azimuth, args.twist)),
-         "--depth, --tilt, --azimuth and --twist must be finite numbers"),
+        (all(np.isfinite(v) and abs(v) <= 1e4 for v in (args.depth, args.tilt, args.azimuth, args.twist)),
+         "--depth, --tilt, --azimuth and --twist must be finite numbers within +-10000"),
     ]
     for ok, message in checks:
         if not ok:
@@ -431,18 +470,26 @@ def _run_simulate_volume(args) -> int:
 
 
 def _run_reslice(args) -> int:
+    import math
     from pathlib import Path
 
     from .geometry import load_geometry
+    from .imageio import MAX_SPACING_MM, MIN_SPACING_MM
     from .reslice import default_depths, reslice, reslice_study
     from .volume import read_volume
 
     checks = [
         (8 <= args.size <= 4096, f"--size must be 8..4096 pixels, got {args.size}"),
-        (args.pixel_size > 0, f"--pixel-size must be > 0 mm, got {args.pixel_size:g}"),
+        (MIN_SPACING_MM <= args.pixel_size <= MAX_SPACING_MM,
+         f"--pixel-size must be {MIN_SPACING_MM:g}..{MAX_SPACING_MM:g} mm, got {args.pixel_size:g}"),
         (args.slice_thickness >= 0, f"--slice-thickness must be >= 0 mm, got {args.slice_thickness:g}"),
         (0 <= args.tilt < 90, f"--tilt must be in [0, 90) deg, got {args.tilt:g}"),
-        (args.depth_step > 0, f"--depth-step must be > 0 mm, got {args.depth_step:g}"),
+        (0.01 <= args.depth_step <= 1000, f"--depth-step must be 0.01..1000 mm, got {args.depth_step:g}"),
+        (args.depths is None or (len(args.depths) <= 10000 and all(math.isfinite(d) for d in args.depths)),
+         "--depths takes at most 10000 finite depths (mm)"),
+        (all(math.isfinite(v) for v in (args.azimuth, args.twist, args.pixel_size, args.slice_thickness)),
+         "--azimuth, --twist, --pixel-size and --slice-thickness must be finite numbers"),
+        (args.slice_thickness <= 100, f"--slice-thickness must be at most 100 mm, got {args.slice_thickness:g}"),
     ]
     for ok, message in checks:
         if not ok:
@@ -459,6 +506,11 @@ def _run_reslice(args) -> int:
         from .pose import slice_frame
 
         folder = Path(args.save_slices)
+        if not folder.is_dir():
+            from .atomic import check_parent
+
+            check_parent(folder)  # the named folder is made; a missing parent is an error
+            folder.mkdir()
         for n, d in enumerate(study.settings["depths_mm"]):
             S = T_ref @ slice_frame(d, args.tilt, args.azimuth, args.twist)
             sl = reslice(vol, S, (args.size, args.size), (args.pixel_size, args.pixel_size),
@@ -478,17 +530,35 @@ def _run_reslice(args) -> int:
 
 
 def _run_track(args) -> int:
-    from .geometry import load_geometry
-    from .igtl import parse_address
-    from .track import track
+    from pathlib import Path
 
-    if args.igtl:
-        parse_address(args.igtl)
+    from .geometry import load_geometry
+    from .igtl import IgtlServer, check_port, parse_address
+    from .outputs import EXIT_OUTPUT_FAILED, OutputPlan
+
+    images = args.igtl_images is not None or args.igtl_images_listen is not None
+    if args.igtl_images is not None and args.igtl_images_listen is not None:
+        raise ChicRegisterError("--igtl-images and --igtl-images-listen: give one (connect to the bridge, or listen)")
+    if images and args.folder not in (None, "-"):
+        raise ChicRegisterError(f"track {args.folder} with --igtl-images: images come over OpenIGTLink; give '-' "
+                                "instead of a folder")
+    if not images and args.folder in (None, "-"):
+        raise ChicRegisterError("track: give the FOLDER to watch, or --igtl-images HOST:PORT")
+    if not images and not Path(args.folder).is_dir():
+        raise ChicRegisterError(f"{args.folder}: not a folder")
+    if args.igtl_images is not None:
+        parse_address(args.igtl_images, "--igtl-images")
+    if args.igtl_images_listen is not None:
+        check_port(args.igtl_images_listen, "--igtl-images-listen")
+    plan = OutputPlan.from_args(args).check()
     if not (args.poll > 0 and args.settle >= 0):
         raise ChicRegisterError(f"--poll must be > 0 and --settle >= 0 s, got {args.poll:g} and {args.settle:g}")
     if args.max_files is not None and args.max_files < 1:
         raise ChicRegisterError(f"--max-files must be >= 1, got {args.max_files}")
+    _check_spacing_flag(args)
     geom = load_geometry(args.geometry)
+    if args.scene and not Path(args.scene).is_dir():
+        Path(args.scene).mkdir()  # its parent exists (checked above)
 
     def on_event(event):
         print(json.dumps(event.to_dict()) if args.json else event.text(), flush=True)
@@ -496,16 +566,33 @@ def _run_track(args) -> int:
     def on_message(text):
         print(f"chic-register: {text}", file=sys.stderr, flush=True)
 
-    if not args.json:
-        print(f"watching {args.folder} (Ctrl-C to stop)", file=sys.stderr, flush=True)
-    summary = track(args.folder, geom, pixel_spacing=args.pixel_spacing, poll_s=args.poll, settle_s=args.settle,
-                    include_existing=args.existing, max_files=args.max_files, timeout_s=args.timeout,
-                    igtl=args.igtl, igtl_name=args.igtl_name, on_event=on_event, on_message=on_message)
+    common = dict(scene_dir=args.scene, geometry_path=args.geometry, on_event=on_event, on_message=on_message)
+    if images:
+        from .igtl_track import track_images
+
+        listen = IgtlServer(args.igtl_images_listen) if args.igtl_images_listen is not None else None
+        where = f"port {listen.port}" if listen else args.igtl_images
+        on_message(f"registering IMAGE messages from the scanner bridge at {where} (Ctrl-C to stop)")
+        try:
+            summary = track_images(geom, connect=args.igtl_images, listen=listen, name=plan.igtl_name,
+                                   max_images=args.max_files, timeout_s=args.timeout, **common)
+        finally:
+            if listen is not None:
+                listen.close()
+    else:
+        from .track import track
+
+        link = plan.open_link()
+        if not args.json:
+            print(f"watching {args.folder} (Ctrl-C to stop)", file=sys.stderr, flush=True)
+        summary = track(args.folder, geom, pixel_spacing=args.pixel_spacing, poll_s=args.poll, settle_s=args.settle,
+                        include_existing=args.existing, max_files=args.max_files, timeout_s=args.timeout,
+                        igtl_name=plan.igtl_name, link=link, **common)
     if args.json:
         print(json.dumps(summary.to_dict()), flush=True)
     else:
         print(summary.text(), file=sys.stderr, flush=True)
-    return 0
+    return EXIT_OUTPUT_FAILED if summary.outputs_failed else 0
 
 
 def _run_precision(args) -> int:
@@ -547,8 +634,9 @@ def _run(args) -> int:
 
 
 def main(argv=None) -> int:
-    args = _parser().parse_args(argv)
+    args = None
     try:
+        args = _parser().parse_args(argv)  # inside: `--help | head` must not traceback either
         return _run(args)
     except NoLock as exc:
         if getattr(args, "json", False):
@@ -557,11 +645,13 @@ def main(argv=None) -> int:
             print(f"chic-register: no lock: {exc.reason}", file=sys.stderr)
         return exc.exit_code
     except ChicRegisterError as exc:
-        print(f"chic-register: error: {exc}", file=sys.stderr)
-        return exc.exit_code
+        return exits.report(PROG, f"error: {exc}", exc.exit_code)
     except KeyboardInterrupt:
-        print("chic-register: interrupted", file=sys.stderr)
-        return 130
+        return exits.report(PROG, "interrupted", 130)
+    except BrokenPipeError:  # e.g. `chic-register ... | head`: the reader left; nothing more to say
+        return exits.broken_pipe()
+    except OSError as exc:  # an output that cannot be written (disk full, permission, vanished folder)
+        return exits.os_error(PROG, exc)
 
 
 if __name__ == "__main__":

@@ -13,6 +13,15 @@ class ChicRegisterError(Exception):
     exit_code = 2
 
 
+class InputFileError(ChicRegisterError):
+    """An input file refused before its content is used: not a regular file, too large, unsafe YAML."""
+
+    def __init__(self, path, message: str):
+        self.path = str(path)
+        self.detail = message
+        super().__init__(f"{self.path}: {message}")
+
+
 class GeometryFileError(ChicRegisterError):
     """A geometry file that is missing, malformed, of a wrong format/version or fails its hash."""
 
@@ -27,6 +36,10 @@ class ImageReadError(ChicRegisterError):
     def __init__(self, path, message: str):
         self.path = str(path)
         super().__init__(f"{self.path}: {message}")
+
+
+class OutputError(ChicRegisterError):
+    """An output that cannot be written or sent (a missing folder, a closed OpenIGTLink peer)."""
 
 
 class NoLock(ChicRegisterError):

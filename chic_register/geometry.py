@@ -27,7 +27,14 @@ import yaml
 from scipy.optimize import brentq
 
 from .atomic import write_text
-from .errors import GeometryFileError
+from .errors import GeometryFileError, InputFileError
+
+#: Plausibility bounds of a geometry file (mm): a fiducial that fits in an MRI bore.
+MAX_EXTENT_MM = 1000.0
+MAX_TUBE_DIAMETER_MM = 50.0
+MAX_TUBES = 16  # CHIC has 9, a Z-frame 7; the solver's work grows fast with the count
+MAX_HELIX_TURNS = 10.0
+MAX_SOURCE_CHARS = 10_000  # the canonical JSON of ``source``
 
 FORMAT = "chic-geometry"
 VERSION = 1
@@ -234,6 +241,52 @@ class HelixTube:
 Tube = LineTube | HelixTube
 
 
+def _rigid_4x4(values) -> np.ndarray | None:
+    """``values`` as a proper rigid 4x4 matrix (last row 0 0 0 1), or None."""
+    try:
+        T = np.asarray(values, dtype=float)
+    except (TypeError, ValueError):
+        return None
+    if T.shape != (4, 4) or not np.all(np.isfinite(T)) or not np.allclose(T[3], [0, 0, 0, 1]):
+        return None
+    R = T[:3, :3]
+    if not np.allclose(R.T @ R, np.eye(3), atol=1e-6) or np.linalg.det(R) < 0:
+        return None
+    return T
+
+
+@dataclass(frozen=True, eq=False)
+class ToolFrame:
+    """The tool's frame relative to F: ``T_fiducial_from_tool`` (4x4, mm); its origin is the tool tip.
+
+    Optional key ``tool`` of the geometry file (written only when the spec
+    has a tool, so files without it keep their hash).
+    """
+
+    T_fiducial_from_tool: np.ndarray
+
+    def __post_init__(self):
+        T = _rigid_4x4(self.T_fiducial_from_tool)
+        if T is None:
+            raise ValueError("tool.T_fiducial_from_tool must be a rigid 4x4 matrix (rotation, translation, 0 0 0 1)")
+        object.__setattr__(self, "T_fiducial_from_tool", T)
+
+    @classmethod
+    def tip_offset(cls, tip_offset_mm: float) -> "ToolFrame":
+        """A tool whose axes are F's and whose tip is on the axis at z = ``tip_offset_mm``."""
+        T = np.eye(4)
+        T[2, 3] = float(tip_offset_mm)
+        return cls(T)
+
+    @property
+    def tip_mm(self) -> np.ndarray:
+        """The tip in F (mm)."""
+        return self.T_fiducial_from_tool[:3, 3].copy()
+
+    def to_dict(self) -> dict:
+        return {"T_fiducial_from_tool": [[float(v) for v in row] for row in self.T_fiducial_from_tool]}
+
+
 @dataclass(frozen=True)
 class FiducialGeometry:
     """Everything the solver knows about a fiducial: its body and its tube centrelines."""
@@ -243,6 +296,7 @@ class FiducialGeometry:
     tubes: tuple[Tube, ...]
     source: dict | None = None
     units: str = "mm"
+    tool: ToolFrame | None = None
 
     def __post_init__(self):
         object.__setattr__(self, "tubes", tuple(self.tubes))
@@ -280,6 +334,8 @@ class FiducialGeometry:
         }
         if self.source is not None:
             out["source"] = dict(self.source)
+        if self.tool is not None:
+            out["tool"] = self.tool.to_dict()
         return out
 
     def to_dict(self) -> dict:
@@ -340,17 +396,52 @@ def _number(path, where: str, value) -> float:
     return float(value)
 
 
-def _positive(path, where: str, value) -> float:
+def _positive(path, where: str, value, upper: float = MAX_EXTENT_MM) -> float:
     v = _number(path, where, value)
-    if v <= 0:
-        raise GeometryFileError(path, f"{where} must be > 0, got {value!r}")
+    if not 0 < v <= upper:
+        raise GeometryFileError(path, f"{where} must be > 0 and <= {upper:g} mm, got {value!r}")
+    return v
+
+
+def _coordinate(path, where: str, value) -> float:
+    v = _number(path, where, value)
+    if abs(v) > MAX_EXTENT_MM:
+        raise GeometryFileError(path, f"{where} must lie within +-{MAX_EXTENT_MM:g} mm, got {value!r}")
     return v
 
 
 def _point(path, where: str, value) -> tuple[float, float, float]:
     if not isinstance(value, (list, tuple)) or len(value) != 3:
-        raise GeometryFileError(path, f"{where} must be a list of 3 numbers, got {value!r}")
-    return tuple(_number(path, f"{where}[{i}]", v) for i, v in enumerate(value))
+        raise GeometryFileError(path, f"{where} must be a list of 3 numbers, got {_short(value)}")
+    return tuple(_coordinate(path, f"{where}[{i}]", v) for i, v in enumerate(value))
+
+
+def _short(value, limit: int = 60) -> str:
+    text = repr(value)
+    return text if len(text) <= limit else text[: limit - 3] + "..."
+
+
+def _json_value(path, where: str, value, depth: int = 0):
+    """``source`` values as JSON-ready data (str keys; str, finite number, bool, None, list, mapping)."""
+    if depth > 8:
+        raise GeometryFileError(path, f"{where} is nested too deeply")
+    if value is None or isinstance(value, (bool, str)):
+        return value
+    if isinstance(value, (int, float)):
+        if not math.isfinite(value):
+            raise GeometryFileError(path, f"{where} must be finite, got {value!r}")
+        return value
+    if isinstance(value, list):
+        return [_json_value(path, f"{where}[{i}]", v, depth + 1) for i, v in enumerate(value)]
+    if isinstance(value, dict):
+        out = {}
+        for k, v in value.items():
+            if not isinstance(k, str):
+                raise GeometryFileError(path, f"{where} has a non-string key {_short(k)}")
+            out[k] = _json_value(path, f"{where}.{k}", v, depth + 1)
+        return out
+    raise GeometryFileError(path, f"{where} holds a {type(value).__name__} ({_short(value)}); allowed: "
+                                  "strings, numbers, true/false, null, lists and mappings")
 
 
 def _require(path, mapping: dict, key: str, where: str):
@@ -364,13 +455,14 @@ def tube_from_dict(data: dict, path="<geometry>", where: str = "tubes[?]") -> Tu
     if not isinstance(data, dict):
         raise GeometryFileError(path, f"{where} must be a mapping, got {type(data).__name__}")
     tid = _require(path, data, "id", where + ".")
-    if not isinstance(tid, str) or not tid:
-        raise GeometryFileError(path, f"{where}.id must be a non-empty string, got {tid!r}")
+    if not isinstance(tid, str) or not tid or len(tid) > 32 or not tid.isprintable():
+        raise GeometryFileError(path, f"{where}.id must be a printable string of 1..32 characters, got {_short(tid)}")
     role = _require(path, data, "role", where + ".")
-    if role not in ROLES:
-        raise GeometryFileError(path, f"{where}.role is {role!r}; allowed: {', '.join(ROLES)}")
+    if not isinstance(role, str) or role not in ROLES:
+        raise GeometryFileError(path, f"{where}.role is {_short(role)}; allowed: {', '.join(ROLES)}")
     kind = _require(path, data, "kind", where + ".")
-    diameter = _positive(path, f"{where}.diameter", _require(path, data, "diameter", where + "."))
+    diameter = _positive(path, f"{where}.diameter", _require(path, data, "diameter", where + "."),
+                         MAX_TUBE_DIAMETER_MM)
     if kind == "line":
         p0 = _point(path, f"{where}.p0", _require(path, data, "p0", where + "."))
         p1 = _point(path, f"{where}.p1", _require(path, data, "p1", where + "."))
@@ -379,7 +471,7 @@ def tube_from_dict(data: dict, path="<geometry>", where: str = "tubes[?]") -> Tu
         return LineTube(tid, role, p0, p1, diameter)
     if kind == "helix":
         vals = {
-            k: _number(path, f"{where}.{k}", _require(path, data, k, where + "."))
+            k: _coordinate(path, f"{where}.{k}", _require(path, data, k, where + "."))
             for k in ("radius", "theta0_deg", "pitch_deg_per_mm", "z0", "z1")
         }
         if vals["radius"] <= 0:
@@ -388,8 +480,48 @@ def tube_from_dict(data: dict, path="<geometry>", where: str = "tubes[?]") -> Tu
             raise GeometryFileError(path, f"{where}: z1 must be greater than z0")
         if vals["pitch_deg_per_mm"] == 0:
             raise GeometryFileError(path, f"{where}.pitch_deg_per_mm must not be 0 (use a line)")
+        turns = abs(vals["pitch_deg_per_mm"]) * (vals["z1"] - vals["z0"]) / 360.0
+        if turns > MAX_HELIX_TURNS:
+            raise GeometryFileError(path, f"{where} turns {turns:.3g} times between z0 and z1; "
+                                          f"allowed at most {MAX_HELIX_TURNS:g}")
         return HelixTube(tid, role, diameter=diameter, **vals)
-    raise GeometryFileError(path, f"{where}.kind is {kind!r}; allowed: line, helix")
+    raise GeometryFileError(path, f"{where}.kind is {_short(kind)}; allowed: line, helix")
+
+
+def check_plausible(geom: "FiducialGeometry", path="<geometry>") -> None:
+    """Refuse a geometry no fiducial can have: a bore wider than the body, tubes far outside it.
+
+    Every tube centreline must stay within one outer diameter of the axis and
+    within one body length beyond either end face (generous: other families
+    may place tubes differently, but not elsewhere in the scanner).
+    """
+    b = geom.body
+    if not b.inner_diameter < b.outer_diameter:
+        raise GeometryFileError(path, f"body.inner_diameter ({b.inner_diameter:g}) must be smaller than "
+                                      f"body.outer_diameter ({b.outer_diameter:g})")
+    for t in geom.tubes:
+        pts = t.points(np.linspace(0.0, 1.0, 65))
+        rho = float(np.max(np.hypot(pts[:, 0], pts[:, 1])))
+        z_lo, z_hi = float(pts[:, 2].min()), float(pts[:, 2].max())
+        if rho > b.outer_diameter or z_lo < -b.length or z_hi > 2 * b.length:
+            raise GeometryFileError(
+                path, f"tube {t.id} reaches {rho:.4g} mm from the axis and z {z_lo:.4g}..{z_hi:.4g} mm: outside "
+                f"the plausible space of this body (within {b.outer_diameter:g} mm of the axis, z "
+                f"{-b.length:g}..{2 * b.length:g} mm)")
+        if t.diameter >= b.outer_diameter:
+            raise GeometryFileError(path, f"tube {t.id} diameter ({t.diameter:g}) is not smaller than "
+                                          f"body.outer_diameter ({b.outer_diameter:g})")
+
+
+def tool_from_dict(data, path="<geometry>") -> ToolFrame:
+    """Parse the optional ``tool`` entry: ``{T_fiducial_from_tool: 4x4}``."""
+    if not isinstance(data, dict) or set(data) != {"T_fiducial_from_tool"}:
+        raise GeometryFileError(path, f"tool must be a mapping with the one key T_fiducial_from_tool, got {_short(data)}")
+    T = _rigid_4x4(data["T_fiducial_from_tool"])
+    if T is None:
+        raise GeometryFileError(path, "tool.T_fiducial_from_tool must be a rigid 4x4 matrix "
+                                "(orthonormal rotation, det +1, last row 0 0 0 1)")
+    return ToolFrame(T)
 
 
 def geometry_from_dict(data, path="<geometry>", check_hash: bool = True) -> FiducialGeometry:
@@ -397,23 +529,40 @@ def geometry_from_dict(data, path="<geometry>", check_hash: bool = True) -> Fidu
     if not isinstance(data, dict):
         raise GeometryFileError(path, "not a chic-geometry file (top level is not a mapping)")
     if data.get("format") != FORMAT:
+        if "format" not in data and ("channels" in data or "markers" in data or "tubes" not in data):
+            raise GeometryFileError(path, "not a geometry file (no 'format: chic-geometry'); it looks like a design "
+                                    "spec: run 'chic-design build SPEC' and pass exports/<name>/geometry.yaml")
         raise GeometryFileError(path, f"format is {data.get('format')!r}; expected '{FORMAT}'")
-    if data.get("version") != VERSION:
+    version = data.get("version")
+    if type(version) is not int or version != VERSION:  # 1.0 and true are not the integer 1
         raise GeometryFileError(
-            path, f"version is {data.get('version')!r}; this solver reads version {VERSION}"
+            path, f"version is {_short(version)}; this solver reads version {VERSION} (an integer)"
         )
+    source = data.get("source")
+    if source is not None:
+        if not isinstance(source, dict):
+            raise GeometryFileError(path, f"source must be a mapping, got {type(source).__name__}")
+        source = _json_value(path, "source", source)
+        if len(json.dumps(source)) > MAX_SOURCE_CHARS:
+            raise GeometryFileError(path, f"source is longer than {MAX_SOURCE_CHARS} characters")
     if check_hash:
         stored = data.get("sha256")
         if not isinstance(stored, str):
             raise GeometryFileError(path, "missing key 'sha256' (the content hash)")
-        if stored != content_sha256(data):
+        try:
+            actual = content_sha256(data)
+        except (TypeError, ValueError) as exc:  # a value JSON cannot hold (from a Python caller)
+            raise GeometryFileError(path, f"content cannot be hashed ({exc})") from None
+        if stored != actual:
             raise GeometryFileError(
                 path, "sha256 does not match the content: the file was edited or damaged; rebuild it"
             )
     name = _require(path, data, "name", "")
+    if not isinstance(name, (str, int, float)) or isinstance(name, bool) or len(str(name)) > 200:
+        raise GeometryFileError(path, f"name must be a short string, got {_short(name)}")
     units = data.get("units", "mm")
     if units != "mm":
-        raise GeometryFileError(path, f"units is {units!r}; allowed: mm")
+        raise GeometryFileError(path, f"units is {_short(units)}; allowed: mm")
     b = _require(path, data, "body", "")
     if not isinstance(b, dict):
         raise GeometryFileError(path, "body must be a mapping")
@@ -423,13 +572,16 @@ def geometry_from_dict(data, path="<geometry>", check_hash: bool = True) -> Fidu
         _positive(path, "body.inner_diameter", _require(path, b, "inner_diameter", "body.")),
     )
     tubes_raw = _require(path, data, "tubes", "")
-    if not isinstance(tubes_raw, list) or not tubes_raw:
-        raise GeometryFileError(path, "tubes must be a non-empty list")
+    if not isinstance(tubes_raw, list) or not tubes_raw or len(tubes_raw) > MAX_TUBES:
+        raise GeometryFileError(path, f"tubes must be a list of 1..{MAX_TUBES} tubes")
     tubes = [tube_from_dict(t, path, f"tubes[{i}]") for i, t in enumerate(tubes_raw)]
+    tool = tool_from_dict(data["tool"], path) if "tool" in data else None
     try:
-        return FiducialGeometry(str(name), body, tuple(tubes), data.get("source"), units)
+        geom = FiducialGeometry(str(name), body, tuple(tubes), source, units, tool)
     except ValueError as exc:
         raise GeometryFileError(path, str(exc)) from None
+    check_plausible(geom, path)
+    return geom
 
 
 def load_geometry(path, check_hash: bool = True) -> FiducialGeometry:
@@ -438,14 +590,13 @@ def load_geometry(path, check_hash: bool = True) -> FiducialGeometry:
     Raises :class:`GeometryFileError` with a one-line message naming the file
     and the fault.
     """
+    from .safeload import load_yaml_file
+
     p = Path(path)
-    if not p.is_file():
-        raise GeometryFileError(p, "no such geometry file")
     try:
-        data = yaml.safe_load(p.read_text(encoding="utf-8"))
-    except (yaml.YAMLError, UnicodeDecodeError) as exc:
-        first = str(exc).strip().splitlines()[0] if str(exc).strip() else type(exc).__name__
-        raise GeometryFileError(p, f"not valid YAML ({first})") from None
+        data = load_yaml_file(p, "geometry file")
+    except InputFileError as exc:
+        raise GeometryFileError(p, exc.detail) from None
     return geometry_from_dict(data, p, check_hash=check_hash)
 
 

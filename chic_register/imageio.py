@@ -23,8 +23,17 @@ from pathlib import Path
 import numpy as np
 
 from .atomic import atomic_path
-from .errors import ImageReadError
+from .errors import ImageReadError, InputFileError
+from .safeload import open_regular_file
 from .slices import Slice
+
+#: Physical range of a pixel spacing (mm): 10 um (microscopy-grade MRI) to 50 mm.
+MIN_SPACING_MM = 0.01
+MAX_SPACING_MM = 50.0
+#: Largest slice read (pixels over all frames): 4096 x 4096 (128 MiB as float64; solving one took 0.5 GiB).
+MAX_PIXELS = 4096 * 4096
+#: Largest slice thickness taken from a file (mm); beyond it the value is refused.
+MAX_THICKNESS_MM = 100.0
 
 _LUMA = np.array([0.299, 0.587, 0.114])
 _DICOM_SUFFIXES = {".dcm", ".dicom", ".ima", ""}
@@ -37,18 +46,38 @@ def _reason(exc: BaseException) -> str:
     return first if len(first) <= 120 else first[:117] + "..."
 
 
+def spacing_fault(pixel_spacing) -> str | None:
+    """Why ``pixel_spacing`` (row, col) mm is not a physical pixel spacing, or None when it is."""
+    try:
+        rs, cs = (float(v) for v in pixel_spacing)
+    except (TypeError, ValueError):
+        return f"pixel spacing must be two numbers (row, col), got {pixel_spacing!r}"
+    if not all(math.isfinite(v) and MIN_SPACING_MM <= v <= MAX_SPACING_MM for v in (rs, cs)):
+        return (f"pixel spacing must be two positive numbers in {MIN_SPACING_MM:g}..{MAX_SPACING_MM:g} mm, "
+                f"got ({rs:g}, {cs:g})")
+    return None
+
+
 def _check_spacing(path, pixel_spacing, kind: str) -> tuple[float, float]:
     if pixel_spacing is None:
         raise ImageReadError(
             path, f"a {kind} image has no geometry: give the pixel spacing (--pixel-spacing ROW COL, mm)"
         )
-    try:
-        rs, cs = (float(v) for v in pixel_spacing)
-    except (TypeError, ValueError):
-        raise ImageReadError(path, f"pixel spacing must be two numbers (row, col), got {pixel_spacing!r}") from None
-    if not (rs > 0 and cs > 0 and math.isfinite(rs) and math.isfinite(cs)):
-        raise ImageReadError(path, f"pixel spacing must be two positive numbers (mm), got ({rs:g}, {cs:g})")
+    fault = spacing_fault(pixel_spacing)
+    if fault:
+        raise ImageReadError(path, fault)
+    rs, cs = (float(v) for v in pixel_spacing)
     return rs, cs
+
+
+def _check_size(path, shape, kind: str) -> None:
+    """Refuse an image too large to be a slice before its pixels are decoded (memory bound)."""
+    n = 1
+    for v in shape:
+        n *= max(int(v), 0)
+    if n > MAX_PIXELS:
+        raise ImageReadError(path, f"{kind} of shape {tuple(int(v) for v in shape)} is too large for a slice "
+                                   f"(at most {MAX_PIXELS} pixels)")
 
 
 def _as_2d(path, arr: np.ndarray, kind: str, rgb_ok: bool) -> np.ndarray:
@@ -84,6 +113,16 @@ def _plain_slice(path, pixels: np.ndarray, pixel_spacing, kind: str) -> Slice:
 
 def _read_npy(path) -> np.ndarray:
     try:
+        with open(path, "rb") as fh:
+            fmt = np.lib.format
+            major = fmt.read_magic(fh)[0]
+            shape = (fmt.read_array_header_1_0(fh) if major == 1 else fmt.read_array_header_2_0(fh))[0]
+        _check_size(path, shape, "NPY array")
+    except ImageReadError:
+        raise
+    except Exception as exc:
+        raise ImageReadError(path, f"NPY file is damaged or truncated ({_reason(exc)})") from None
+    try:
         arr = np.load(path, allow_pickle=False)
     except ValueError as exc:
         if "pickle" in str(exc).lower():
@@ -104,6 +143,7 @@ def _read_tiff(path) -> np.ndarray:
             if len(tif.pages) > 1:
                 raise ImageReadError(path, f"TIFF holds {len(tif.pages)} pages: a slice must be one 2-D image")
             page = tif.pages[0]
+            _check_size(path, page.shape, "TIFF image")
             rgb = page.photometric in (tifffile.PHOTOMETRIC.RGB, tifffile.PHOTOMETRIC.YCBCR)
             arr = page.asarray()
     except ImageReadError:
@@ -121,6 +161,7 @@ def _read_pillow(path, kind: str, known: bool = False) -> np.ndarray:
         with Image.open(path) as img:
             if getattr(img, "n_frames", 1) > 1:
                 raise ImageReadError(path, f"{kind} holds {img.n_frames} frames: a slice must be one 2-D image")
+            _check_size(path, img.size, kind)
             img.load()
             mode = img.mode
             if mode in ("P", "PA", "CMYK", "YCbCr", "HSV", "LAB"):
@@ -194,16 +235,21 @@ def _dicom_geometry(path, ds, frame: int | None):
         raise ImageReadError(path, f"DICOM ImageOrientationPatient is not two orthonormal vectors: {ori.tolist()}")
     row_dir = row_dir - (row_dir @ col_dir) / nc**2 * col_dir  # remove rounding in the DS strings
     col_dir, row_dir = col_dir / nc, row_dir / np.linalg.norm(row_dir)
-    if not np.all(spacing > 0):
-        raise ImageReadError(path, f"DICOM PixelSpacing must be positive, got {spacing.tolist()}")
+    fault = spacing_fault(spacing)
+    if fault:
+        raise ImageReadError(path, f"DICOM PixelSpacing: {fault}")
     try:
         thickness = float(src["SliceThickness"]) if src["SliceThickness"] not in (None, "") else 0.0
     except (TypeError, ValueError):
         thickness = 0.0
+    if not (math.isfinite(thickness) and 0.0 <= thickness <= MAX_THICKNESS_MM):
+        raise ImageReadError(path, f"DICOM SliceThickness must be in 0..{MAX_THICKNESS_MM:g} mm, got {thickness:g}")
+    if not np.all(np.abs(origin) <= 1e6):
+        raise ImageReadError(path, f"DICOM ImagePositionPatient is not a position in a scanner: {origin.tolist()}")
     return origin, col_dir, row_dir, (float(spacing[0]), float(spacing[1])), thickness
 
 
-def _rescale(ds, frame: int | None) -> tuple[float, float]:
+def _rescale(path, ds, frame: int | None) -> tuple[float, float]:
     item = _fg_item(ds, frame, "PixelValueTransformationSequence") if frame is not None else None
     src = item if item is not None else ds
     slope = src.get("RescaleSlope", 1.0)
@@ -213,6 +259,9 @@ def _rescale(ds, frame: int | None) -> tuple[float, float]:
         intercept = float(intercept) if intercept not in (None, "") else 0.0
     except (TypeError, ValueError):
         slope, intercept = 1.0, 0.0
+    if not (math.isfinite(slope) and math.isfinite(intercept)) or slope == 0:
+        raise ImageReadError(path, f"DICOM RescaleSlope/RescaleIntercept must be finite numbers (slope not 0), "
+                             f"got {slope:g} / {intercept:g}")
     return slope, intercept
 
 
@@ -272,6 +321,11 @@ def _read_dicom(path, has_preamble: bool) -> list[Slice]:
         raise ImageReadError(path, _no_pixels_reason(ds))
     _guess_transfer_syntax(ds)
     try:
+        _check_size(path, (int(ds.get("NumberOfFrames", 1) or 1), int(ds.get("Rows", 0) or 0),
+                           int(ds.get("Columns", 0) or 0), int(ds.get("SamplesPerPixel", 1) or 1)), "DICOM image")
+    except (TypeError, ValueError):
+        raise ImageReadError(path, "DICOM Rows/Columns/NumberOfFrames are not integers") from None
+    try:
         with warnings.catch_warnings():
             warnings.simplefilter("ignore")
             arr = ds.pixel_array
@@ -293,8 +347,11 @@ def _read_dicom(path, has_preamble: bool) -> list[Slice]:
     for k in range(arr.shape[0]):
         frame = k if per_frame else None
         origin, col_dir, row_dir, spacing, thickness = _dicom_geometry(path, ds, frame)
-        slope, intercept = _rescale(ds, frame)
-        pixels = arr[k].astype(float) * slope + intercept
+        slope, intercept = _rescale(path, ds, frame)
+        with np.errstate(over="ignore", invalid="ignore"):
+            pixels = arr[k].astype(float) * slope + intercept
+        if not np.all(np.isfinite(pixels)):
+            raise ImageReadError(path, "DICOM pixel values are not finite after RescaleSlope/RescaleIntercept")
         if invert:
             pixels = pixels.max() + pixels.min() - pixels
         source = str(path) if arr.shape[0] == 1 else f"{path}#{k + 1}"
@@ -320,13 +377,11 @@ def _sniff(head: bytes) -> str | None:
 def read_slice(path, pixel_spacing=None) -> list[Slice]:
     """Every slice in one file (a multi-frame DICOM gives several); raises :class:`ImageReadError`."""
     p = Path(path)
-    if not p.exists():
-        raise ImageReadError(p, "no such file")
-    if p.is_dir():
-        raise ImageReadError(p, "is a directory, not an image file")
     try:
-        with open(p, "rb") as fh:
+        with open_regular_file(p, "image file") as fh:  # a FIFO or device is refused, not waited on
             head = fh.read(132)
+    except InputFileError as exc:
+        raise ImageReadError(p, exc.detail) from None
     except OSError as exc:
         raise ImageReadError(p, f"cannot be read ({exc.strerror or _reason(exc)})") from None
     if not head:

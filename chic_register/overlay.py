@@ -1,7 +1,7 @@
 """Overlay figures of a registration, like the paper's Fig. 5 and 6.
 
 For each slice: the image as read, then the same image with every detected
-candidate blob, the fitted ellipse of tube centres, the model's predicted
+candidate blob (the view spans all of them, rejected ones included), the fitted ellipse of tube centres, the model's predicted
 tube crossings and the tube labels of the matched blobs. Written with
 matplotlib's Agg backend, atomically (temporary file, then rename).
 """
@@ -12,7 +12,7 @@ from pathlib import Path
 
 import numpy as np
 
-from .atomic import atomic_path
+from .atomic import save_figure
 from .errors import ChicRegisterError
 
 
@@ -20,6 +20,19 @@ def _pixels_of_ellipse(ell, spacing) -> np.ndarray:
     """Ellipse outline in (row, col) pixels; shape (n, 2)."""
     xy = ell.points(240)
     return np.stack([xy[:, 1] / spacing[0], xy[:, 0] / spacing[1]], axis=1)
+
+
+def view_bounds(candidates_rc, shape, margin_px: float = 20.0):
+    """(lo, hi) (row, col) of the zoomed view: every candidate blob, matched or rejected, with a margin.
+
+    Zooming on the matched tubes alone hid the extra blobs the solver
+    rejected, which is what a user wants to see when it refuses (issue 10).
+    """
+    rc = np.asarray(candidates_rc, dtype=float).reshape(-1, 2)
+    top = np.array(shape[:2], dtype=float) - 1.0
+    if not rc.shape[0]:
+        return np.zeros(2), top
+    return np.maximum(rc.min(axis=0) - margin_px, 0.0), np.minimum(rc.max(axis=0) + margin_px, top)
 
 
 def draw_overlay(path, slices, registration=None, blobs=None, title: str | None = None) -> Path:
@@ -43,13 +56,7 @@ def draw_overlay(path, slices, registration=None, blobs=None, title: str | None 
         img = np.asarray(sl.pixels, dtype=float)
         res = registration.slices[j] if registration is not None else None
         rc = res.blobs_rc if res is not None else (blobs[j].centres_rc if blobs is not None else np.zeros((0, 2)))
-        # zoom on the matched tubes (or all candidates), with a margin
-        focus = rc[list(res.assignment.values())] if res is not None and res.assignment else rc
-        if focus.shape[0]:
-            lo = np.maximum(focus.min(axis=0) - 20, 0)
-            hi = np.minimum(focus.max(axis=0) + 20, np.array(img.shape) - 1)
-        else:
-            lo, hi = np.zeros(2), np.array(img.shape) - 1.0
+        lo, hi = view_bounds(rc, img.shape)
         for ax in axes[j]:
             ax.imshow(img, cmap="gray", interpolation="nearest")
             ax.set_xlim(lo[1], hi[1])
@@ -76,9 +83,5 @@ def draw_overlay(path, slices, registration=None, blobs=None, title: str | None 
             ax.set_title(title or "no lock: candidates only", fontsize=9)
         ax.legend(loc="lower right", fontsize=7, framealpha=0.6)
     fig.tight_layout()
-    try:
-        with atomic_path(path) as tmp:
-            fig.savefig(tmp, dpi=110, format="png")
-    finally:
-        plt.close(fig)
+    save_figure(fig, path)
     return path

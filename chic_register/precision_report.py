@@ -8,7 +8,7 @@ from pathlib import Path
 
 import numpy as np
 
-from .atomic import atomic_path
+from .atomic import save_figure
 from .crlb import PrecisionMap
 
 #: (column, heading, format) of the tables.
@@ -75,11 +75,7 @@ def plot_map(pm: PrecisionMap, path, title: str = "") -> Path:
     axes[0, 0].legend(fontsize=8)
     fig.suptitle(f"{title + ': ' if title else ''}precision bound (CRLB)\n" + "\n".join(textwrap.wrap(describe(pm), 120)), fontsize=8)
     fig.tight_layout()
-    try:
-        with atomic_path(path) as tmp:
-            fig.savefig(tmp, dpi=110, format="png")
-    finally:
-        plt.close(fig)
+    save_figure(fig, path)
     return Path(path)
 
 

@@ -36,6 +36,14 @@ from scipy.optimize import linear_sum_assignment
 from .detect import Blobs, _dilate, detect_blobs
 from .errors import NoLock
 from .geometry import FiducialGeometry, HelixTube, LineTube, content_sha256
+from .hypotheses import (  # noqa: F401  (the first-guess stage; its public names stay importable from here)
+    Ellipse,
+    ellipse_layout,
+    family_hypotheses,
+    fit_ellipse_robust,
+    initial_hypotheses,
+    parallel_family,
+)
 from .pose import invert, rigid, slice_angles
 from .slices import Slice
 
@@ -77,6 +85,7 @@ class TubeModel:
     line_dunit: np.ndarray = None
     line_params: tuple = ()
     helix_params: tuple = ()
+    tubes: tuple = ()  # the geometry's tube objects (sampled by the generic first guess)
 
     def __post_init__(self):
         li, hi = np.flatnonzero(~self.is_helix), np.flatnonzero(self.is_helix)
@@ -125,6 +134,7 @@ class TubeModel:
             angle_rad=angle, axis_radius_mm=rad_axis, depth_coding=~axial,
             diameter_mm=np.array([t.diameter for t in geom.tubes], float),
             length_mm=float(geom.body.length),
+            tubes=tuple(geom.tubes),
         )
 
 
@@ -279,302 +289,6 @@ def _adjoint(T: np.ndarray) -> np.ndarray:
     A[3:, 3:] = R
     A[3:, :3] = np.array([[0.0, -pz, py], [pz, 0.0, -px], [-py, px, 0.0]]) @ R
     return A
-
-
-# --------------------------------------------------------------------------- ellipse
-
-
-@dataclass(frozen=True)
-class Ellipse:
-    """An ellipse in image mm: centre (2,), semi-axes ``a >= b`` (mm), major-axis angle ``phi`` (rad)."""
-
-    centre: np.ndarray
-    a: float
-    b: float
-    phi: float
-
-    def points(self, n: int = 200) -> np.ndarray:
-        """Outline points, shape (n, 2)."""
-        t = np.linspace(0, 2 * np.pi, n)
-        u, w = self.a * np.cos(t), self.b * np.sin(t)
-        c, s = math.cos(self.phi), math.sin(self.phi)
-        return self.centre + np.stack([u * c - w * s, u * s + w * c], axis=1)
-
-
-def _conic_to_ellipse(coef: np.ndarray):
-    """Conic coefficients (S, 6) [A, B, C, D, E, F] -> (centre (S,2), a, b, phi, valid)."""
-    coef = coef * np.where(coef[:, 0] + coef[:, 2] < 0, -1.0, 1.0)[:, None]  # positive-definite form
-    A, B, C, D, E, F = coef.T
-    det = 4 * A * C - B * B
-    valid = det > 1e-15
-    det = np.where(valid, det, 1.0)
-    cx = (B * E - 2 * C * D) / det
-    cy = (B * D - 2 * A * E) / det
-    Fc = A * cx * cx + B * cx * cy + C * cy * cy + D * cx + E * cy + F
-    tr = A + C
-    disc = np.sqrt(np.maximum((A - C) ** 2 + B * B, 0.0))
-    l1, l2 = (tr - disc) / 2, (tr + disc) / 2  # l1 <= l2
-    with np.errstate(divide="ignore", invalid="ignore"):
-        a2, b2 = -Fc / l1, -Fc / l2
-    valid &= (a2 > 0) & (b2 > 0) & np.isfinite(a2) & np.isfinite(b2)
-    a = np.sqrt(np.where(valid, a2, 1.0))
-    b = np.sqrt(np.where(valid, b2, 1.0))
-    # major axis: eigenvector of the smaller eigenvalue l1 of [[A, B/2], [B/2, C]]
-    phi = 0.5 * np.arctan2(B, A - C) + np.pi / 2
-    return np.stack([cx, cy], axis=1), a, b, phi, valid
-
-
-def _conic_to_ellipse_1(coef: np.ndarray):
-    """One conic (6,) -> ``(centre (2,), a, b, phi)`` or None: :func:`_conic_to_ellipse` in scalar arithmetic."""
-    A, B, C, D, E, F = (float(v) for v in coef)
-    if A + C < 0:
-        A, B, C, D, E, F = -A, -B, -C, -D, -E, -F
-    det = 4 * A * C - B * B
-    if not det > 1e-15:
-        return None
-    cx = (B * E - 2 * C * D) / det
-    cy = (B * D - 2 * A * E) / det
-    Fc = A * cx * cx + B * cx * cy + C * cy * cy + D * cx + E * cy + F
-    tr = A + C
-    disc = math.sqrt(max((A - C) ** 2 + B * B, 0.0))
-    l1, l2 = (tr - disc) / 2, (tr + disc) / 2
-    if l1 == 0 or l2 == 0:
-        return None
-    a2, b2 = -Fc / l1, -Fc / l2
-    if not (a2 > 0 and b2 > 0 and math.isfinite(a2) and math.isfinite(b2)):
-        return None
-    phi = 0.5 * math.atan2(B, A - C) + math.pi / 2
-    return np.array([cx, cy]), math.sqrt(a2), math.sqrt(b2), phi
-
-
-def _sampson(coef: np.ndarray, xy: np.ndarray) -> np.ndarray:
-    """First-order geometric distance of points (N, 2) to conics (S, 6) -> (S, N)."""
-    x, y = xy[:, 0][None], xy[:, 1][None]
-    A, B, C, D, E, F = (coef[:, i : i + 1] for i in range(6))
-    val = A * x * x + B * x * y + C * y * y + D * x + E * y + F
-    gx = 2 * A * x + B * y + D
-    gy = B * x + 2 * C * y + E
-    return np.abs(val) / np.maximum(np.hypot(gx, gy), 1e-12)
-
-
-def _design(xy: np.ndarray) -> np.ndarray:
-    x, y = xy[..., 0], xy[..., 1]
-    return np.stack([x * x, x * y, y * y, x, y, np.ones_like(x)], axis=-1)
-
-
-def _lsq_conic(xy: np.ndarray) -> np.ndarray:
-    """Least-squares ellipse (Fitzgibbon-Halir-Flusser) through points (N >= 5, 2) -> (6,)."""
-    D = _design(xy)
-    D1, D2 = D[:, :3], D[:, 3:]
-    S1, S2, S3 = D1.T @ D1, D1.T @ D2, D2.T @ D2
-    try:
-        Tm = -np.linalg.solve(S3, S2.T)
-    except np.linalg.LinAlgError:
-        return np.full(6, np.nan)
-    M = S1 + S2 @ Tm
-    M = np.array([M[2] / 2, -M[1], M[0] / 2])
-    w, v = np.linalg.eig(M)
-    v = np.real(v)
-    cond = 4 * v[0] * v[2] - v[1] ** 2
-    idx = np.flatnonzero(cond > 0)
-    if idx.size == 0:
-        return np.full(6, np.nan)
-    a1 = v[:, idx[0]]
-    return np.concatenate([a1, Tm @ a1])
-
-
-def fit_ellipse_robust(xy_mm: np.ndarray, radius_mm: float, max_tilt_deg: float = 80.0,
-                       tol_mm: float | None = None, rng_seed: int = 0, samples: int = 300):
-    """Ellipse of tube centres among candidate points (N, 2), tolerant to outliers.
-
-    The ellipse of a cylinder of radius ``radius_mm`` cut at tilt t has minor
-    semi-axis ``radius_mm`` and major ``radius_mm / cos t``; only such
-    ellipses are accepted. First all points are tried; if some do not fit,
-    RANSAC on 5-point subsets picks the largest consistent set.
-    Returns ``(Ellipse, inlier mask (N,))`` or ``None``.
-    """
-    N = xy_mm.shape[0]
-    if N < 5:
-        return None
-    tol = tol_mm if tol_mm is not None else 0.1 * radius_mm
-    mu = xy_mm.mean(axis=0)
-    scale = radius_mm
-    p = (xy_mm - mu) / scale  # well-conditioned units
-    max_ratio = 1.0 / math.cos(math.radians(max_tilt_deg))
-
-    def plausible(a, b):
-        return (b > 0.75) & (b < 1.25) & (a / b < max_ratio)
-
-    def refit(mask):
-        coef = _lsq_conic(p[mask])
-        if not np.all(np.isfinite(coef)):
-            return None
-        e = _conic_to_ellipse_1(coef)
-        if e is None or not plausible(e[1], e[2]):
-            return None
-        dist = _sampson(coef[None], p)[0] * scale
-        return coef, e, dist
-
-    best = refit(np.ones(N, bool))
-    if best is not None and np.all(best[2] < tol):
-        inl = np.ones(N, bool)
-    else:
-        rng = np.random.default_rng(rng_seed)
-        idx = np.argsort(rng.random((samples, N)), axis=1)[:, :5]
-        D = _design(p[idx])  # (S,5,6)
-        _, _, vt = np.linalg.svd(D, full_matrices=True)
-        coef = vt[:, -1, :]
-        c, a, b, phi, valid = _conic_to_ellipse(coef)
-        valid &= plausible(a, b)
-        if not valid.any():
-            return None
-        dist = _sampson(coef, p) * scale
-        inliers = (dist < tol) & valid[:, None]
-        count = inliers.sum(axis=1)
-        err = np.where(inliers, dist, 0).sum(axis=1)
-        order = np.lexsort((err, -count))
-        inl = inliers[order[0]]
-        best = None
-        for _ in range(3):
-            if inl.sum() < 5:
-                return None
-            best = refit(inl)
-            if best is None:
-                return None
-            new = best[2] < tol
-            if np.array_equal(new, inl):
-                break
-            inl = new
-        if best is None or inl.sum() < 5:
-            return None
-    _, (c, a, b, phi), _ = best
-    return Ellipse(c * scale + mu, float(a * scale), float(b * scale), float(phi)), inl
-
-
-# --------------------------------------------------------------------------- hypotheses
-
-
-def _wrap(a):
-    return (a + np.pi) % (2 * np.pi) - np.pi
-
-
-def initial_hypotheses(model: TubeModel, xy_mm: np.ndarray, ell: Ellipse, *,
-                       angle_tol_deg: float = 6.0, max_hypotheses: int = 6) -> list[np.ndarray]:
-    """Closed-form pose guesses ``T_F_from_I`` (4x4) from an ellipse and unrolled blob angles.
-
-    For each of the four sign choices (up end of the major axis ``s``,
-    handedness ``h``) every pairing of a blob with an axial line tube gives
-    a rotation ``beta`` about the axis; the rotations that line up the most
-    axial tubes (all of those seen, when there are three or more) are kept,
-    then the helices give the depth by consensus.
-    Returns up to ``max_hypotheses`` guesses, best first.
-    """
-    if not model.axial.any() or xy_mm.shape[0] == 0:
-        return []
-    cos_t = min(1.0, ell.b / ell.a)
-    sin_t = math.sqrt(max(0.0, 1 - cos_t * cos_t))
-    c, s_ = math.cos(ell.phi), math.sin(ell.phi)
-    rel = xy_mm - ell.centre
-    u = rel @ np.array([c, s_])
-    w = rel @ np.array([-s_, c])
-    line_ang = model.angle_rad[model.axial]
-    Kl = line_ang.size
-    hel = model.helix_idx
-    tol = math.radians(angle_tol_deg)
-    signs = [(1.0, 1.0), (1.0, -1.0), (-1.0, 1.0), (-1.0, -1.0)] if sin_t > 0.02 else [(1.0, 1.0), (1.0, -1.0)]
-    per_h = {}
-    for h in sorted({h for _, h in signs}, reverse=True):  # the line match does not depend on s
-        th = np.arctan2(h * w, u * cos_t)  # (N,)
-        beta = (line_ang[None, :] - th[:, None]).ravel()  # (B,)
-        # th[n] - th[i] + ang[l] - ang[m], each difference wrapped first: one add and two compares to wrap
-        e = (_wrap(th[None, :] - th[:, None])[:, None, :, None]
-             + _wrap(line_ang[:, None] - line_ang[None, :])[None, :, None, :]).reshape(beta.size, th.size, Kl)
-        e = np.where(e >= np.pi, e - 2 * np.pi, np.where(e < -np.pi, e + 2 * np.pi, e))  # (B,N,Kl)
-        jmin = np.argmin(np.abs(e), axis=1)  # (B,Kl)
-        emin = np.take_along_axis(e, jmin[:, None, :], axis=1)[:, 0, :]
-        hit = np.abs(emin) < tol
-        n_lines = hit.sum(axis=1)
-        b = beta - np.where(hit, emin, 0).sum(axis=1) / np.maximum(n_lines, 1)
-        per_h[h] = (th, n_lines, b)
-    per_sign = [(s, h, per_h[h][0], s * u * sin_t, per_h[h][1], per_h[h][2]) for s, h in signs]
-    top = max(int(ps[4].max()) for ps in per_sign)
-    rows = []  # (score, n_hel, s, h, beta, depth)
-    for s, h, th, zr, n_lines, b in per_sign:
-        keep = n_lines >= (top if top >= 3 else max(top - 1, 1))
-        b, nl = b[keep], n_lines[keep]
-        key = np.round(np.degrees(_wrap(b))).astype(int)
-        _, first = np.unique(key, return_index=True)
-        for k in first:
-            for depth, n_hel in _helix_depths(model, hel, th + b[k], zr, tol):
-                rows.append((int(nl[k]) + n_hel, n_hel, s, h, float(b[k]), depth))
-    rows.sort(key=lambda t: (-t[0], -t[1]))
-    out, seen = [], []
-    for score, n_hel, s, h, b, depth in rows:
-        if any(k[0] == s and k[1] == h and abs(_wrap(k[2] - b)) < 0.05 and abs(k[3] - depth) < 2.0 for k in seen):
-            continue
-        seen.append((s, h, b, depth))
-        out.append(_pose_from_hypothesis(ell, cos_t, sin_t, s, h, b, depth))
-        if len(out) >= max_hypotheses:
-            break
-    return out
-
-
-def _helix_depths(model: TubeModel, hel: np.ndarray, theta_F: np.ndarray, zr: np.ndarray, tol: float,
-                  n_best: int = 2):
-    """Candidate depths of the ellipse centre from blob angles in F (N,) and relative heights (N,).
-
-    Every (blob, helix) pair implies a depth; depths agreed on by the most
-    helices win (ties broken by spread). Returns up to ``n_best`` distinct
-    ``(depth_mm, n_helices_agreeing)``, clamped to the body.
-    """
-    L = model.length_mm
-    if hel.size == 0:
-        return [(L / 2, 0)]
-    th0, om, z0 = model.theta0_rad[hel], model.omega_rad_per_mm[hel], model.z0[hel]
-    zlo, zhi = model.z_lo[hel], model.z_hi[hel]
-    # z = z0 + (theta - th0 + 2 pi m) / om, pick m nearest to the middle of the tube
-    raw = (theta_F[:, None] - th0[None, :]) / om[None, :]  # (N,H)
-    period = 2 * np.pi / np.abs(om)
-    zmid = (zlo + zhi) / 2 - z0
-    m = np.round((zmid[None, :] - raw) / period[None, :])
-    z = z0[None, :] + raw + m * period[None, :]
-    d = z - zr[:, None]
-    inside = (z > zlo - 3) & (z < zhi + 3)
-    dtol = tol / np.abs(om)  # depth tolerance of the angle tolerance
-    dv = d[inside]
-    hv = np.broadcast_to(np.arange(hel.size), d.shape)[inside]
-    if dv.size == 0:
-        return [(L / 2, 0)]
-    diff = np.abs(dv[:, None] - dv[None, :])
-    close = diff < dtol[hv][None, :]
-    onehot = hv[:, None] == np.arange(hel.size)[None, :]  # (M, H)
-    n = ((close.astype(float) @ onehot) > 0).sum(axis=1)  # helices agreeing with each depth
-    spread = np.where(close, diff, 0).sum(axis=1) / np.maximum(close.sum(axis=1), 1)
-    means = (close @ dv) / close.sum(axis=1)  # each row holds its own depth: never empty
-    out = []
-    for i in np.lexsort((spread, -n)).tolist():
-        depth = float(means[i])
-        if any(abs(depth - o[0]) < 1.0 for o in out):
-            continue
-        out.append((min(max(depth, 0.0), L), int(n[i])))
-        if len(out) >= n_best:
-            break
-    return out
-
-
-def _pose_from_hypothesis(ell: Ellipse, cos_t, sin_t, s, h, beta, depth) -> np.ndarray:
-    """``T_F_from_I`` placing the ellipse centre on the axis at ``depth`` (see module docstring)."""
-    # columns of F's frame: m = cos_t e1 + s sin_t z, mn = h e2, m x mn; of the image: u_maj, u_min, z
-    c, s_ = math.cos(ell.phi), math.sin(ell.phi)
-    cb, sb = math.cos(beta), math.sin(beta)
-    m = (cos_t * cb, cos_t * sb, s * sin_t)
-    mn = (-h * sb, h * cb, 0.0)
-    m3 = (m[1] * mn[2] - m[2] * mn[1], m[2] * mn[0] - m[0] * mn[2], m[0] * mn[1] - m[1] * mn[0])
-    # R = F @ I^T with I = [[c, -s_, 0], [s_, c, 0], [0, 0, 1]]
-    R = np.array([[m[i] * c - mn[i] * s_, m[i] * s_ + mn[i] * c, m3[i]] for i in range(3)])
-    cx, cy = float(ell.centre[0]), float(ell.centre[1])
-    o = np.array([-(R[0, 0] * cx + R[0, 1] * cy), -(R[1, 0] * cx + R[1, 1] * cy), depth - (R[2, 0] * cx + R[2, 1] * cy)])
-    return rigid(R, o)
 
 
 # --------------------------------------------------------------------------- refinement
@@ -1045,6 +759,11 @@ class SolveOptions:
     (:mod:`~chic_register.uncertainty`; a few ms per slice; always when
     ``max_tre_mm`` is finite); ``max_tre_mm``: a pose whose predicted TRE at
     the registration's target exceeds it gives :class:`NoLock` (``imprecise``).
+    ``prior``: an approximate ``T_scanner_from_fiducial`` (4x4, only its
+    rotation is used): poses turned more than ``prior_max_deg`` from it are
+    never considered. It is what resolves a geometry that maps onto itself
+    under a rotation (the classic Z-frame does, under a half turn): without
+    it, such a fit is refused as ambiguous.
     """
 
     max_rms_px: float = 0.5
@@ -1063,6 +782,8 @@ class SolveOptions:
     template_max_disagreement_px: float = 0.5
     max_tre_mm: float = math.inf
     uncertainty: bool = True
+    prior: np.ndarray | None = None
+    prior_max_deg: float = 60.0
 
 
 def _pixel_mm(sl: Slice) -> float:
@@ -1086,33 +807,78 @@ def _distinct(T1: np.ndarray, T2: np.ndarray, model: TubeModel) -> bool:
     return ang > 1.0 or float(np.max(np.linalg.norm(a - b, axis=1))) > 1.0
 
 
-def _solve_one(model: TubeModel, xy: np.ndarray, S: np.ndarray, opts: SolveOptions, pixel_mm: float):
-    """Refined hypotheses of one slice, best first, and the ellipse. Raises NoLock if there are none.
+def _rotation_deg(R1: np.ndarray, R2: np.ndarray) -> float:
+    """Angle (degrees) of the rotation between two 3x3 rotations."""
+    return math.degrees(math.acos(min(1.0, max(-1.0, (float(np.trace(R1.T @ R2)) - 1) / 2))))
 
-    Every closed-form guess gets a short refinement; the best, and any
-    distinct rival as good as it, are then refined to convergence.
+
+def _near_prior(T_F_from_scanner: np.ndarray, opts: "SolveOptions") -> bool:
+    """True without a prior, else when the pose's rotation lies within ``prior_max_deg`` of the prior's."""
+    if opts.prior is None:
+        return True
+    R_prior = np.asarray(opts.prior, float)[:3, :3]  # R_scanner_from_fiducial
+    return _rotation_deg(T_F_from_scanner[:3, :3].T, R_prior) <= opts.prior_max_deg
+
+
+def _depth_tube_name(model: TubeModel) -> str:
+    """What the tubes that tell the depth are, by their shape: 'helical', 'diagonal' or 'depth-coding' (both)."""
+    kinds = {"helical" if model.is_helix[k] else "diagonal" for k in np.flatnonzero(model.depth_coding)}
+    return kinds.pop() if len(kinds) == 1 else "depth-coding"
+
+
+def _solve_one(model: TubeModel, xy: np.ndarray, S: np.ndarray, opts: SolveOptions, pixel_mm: float):
+    """Refined hypotheses of one slice, best first, and the ellipse (or None). Raises NoLock if there are none.
+
+    First guesses come from the paper's closed form when the layout allows it
+    (:func:`~chic_register.hypotheses.ellipse_layout`), else, or when that
+    yields no acceptable fit, from the generic stage
+    (:func:`~chic_register.hypotheses.family_hypotheses`). Every guess gets a
+    short refinement; the best, and any distinct rival as good as it, are then
+    refined to convergence. With a prior orientation (``opts.prior``), guesses
+    and fits farther from it are dropped.
     """
     if xy.shape[0] < opts.min_tubes:
         raise NoLock(f"found {xy.shape[0]} candidate tube cross-sections; need at least {opts.min_tubes}",
                      {"n_candidates": int(xy.shape[0])})
-    ring = model.axis_radius_mm[model.axial | model.is_helix]
-    radius = float(np.median(ring)) if ring.size else float(np.median(model.axis_radius_mm))
-    ell_fit = fit_ellipse_robust(xy, radius, max_tilt_deg=opts.max_tilt_deg,
-                                 tol_mm=max(0.08 * radius, 1.5 * pixel_mm))
-    if ell_fit is None:
-        raise NoLock("no ellipse of tube centres matching the fiducial's radius was found",
-                     {"n_candidates": int(xy.shape[0])})
-    ell, inl = ell_fit
-    hyps = initial_hypotheses(model, xy[inl], ell, max_hypotheses=opts.max_hypotheses)
-    if not hyps:
-        raise NoLock("the detected centres do not match the geometry's tube pattern")
-    S_inv = invert(S)
     gate = max(float(model.diameter_mm.max()), 2 * pixel_mm)
+    limit = opts.max_rms_px * pixel_mm
+    fits, ell = [], None
+    if ellipse_layout(model):
+        radius = float(np.median(model.axis_radius_mm))
+        ell_fit = fit_ellipse_robust(xy, radius, max_tilt_deg=opts.max_tilt_deg,
+                                     tol_mm=max(0.08 * radius, 1.5 * pixel_mm))
+        if ell_fit is not None:
+            ell, inl = ell_fit
+            hyps = initial_hypotheses(model, xy[inl], ell, max_hypotheses=opts.max_hypotheses)
+            fits = _refine_guesses(model, xy, S, hyps, opts, pixel_mm, gate)
+    if not fits or fits[0].n_matched < opts.min_tubes or fits[0].rms_mm > limit:
+        if parallel_family(model) is None:
+            if not fits:
+                raise NoLock("the geometry has no family of three parallel straight tubes that are not in one "
+                             "plane, which the generic first guess needs, and no ellipse of tube centres "
+                             "was found", {"n_candidates": int(xy.shape[0])})
+        else:
+            hyps = family_hypotheses(model, xy, gate_mm=gate, max_tilt_deg=opts.max_tilt_deg,
+                                     max_hypotheses=2 * opts.max_hypotheses)
+            fits = _rank(fits + _refine_guesses(model, xy, S, hyps, opts, pixel_mm, gate), limit)
+    if not fits:
+        raise NoLock("the detected centres do not match the geometry's tube pattern",
+                     {"n_candidates": int(xy.shape[0])})
+    return fits, ell
+
+
+def _refine_guesses(model: TubeModel, xy: np.ndarray, S: np.ndarray, hyps: list, opts: SolveOptions,
+                    pixel_mm: float, gate: float) -> list:
+    """Rank first guesses ``T_F_from_I`` by the tubes they line up, refine the best; fits best first."""
+    S_inv = invert(S)
     # rank the guesses by how many tubes they line up before refining any
     scored = []
     for T in hyps:
+        X = T @ S_inv
+        if not _near_prior(X, opts):
+            continue
         q, _, _, inside = plane_crossings(model, T, margin_mm=5.0)
-        scored.append((int((_assign(q, inside, xy, gate) >= 0).sum()), T @ S_inv))
+        scored.append((int((_assign(q, inside, xy, gate) >= 0).sum()), X))
     scored.sort(key=lambda t: -t[0])
 
     def full(X):
@@ -1132,8 +898,10 @@ def _solve_one(model: TubeModel, xy: np.ndarray, S: np.ndarray, opts: SolveOptio
                     or not _distinct(quick.T_F_from_scanner, fits[0].T_F_from_scanner, model)):
                 fits.append(quick)
                 continue
-        fits = _rank(fits + [_reject_outliers(model, [xy], [S], full(X), [pixel_mm], opts)], limit)
-    return fits, ell
+        fit = _reject_outliers(model, [xy], [S], full(X), [pixel_mm], opts)
+        if _near_prior(fit.T_F_from_scanner, opts):
+            fits = _rank(fits + [fit], limit)
+    return fits
 
 
 def _reject_outliers(model: TubeModel, xys, Ss, fit: _Fit, px_mm: list[float], opts: SolveOptions) -> _Fit:
@@ -1196,15 +964,17 @@ def _check_trust(fit: _Fit, others: list[_Fit], model: TubeModel, slices: list[S
                          {"depth_mm": round(float(ang.depth_mm), 3)})
     need_depth = min(opts.min_depth_tubes, int(model.depth_coding.sum()))
     if fit.n_matched < opts.min_tubes or n_depth < need_depth:
-        raise NoLock(f"only {fit.n_matched} tubes matched ({n_depth} helical); need at least "
-                     f"{opts.min_tubes} with {need_depth} helical", {"n_tubes": fit.n_matched})
+        name = _depth_tube_name(model)
+        raise NoLock(f"only {fit.n_matched} tubes matched ({n_depth} {name}); need at least "
+                     f"{opts.min_tubes} with {need_depth} {name}", {"n_tubes": fit.n_matched})
     for other in others:
         if (other.n_matched >= fit.n_matched and other.n_matched >= opts.min_tubes
                 and other.rms_mm <= opts.ambiguity_ratio * max(fit.rms_mm, 1e-3)
                 and other.rms_mm <= opts.max_rms_px * min(_pixel_mm(sl) for sl in slices)
                 and _distinct(fit.T_F_from_scanner, other.T_F_from_scanner, model)):
+            hint = "" if opts.prior is not None else "; an approximate orientation (prior, --prior) picks one"
             raise NoLock(f"ambiguous fit: two distinct poses match {fit.n_matched} and {other.n_matched} "
-                         f"tubes with RMS {fit.rms_mm:.3f} and {other.rms_mm:.3f} mm",
+                         f"tubes with RMS {fit.rms_mm:.3f} and {other.rms_mm:.3f} mm{hint}",
                          {"n_tubes": fit.n_matched})
 
 
@@ -1239,7 +1009,7 @@ def register(slices: list[Slice], geom: FiducialGeometry, *, options: SolveOptio
             fits, ell = _solve_one(model, xy, S, opts, _pixel_mm(sl))
             _check_trust(fits[0], fits[1:], model, [sl], opts, [S])
         except NoLock as exc:
-            if len(slices) > 1:
+            if len(slices) > 1 and not exc.reason.startswith(f"{sl.source}: "):
                 raise NoLock(f"{sl.source}: {exc.reason}", exc.detail) from None
             raise
         per_slice.append((fits[0], ell))

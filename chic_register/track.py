@@ -35,7 +35,11 @@ RETRY_MAX_S = 10.0
 
 @dataclass(frozen=True)
 class TrackEvent:
-    """The outcome for one file: ``status`` is ``"ok"`` (with a pose) or ``"no_lock"`` (with a reason)."""
+    """The outcome for one file: ``status`` is ``"ok"`` (with a pose), ``"no_lock"`` or ``"error"`` (with a reason).
+
+    ``"error"``: the file read, but registering it failed in an unexpected way
+    (a bug, or an input no check caught); tracking goes on with the next file.
+    """
 
     source: str
     status: str
@@ -47,11 +51,16 @@ class TrackEvent:
     read_ms: float = float("nan")
     solve_ms: float = float("nan")
     igtl: str = ""  # "", "sent" or the send error
+    T_scanner_from_tool: np.ndarray | None = None
+    failed: tuple[str, ...] = ()  # outputs that failed (OpenIGTLink, scene), one line each
 
     def to_dict(self) -> dict:
         out = {"source": self.source, "status": self.status}
         if self.T_scanner_from_fiducial is not None:
             out["T_scanner_from_fiducial"] = np.asarray(self.T_scanner_from_fiducial).tolist()
+            if self.T_scanner_from_tool is not None:
+                out["T_scanner_from_tool"] = np.asarray(self.T_scanner_from_tool).tolist()
+                out["tool_tip_mm"] = np.asarray(self.T_scanner_from_tool)[:3, 3].tolist()
             out["slices"] = [s.to_dict() for s in self.slices]
         if self.reason:
             out["reason"] = self.reason
@@ -59,6 +68,8 @@ class TrackEvent:
                    read_ms=round(self.read_ms, 3), solve_ms=round(self.solve_ms, 3))
         if self.igtl:
             out["igtl"] = self.igtl
+        if self.failed:
+            out["outputs_failed"] = list(self.failed)
         return out
 
     def text(self) -> str:
@@ -66,14 +77,17 @@ class TrackEvent:
         name = Path(self.source).name
         lat = f"latency {self.latency_ms:.0f} ms (solve {self.solve_ms:.0f} ms)"
         if self.status != "ok":
-            return f"{name}: no lock: {self.reason}; {lat}"
+            return f"{name}: {self.status.replace('_', ' ')}: {self.reason}; {lat}"
         s = self.slices[0]
         o = np.asarray(self.T_scanner_from_fiducial)[:3, 3]
         line = (f"{name}: depth {s.depth_mm:.2f} mm, tilt {s.tilt_deg:.2f}, azimuth {s.azimuth_deg:.2f}, "
                 f"twist {s.twist_deg:.2f} deg, rms {s.residual_rms_mm:.3f} mm; "
                 f"fiducial origin ({o[0]:.2f}, {o[1]:.2f}, {o[2]:.2f}) mm; {lat}")
-        if self.igtl and self.igtl != "sent":
-            line += f"; igtl: {self.igtl}"
+        if self.T_scanner_from_tool is not None:
+            tip = np.asarray(self.T_scanner_from_tool)[:3, 3]
+            line += f"; tool tip ({tip[0]:.2f}, {tip[1]:.2f}, {tip[2]:.2f}) mm"
+        if self.failed:
+            line += "; output failed: " + "; ".join(self.failed)
         return line
 
 
@@ -90,6 +104,11 @@ class TrackSummary:
     def n_ok(self) -> int:
         return sum(e.status == "ok" for e in self.events)
 
+    @property
+    def outputs_failed(self) -> int:
+        """How many events had an output (OpenIGTLink, scene) fail."""
+        return sum(bool(e.failed) for e in self.events)
+
     def to_dict(self) -> dict:
         lat = [e.latency_ms for e in self.events if e.status == "ok"]
         return {
@@ -97,9 +116,11 @@ class TrackSummary:
             "stopped_by": self.stopped_by,
             "files": len(self.events),
             "ok": self.n_ok,
-            "no_lock": len(self.events) - self.n_ok,
+            "no_lock": sum(e.status == "no_lock" for e in self.events),
+            "errors": sum(e.status == "error" for e in self.events),
             "pending": list(self.pending),
             "latency_ms": {"median": float(np.median(lat)), "max": float(np.max(lat))} if lat else None,
+            "outputs_failed": self.outputs_failed,
             "duration_s": round(self.duration_s, 3),
         }
 
@@ -107,11 +128,60 @@ class TrackSummary:
         d = self.to_dict()
         line = (f"stopped ({self.stopped_by}) after {self.duration_s:.1f} s: {d['files']} files, "
                 f"{d['ok']} registered, {d['no_lock']} without lock")
+        if d["errors"]:
+            line += f", {d['errors']} failed"
         if d["latency_ms"]:
             line += f", latency median {d['latency_ms']['median']:.0f} ms, max {d['latency_ms']['max']:.0f} ms"
+        if self.outputs_failed:
+            line += f"; an output failed for {self.outputs_failed} of them"
         if self.pending:
             line += f"; {len(self.pending)} unreadable file(s) pending: {', '.join(Path(p).name for p in self.pending)}"
         return line
+
+
+class Publisher:
+    """Sends each outcome over OpenIGTLink and writes its scene; collects failures instead of raising."""
+
+    def __init__(self, geom, link=None, name: str = "CHIC", scene_dir=None, geometry_path=None):
+        self.geom, self.link, self.name = geom, link, name
+        self.scene_dir = Path(scene_dir) if scene_dir else None
+        self.geometry_path = geometry_path
+
+    def tool_pose(self, reg):
+        from .outputs import tool_pose
+
+        return None if reg is None else tool_pose(reg, self.geom)
+
+    def send(self, reg, reason: str = "") -> tuple[str, list[str]]:
+        """Pose messages (or STATUS no_lock): returns ("" | "sent" | error, failures)."""
+        if self.link is None:
+            return "", []
+        from .igtl import NoPeer, no_lock_messages, pose_messages
+        from .outputs import quality
+
+        try:
+            if reg is None:
+                self.link.send(no_lock_messages(reason, self.name))
+            else:
+                self.link.send(pose_messages(reg.T_scanner_from_fiducial, self.name, self.tool_pose(reg),
+                                             quality(reg)))
+        except NoPeer:  # our server with nobody listening yet: a viewer may connect later, nothing failed
+            return "no peer connected", []
+        except ChicRegisterError as exc:
+            return str(exc), [str(exc)]
+        return "sent", []
+
+    def scene(self, reg, slices, stem: str) -> list[str]:
+        if self.scene_dir is None or reg is None:
+            return []
+        from .scene import write_scene
+
+        try:
+            write_scene(self.scene_dir / stem, reg, self.geom, slices, name=self.name,
+                        geometry_path=self.geometry_path)
+        except (ChicRegisterError, OSError, ValueError) as exc:
+            return [f"--scene: {exc}"]
+        return []
 
 
 @dataclass
@@ -181,6 +251,9 @@ def track(
     timeout_s: float | None = None,
     igtl=None,
     igtl_name: str = "CHIC",
+    link=None,
+    scene_dir=None,
+    geometry_path=None,
     on_event=_default_event,
     on_message=_default_message,
     register=None,
@@ -195,7 +268,10 @@ def track(
     :func:`chic_register.solve.register`); ``on_event(TrackEvent)`` receives
     each outcome, ``on_message(str)`` each skip notice (None: silent). ``igtl``: an
     ``"HOST:PORT"`` string or :class:`~chic_register.igtl.IgtlAddress` to
-    send each pose to (a failed send is reported, tracking goes on).
+    connect to, or ``link`` any open :mod:`~chic_register.igtl` end (client or
+    server): each pose goes out as TRANSFORMs, quality and STATUS, each no
+    lock as STATUS ``no_lock`` (a failed send is reported, tracking goes on).
+    ``scene_dir``: write a Slicer scene of each pose into ``scene_dir/<file name>/``.
     Stops after ``max_files`` registered files, after ``timeout_s`` seconds,
     or on Ctrl-C (KeyboardInterrupt), and returns a :class:`TrackSummary`.
     """
@@ -210,16 +286,18 @@ def track(
         raise ChicRegisterError(f"{folder}: not a folder")
     if not (poll_s > 0 and settle_s >= 0):
         raise ValueError("poll_s must be > 0 and settle_s >= 0")
-    sender = None
-    if igtl is not None:
-        from .igtl import IgtlSender
+    sender = link
+    if sender is None and igtl is not None:
+        from .igtl import IgtlClient
 
-        sender = IgtlSender(igtl, name=igtl_name)
+        sender = IgtlClient(igtl)
+    publish = Publisher(geom, sender, igtl_name, scene_dir, geometry_path)
 
     _warm_up()
     start = time.monotonic()
     done: dict[str, tuple] = {} if include_existing else _scan(folder)
     pending: dict[str, _Pending] = {}
+    first_poll = True
     events: list[TrackEvent] = []
     stopped_by = "interrupt"
 
@@ -236,31 +314,36 @@ def track(
             state.failed_sig = state.sig
             state.retry_at = now + state.retry_s
             return None
+        except Exception as exc:  # noqa: BLE001 - one bad file must not end a tracking session
+            slices, failure = None, f"{type(exc).__name__}: {exc}".splitlines()[0]
         t1 = time.perf_counter()
-        try:
-            reg = register(slices, geom, **register_options)
-        except NoLock as exc:
-            reg, reason = None, exc.reason
+        status, reg, reason = "ok", None, ""
+        if slices is None:
+            status, reason = "error", f"cannot read: {failure}"
+        else:
+            try:
+                reg = register(slices, geom, **register_options)
+            except NoLock as exc:
+                status, reason = "no_lock", exc.reason
+            except Exception as exc:  # noqa: BLE001 - as above: report it, go on with the next file
+                status, reason = "error", f"{type(exc).__name__}: {exc}".splitlines()[0]
         t2 = time.perf_counter()
+        igtl_status, failed = publish.send(reg, reason if reg is None else "")
         wall = time.time()
         mtime = state.sig[1] / 1e9
-        igtl_status = ""
-        if reg is not None and sender is not None:
-            try:
-                sender.send(reg.T_scanner_from_fiducial)
-                igtl_status = "sent"
-            except ChicRegisterError as exc:
-                igtl_status = str(exc)
+        failed += publish.scene(reg, slices, Path(path).name)
         common = dict(
             latency_ms=1000.0 * (wall - state.appeared_wall),
             since_write_ms=1000.0 * (wall - mtime),
             read_ms=1000.0 * (t1 - t0),
             solve_ms=1000.0 * (t2 - t1),
             igtl=igtl_status,
+            failed=tuple(failed),
         )
         if reg is None:
-            return TrackEvent(path, "no_lock", None, (), reason, **common)
-        return TrackEvent(path, "ok", reg.T_scanner_from_fiducial, tuple(reg.slices), **common)
+            return TrackEvent(path, status, None, (), reason, **common)
+        return TrackEvent(path, "ok", reg.T_scanner_from_fiducial, tuple(reg.slices),
+                          T_scanner_from_tool=publish.tool_pose(reg), **common)
 
     try:
         while True:
@@ -277,8 +360,9 @@ def track(
                     continue
                 state = pending.get(path)
                 if state is None:
+                    # a file there at the start (--existing) appeared when we started, not when it was written
                     wall = time.time()
-                    state = pending[path] = _Pending(min(wall, sig[1] / 1e9), sig, now)
+                    state = pending[path] = _Pending(wall if first_poll else min(wall, sig[1] / 1e9), sig, now)
                     continue
                 if state.sig != sig:
                     state.sig, state.changed_at = sig, now
@@ -299,6 +383,7 @@ def track(
                     break
             if stopped_by == "max_files":
                 break
+            first_poll = False
             time.sleep(poll_s)
     except KeyboardInterrupt:
         stopped_by = "interrupt"

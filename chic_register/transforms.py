@@ -1,6 +1,19 @@
-"""ITK transform files (``.tfm``) of a registration, for 3D Slicer and SimpleITK.
+"""Frames for 3D Slicer and robots, and ITK transform files (``.tfm``) of a registration.
 
-Direction convention (stated once, here and in the README):
+The frame convention (docs/interfaces.md section 5, stated in code here only):
+
+- Every model we export (``body.stl``, the scene's tube and tool models) is
+  written in F and declares ``SPACE=LPS``: Slicer reads its coordinates as
+  LPS, i.e. F is taken to be an LPS-like frame ("F-as-LPS"), exactly as ITK
+  takes the moving space of the ``.tfm``. Slicer then holds the model in
+  ``diag(-1,-1,1) p_F`` and the matrix that puts it in place is
+  :func:`slicer_matrix` = ``diag(-1,-1,1,1) T diag(-1,-1,1,1)``. The ``.tfm``
+  yields that matrix in Slicer, and so does the OpenIGTLink TRANSFORM named
+  ``CHIC``.
+- A robot controller that works in F gets :func:`ras_matrix` =
+  ``diag(-1,-1,1,1) T``: F (as designed) to RAS, under ``CHICToRAS``.
+
+ITK direction convention:
 
 - ITK stores a transform in the *resampling* convention: it maps points of
   the fixed (output) space to the moving (input) space. Files are in LPS.
@@ -27,6 +40,31 @@ from .errors import ChicRegisterError
 from .pose import invert
 
 SUFFIXES = (".tfm", ".txt", ".h5", ".hdf5")
+
+
+LPS_TO_RAS = np.diag([-1.0, -1.0, 1.0, 1.0])
+MODEL_SPACE = "LPS"  # the coordinate system every exported model declares (STL ``SPACE=`` header)
+
+
+def _as_4x4(T) -> np.ndarray:
+    T = np.asarray(T, dtype=float)
+    if T.shape != (4, 4):
+        raise ValueError(f"expected a 4x4 matrix, got shape {T.shape}")
+    return T
+
+
+def ras_matrix(T_scanner_from_frame) -> np.ndarray:
+    """F (or the tool frame) as designed -> RAS: ``diag(-1,-1,1,1) @ T`` (for robots working in F)."""
+    return LPS_TO_RAS @ _as_4x4(T_scanner_from_frame)
+
+
+def slicer_matrix(T_scanner_from_frame) -> np.ndarray:
+    """Slicer's "to parent" matrix (RAS) that places a ``SPACE=LPS`` model drawn in the frame.
+
+    ``diag(-1,-1,1,1) @ T @ diag(-1,-1,1,1)``: what a ``.tfm`` holding
+    ``inverse(T)`` becomes when Slicer loads it.
+    """
+    return LPS_TO_RAS @ _as_4x4(T_scanner_from_frame) @ LPS_TO_RAS
 
 
 def _check_rigid(T: np.ndarray) -> np.ndarray:

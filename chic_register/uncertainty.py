@@ -312,6 +312,17 @@ def mahalanobis2(delta_deg_mm: np.ndarray, covariance: np.ndarray) -> float:
     return float(d @ np.linalg.solve(covariance, d))
 
 
+def detection_diameter_mm(blobs, model) -> float:
+    """The tube diameter the detector smoothed for: the geometry's median, or the width it measured in the
+    image when that differs by more than a quarter (:func:`chic_register.detect.detect_blobs` redoes the
+    detection at that size)."""
+    d_mid = float(np.median(model.diameter_mm))
+    width = float(getattr(blobs, "width_mm", float("nan")))
+    if math.isfinite(width) and not 0.8 <= width / d_mid <= 1.25:
+        return width
+    return d_mid
+
+
 def registration_uncertainty(model, fit, xys, Ss, slices, blob_sets, target_F_mm,
                              measurement: str = "centroid") -> PoseUncertainty:
     """The covariance of a solver fit (``chic_register.solve``): its Jacobian at the solution, the measured
@@ -338,7 +349,7 @@ def registration_uncertainty(model, fit, xys, Ss, slices, blob_sets, target_F_mm
         Js.append((-J_s @ Ad_sf).reshape(-1, 6))  # the same motion as delta in F: xi = -Ad(T_sf) delta
         rs.append((q[k] - xys[j][a[k]]).ravel())
         jitter = mask_jitter_covariances(sl.pixels, b.footprints, a[k], b.threshold, noise, sl.pixel_spacing_mm,
-                                         float(np.median(model.diameter_mm)), background=b.background, seed=j)
+                                         detection_diameter_mm(b, model), background=b.background, seed=j)
         for i, extra in zip(a[k], jitter):
             base = centroid_covariance(sl.pixels, b.footprints[int(i)], b.background, noise, sl.pixel_spacing_mm)
             vals, vecs = np.linalg.eigh(base + extra)  # never below the fixed footprint's own half

@@ -24,9 +24,10 @@ import numpy as np
 import SimpleITK as sitk
 
 from .atomic import atomic_path
-from .errors import ChicRegisterError, ImageReadError
+from .errors import ChicRegisterError, ImageReadError, InputFileError
 from .slices import Slice
 
+MAX_VOXELS = 2**26  # 64 M voxels (512 x 512 x 256): 256 MiB as float32, read and copied once
 FILE_SUFFIXES = (".nii", ".nii.gz", ".nrrd", ".nhdr", ".mha", ".mhd")
 WRITE_SUFFIXES = (".nii", ".nii.gz", ".nrrd", ".mha")
 MR_IMAGE_STORAGE = "1.2.840.10008.5.1.4.1.1.4"  # MR Image Storage SOP class
@@ -122,6 +123,15 @@ def volume_from_sitk(img: sitk.Image, source: str = "<sitk>") -> Volume:
         raise ImageReadError(source, f"expected a 3-D volume, got {img.GetDimension()}-D")
     if img.GetNumberOfComponentsPerPixel() != 1:
         raise ImageReadError(source, f"expected scalar voxels, got {img.GetNumberOfComponentsPerPixel()} components")
+    from .imageio import MAX_SPACING_MM, MIN_SPACING_MM
+
+    spacing, origin = np.array(img.GetSpacing()), np.array(img.GetOrigin())
+    if not np.all(np.isfinite(spacing) & (spacing >= MIN_SPACING_MM) & (spacing <= MAX_SPACING_MM)):
+        raise ImageReadError(source, f"voxel spacing must be three numbers in {MIN_SPACING_MM:g}..{MAX_SPACING_MM:g} "
+                                     f"mm, got {spacing.tolist()}")
+    direction = np.array(img.GetDirection()).reshape(3, 3)
+    if not (np.all(np.isfinite(origin)) and np.allclose(direction.T @ direction, np.eye(3), atol=1e-3)):
+        raise ImageReadError(source, "volume origin/direction are not a finite position and an orthonormal frame")
     return Volume(
         voxels=sitk.GetArrayFromImage(img),
         spacing_mm=img.GetSpacing(),
@@ -134,6 +144,16 @@ def volume_from_sitk(img: sitk.Image, source: str = "<sitk>") -> Volume:
 def _last_line(exc: Exception) -> str:
     lines = [ln.strip() for ln in str(exc).strip().splitlines() if ln.strip()]
     return lines[-1] if lines else type(exc).__name__
+
+
+def _check_voxels(path, size, components: int) -> None:
+    """Refuse a volume too large to read (from its header, before any voxel is decoded)."""
+    n = components
+    for v in size:
+        n *= int(v)
+    if n > MAX_VOXELS:
+        raise ImageReadError(path, f"volume of size {tuple(int(v) for v in size)} is too large "
+                                   f"(at most {MAX_VOXELS} voxels)")
 
 
 def read_volume(path, series_id: str | None = None) -> Volume:
@@ -162,14 +182,28 @@ def read_volume(path, series_id: str | None = None) -> Volume:
             raise ImageReadError(path, "DICOM series has a single slice: read it as a slice, not a volume")
         reader.SetFileNames(files)
         try:
+            first = sitk.ImageFileReader()
+            first.SetFileName(files[0])
+            first.ReadImageInformation()
+            _check_voxels(path, (*first.GetSize()[:2], len(files)), first.GetNumberOfComponents())
             img = reader.Execute()
         except RuntimeError as exc:
             raise ImageReadError(path, f"cannot read DICOM series: {_last_line(exc)}") from None
     else:
         if _suffix(path) not in FILE_SUFFIXES:
             raise ImageReadError(path, f"not a volume file; allowed: {', '.join(FILE_SUFFIXES)} or a DICOM series folder")
+        from .safeload import open_regular_file
+
         try:
-            img = sitk.ReadImage(str(path))
+            open_regular_file(path, "volume file").close()  # a FIFO or device is refused, not waited on
+        except InputFileError as exc:
+            raise ImageReadError(path, exc.detail) from None
+        try:
+            reader = sitk.ImageFileReader()
+            reader.SetFileName(str(path))
+            reader.ReadImageInformation()
+            _check_voxels(path, reader.GetSize(), reader.GetNumberOfComponents())
+            img = reader.Execute()
         except RuntimeError as exc:
             raise ImageReadError(path, f"cannot read volume: {_last_line(exc)}") from None
     if img.GetDimension() == 4 and img.GetSize()[3] == 1:

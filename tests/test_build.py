@@ -102,6 +102,13 @@ def test_meshes_are_printable_and_in_frame_F(built):
     assert list(scene.geometry) == ["cap_bottom"]
 
 
+def test_stl_parts_declare_lps_for_slicer(built):
+    """Slicer reads SPACE= from the STL header: F is declared LPS, the convention of the .tfm (issue 10)."""
+    _, result, _ = built
+    for part in ("body", "cap_top", "cap_bottom"):
+        assert (result.folder / f"{part}.stl").read_bytes()[:9] == b"SPACE=LPS"
+
+
 def test_assembly_step_has_labelled_parts(built):
     _, result, _ = built
     text = (result.folder / "assembly.step").read_text(errors="replace")
@@ -276,11 +283,14 @@ def test_invalid_spec_fails_before_cad_and_writes_nothing(tmp_path, monkeypatch)
     assert main(["build", str(bad), "--out", str(out), "--quiet"]) == 2
 
 
-def test_skirts_that_would_meet_are_a_spec_error(tmp_path):
+def test_skirts_that_would_meet_are_refused_even_with_force(tmp_path):
     bad = tmp_path / "long-skirt.yaml"
     bad.write_text(NEURO.read_text().replace("skirt_height: 4.0", "skirt_height: 30.0"))
-    with pytest.raises(SpecError, match="caps.skirt_height"):
-        build_design(bad, out_root=tmp_path / "exports", progress=False)
+    with pytest.raises(InfeasibleDesign, match="caps_meet .caps.skirt_height.") as err:
+        build_design(bad, out_root=tmp_path / "exports", force=True, progress=False)
+    assert "--force cannot" in str(err.value)
+    assert not (tmp_path / "exports" / "neuro").exists()
+    assert not any((tmp_path / "exports").iterdir())
 
 
 def test_replace_folder_swaps_and_cleans_up(tmp_path):

@@ -72,6 +72,7 @@ def test_helix_plane_crossings_match_the_plane_equation():
 
 
 def test_geometry_file_round_trip(neuro_geometry, tmp_path):
+    (tmp_path / "g").mkdir()
     path = write_geometry(neuro_geometry, tmp_path / "g" / "geometry.yaml")
     loaded = load_geometry(path)
     assert loaded == neuro_geometry

@@ -292,7 +292,8 @@ def test_cli_no_lock_exit_3_with_json_reason(tmp_path, neuro_geometry_file, need
     rng = np.random.default_rng(0)
     noise = tmp_path / "noise.npy"
     np.save(noise, rng.uniform(0, 1, (256, 256)))
-    miss = _simulate_cli(tmp_path, neuro_geometry_file, "miss.dcm", "--depth", "80", "--noise", "rician", "--seed", "1")
+    miss = _simulate_cli(tmp_path, neuro_geometry_file, "miss.dcm", "--depth", "80", "--noise", "rician", "--seed", "1",
+                        "--allow-empty")
     good = _simulate_cli(tmp_path, neuro_geometry_file, "good.dcm", "--depth", "25", "--tilt", "10")
     wrong_geom = write_geometry(needle_geometry, tmp_path / "needle.yaml")
     capsys.readouterr()

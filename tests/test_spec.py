@@ -57,7 +57,7 @@ def _mutate(path_keys, value):
 BAD = [
     (_mutate(["body", "lenght"], 5), ["unknown key 'body.lenght'", "allowed keys here: length"]),
     (_mutate(["body", "length"], "long"), ["body.length", "valid number", "'long'"]),
-    (_mutate(["body", "length"], -5), ["body.length", "greater than 0"]),
+    (_mutate(["body", "length"], -5), ["body.length", "greater than or equal to 2"]),
     (_mutate(["body", "outer_diameter"], KeyError), ["missing key 'body.outer_diameter'"]),
     (_mutate(["body", "inner_diameter"], 32), ["inner_diameter (32) must be smaller than outer_diameter (30)"]),
     (_mutate(["channels", "diameter"], 6), ["do not fit in the wall"]),

@@ -109,12 +109,17 @@ def test_unreadable_file_is_reported_once_and_kept_pending(tmp_path, neuro_geome
 
 
 def test_existing_files_and_no_lock(tmp_path, neuro_geometry, staged):
+    import os
+
     shutil.copy(staged[0][0], tmp_path / "a.dcm")
+    hour_ago = time.time() - 3600.0
+    os.utime(tmp_path / "a.dcm", (hour_ago, hour_ago))  # written long before tracking started
     np.save(tmp_path / "blank.npy", np.zeros((64, 64)))
     summary = track(tmp_path, neuro_geometry, include_existing=True, pixel_spacing=(0.5, 0.5), max_files=2,
                     timeout_s=20.0, poll_s=0.02, settle_s=0.0, on_event=lambda e: None, on_message=lambda m: None)
     by_name = {e.source.rsplit("/", 1)[-1]: e for e in summary.events}
     assert by_name["a.dcm"].status == "ok"
+    assert by_name["a.dcm"].latency_ms < 10_000  # from when tracking saw it, not an hour
     assert by_name["blank.npy"].status == "no_lock" and by_name["blank.npy"].reason
 
 
@@ -146,10 +151,12 @@ def test_poses_are_sent_over_openigtlink(tmp_path, neuro_geometry, staged):
                         on_event=None, on_message=None)
         event = summary.events[0]
         assert event.igtl == "sent"
-        msg = server.wait_for_message("TRK", timeout=5.0)
+        flip = np.diag([-1.0, -1.0, 1.0, 1.0])
+        msg = server.wait_for_message("TRKToRAS", timeout=5.0)  # F to RAS, for the robot
         assert msg is not None
-        expected = np.diag([-1.0, -1.0, 1.0, 1.0]) @ event.T_scanner_from_fiducial
-        np.testing.assert_allclose(msg.matrix, expected, atol=1e-3)
+        np.testing.assert_allclose(msg.matrix, flip @ event.T_scanner_from_fiducial, atol=1e-3)
+        msg = server.wait_for_message("TRK", timeout=5.0)  # places the SPACE=LPS models in Slicer
+        np.testing.assert_allclose(msg.matrix, flip @ event.T_scanner_from_fiducial @ flip, atol=1e-3)
     finally:
         server.stop()
         for sig, handler in saved.items():
@@ -173,5 +180,8 @@ def test_cli_track_prints_json_lines(tmp_path, neuro_geometry_file, staged, caps
     assert d_mm < 0.5 and ang < 0.5
     assert lines[0]["latency_ms"] > 0
     assert lines[-1]["stopped_by"] == "max_files" and lines[-1]["ok"] == 1
+    capsys.readouterr()
     assert main(["track", str(tmp_path / "nope"), "--geometry", str(neuro_geometry_file), "--timeout", "1"]) == 2
+    err = capsys.readouterr().err
+    assert "nope: not a folder" in err and "watching" not in err
     assert main(["track", str(watch), "--geometry", str(neuro_geometry_file), "--igtl", "host:x"]) == 2

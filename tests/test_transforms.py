@@ -78,6 +78,7 @@ def test_cli_solve_writes_tfm_equal_to_its_json(tmp_path, neuro_geometry, neuro_
                          image_position=(-64.0, -64.0, 12.0))
     img, _ = write_simulated(sim, tmp_path / "s.dcm")
     tfm = tmp_path / "out" / "reg.tfm"
+    tfm.parent.mkdir()  # outputs never create folders
     rc = main(["solve", str(img), "--geometry", str(neuro_geometry_file), "--json", "--tfm", str(tfm)])
     assert rc == 0
     T_json = np.array(json.loads(capsys.readouterr().out)["T_scanner_from_fiducial"])

@@ -28,9 +28,10 @@ def test_covariance_calibrated_for_chic(neuro_geometry):
 
 @pytest.mark.slow
 def test_covariance_calibrated_for_a_zframe():
-    """The same for Slicer's z001 Z-frame (seven line tubes, no helix): detection and the solver's refinement."""
+    """The same for Slicer's z001 Z-frame (seven line tubes, no helix), registered by ``register`` with an
+    orientation prior (the Z-frame maps onto itself under a half turn)."""
     poses = [(30.0, 0.0, 0.0, 0.0), (25.0, 10.0, 30.0, 10.0), (35.0, 20.0, 100.0, 40.0), (20.0, 15.0, 200.0, 5.0)]
-    check(run_calibration(z001_geometry(), poses, 50, seed=12, solver="refine"))
+    check(run_calibration(z001_geometry(), poses, 50, seed=12, prior=True))
 
 
 def test_solve_json_covariance_target_and_max_tre(tmp_path, neuro_geometry_file, capsys):
@@ -86,3 +87,11 @@ def test_precision_command(tmp_path, neuro_geometry_file, capsys):
     for bad in (["--snr", "0"], ["--tilts", "95"], ["--plot", str(tmp_path / "x.jpg")], ["--slices", "0"]):
         assert main(args + bad) == 2, bad
         assert capsys.readouterr().err.count("\n") == 1
+
+
+def test_default_target_is_the_tool_tip(needle_geometry, neuro_geometry):
+    from chic_register.uncertainty import target_point
+
+    assert target_point(needle_geometry) == pytest.approx((0.0, 0.0, -50.0))  # the needle tip of the spec
+    assert target_point(neuro_geometry) == (0.0, 0.0, 25.0)  # no tool: the body's centre on its axis
+    assert target_point(neuro_geometry, (1, 2, 3)) == (1.0, 2.0, 3.0)

@@ -1,0 +1,173 @@
+"""``optimize``: requirements in; Pareto table, plot, spec YAMLs, confirmation and report out.
+
+The library entry point behind ``chic-design optimize`` (the CLI only parses
+arguments). Output folder ``out_dir``:
+
+- ``candidates.sqlite``: every finished candidate (the resumable store);
+- ``pareto.csv``, ``pareto.png``, ``specs/<name>.yaml`` (one per Pareto design);
+- ``chosen/``: the chosen design's preview, tilt-limit plot and precision map;
+- ``confirm.json``: the simulation study of the finalists;
+- ``report.md`` and ``result.json``.
+"""
+
+from __future__ import annotations
+
+from collections import Counter
+from dataclasses import dataclass
+from pathlib import Path
+
+from chic_register.atomic import write_json, write_text
+
+from ..feasibility import check_geometry, save_tilt_plot
+from ..layout import fiducial_geometry
+from ..spec import load_spec, parse_spec
+from . import space
+from .choose import compare, ideal_distances, knee_order, weakly_dominating
+from .confirm import confirm_design
+from .engine import make_engine
+from .errors import NoFeasibleDesign
+from .report import report_markdown, table_row, write_csv, write_spec
+from .requirements import Requirements, baseline_path, load_requirements
+from .score import dominates, score_spec
+from .search import SearchResult, run_search
+from .store import ResultStore
+from .plots import save_pareto_plot, save_precision_map
+
+
+@dataclass(frozen=True)
+class OptimizeResult:
+    out_dir: Path
+    search: SearchResult
+    pareto: tuple[tuple[str, dict], ...]   # (name, result) in choice order; [0] is chosen
+    baseline: dict | None
+    beats_baseline: tuple[str, dict] | None
+    confirmed: dict
+
+    def summary_text(self) -> str:
+        s = self.search
+        name, best = self.pareto[0]
+        o = best["objectives"]
+        again = len(s.candidates) - s.evaluated - s.cached
+        lines = [f"chic-design optimize: {len(s.candidates)} candidates ({s.evaluated} evaluated, {s.cached} "
+                 f"from the store{f', {again} asked twice in one generation' if again else ''}), {s.feasible} "
+                 f"feasible, {len(self.pareto)} Pareto designs",
+                 f"chosen: {name}: OD {o['outer_diameter_mm']:g} mm, usable region "
+                 f"{o['usable_region_deg_mm']:.0f} deg mm, predicted TRE {o['tre_mm']:.3f} mm"]
+        if self.beats_baseline is not None:
+            bn, br = self.beats_baseline
+            diffs = ", ".join(f"{c['label']} {c['diff']:+.4g} {c['unit']} ({100 * c['rel']:+.1f} %)"
+                              for c in compare(br, self.baseline))
+            lines.append(f"{bn} is at least as good as the baseline on every objective: {diffs}")
+        elif self.baseline is not None:
+            lines.append("no Pareto design is at least as good as the baseline on every objective")
+        lines.append(f"report: {self.out_dir / 'report.md'}")
+        return "\n".join(lines)
+
+
+def _no_feasible_message(req: Requirements, search: SearchResult) -> str:
+    reasons = Counter(c["reasons"][0].split(" (")[0] for c in search.candidates if c["reasons"])
+    common = ", ".join(f"{k} x{n}" for k, n in reasons.most_common(3))
+    return (f"requirements '{req.name}': none of {len(search.candidates)} candidates meets every requirement "
+            f"(most common reasons: {common}); relax the limits or the required tilt/depth, or search longer")
+
+
+def _chosen_pictures(req: Requirements, name: str, result: dict, folder: Path) -> None:
+    """Preview, tilt plot and precision map (CRLB over depth x tilt) of the chosen design."""
+    from ..preview import render_preview
+
+    spec = parse_spec(result["spec"], name)
+    geom = fiducial_geometry(spec)
+    folder.mkdir(parents=True, exist_ok=True)
+    render_preview(geom, folder / "preview.png")
+    report = check_geometry(geom, pixel_size_mm=req.imaging.pixel_size,
+                            slice_thickness_mm=req.imaging.slice_thickness, min_wall_mm=req.printer.min_wall,
+                            max_overhang_deg=req.printer.max_overhang_deg)
+    save_tilt_plot(report, folder / "tilt_limits.png")
+    from chic_register.crlb import precision_map
+
+    from .precision import protocol_of
+
+    t1 = req.required.tilt_deg[1]
+    tilts = sorted({0.0, round(t1 / 2, 1), float(t1), round(1.5 * t1, 1)}) if t1 > 0 else [0.0, 10.0, 20.0]
+    L = spec.body.length
+    pmap = precision_map(geom, protocol_of(req), depths_mm=[round(L * f, 1) for f in (0.1, 0.25, 0.4, 0.55, 0.7, 0.85)],
+                         tilts_deg=tilts, target_F_mm=req.required.target_mm)
+    write_json(folder / "precision_map.json", pmap.to_dict())
+    save_precision_map(pmap, report.tilt_limits, folder / "precision_map.png",
+                       f"{name}: predicted TRE at {list(req.required.target_mm)} mm (CRLB)")
+
+
+def optimize(req_path, out_dir=None, trials: int | None = None, seed: int = 0, scheduler: str | None = None,
+             workers: int | None = None, progress: bool = True, confirm: int | None = None,
+             pictures: bool = True) -> OptimizeResult:
+    """Search the CHIC design space for ``req_path``'s requirements and write the outputs (module docstring)."""
+    req = load_requirements(req_path)
+    out = Path(out_dir) if out_dir is not None else Path("exports") / f"optimize-{req.name}"
+    trials = trials if trials is not None else req.search.trials
+    n_confirm = req.search.confirm if confirm is None else confirm
+    bpath = baseline_path(req, req_path)
+    baseline, start = None, None
+    if bpath is not None:
+        bspec = load_spec(bpath)
+        baseline = score_spec(bspec, req, None)
+        start = space.params_from_spec(bspec, req)
+    engine = make_engine(scheduler, workers)
+    try:
+        with ResultStore(out / "candidates.sqlite") as store:
+            search = run_search(req, engine, store, trials, seed=seed, start_params=start, progress=progress)
+        front = list(search.pareto)
+        if not front:
+            raise NoFeasibleDesign(_no_feasible_message(req, search))
+        order = knee_order(front)
+        named = []
+        for rank, i in enumerate(order, 1):
+            nm = f"{req.name}-p{rank:02d}"
+            named.append((nm, {**front[i], "spec": {**front[i]["spec"], "name": nm}}))
+        finalists = named[:n_confirm]
+        jobs = [(r["spec"], req.model_dump(), req.search.confirm_draws, seed) for _, r in finalists]
+        confirmed = {}
+        if jobs:
+            for i, res in engine.map_unordered(confirm_design, jobs):
+                confirmed[finalists[i][0]] = res
+    finally:
+        engine.close()
+    beats = None
+    if baseline is not None and baseline["feasible"]:
+        # the first design in choice order that beats the baseline (better somewhere, worse nowhere);
+        # else one that equals it
+        strict = [(n, r) for n, r in named if dominates(r["objectives"], baseline["objectives"])]
+        equal = [(n, r) for n, r in named if r in weakly_dominating([r], baseline)]
+        beats = (strict or equal or [None])[0]
+    specs = out / "specs"
+    specs.mkdir(parents=True, exist_ok=True)
+    wanted = {f"{n}.yaml" for n, _ in named}
+    for old in specs.glob("*.yaml"):
+        if old.name not in wanted:
+            old.unlink()
+    for n, r in named:
+        write_spec(r["spec"], specs / f"{n}.yaml")
+    rows = [table_row(n, r) for n, r in named]
+    write_csv(rows, out / "pareto.csv")
+    if pictures:
+        save_pareto_plot(search.candidates, [r for _, r in named], named[0][1], baseline, out / "pareto.png")
+        _chosen_pictures(req, named[0][0], named[0][1], out / "chosen")
+    write_json(out / "confirm.json", confirmed)
+    dist = [float(d) for d in ideal_distances([r for _, r in named])]
+    ctx = {"req": req, "req_path": str(req_path), "search": search, "named": named, "rows": rows,
+           "baseline": baseline, "baseline_path": str(bpath) if bpath else None, "beats_baseline": beats,
+           "confirmed": confirmed, "confirm_named": finalists, "pictures": pictures, "distances": dist,
+           "precision_method": named[0][1]["precision"]["method"]}
+    write_text(out / "report.md", report_markdown(ctx))
+    result = OptimizeResult(out, search, tuple(named), baseline, beats, confirmed)
+    write_json(out / "result.json", {
+        "requirements": str(req_path), "settings": search.settings, "engine": search.engine,
+        "workers": search.workers, "evaluated": search.evaluated, "cached": search.cached,
+        "feasible": search.feasible, "candidates": len(search.candidates), "wall_s": search.wall_s,
+        "cpu_s": search.cpu_s, "pareto": [{"name": n, "key": r["key"], "objectives": r["objectives"],
+                                           "precision": r["precision"]} for n, r in named],
+        "baseline": None if baseline is None else {"feasible": baseline["feasible"],
+                                                   "objectives": baseline["objectives"],
+                                                   "reasons": baseline["reasons"]},
+        "beats_baseline": None if beats is None else {"name": beats[0], "comparison": compare(beats[1], baseline)},
+        "confirmed": confirmed})
+    return result

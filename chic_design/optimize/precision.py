@@ -1,0 +1,66 @@
+"""Predicted precision of a candidate over the required depth/tilt range (the search's third objective).
+
+The bound itself lives in :mod:`chic_register.crlb` (Cramér-Rao lower bound of
+the pose from the image model). This module only chooses where to evaluate it:
+``DEPTH_SAMPLES`` depths across ``required.depth_mm`` at the lowest and the
+highest required tilt, the tilted ones at ``AZIMUTHS_DEG`` (a tilt toward a
+diametric tube and one between two), and reports the worst case of each
+quantity (a design is as good as its worst required pose).
+"""
+
+from __future__ import annotations
+
+import numpy as np
+
+from chic_register.geometry import FiducialGeometry
+
+from .requirements import Requirements
+
+DEPTH_SAMPLES = 3
+AZIMUTHS_DEG = (0.0, 90.0)
+QUALITY = "fast"  # the bound's renderer sampling during the search (within ~3 % of "default")
+
+
+def sample_poses(req: Requirements) -> list[tuple[float, float, float]]:
+    """(depth_mm, tilt_deg, azimuth_deg) poses the bound is evaluated at."""
+    d0, d1 = req.required.depth_mm
+    t0, t1 = req.required.tilt_deg
+    poses = []
+    for z in np.linspace(d0, d1, DEPTH_SAMPLES):
+        for t in sorted({float(t0), float(t1)}):
+            for a in (AZIMUTHS_DEG if t > 0 else (0.0,)):
+                poses.append((float(z), t, a))
+    return poses
+
+
+def protocol_of(req: Requirements):
+    """The bound's imaging protocol from the requirements (slices ``slice_thickness`` apart by default)."""
+    from chic_register.crlb import Protocol
+
+    im = req.imaging
+    spacing = im.slice_spacing if im.slice_spacing is not None else im.slice_thickness
+    return Protocol(pixel_size_mm=im.pixel_size, slice_thickness_mm=im.slice_thickness, snr=im.snr,
+                    n_slices=im.n_slices, slice_spacing_mm=spacing)
+
+
+def predicted_precision(geom: FiducialGeometry, req: Requirements) -> dict:
+    """Worst case over :func:`sample_poses` of the bound's SDs and TRE at the target (mm, deg)."""
+    from chic_register.crlb import pose_crlb
+
+    protocol = protocol_of(req)
+    target = np.asarray(req.required.target_mm, dtype=float)
+    worst = {"tre_mm": 0.0, "sd_depth_mm": 0.0, "sd_normal_deg": 0.0, "sd_twist_deg": 0.0}
+    at = None
+    for z, t, a in sample_poses(req):
+        try:
+            b = pose_crlb(geom, z, t, a, 0.0, protocol, target_F_mm=target, quality=QUALITY)
+        except ValueError:  # the slices do not determine the pose
+            return {**{k: float("inf") for k in worst}, "worst_pose": [z, t, a], "method": "crlb"}
+        vals = {"tre_mm": float(b.tre_mm), "sd_depth_mm": float(b.sd_depth_mm),
+                "sd_normal_deg": float(b.sd_normal_deg), "sd_twist_deg": float(b.sd_twist_deg)}
+        if not all(np.isfinite(v) for v in vals.values()):
+            return {**{k: float("inf") for k in worst}, "worst_pose": [z, t, a], "method": "crlb"}
+        if vals["tre_mm"] > worst["tre_mm"]:
+            at = [z, t, a]
+        worst = {k: max(worst[k], vals[k]) for k in worst}
+    return {**worst, "worst_pose": at, "method": "crlb"}

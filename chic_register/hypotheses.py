@@ -1,0 +1,589 @@
+"""First guesses of the pose from one slice's blob centres, before any refinement.
+
+Two stages, both returning ``T_F_from_I`` (4x4) guesses that
+:func:`chic_register.solve.refine` then fits on all six degrees of freedom:
+
+- the **closed form** of the paper (:func:`initial_hypotheses`): a robust
+  ellipse through the blob centres gives the tilt and azimuth, axial tubes the
+  twist, helices the depth. It holds only when every tube lies on one cylinder
+  about the axis (:func:`ellipse_layout`, the CHIC family) and is the fast path;
+- the **generic** stage (:func:`family_hypotheses`), for any set of ``line``
+  and ``helix`` tubes with a family of three or more parallel straight tubes
+  (CHIC's axial tubes, a Z-frame's rods): every minimal set of three
+  blob-to-tube correspondences in that family fixes the 2-D affine map from the
+  image to the family's cross-section, hence the plane's orientation up to a
+  two-fold sign (its larger singular value must be 1: a consensus check);
+  the remaining translation along the family's direction comes from a vote of
+  every other tube (any shape: sampled centrelines), so diagonals and helices
+  alike give the depth. Nothing in it assumes a cylinder or a role.
+"""
+
+from __future__ import annotations
+
+import functools
+import itertools
+import math
+from dataclasses import dataclass
+
+import numpy as np
+
+from typing import TYPE_CHECKING
+
+from .geometry import sample_centreline
+from .pose import rigid
+
+if TYPE_CHECKING:
+    from .solve import TubeModel
+
+# --------------------------------------------------------------------------- closed form (ellipse)
+
+
+def ellipse_layout(model: "TubeModel", rel_tol: float = 0.1) -> bool:
+    """True when the paper's closed form applies: axial lines and z-axis helices on one cylinder.
+
+    Every tube must be a line parallel to the axis or a helix about it, at
+    radii within ``rel_tol`` of their median, with at least one axial line
+    (it fixes the twist). A Z-frame's diagonals, or tubes at different radii,
+    rule it out: its ellipse would be a false one.
+    """
+    if not model.axial.any() or not np.all(model.axial | model.is_helix):
+        return False
+    r = model.axis_radius_mm
+    med = float(np.median(r))
+    return med > 0 and bool(np.all(np.abs(r - med) <= rel_tol * med))
+
+
+
+@dataclass(frozen=True)
+class Ellipse:
+    """An ellipse in image mm: centre (2,), semi-axes ``a >= b`` (mm), major-axis angle ``phi`` (rad)."""
+
+    centre: np.ndarray
+    a: float
+    b: float
+    phi: float
+
+    def points(self, n: int = 200) -> np.ndarray:
+        """Outline points, shape (n, 2)."""
+        t = np.linspace(0, 2 * np.pi, n)
+        u, w = self.a * np.cos(t), self.b * np.sin(t)
+        c, s = math.cos(self.phi), math.sin(self.phi)
+        return self.centre + np.stack([u * c - w * s, u * s + w * c], axis=1)
+
+
+def _conic_to_ellipse(coef: np.ndarray):
+    """Conic coefficients (S, 6) [A, B, C, D, E, F] -> (centre (S,2), a, b, phi, valid)."""
+    coef = coef * np.where(coef[:, 0] + coef[:, 2] < 0, -1.0, 1.0)[:, None]  # positive-definite form
+    A, B, C, D, E, F = coef.T
+    det = 4 * A * C - B * B
+    valid = det > 1e-15
+    det = np.where(valid, det, 1.0)
+    cx = (B * E - 2 * C * D) / det
+    cy = (B * D - 2 * A * E) / det
+    Fc = A * cx * cx + B * cx * cy + C * cy * cy + D * cx + E * cy + F
+    tr = A + C
+    disc = np.sqrt(np.maximum((A - C) ** 2 + B * B, 0.0))
+    l1, l2 = (tr - disc) / 2, (tr + disc) / 2  # l1 <= l2
+    with np.errstate(divide="ignore", invalid="ignore"):
+        a2, b2 = -Fc / l1, -Fc / l2
+    valid &= (a2 > 0) & (b2 > 0) & np.isfinite(a2) & np.isfinite(b2)
+    a = np.sqrt(np.where(valid, a2, 1.0))
+    b = np.sqrt(np.where(valid, b2, 1.0))
+    # major axis: eigenvector of the smaller eigenvalue l1 of [[A, B/2], [B/2, C]]
+    phi = 0.5 * np.arctan2(B, A - C) + np.pi / 2
+    return np.stack([cx, cy], axis=1), a, b, phi, valid
+
+
+def _conic_to_ellipse_1(coef: np.ndarray):
+    """One conic (6,) -> ``(centre (2,), a, b, phi)`` or None: :func:`_conic_to_ellipse` in scalar arithmetic."""
+    A, B, C, D, E, F = (float(v) for v in coef)
+    if A + C < 0:
+        A, B, C, D, E, F = -A, -B, -C, -D, -E, -F
+    det = 4 * A * C - B * B
+    if not det > 1e-15:
+        return None
+    cx = (B * E - 2 * C * D) / det
+    cy = (B * D - 2 * A * E) / det
+    Fc = A * cx * cx + B * cx * cy + C * cy * cy + D * cx + E * cy + F
+    tr = A + C
+    disc = math.sqrt(max((A - C) ** 2 + B * B, 0.0))
+    l1, l2 = (tr - disc) / 2, (tr + disc) / 2
+    if l1 == 0 or l2 == 0:
+        return None
+    a2, b2 = -Fc / l1, -Fc / l2
+    if not (a2 > 0 and b2 > 0 and math.isfinite(a2) and math.isfinite(b2)):
+        return None
+    phi = 0.5 * math.atan2(B, A - C) + math.pi / 2
+    return np.array([cx, cy]), math.sqrt(a2), math.sqrt(b2), phi
+
+
+def _sampson(coef: np.ndarray, xy: np.ndarray) -> np.ndarray:
+    """First-order geometric distance of points (N, 2) to conics (S, 6) -> (S, N)."""
+    x, y = xy[:, 0][None], xy[:, 1][None]
+    A, B, C, D, E, F = (coef[:, i : i + 1] for i in range(6))
+    val = A * x * x + B * x * y + C * y * y + D * x + E * y + F
+    gx = 2 * A * x + B * y + D
+    gy = B * x + 2 * C * y + E
+    return np.abs(val) / np.maximum(np.hypot(gx, gy), 1e-12)
+
+
+def _design(xy: np.ndarray) -> np.ndarray:
+    x, y = xy[..., 0], xy[..., 1]
+    return np.stack([x * x, x * y, y * y, x, y, np.ones_like(x)], axis=-1)
+
+
+def _lsq_conic(xy: np.ndarray) -> np.ndarray:
+    """Least-squares ellipse (Fitzgibbon-Halir-Flusser) through points (N >= 5, 2) -> (6,)."""
+    D = _design(xy)
+    D1, D2 = D[:, :3], D[:, 3:]
+    S1, S2, S3 = D1.T @ D1, D1.T @ D2, D2.T @ D2
+    try:
+        Tm = -np.linalg.solve(S3, S2.T)
+    except np.linalg.LinAlgError:
+        return np.full(6, np.nan)
+    M = S1 + S2 @ Tm
+    M = np.array([M[2] / 2, -M[1], M[0] / 2])
+    w, v = np.linalg.eig(M)
+    v = np.real(v)
+    cond = 4 * v[0] * v[2] - v[1] ** 2
+    idx = np.flatnonzero(cond > 0)
+    if idx.size == 0:
+        return np.full(6, np.nan)
+    a1 = v[:, idx[0]]
+    return np.concatenate([a1, Tm @ a1])
+
+
+def fit_ellipse_robust(xy_mm: np.ndarray, radius_mm: float, max_tilt_deg: float = 80.0,
+                       tol_mm: float | None = None, rng_seed: int = 0, samples: int = 300):
+    """Ellipse of tube centres among candidate points (N, 2), tolerant to outliers.
+
+    The ellipse of a cylinder of radius ``radius_mm`` cut at tilt t has minor
+    semi-axis ``radius_mm`` and major ``radius_mm / cos t``; only such
+    ellipses are accepted. First all points are tried; if some do not fit,
+    RANSAC on 5-point subsets picks the largest consistent set.
+    Returns ``(Ellipse, inlier mask (N,))`` or ``None``.
+    """
+    N = xy_mm.shape[0]
+    if N < 5:
+        return None
+    tol = tol_mm if tol_mm is not None else 0.1 * radius_mm
+    mu = xy_mm.mean(axis=0)
+    scale = radius_mm
+    p = (xy_mm - mu) / scale  # well-conditioned units
+    max_ratio = 1.0 / math.cos(math.radians(max_tilt_deg))
+
+    def plausible(a, b):
+        return (b > 0.75) & (b < 1.25) & (a / b < max_ratio)
+
+    def refit(mask):
+        coef = _lsq_conic(p[mask])
+        if not np.all(np.isfinite(coef)):
+            return None
+        e = _conic_to_ellipse_1(coef)
+        if e is None or not plausible(e[1], e[2]):
+            return None
+        dist = _sampson(coef[None], p)[0] * scale
+        return coef, e, dist
+
+    best = refit(np.ones(N, bool))
+    if best is not None and np.all(best[2] < tol):
+        inl = np.ones(N, bool)
+    else:
+        rng = np.random.default_rng(rng_seed)
+        idx = np.argsort(rng.random((samples, N)), axis=1)[:, :5]
+        D = _design(p[idx])  # (S,5,6)
+        _, _, vt = np.linalg.svd(D, full_matrices=True)
+        coef = vt[:, -1, :]
+        c, a, b, phi, valid = _conic_to_ellipse(coef)
+        valid &= plausible(a, b)
+        if not valid.any():
+            return None
+        dist = _sampson(coef, p) * scale
+        inliers = (dist < tol) & valid[:, None]
+        count = inliers.sum(axis=1)
+        err = np.where(inliers, dist, 0).sum(axis=1)
+        order = np.lexsort((err, -count))
+        inl = inliers[order[0]]
+        best = None
+        for _ in range(3):
+            if inl.sum() < 5:
+                return None
+            best = refit(inl)
+            if best is None:
+                return None
+            new = best[2] < tol
+            if np.array_equal(new, inl):
+                break
+            inl = new
+        if best is None or inl.sum() < 5:
+            return None
+    _, (c, a, b, phi), _ = best
+    return Ellipse(c * scale + mu, float(a * scale), float(b * scale), float(phi)), inl
+
+
+# --------------------------------------------------------------------------- hypotheses
+
+
+def _wrap(a):
+    return (a + np.pi) % (2 * np.pi) - np.pi
+
+
+def initial_hypotheses(model: TubeModel, xy_mm: np.ndarray, ell: Ellipse, *,
+                       angle_tol_deg: float = 6.0, max_hypotheses: int = 6) -> list[np.ndarray]:
+    """Closed-form pose guesses ``T_F_from_I`` (4x4) from an ellipse and unrolled blob angles.
+
+    For each of the four sign choices (up end of the major axis ``s``,
+    handedness ``h``) every pairing of a blob with an axial line tube gives
+    a rotation ``beta`` about the axis; the rotations that line up the most
+    axial tubes (all of those seen, when there are three or more) are kept,
+    then the helices give the depth by consensus.
+    Returns up to ``max_hypotheses`` guesses, best first.
+    """
+    if not model.axial.any() or xy_mm.shape[0] == 0:
+        return []
+    cos_t = min(1.0, ell.b / ell.a)
+    sin_t = math.sqrt(max(0.0, 1 - cos_t * cos_t))
+    c, s_ = math.cos(ell.phi), math.sin(ell.phi)
+    rel = xy_mm - ell.centre
+    u = rel @ np.array([c, s_])
+    w = rel @ np.array([-s_, c])
+    line_ang = model.angle_rad[model.axial]
+    Kl = line_ang.size
+    hel = model.helix_idx
+    tol = math.radians(angle_tol_deg)
+    signs = [(1.0, 1.0), (1.0, -1.0), (-1.0, 1.0), (-1.0, -1.0)] if sin_t > 0.02 else [(1.0, 1.0), (1.0, -1.0)]
+    per_h = {}
+    for h in sorted({h for _, h in signs}, reverse=True):  # the line match does not depend on s
+        th = np.arctan2(h * w, u * cos_t)  # (N,)
+        beta = (line_ang[None, :] - th[:, None]).ravel()  # (B,)
+        # th[n] - th[i] + ang[l] - ang[m], each difference wrapped first: one add and two compares to wrap
+        e = (_wrap(th[None, :] - th[:, None])[:, None, :, None]
+             + _wrap(line_ang[:, None] - line_ang[None, :])[None, :, None, :]).reshape(beta.size, th.size, Kl)
+        e = np.where(e >= np.pi, e - 2 * np.pi, np.where(e < -np.pi, e + 2 * np.pi, e))  # (B,N,Kl)
+        jmin = np.argmin(np.abs(e), axis=1)  # (B,Kl)
+        emin = np.take_along_axis(e, jmin[:, None, :], axis=1)[:, 0, :]
+        hit = np.abs(emin) < tol
+        n_lines = hit.sum(axis=1)
+        b = beta - np.where(hit, emin, 0).sum(axis=1) / np.maximum(n_lines, 1)
+        per_h[h] = (th, n_lines, b)
+    per_sign = [(s, h, per_h[h][0], s * u * sin_t, per_h[h][1], per_h[h][2]) for s, h in signs]
+    top = max(int(ps[4].max()) for ps in per_sign)
+    rows = []  # (score, n_hel, s, h, beta, depth)
+    for s, h, th, zr, n_lines, b in per_sign:
+        keep = n_lines >= (top if top >= 3 else max(top - 1, 1))
+        b, nl = b[keep], n_lines[keep]
+        key = np.round(np.degrees(_wrap(b))).astype(int)
+        _, first = np.unique(key, return_index=True)
+        for k in first:
+            for depth, n_hel in _helix_depths(model, hel, th + b[k], zr, tol):
+                rows.append((int(nl[k]) + n_hel, n_hel, s, h, float(b[k]), depth))
+    rows.sort(key=lambda t: (-t[0], -t[1]))
+    out, seen = [], []
+    for score, n_hel, s, h, b, depth in rows:
+        if any(k[0] == s and k[1] == h and abs(_wrap(k[2] - b)) < 0.05 and abs(k[3] - depth) < 2.0 for k in seen):
+            continue
+        seen.append((s, h, b, depth))
+        out.append(_pose_from_hypothesis(ell, cos_t, sin_t, s, h, b, depth))
+        if len(out) >= max_hypotheses:
+            break
+    return out
+
+
+def _helix_depths(model: TubeModel, hel: np.ndarray, theta_F: np.ndarray, zr: np.ndarray, tol: float,
+                  n_best: int = 2):
+    """Candidate depths of the ellipse centre from blob angles in F (N,) and relative heights (N,).
+
+    Every (blob, helix) pair implies a depth; depths agreed on by the most
+    helices win (ties broken by spread). Returns up to ``n_best`` distinct
+    ``(depth_mm, n_helices_agreeing)``, clamped to the body.
+    """
+    L = model.length_mm
+    if hel.size == 0:
+        return [(L / 2, 0)]
+    th0, om, z0 = model.theta0_rad[hel], model.omega_rad_per_mm[hel], model.z0[hel]
+    zlo, zhi = model.z_lo[hel], model.z_hi[hel]
+    # z = z0 + (theta - th0 + 2 pi m) / om, pick m nearest to the middle of the tube
+    raw = (theta_F[:, None] - th0[None, :]) / om[None, :]  # (N,H)
+    period = 2 * np.pi / np.abs(om)
+    zmid = (zlo + zhi) / 2 - z0
+    m = np.round((zmid[None, :] - raw) / period[None, :])
+    z = z0[None, :] + raw + m * period[None, :]
+    d = z - zr[:, None]
+    inside = (z > zlo - 3) & (z < zhi + 3)
+    dtol = tol / np.abs(om)  # depth tolerance of the angle tolerance
+    dv = d[inside]
+    hv = np.broadcast_to(np.arange(hel.size), d.shape)[inside]
+    if dv.size == 0:
+        return [(L / 2, 0)]
+    diff = np.abs(dv[:, None] - dv[None, :])
+    close = diff < dtol[hv][None, :]
+    onehot = hv[:, None] == np.arange(hel.size)[None, :]  # (M, H)
+    n = ((close.astype(float) @ onehot) > 0).sum(axis=1)  # helices agreeing with each depth
+    spread = np.where(close, diff, 0).sum(axis=1) / np.maximum(close.sum(axis=1), 1)
+    means = (close @ dv) / close.sum(axis=1)  # each row holds its own depth: never empty
+    out = []
+    for i in np.lexsort((spread, -n)).tolist():
+        depth = float(means[i])
+        if any(abs(depth - o[0]) < 1.0 for o in out):
+            continue
+        out.append((min(max(depth, 0.0), L), int(n[i])))
+        if len(out) >= n_best:
+            break
+    return out
+
+
+def _pose_from_hypothesis(ell: Ellipse, cos_t, sin_t, s, h, beta, depth) -> np.ndarray:
+    """``T_F_from_I`` placing the ellipse centre on the axis at ``depth`` (see module docstring)."""
+    # columns of F's frame: m = cos_t e1 + s sin_t z, mn = h e2, m x mn; of the image: u_maj, u_min, z
+    c, s_ = math.cos(ell.phi), math.sin(ell.phi)
+    cb, sb = math.cos(beta), math.sin(beta)
+    m = (cos_t * cb, cos_t * sb, s * sin_t)
+    mn = (-h * sb, h * cb, 0.0)
+    m3 = (m[1] * mn[2] - m[2] * mn[1], m[2] * mn[0] - m[0] * mn[2], m[0] * mn[1] - m[1] * mn[0])
+    # R = F @ I^T with I = [[c, -s_, 0], [s_, c, 0], [0, 0, 1]]
+    R = np.array([[m[i] * c - mn[i] * s_, m[i] * s_ + mn[i] * c, m3[i]] for i in range(3)])
+    cx, cy = float(ell.centre[0]), float(ell.centre[1])
+    o = np.array([-(R[0, 0] * cx + R[0, 1] * cy), -(R[1, 0] * cx + R[1, 1] * cy), depth - (R[2, 0] * cx + R[2, 1] * cy)])
+    return rigid(R, o)
+
+
+
+# --------------------------------------------------------------------------- generic: parallel family + depth vote
+
+_PARALLEL_COS = math.cos(math.radians(1.0))
+
+
+@dataclass(frozen=True, eq=False)
+class ParallelFamily:
+    """Straight tubes of one direction ``u`` (F) and what the generic stage needs of the others.
+
+    ``idx``: the family's tube indices; ``E`` (3, 2): a basis of the plane
+    normal to ``u`` (``E, u`` right-handed); ``c`` (n, 2): the tubes' points in
+    that cross-section; ``triples`` (T, 3): ordered member triples with a
+    non-degenerate cross-section triangle (indices into ``idx``) and
+    ``side_min_mm`` (T,) their shortest side; ``depth_idx``: the tubes not
+    parallel to ``u`` (they fix the plane's position along ``u``) with their
+    centreline ``samples``: per tube, cross-section coordinates (M, 2),
+    heights along ``u`` (M,) and the depth tolerance factor (height per mm of
+    cross-section travel: 1 for a 45-degree diagonal, more for a shallow helix).
+    """
+
+    idx: np.ndarray
+    u: np.ndarray
+    E: np.ndarray
+    c: np.ndarray
+    triples: np.ndarray
+    side_min_mm: np.ndarray
+    depth_idx: np.ndarray
+    samples: tuple
+
+
+def _basis_normal_to(u: np.ndarray) -> np.ndarray:
+    """(3, 2) orthonormal basis [e1, e2] of the plane normal to ``u`` with (e1, e2, u) right-handed; e1 = x when u = z."""
+    a = np.array([1.0, 0.0, 0.0]) if abs(u[0]) < 0.9 else np.array([0.0, 1.0, 0.0])
+    e1 = a - (a @ u) * u
+    e1 /= np.linalg.norm(e1)
+    return np.stack([e1, np.cross(u, e1)], axis=1)
+
+
+@functools.lru_cache(maxsize=8)
+def parallel_family(model: "TubeModel", sample_step_mm: float = 0.25) -> ParallelFamily | None:
+    """The largest family of >= 3 parallel straight tubes not all in one plane, or None (memoised per model)."""
+    li = model.line_idx
+    if li.size < 3:
+        return None
+    dirs = model.line_dunit
+    best = None
+    for a in range(li.size):
+        members = np.flatnonzero(np.abs(dirs @ dirs[a]) > _PARALLEL_COS)
+        if members.size >= 3 and (best is None or members.size > best.size):
+            best = members
+    if best is None:
+        return None
+    u = dirs[best[0]].copy()
+    E = _basis_normal_to(u)
+    idx = li[best]
+    c = model.p0[idx] @ E
+    triples, sides = [], []
+    for t in itertools.permutations(range(idx.size), 3):
+        p = c[list(t)]
+        area = 0.5 * abs((p[1, 0] - p[0, 0]) * (p[2, 1] - p[0, 1]) - (p[1, 1] - p[0, 1]) * (p[2, 0] - p[0, 0]))
+        side = min(np.linalg.norm(p[0] - p[1]), np.linalg.norm(p[0] - p[2]), np.linalg.norm(p[1] - p[2]))
+        if side > 0 and area > 0.05 * side * side:
+            triples.append(t)
+            sides.append(side)
+    if not triples:
+        return None  # the family lies in one plane: its cross-section cannot fix a 2-D affine map
+    parallel = np.zeros(len(model.ids), bool)
+    parallel[idx] = True
+    for k in li:
+        parallel[k] |= abs(model.d[k] @ u) / np.linalg.norm(model.d[k]) > _PARALLEL_COS
+    depth_idx = np.flatnonzero(~parallel)
+    samples = []
+    for k in depth_idx:
+        S = sample_centreline(model.tubes[k], sample_step_mm)
+        Q, h = S @ E, S @ u
+        travel = float(np.sum(np.linalg.norm(np.diff(Q, axis=0), axis=1)))
+        rise = float(abs(h[-1] - h[0])) if h.size > 1 else 0.0
+        samples.append((Q, h, rise / travel if travel > 1e-9 else math.inf))
+    return ParallelFamily(idx, u, E, c, np.array(triples, int), np.array(sides), depth_idx, tuple(samples))
+
+
+def _affine_candidates(fam: ParallelFamily, xy: np.ndarray, gate_mm: float, cos_max: float, max_pairs: int,
+                       rng: np.random.Generator):
+    """Every (blob triple, member triple) whose image distances a tilted cut can give; (blob idx (n, 3), triple (n,))."""
+    N = xy.shape[0]
+    dp = np.linalg.norm(xy[:, None] - xy[None], axis=-1)
+    dc = np.linalg.norm(fam.c[:, None] - fam.c[None], axis=-1)
+    # a cut stretches the cross-section by 1 .. 1/cos(tilt): image distances lie in [dc, dc / cos_max]
+    ok = (dp[:, :, None, None] >= dc[None, None] - gate_mm) & (dp[:, :, None, None] * cos_max <= dc[None, None] + gate_mm)
+    blob_t = np.array(list(itertools.combinations(range(N), 3)), int).reshape(-1, 3)
+    tri = fam.triples
+    if blob_t.shape[0] * tri.shape[0] > max_pairs:
+        keep = max(1, max_pairs // tri.shape[0])
+        blob_t = blob_t[np.sort(rng.choice(blob_t.shape[0], keep, replace=False))]
+    i, j, n = blob_t.T
+    a, b, c = tri.T
+    compat = (ok[i[:, None], j[:, None], a[None], b[None]] & ok[i[:, None], n[:, None], a[None], c[None]]
+              & ok[j[:, None], n[:, None], b[None], c[None]])
+    bi, ti = np.nonzero(compat)
+    return blob_t[bi], ti
+
+
+def family_hypotheses(model: "TubeModel", xy_mm: np.ndarray, *, gate_mm: float, max_tilt_deg: float = 75.0,
+                      max_hypotheses: int = 8, max_pairs: int = 400_000, rng_seed: int = 0) -> list[np.ndarray]:
+    """Generic pose guesses ``T_F_from_I`` from blob centres (N, 2), best first (see the module docstring).
+
+    ``gate_mm``: how far a blob may lie from a predicted crossing to count.
+    Consensus at two levels: an affine map is kept when the family's other
+    tubes land on blobs too, and a depth when the most non-family tubes agree
+    on it. Returns ``[]`` when the layout has no usable family, no tube
+    outside it (the depth is then under-determined) or no consistent guess.
+    """
+    fam = parallel_family(model)
+    xy = np.asarray(xy_mm, float)
+    if fam is None or fam.depth_idx.size == 0 or xy.shape[0] < 3:
+        return []
+    cos_max = math.cos(math.radians(max_tilt_deg))
+    rng = np.random.default_rng(rng_seed)
+    blob_t, ti = _affine_candidates(fam, xy, gate_mm, cos_max, max_pairs, rng)
+    if blob_t.size == 0:
+        return []
+    P = xy[blob_t]  # (n, 3, 2)
+    C = fam.c[fam.triples[ti]]  # (n, 3, 2)
+    M = np.concatenate([P, np.ones(P.shape[:2] + (1,))], axis=2)  # rows [x, y, 1]
+    det = np.linalg.det(M)
+    good = np.abs(det) > 1e-3 * np.max(np.abs(det)) if det.size else det.astype(bool)
+    M, C, side = M[good], C[good], fam.side_min_mm[ti[good]]
+    if M.shape[0] == 0:
+        return []
+    X = np.linalg.solve(M, C)  # (n, 3, 2): c = A p + b with A = X[:2].T, b = X[2]
+    A = np.transpose(X[:, :2, :], (0, 2, 1))
+    b = X[:, 2, :]
+    sv = np.linalg.svd(A, compute_uv=False)
+    sig_tol = np.maximum(0.04, 0.5 * gate_mm / side)
+    keep = (np.abs(sv[:, 0] - 1.0) < sig_tol) & (sv[:, 1] > cos_max - sig_tol)
+    A, b = A[keep], b[keep]
+    if A.shape[0] == 0:
+        return []
+    # every family tube predicted in the image: how many land on a blob
+    Ainv = np.linalg.inv(A)
+    pred = np.einsum("nij,nkj->nki", Ainv, fam.c[None] - b[:, None, :])  # (n, F, 2)
+    dist = np.linalg.norm(pred[:, :, None, :] - xy[None, None], axis=-1).min(axis=2)  # (n, F)
+    hit = dist < gate_mm
+    n_hit = hit.sum(axis=1)
+    err = np.where(hit, dist, 0.0).sum(axis=1)
+    order = np.lexsort((err, -n_hit))
+    floor = max(3, int(n_hit.max()) - 1)
+    seen, affines = [], []
+    for o in order:
+        if n_hit[o] < floor or len(affines) >= 4 * max_hypotheses:
+            break
+        Ao, bo, used = _refit_affine(fam, xy, A[o], b[o], gate_mm)
+        if any(np.abs(Ao - As).max() < 0.02 and np.abs(bo - bs).max() < 0.5 for As, bs in seen):
+            continue
+        seen.append((Ao, bo))
+        affines.append((int(n_hit[o]), Ao, bo, used))
+    rows = []
+    for n_fam, Ao, bo, used in affines:
+        free = np.ones(xy.shape[0], bool)
+        free[used] = False  # blobs taken by the family vote for no depth (they sit where diagonals end)
+        for R, w in _rotations_from_affine(Ao, fam, cos_max):
+            for lam, n_depth in _depth_votes(fam, xy[free], Ao, bo, w, gate_mm):
+                rows.append((n_fam + n_depth, n_depth, R, fam.E @ bo + lam * fam.u))
+    rows.sort(key=lambda r: (-r[0], -r[1]))
+    return [rigid(R, t) for _, _, R, t in rows[:max_hypotheses]]
+
+
+def _refit_affine(fam: ParallelFamily, xy: np.ndarray, A: np.ndarray, b: np.ndarray, gate_mm: float):
+    """Least-squares image-to-section map over the family tubes landing on blobs (>= 3, else as given).
+
+    Returns ``(A, b, indices of the blobs used)``.
+    """
+    pred = np.linalg.solve(A, (fam.c - b).T).T  # (F, 2)
+    d = np.linalg.norm(pred[:, None] - xy[None], axis=-1)
+    j = d.argmin(axis=1)
+    ok = d[np.arange(d.shape[0]), j] < gate_mm
+    if ok.sum() < 3 or len(set(j[ok].tolist())) < ok.sum():
+        return A, b, j[ok]
+    M = np.concatenate([xy[j[ok]], np.ones((int(ok.sum()), 1))], axis=1)
+    X, *_ = np.linalg.lstsq(M, fam.c[ok], rcond=None)
+    return X[:2].T, X[2], j[ok]
+
+
+def _rotations_from_affine(A: np.ndarray, fam: ParallelFamily, cos_max: float):
+    """The rotations ``R_F_from_I`` whose cut maps the image onto the section by ``A``: ``[(R, w)]``, 1 or 2.
+
+    ``E^T R[:, :2] = A`` once ``A``'s larger singular value is set to 1 (a
+    plane cut never shrinks a direction); the part along ``u``,
+    ``w = u^T R[:, :2]``, has ``w w^T = I - A^T A``: known up to its sign
+    (which end of the cut's steepest line is up), so two rotations.
+    """
+    U, s, Vt = np.linalg.svd(A)
+    s2 = min(max(float(s[1]), cos_max), 1.0)
+    Ap = U @ np.diag([1.0, s2]) @ Vt
+    w0 = math.sqrt(max(0.0, 1.0 - s2 * s2)) * Vt[1]
+    out = []
+    for sign in ((1.0, -1.0) if s2 < 0.9995 else (1.0,)):
+        w = sign * w0
+        R2 = fam.E @ Ap + np.outer(fam.u, w)
+        R = np.column_stack([R2, np.cross(R2[:, 0], R2[:, 1])])
+        out.append((R, w))
+    return out
+
+
+def _depth_votes(fam: ParallelFamily, xy: np.ndarray, A: np.ndarray, b: np.ndarray, w: np.ndarray, gate_mm: float,
+                 n_best: int = 2):
+    """Positions ``lam`` of the plane along ``u`` that the non-family tubes vote for: ``[(lam, n_tubes)]``.
+
+    A blob at image point p sits, for the plane at ``lam``, at section point
+    ``A p + b`` and height ``w . p + lam``; each non-family tube passing
+    within the gate of that section point votes for the ``lam`` putting the
+    blob on it. Votes agreeing within each tube's depth tolerance are pooled.
+    """
+    c = xy @ A.T + b
+    wp = xy @ w
+    lam, tube, tol = [], [], []
+    for k, (Q, h, rise) in enumerate(fam.samples):
+        d = np.linalg.norm(Q[:, None, :] - c[None], axis=-1)  # (M, N)
+        m = d.argmin(axis=0)
+        near = d[m, np.arange(c.shape[0])] < gate_mm
+        lam.extend((h[m[near]] - wp[near]).tolist())
+        tube.extend([k] * int(near.sum()))
+        tol.extend([max(0.5 * gate_mm * min(rise, 10.0), 0.5)] * int(near.sum()))
+    if not lam:
+        return []
+    lam, tube, tol = np.array(lam), np.array(tube), np.array(tol)
+    close = np.abs(lam[:, None] - lam[None]) <= np.maximum(tol[:, None], tol[None])
+    onehot = tube[:, None] == np.arange(len(fam.samples))[None]
+    n = ((close.astype(float) @ onehot) > 0).sum(axis=1)
+    out = []
+    for i in np.argsort(-n, kind="stable"):
+        sel = close[i]
+        value = float(np.median(lam[sel]))
+        if any(abs(value - v) < 2 * tol[i] for v, _ in out):
+            continue
+        out.append((value, int(n[i])))
+        if len(out) >= n_best:
+            break
+    return out

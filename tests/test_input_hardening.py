@@ -1,0 +1,431 @@
+"""Regression tests for issue 12's "Crashes and hangs": every reproducer gives a one-line error and a
+non-zero exit (or a correct result), never a traceback or a hang."""
+
+from __future__ import annotations
+
+import copy
+import json
+import os
+import signal
+import subprocess
+import sys
+import time
+from pathlib import Path
+
+import numpy as np
+import pydicom
+import pytest
+import yaml
+
+from chic_design.cli import main as design_main
+from chic_register.cli import main as register_main
+from chic_register.errors import GeometryFileError, NoLock
+from chic_register.geometry import content_sha256, load_geometry
+from chic_register.simulate import simulate_slice, write_simulated
+from chic_register.track import track
+
+ROOT = Path(__file__).resolve().parents[1]
+NEURO_TEXT = (ROOT / "designs" / "neuro.yaml").read_text()
+
+
+def _one_line_error(capsys, prefix: str) -> str:
+    err = capsys.readouterr().err.strip()
+    assert "Traceback" not in err and "\n" not in err, err
+    assert err.startswith(prefix), err
+    return err
+
+
+def _spec(tmp_path, keys, value, name="spec.yaml") -> Path:
+    data = yaml.safe_load(NEURO_TEXT)
+    node = data
+    for k in keys[:-1]:
+        node = node[k]
+    node[keys[-1]] = value
+    path = tmp_path / name
+    path.write_text(yaml.safe_dump(data))
+    return path
+
+
+# ----------------------------------------------------------------------------- specs
+
+@pytest.mark.parametrize("keys, value, fragment", [
+    (["body", "length"], float("inf"), "body.length: Input should be a finite number"),
+    (["helix", "pitch_deg_per_mm"], float("inf"), "helix.pitch_deg_per_mm: Input should be a finite number"),
+    (["helix", "pitch_deg_per_mm"], float("nan"), "helix.pitch_deg_per_mm: Input should be a finite number"),
+    (["body", "length"], 1e9, "body.length: Input should be less than or equal to 200"),
+    (["body", "length"], 100000, "body.length: Input should be less than or equal to 200"),
+    (["helix", "pitch_deg_per_mm"], 1e6, "helix.pitch_deg_per_mm: Input should be less than or equal to 90"),
+    (["helix", "pitch_deg_per_mm"], 30.0, "turns the helix 1500 deg"),
+    (["caps", "thickness"], float("inf"), "caps.thickness: Input should be a finite number"),
+    (["caps", "skirt_wall"], 1e6, "caps.skirt_wall: Input should be less than or equal to 20"),
+    (["name"], "a" * 255, "name: String should have at most 64 characters"),
+    (["body", "length"], True, "body.length: Input should be a valid number"),
+    (["print", "min_wall"], 0.01, "print.min_wall: Input should be greater than or equal to 0.1"),
+])
+def test_spec_values_out_of_range_are_one_line_errors(tmp_path, capsys, keys, value, fragment):
+    path = _spec(tmp_path, keys, value)
+    assert design_main(["check", str(path)]) == 2
+    err = _one_line_error(capsys, f"chic-design: error: {path}: ")
+    assert fragment in err
+
+
+@pytest.mark.parametrize("text, fragment", [
+    (NEURO_TEXT + "\nname: other\n", "duplicate key 'name'"),
+    (NEURO_TEXT.replace("length: 50", "length: 1:10"), "body.length: Input should be a valid number (got '1:10')"),
+    (NEURO_TEXT + "\nx: " + "[" * 5000 + "]" * 5000 + "\n", "nested deeper than 32 levels"),
+])
+def test_spec_yaml_traps_are_one_line_errors(tmp_path, capsys, text, fragment):
+    path = tmp_path / "spec.yaml"
+    path.write_text(text)
+    assert design_main(["check", str(path)]) == 2
+    assert fragment in _one_line_error(capsys, f"chic-design: error: {path}: ")
+
+
+def test_a_50_mb_spec_and_a_fifo_are_refused_before_reading(tmp_path, capsys):
+    big = tmp_path / "big.yaml"
+    with open(big, "wb") as fh:
+        fh.write(NEURO_TEXT.encode())
+        fh.truncate(50 * 2**20)
+    assert design_main(["check", str(big)]) == 2
+    assert "a spec file is at most 1048576 bytes" in _one_line_error(capsys, "chic-design: error: ")
+    fifo = tmp_path / "fifo.yaml"
+    os.mkfifo(fifo)
+    assert design_main(["build", str(fifo), "--out", str(tmp_path / "out")]) == 2
+    assert "is a FIFO (named pipe), not a spec file" in _one_line_error(capsys, "chic-design: error: ")
+
+
+def test_schema_documents_the_physical_ranges():
+    from chic_design.spec import json_schema
+
+    body = json_schema()["$defs"]["BodySpec"]["properties"]
+    assert body["length"]["maximum"] == 200 and body["length"]["minimum"] == 2
+    assert json_schema()["properties"]["name"]["maxLength"] == 64
+
+
+# ----------------------------------------------------------------------------- geometry files
+
+def _geometry_text(neuro_geometry, edit, rehash=True) -> str:
+    data = copy.deepcopy(neuro_geometry.to_dict())
+    edit(data)
+    if rehash:
+        data["sha256"] = content_sha256(data)
+    return yaml.safe_dump(data, sort_keys=False)
+
+
+@pytest.mark.parametrize("edit, fragment", [
+    (lambda d: d.update(version=1.0), "version is 1.0; this solver reads version 1 (an integer)"),
+    (lambda d: d.update(version=True), "version is True"),
+    (lambda d: d["body"].update(inner_diameter=40.0), "body.inner_diameter (40) must be smaller than"),
+    (lambda d: d["body"].update(length=float("inf")), "body.length must be a finite number"),
+    (lambda d: d["tubes"][0].update(diameter=-3.0), "tubes[0].diameter must be > 0"),
+    (lambda d: d["tubes"][0].update(p1=[12.5, 0.0, 5000.0]), "tubes[0].p1[2] must lie within +-1000 mm"),
+    (lambda d: d["tubes"][0].update(p1=[400.0, 0.0, 50.0]), "tube D0 reaches 400 mm from the axis"),
+    (lambda d: d["tubes"][4].update(pitch_deg_per_mm=900.0), "tubes[4] turns 125 times"),
+    (lambda d: d.update(source=["x"]), "source must be a mapping"),
+])
+def test_implausible_geometry_files_are_one_line_errors(tmp_path, neuro_geometry, edit, fragment):
+    path = tmp_path / "geometry.yaml"
+    path.write_text(_geometry_text(neuro_geometry, edit))
+    with pytest.raises(GeometryFileError) as err:
+        load_geometry(path)
+    msg = str(err.value)
+    assert "\n" not in msg and msg.startswith(str(path)) and fragment in msg, msg
+
+
+@pytest.mark.parametrize("source_yaml, fragment", [
+    ("source: {built: !!binary aGVsbG8=}", "!!binary"),
+    ("source: {built: !!set {a, b}}", "!!set"),
+    ("source: {x: &a [1, 1, 1, 1, 1, 1, 1, 1, 1, 1]\n  , y: &b [*a, *a, *a, *a, *a, *a, *a, *a, *a, *a]\n"
+     "  , z: &c [*b, *b, *b, *b, *b, *b, *b, *b, *b, *b]\n  , w: &d [*c, *c, *c, *c, *c, *c, *c, *c, *c, *c]\n"
+     "  , v: &e [*d, *d, *d, *d, *d, *d, *d, *d, *d, *d]\n  , u: [*e, *e, *e, *e, *e, *e, *e, *e, *e, *e]}",
+     "expands to more than"),
+    ("source: " + "{a: " * 3000 + "1" + "}" * 3000, "nested deeper than 32 levels"),
+])
+def test_hostile_source_values_are_refused(tmp_path, neuro_geometry, source_yaml, fragment):
+    text = yaml.safe_dump({k: v for k, v in neuro_geometry.to_dict().items() if k != "source"}, sort_keys=False)
+    path = tmp_path / "geometry.yaml"
+    path.write_text(text + source_yaml + "\n")
+    t0 = time.process_time()
+    with pytest.raises(GeometryFileError, match=fragment.replace("(", r"\(")):
+        load_geometry(path)
+    assert time.process_time() - t0 < 5.0
+
+
+def test_non_json_source_values_from_python_callers_are_refused(neuro_geometry):
+    import datetime
+
+    from chic_register.geometry import geometry_from_dict
+
+    for value, kind in (({1, 2}, "set"), (b"x", "bytes"), (datetime.date(2024, 1, 2), "date")):
+        data = copy.deepcopy(neuro_geometry.to_dict())
+        data["source"]["when"] = value
+        with pytest.raises(GeometryFileError, match=f"source.when holds a {kind}"):
+            geometry_from_dict(data, "g.yaml")
+
+
+def test_a_date_in_source_is_read_as_text(tmp_path, neuro_geometry):
+    def edit(d):
+        d["source"]["built"] = "2024-01-02"
+
+    path = tmp_path / "geometry.yaml"
+    path.write_text(_geometry_text(neuro_geometry, edit).replace("'2024-01-02'", "2024-01-02"))
+    geom = load_geometry(path)
+    assert geom.source["built"] == "2024-01-02"
+    json.dumps(geom.to_dict())  # the JSON output of solve/simulate can hold it
+
+
+# ----------------------------------------------------------------------------- images
+
+@pytest.fixture(scope="module")
+def dicom_slice(tmp_path_factory, neuro_geometry):
+    sim = simulate_slice(neuro_geometry, 25.0, 10.0, 30.0, 20.0, noise="rician", snr=25.0, rng=1)
+    path, _ = write_simulated(sim, tmp_path_factory.mktemp("dcm") / "ok.dcm")
+    return path, sim.truth.T_scanner_from_fiducial
+
+
+def _edited_dicom(src, dst, **attrs) -> Path:
+    import warnings
+
+    ds = pydicom.dcmread(src)
+    with warnings.catch_warnings():
+        warnings.simplefilter("ignore")  # pydicom warns about the invalid DS values we mean to write
+        for k, v in attrs.items():
+            setattr(ds, k, v)
+        ds.save_as(dst)
+    return dst
+
+
+@pytest.mark.parametrize("attrs, fragment", [
+    ({"PixelSpacing": ["1e-300", "1e-300"]}, "PixelSpacing: pixel spacing must be two positive numbers in 0.01..50 mm"),
+    ({"PixelSpacing": ["0.5", "1e300"]}, "PixelSpacing: pixel spacing must be two positive numbers"),
+    ({"RescaleSlope": "nan"}, "RescaleSlope/RescaleIntercept must be finite"),
+    ({"RescaleSlope": "inf"}, "RescaleSlope/RescaleIntercept must be finite"),
+    ({"RescaleIntercept": "-inf"}, "RescaleSlope/RescaleIntercept must be finite"),
+    ({"RescaleSlope": "1e308"}, "not finite after RescaleSlope"),
+    ({"SliceThickness": "inf"}, "SliceThickness must be in 0..100 mm"),
+])
+def test_bad_dicom_values_exit_2_with_one_line(tmp_path, capsys, dicom_slice, neuro_geometry_file, attrs, fragment):
+    path = _edited_dicom(dicom_slice[0], tmp_path / "bad.dcm", **attrs)
+    assert register_main(["solve", str(path), "--geometry", str(neuro_geometry_file), "--json"]) == 2
+    assert fragment in _one_line_error(capsys, f"chic-register: error: {path}: ")
+
+
+def test_tiny_pixel_spacing_flag_and_fifo_image_exit_2(tmp_path, capsys, neuro_geometry_file):
+    npy = tmp_path / "s.npy"
+    np.save(npy, np.zeros((64, 64)))
+    assert register_main(["solve", str(npy), "--geometry", str(neuro_geometry_file),
+                          "--pixel-spacing", "1e-300", "1e-300"]) == 2
+    assert "--pixel-spacing: pixel spacing must be two positive numbers in 0.01..50 mm" in _one_line_error(
+        capsys, "chic-register: error: ")
+    fifo = tmp_path / "slice.dcm"
+    os.mkfifo(fifo)
+    t0 = time.monotonic()
+    assert register_main(["solve", str(fifo), "--geometry", str(neuro_geometry_file)]) == 2
+    assert "is a FIFO (named pipe), not a image file" in _one_line_error(capsys, "chic-register: error: ")
+    assert time.monotonic() - t0 < 10
+    os.mkfifo(tmp_path / "v.nii")
+    assert register_main(["solve", str(tmp_path / "v.nii"), "--geometry", str(neuro_geometry_file),
+                          "--slices", "0"]) == 2
+    assert "is a FIFO" in _one_line_error(capsys, "chic-register: error: ")
+
+
+def test_an_image_too_large_for_a_slice_is_refused_before_decoding(tmp_path, capsys, neuro_geometry_file):
+    path = tmp_path / "huge.npy"
+    with open(path, "wb") as fh:  # header of a 100000 x 100000 float64 array (80 GB), no data
+        np.lib.format.write_array_header_1_0(fh, {"descr": "<f8", "fortran_order": False, "shape": (100000, 100000)})
+    assert register_main(["solve", str(path), "--geometry", str(neuro_geometry_file),
+                          "--pixel-spacing", "0.5", "0.5"]) == 2
+    assert "too large for a slice" in _one_line_error(capsys, f"chic-register: error: {path}: ")
+
+
+# ----------------------------------------------------------------------------- track
+
+def test_track_survives_a_bad_file_and_registers_the_next(tmp_path, dicom_slice, neuro_geometry):
+    watch = tmp_path / "w"
+    watch.mkdir()
+    _edited_dicom(dicom_slice[0], watch / "a_bad.dcm", PixelSpacing=["1e-300", "1e-300"])
+    (watch / "b_good.dcm").write_bytes(dicom_slice[0].read_bytes())
+    events, messages = [], []
+    summary = track(watch, neuro_geometry, include_existing=True, max_files=1, timeout_s=60, settle_s=0.0,
+                    on_event=events.append, on_message=messages.append)
+    assert [Path(e.source).name for e in events] == ["b_good.dcm"] and events[0].status == "ok"
+    assert summary.stopped_by == "max_files"
+    assert any("a_bad.dcm" in m and "PixelSpacing" in m for m in messages)
+
+
+def test_track_reports_an_unexpected_failure_and_goes_on(tmp_path, dicom_slice, neuro_geometry):
+    from chic_register.solve import register
+
+    watch = tmp_path / "w"
+    watch.mkdir()
+    for name in ("a.dcm", "b.dcm"):
+        (watch / name).write_bytes(dicom_slice[0].read_bytes())
+
+    def flaky(slices, geom, **kw):
+        if slices[0].source.endswith("a.dcm"):
+            raise ZeroDivisionError("float division by zero")
+        return register(slices, geom, **kw)
+
+    events = []
+    summary = track(watch, neuro_geometry, include_existing=True, max_files=2, timeout_s=60, settle_s=0.0,
+                    on_event=events.append, on_message=None, register=flaky)
+    assert [(Path(e.source).name, e.status) for e in events] == [("a.dcm", "error"), ("b.dcm", "ok")]
+    assert "ZeroDivisionError" in events[0].reason and "a.dcm: error: ZeroDivisionError" in events[0].text()
+    assert summary.to_dict()["errors"] == 1 and summary.to_dict()["no_lock"] == 0
+
+
+# ----------------------------------------------------------------------------- outputs and pipes
+
+def test_a_failing_output_does_not_lose_the_pose(tmp_path, capsys, dicom_slice, neuro_geometry_file):
+    blocker = tmp_path / "file"
+    blocker.write_text("not a folder")
+    # an output path that cannot work is bad input, refused before any work (exit 2, nothing created)
+    rc = register_main(["solve", str(dicom_slice[0]), "--geometry", str(neuro_geometry_file), "--json",
+                        "--tfm", str(blocker / "pose.tfm")])
+    out, err = capsys.readouterr()
+    assert rc == 2 and out == "" and "is not a folder" in err
+    # an output that fails after the solve (here: --scene over a folder that is not a scene) keeps the pose: exit 4
+    (tmp_path / "notes").mkdir()
+    (tmp_path / "notes" / "thesis.tex").write_text("x")
+    rc = register_main(["solve", str(dicom_slice[0]), "--geometry", str(neuro_geometry_file), "--json",
+                        "--scene", str(tmp_path / "notes"), "--tfm", str(tmp_path / "pose.tfm")])
+    out, err = capsys.readouterr()
+    assert rc == 4
+    doc = json.loads(out)
+    assert doc["status"] == "ok"
+    assert np.allclose(doc["T_scanner_from_fiducial"], dicom_slice[1], atol=0.5)
+    assert "chic-register: output failed: --scene" in err and "Traceback" not in err
+    assert (tmp_path / "pose.tfm").is_file() and (tmp_path / "notes" / "thesis.tex").read_text() == "x"
+
+
+@pytest.mark.parametrize("argv", [
+    [sys.executable, "-m", "chic_design.cli", "schema"],
+    [sys.executable, "-m", "chic_register.cli", "--help"],
+])
+def test_a_closed_stdout_is_no_traceback(argv):
+    p = subprocess.Popen(argv, stdout=subprocess.PIPE, stderr=subprocess.PIPE, cwd=ROOT)
+    p.stdout.close()  # the reader (`| head`) left before the output came
+    _, err = p.communicate(timeout=60)
+    assert b"Traceback" not in err, err.decode()
+    assert p.returncode in (0, 141)
+
+
+# ----------------------------------------------------------------------------- build processes
+
+def _descendants(pid: int) -> list[int]:
+    parents = {}
+    for d in Path("/proc").iterdir():
+        if d.name.isdigit():
+            try:
+                parents[int(d.name)] = int((d / "stat").read_text().rsplit(")", 1)[1].split()[1])
+            except (OSError, IndexError, ValueError):
+                pass
+    out, todo = [], [pid]
+    while todo:
+        parent = todo.pop()
+        kids = [c for c, p in parents.items() if p == parent]
+        out += kids
+        todo += kids
+    return out
+
+
+def _running(pid: int) -> bool:
+    try:
+        return Path(f"/proc/{pid}/stat").read_text().rsplit(")", 1)[1].split()[0] != "Z"
+    except (OSError, IndexError):
+        return False
+
+
+@pytest.mark.slow  # a real build process: its start-up (CAD imports) takes 3-20 s depending on load
+@pytest.mark.skipif(not Path("/proc").is_dir(), reason="needs /proc to list child processes")
+def test_a_killed_build_leaves_no_worker_and_its_temp_folder_is_cleaned(tmp_path):
+    from chic_design.build import remove_stale_temporaries
+
+    out = tmp_path / "exports"
+    p = subprocess.Popen([sys.executable, "-m", "chic_design.cli", "build", "designs/neuro.yaml", "--out", str(out),
+                          "--quiet"], cwd=ROOT, stdout=subprocess.DEVNULL, stderr=subprocess.PIPE)
+    deadline = time.monotonic() + 120
+    workers = []
+    while time.monotonic() < deadline and p.poll() is None:
+        workers = [c for c in _descendants(p.pid) if b"spawn_main" in Path(f"/proc/{c}/cmdline").read_bytes()]
+        if workers:
+            break
+        time.sleep(0.05)
+    assert workers, "the build started no preview worker"
+    time.sleep(0.5)
+    children = _descendants(p.pid)
+    p.send_signal(signal.SIGKILL)
+    p.wait()
+    deadline = time.monotonic() + 10
+    while any(_running(c) for c in children) and time.monotonic() < deadline:
+        time.sleep(0.05)
+    assert not [c for c in children if _running(c)], "a child of the killed build survived"
+    p.stderr.read()  # returns: no survivor holds the pipe open
+    stale = list(out.glob(".neuro.tmp-*"))
+    assert [s.name.split("-")[1] for s in stale] == [str(p.pid)]
+    assert remove_stale_temporaries(out, "neuro") == stale
+    assert not any(out.iterdir())
+
+
+def test_stale_folders_of_live_owners_are_kept_and_a_moved_aside_export_is_restored(tmp_path):
+    from chic_design.build import remove_stale_temporaries
+
+    dead = subprocess.Popen([sys.executable, "-c", "pass"])
+    dead.wait()
+    live_tmp = tmp_path / f".neuro.tmp-{os.getpid()}-abc123"
+    dead_tmp = tmp_path / f".neuro.tmp-{dead.pid}-abc123"
+    dead_old = tmp_path / f".neuro.old-{dead.pid}-xyz_9"
+    other = tmp_path / f".neuro2.tmp-{dead.pid}-abc123"
+    for d in (live_tmp, dead_tmp, dead_old, other):
+        d.mkdir()
+    (dead_old / "geometry.yaml").write_text("earlier export")
+    assert remove_stale_temporaries(tmp_path, "neuro") == [dead_tmp]
+    assert (tmp_path / "neuro" / "geometry.yaml").read_text() == "earlier export"  # killed between renames
+    assert sorted(p.name for p in tmp_path.iterdir()) == sorted([live_tmp.name, other.name, "neuro"])
+
+
+def test_no_lock_is_still_a_no_lock(tmp_path, capsys, neuro_geometry_file):
+    """The hardening does not turn a blank (valid) image into an error."""
+    npy = tmp_path / "blank.npy"
+    np.save(npy, np.zeros((64, 64)))
+    rc = register_main(["solve", str(npy), "--geometry", str(neuro_geometry_file), "--pixel-spacing", "0.5", "0.5"])
+    assert rc == NoLock.exit_code
+
+
+@pytest.mark.parametrize("extra, fragment", [
+    (["--distractors", "1000000000"], "--distractors must be 0..1000"),
+    (["--pixel-size", "1e-300"], "--pixel-size must be 0.01..50 mm"),
+    (["--slice-thickness", "inf"], "--slice-thickness must be 0..100 mm"),
+    (["--center-offset", "1e300", "0"], "--center-offset, --image-position and --image-orientation"),
+    (["--volume-shape", "1024", "1024", "1024"], "is 1073741824 voxels; at most 67108864"),
+    (["--volume-shape", "8", "8", "8", "--voxel-size", "1e-300"], "--voxel-size takes one or three sizes in 0.01..50"),
+])
+def test_simulate_flags_that_would_allocate_or_loop_without_bound_are_refused(tmp_path, capsys, neuro_geometry_file,
+                                                                            extra, fragment):
+    argv = ["simulate", "--geometry", str(neuro_geometry_file), "--depth", "25", "--out", str(tmp_path / "s.npy")]
+    if "--volume-shape" in extra:
+        argv[-1] = str(tmp_path / "v.nii")
+    assert register_main(argv + extra) == 2
+    assert fragment in _one_line_error(capsys, "chic-register: error: ")
+    assert not (tmp_path / "s.npy").exists() and not (tmp_path / "v.nii").exists()
+
+
+def test_check_flags_meet_the_spec_ranges(capsys):
+    assert design_main(["check", str(ROOT / "designs" / "neuro.yaml"), "--pixel-size", "1e9"]) == 2
+    assert "imaging.pixel_size: Input should be less than or equal to 10" in _one_line_error(
+        capsys, "chic-design: error: ")
+
+
+def test_fifo_geometry_and_reference_files_are_refused_not_waited_on(tmp_path, capsys, neuro_geometry_file):
+    fifo = tmp_path / "fifo-geometry.yaml"
+    os.mkfifo(fifo)
+    with pytest.raises(GeometryFileError, match="is a FIFO .named pipe., not a geometry file"):
+        load_geometry(fifo)
+    ref = tmp_path / "ref.json"
+    os.mkfifo(ref)
+    vol = tmp_path / "v.nii"
+    vol.write_bytes(b"")
+    rc = register_main(["reslice", str(vol), "--geometry", str(neuro_geometry_file), "--reference", str(ref)])
+    assert rc == 2
+    err = _one_line_error(capsys, "chic-register: error: --reference ")
+    assert "is a FIFO (named pipe), not a reference file" in err
