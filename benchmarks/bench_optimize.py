@@ -42,6 +42,7 @@ def main() -> int:
     req = load_requirements(args.requirements)
     bpath = baseline_path(req, args.requirements)
     start = space.params_from_spec(load_spec(bpath), req) if bpath else None
+    start = start if start is not None else space.default_start(req)
     fronts = {}
     print(f"{args.requirements}: {args.trials} candidates, population {args.population}, seed {args.seed}; "
           f"{os.cpu_count()} CPUs")

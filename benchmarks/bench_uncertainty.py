@@ -32,7 +32,7 @@ from chic_register.simulate import simulate_slice  # noqa: E402
 from chic_register.solve import register  # noqa: E402
 
 ROOT = Path(__file__).resolve().parents[1]
-CHIC_POSES = [(25.0, 0.0, 0.0, 0.0), (22.0, 15.0, 30.0, 10.0), (30.0, 30.0, 100.0, 40.0), (15.0, 20.0, 200.0, 5.0)]
+CHIC_POSES = [(35.0, 25.0, 300.0, 20.0), (22.0, 15.0, 30.0, 10.0), (30.0, 30.0, 100.0, 40.0), (15.0, 20.0, 200.0, 5.0)]
 Z_POSES = [(30.0, 0.0, 0.0, 0.0), (25.0, 10.0, 30.0, 10.0), (35.0, 20.0, 100.0, 40.0), (20.0, 15.0, 200.0, 5.0)]
 
 

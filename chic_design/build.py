@@ -31,7 +31,7 @@ from chic_register.geometry import write_geometry
 from .cad import FiducialParts, build_parts
 from .errors import InfeasibleDesign
 from .feasibility import check_design
-from .layout import fiducial_geometry
+from .layout import design_geometry
 from .lifeline import die_with_parent
 from .preview import precision_job, preview_job, tilt_plot_job
 from .printability import HARD_CODES
@@ -85,6 +85,15 @@ class _Steps:
         self.timings[name] = dt
         if self.progress:
             print(f"chic-design: [{len(self.timings)}/{self.total}] {name} {dt:.2f} s", file=sys.stderr, flush=True)
+
+
+def design_parts(spec, geometry) -> FiducialParts:
+    """The printed parts of any spec family (CHIC: :func:`build_parts`; Z-frame: its own module)."""
+    if getattr(spec, "family", "chic") == "zframe":
+        from .zframe_cad import build_zframe_parts
+
+        return build_zframe_parts(spec, geometry)
+    return build_parts(spec, geometry)
 
 
 def export_parts(parts: FiducialParts, folder: Path, name: str) -> list[str]:
@@ -233,7 +242,7 @@ def build_design(spec_path, out_root="exports", force: bool = False, progress: b
         spec = load_spec(spec_path)
     with steps.step("geometry"):
         source = {"spec": str(spec_path), "spec_sha256": spec_sha256(spec_path)}
-        geometry = fiducial_geometry(spec, source=source)
+        geometry = design_geometry(spec, source=source)
     out_root = Path(out_root)
     out_root.mkdir(parents=True, exist_ok=True)
     final = out_root / spec.name
@@ -252,7 +261,7 @@ def build_design(spec_path, out_root="exports", force: bool = False, progress: b
             pictures.submit("precision", precision_job, geometry, spec.imaging.pixel_size,
                             spec.imaging.slice_thickness, tmp)
         with steps.step("CAD model"):
-            parts = build_parts(spec, geometry)
+            parts = design_parts(spec, geometry)
             volumes = {name: float(p.volume) for name, p in parts.items()}
         with steps.step("export STL/STEP/3MF"):
             write_geometry(geometry, tmp / "geometry.yaml")

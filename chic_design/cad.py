@@ -50,17 +50,12 @@ _BOTTOM = (Align.CENTER, Align.CENTER, Align.MIN)
 
 
 def extended_tube(tube: Tube, ext_mm: float) -> Tube:
-    """The same centreline continued by ``ext_mm`` past both ends (same line / same helix).
+    """The same centreline continued by ``ext_mm`` (arc length) past both ends: ``tube.extended``.
 
     Sweeping the extended tube and cutting it with the body gives channels
     whose openings are exactly the tube's sections by the end-face planes.
     """
-    if isinstance(tube, LineTube):
-        d = tube.direction
-        return LineTube(tube.id, tube.role, np.asarray(tube.p0) - ext_mm * d,
-                        np.asarray(tube.p1) + ext_mm * d, tube.diameter)
-    z0 = tube.z0 - ext_mm
-    return replace(tube, theta0_deg=float(tube.angle_deg_at(z0)), z0=z0, z1=tube.z1 + ext_mm)
+    return tube.extended(ext_mm)
 
 
 def channel_openings_xy(geometry: FiducialGeometry, z_mm: float) -> dict[str, np.ndarray]:
@@ -87,9 +82,9 @@ def channel_volume_mm3(tube: Tube, z_lo_mm: float, z_hi_mm: float) -> float:
 
 
 def annulus_volume_mm3(geometry: FiducialGeometry) -> float:
-    """Volume of the body before the channels are cut (mm^3)."""
+    """Volume of the body before the channels are cut (mm^3): an annulus, or a square frame."""
     b = geometry.body
-    return math.pi / 4 * (b.outer_diameter**2 - b.inner_diameter**2) * b.length
+    return (b.outline_area_mm2 - b.bore_area_mm2) * b.length
 
 
 @dataclass(frozen=True)
@@ -164,10 +159,13 @@ def centreline_edge(tube: Tube) -> Edge:
 def channel_solid(tube: Tube, ext_mm: float | None = None) -> Part:
     """The channel of ``tube``: its circle swept along its (extended) centreline.
 
-    The default extension, one diameter past each end, puts the swept end disk
-    (z-extent <= its radius for any helix) wholly outside the body.
+    The default extension, one diameter in z past each end face, puts the swept
+    end disk (z-extent <= its radius) wholly outside the body.
     """
-    ext = tube.diameter if ext_mm is None else ext_mm
+    if ext_mm is None:  # one diameter past each end face, in z
+        cos_min = float(np.min(np.abs(tube.tangents(np.linspace(0.0, 1.0, 9))[:, 2])))
+        ext_mm = tube.diameter / max(cos_min, 1e-3)
+    ext = ext_mm
     path = centreline_edge(extended_tube(tube, ext))
     profile = Plane(origin=path @ 0, z_dir=path % 0) * Circle(tube.diameter / 2)
     return sweep(profile, path, is_frenet=True)
@@ -190,6 +188,37 @@ class FiducialBody(BasePartObject):
         self.label = "body"
 
 
+def place_cap(plate: Part, skirt: Part, dims, length_mm: float, end: str, ports_xy=()) -> Part:
+    """A cap from its ``plate`` and ``skirt`` (both made at z = 0 upward), put at ``end``, ports drilled.
+
+    The plate lies on the end face (outside the body), the skirt reaches
+    ``dims.skirt_height`` along the body; ports of ``dims.port_diameter`` go
+    through the plate at ``ports_xy``. Shared by the CHIC and Z-frame caps.
+    """
+    if end not in ("top", "bottom"):
+        raise ValueError(f"end must be 'top' or 'bottom', got {end!r}")
+    d = dims
+    if end == "top":
+        solid = Pos(0, 0, length_mm) * plate + Pos(0, 0, length_mm - d.skirt_height) * skirt
+        z_plate = length_mm
+    else:
+        solid = Pos(0, 0, -d.thickness) * plate + skirt
+        z_plate = -d.thickness
+    if d.port_diameter > 0 and len(ports_xy):
+        solid -= [
+            Pos(float(x), float(y), z_plate) * Cylinder(d.port_diameter / 2, d.thickness, align=_BOTTOM)
+            for x, y in ports_xy
+        ]
+    return solid
+
+
+def assemble_parts(body: Part, cap_class, dims, geometry: FiducialGeometry, ports_xy) -> "FiducialParts":
+    """Body plus a top cap with ``ports_xy`` and a solid bottom cap of ``cap_class(dims, ...)``."""
+    length = geometry.body.length
+    return FiducialParts(body=body, cap_top=cap_class(dims, length, "top", ports_xy=ports_xy),
+                         cap_bottom=cap_class(dims, length, "bottom"))
+
+
 class Cap(BasePartObject):
     """An end cap: plate over the end face at ``end`` ("top" z = length, "bottom" z = 0) plus skirt.
 
@@ -203,24 +232,12 @@ class Cap(BasePartObject):
 
 
     def __init__(self, dims: CapDims, length_mm: float, end: str, ports_xy=(), mode: Mode = Mode.ADD):
-        if end not in ("top", "bottom"):
-            raise ValueError(f"end must be 'top' or 'bottom', got {end!r}")
         d = dims
         plate = Cylinder(d.outer_radius, d.thickness, align=_BOTTOM)
         plate -= Cylinder(d.inner_radius, d.thickness, align=_BOTTOM)
         skirt = Cylinder(d.outer_radius, d.skirt_height, align=_BOTTOM)
         skirt -= Cylinder(d.skirt_inner_radius, d.skirt_height, align=_BOTTOM)
-        if end == "top":
-            solid = Pos(0, 0, length_mm) * plate + Pos(0, 0, length_mm - d.skirt_height) * skirt
-            z_plate = length_mm
-        else:
-            solid = Pos(0, 0, -d.thickness) * plate + skirt
-            z_plate = -d.thickness
-        if d.port_diameter > 0 and len(ports_xy):
-            solid -= [
-                Pos(float(x), float(y), z_plate) * Cylinder(d.port_diameter / 2, d.thickness, align=_BOTTOM)
-                for x, y in ports_xy
-            ]
+        solid = place_cap(plate, skirt, d, length_mm, end, ports_xy)
         super().__init__(part=solid, rotation=(0, 0, 0), align=None, mode=mode)
         self.label = f"cap_{end}"
 
@@ -244,10 +261,5 @@ class FiducialParts:
 def build_parts(spec, geometry: FiducialGeometry) -> FiducialParts:
     """Body, top cap (one fill port over each channel's top opening) and bottom cap (solid)."""
     dims = CapDims.from_spec(spec, geometry)
-    length = geometry.body.length
-    ports = list(channel_openings_xy(geometry, length).values())
-    return FiducialParts(
-        body=FiducialBody(geometry),
-        cap_top=Cap(dims, length, "top", ports_xy=ports),
-        cap_bottom=Cap(dims, length, "bottom"),
-    )
+    ports = list(channel_openings_xy(geometry, geometry.body.length).values())
+    return assemble_parts(FiducialBody(geometry), Cap, dims, geometry, ports)

@@ -1,4 +1,4 @@
-"""``chic-design``: build a CHIC fiducial from a spec, check its feasibility, print the spec schema.
+"""``chic-design``: build a CHIC fiducial from a spec, check its feasibility, print the spec schema, search designs.
 
 A thin layer over the library: :func:`chic_design.build.build_design`,
 :func:`chic_design.feasibility.check_design`, :func:`chic_design.spec.json_schema`.
@@ -33,7 +33,7 @@ def _parser() -> argparse.ArgumentParser:
 
     c = sub.add_parser("check", help="feasibility limits of a design, without building")
     c.add_argument("spec", help="design spec (YAML)")
-    c.add_argument("--json", action="store_true", help="print one JSON object (CONTRACT.md section 4)")
+    c.add_argument("--json", action="store_true", help="print one JSON object (docs/interfaces.md section 4)")
     c.add_argument("--slice-thickness", type=float, metavar="MM", help="override imaging.slice_thickness")
     c.add_argument("--pixel-size", type=float, metavar="MM", help="override imaging.pixel_size")
     c.add_argument("--plot", metavar="PNG", help="also save the max-tilt-vs-depth plot here")
@@ -42,7 +42,9 @@ def _parser() -> argparse.ArgumentParser:
     c.add_argument("--snr", type=float, default=20.0, metavar="S", help="fluid SNR for --precision (default 20)")
     c.add_argument("--precision-plot", metavar="PNG", help="with --precision: save the precision plot here")
 
-    sub.add_parser("schema", help="print the spec's JSON Schema")
+    sc = sub.add_parser("schema", help="print the spec's JSON Schema")
+    sc.add_argument("--family", default="chic", choices=["chic", "zframe"],
+                    help="which spec family's schema (default chic)")
 
     o = sub.add_parser("optimize", help="search designs for a tool and protocol; Pareto set, specs and report")
     o.add_argument("requirements", help="requirements (YAML), e.g. designs/requirements/neuro.yaml")
@@ -78,7 +80,7 @@ def _run(args) -> int:
     if args.command == "schema":
         from .spec import json_schema
 
-        print(json.dumps(json_schema(), indent=2))
+        print(json.dumps(json_schema(args.family), indent=2))
         return 0
     if args.command == "check":
         from .feasibility import check_design, save_tilt_plot

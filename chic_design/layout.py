@@ -63,8 +63,22 @@ def fiducial_geometry(spec: Spec, source: dict | None = None) -> FiducialGeometr
     body = Body(spec.body.length, spec.body.outer_diameter, spec.body.inner_diameter)
     if source is not None:
         source = {**source, "generator": f"chic-design {__version__}"}
-    tool = None
-    if spec.tool is not None:
-        tool = (ToolFrame.tip_offset(spec.tool.tip_offset_mm) if spec.tool.tip_offset_mm is not None
-                else ToolFrame(spec.tool.T_fiducial_from_tool))
-    return FiducialGeometry(spec.name, body, tuple(tubes), source, tool=tool)
+    return FiducialGeometry(spec.name, body, tuple(tubes), source, tool=spec_tool_frame(spec))
+
+
+def spec_tool_frame(spec) -> ToolFrame | None:
+    """The tool frame of a spec's optional ``tool`` section (any family), or None."""
+    if getattr(spec, "tool", None) is None:
+        return None
+    if spec.tool.tip_offset_mm is not None:
+        return ToolFrame.tip_offset(spec.tool.tip_offset_mm)
+    return ToolFrame(spec.tool.T_fiducial_from_tool)
+
+
+def design_geometry(spec, source: dict | None = None) -> FiducialGeometry:
+    """The geometry model of any spec family: CHIC (:func:`fiducial_geometry`) or Z-frame."""
+    if getattr(spec, "family", "chic") == "zframe":
+        from .zframe_layout import zframe_geometry
+
+        return zframe_geometry(spec, source)
+    return fiducial_geometry(spec, source)

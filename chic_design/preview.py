@@ -19,7 +19,8 @@ import numpy as np
 
 from chic_register.geometry import FiducialGeometry
 
-ROLE_COLOURS = {"diametric": "red", "helix": "blue", "orientation": "green", "other": "orange"}
+ROLE_COLOURS = {"diametric": "red", "helix": "blue", "orientation": "green", "other": "orange",
+                "axial": "red", "diagonal": "blue"}
 
 
 def render_preview(geometry: FiducialGeometry, png_path, window_size: tuple[int, int] = (1000, 800)) -> Path:
@@ -30,8 +31,15 @@ def render_preview(geometry: FiducialGeometry, png_path, window_size: tuple[int,
     vtk.vtkObject.GlobalWarningDisplayOff()  # no "bad X server connection" noise off-screen
     png_path = Path(png_path)
     b = geometry.body
-    body = pv.Disc(inner=b.inner_diameter / 2, outer=b.outer_diameter / 2, r_res=1, c_res=120)
-    body = body.extrude((0.0, 0.0, b.length), capping=True)
+    if b.shape == "square":  # the Z-frame's square frame: outside box minus the bore
+        body = pv.Box((-b.outer_side / 2, b.outer_side / 2, -b.outer_side / 2, b.outer_side / 2, 0.0, b.length))
+        size = f"L {b.length:g}, outside {b.outer_side:g}, bore {b.inner_side:g} mm"
+        legend = "red: axial rods  blue: diagonal rods"
+    else:
+        body = pv.Disc(inner=b.inner_diameter / 2, outer=b.outer_diameter / 2, r_res=1, c_res=120)
+        body = body.extrude((0.0, 0.0, b.length), capping=True)
+        size = f"L {b.length:g}, OD {b.outer_diameter:g}, ID {b.inner_diameter:g} mm"
+        legend = "red: diametric  blue: helix  green: orientation"
 
     plotter = pv.Plotter(off_screen=True, window_size=list(window_size))
     plotter.set_background("white")
@@ -46,13 +54,14 @@ def render_preview(geometry: FiducialGeometry, png_path, window_size: tuple[int,
         # a helix ends next to a diametric tube, and the two labels would overlap
         if tube.kind == "helix":
             label_pts.append(pts[np.argmin(pts[:, 2])] - np.array([0.0, 0.0, 3.0]))
+        elif tube.role == "diagonal":  # a Z-frame diagonal ends on the axial rods' corners
+            label_pts.append(pts[len(pts) // 2])
         else:
             label_pts.append(pts[np.argmax(pts[:, 2])] + np.array([0.0, 0.0, 2.0]))
     plotter.add_point_labels(np.array(label_pts), labels, font_size=18, point_size=1,
                              shape_opacity=0.6, always_visible=True)
     plotter.add_text(
-        f"{geometry.name}: L {b.length:g}, OD {b.outer_diameter:g}, ID {b.inner_diameter:g} mm\n"
-        "red: diametric  blue: helix  green: orientation",
+        f"{geometry.name}: {size}\n{legend}",
         font_size=12, color="black",
     )
     plotter.add_axes()

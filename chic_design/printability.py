@@ -41,10 +41,11 @@ def build_violations(spec: Spec, geom: FiducialGeometry, pixel_size_mm: float):
     from .verify import SECTION_MARGIN_MM, section_heights
 
     out = []
-    caps, body, wall = spec.caps, spec.body, spec.print.min_wall
-    if 2 * caps.skirt_height >= body.length:
+    caps, wall, length = spec.caps, spec.print.min_wall, geom.body.length
+    key = "frame.height" if getattr(spec, "family", "chic") == "zframe" else "body.length"
+    if 2 * caps.skirt_height >= length:
         out.append(Finding("caps_meet", f"caps.skirt_height ({caps.skirt_height:g} mm) must be less than half "
-                           f"of body.length ({body.length:g} mm): the two caps' skirts would meet",
+                           f"of {key} ({length:g} mm): the two caps' skirts would meet",
                            "caps.skirt_height"))
     for key, value in (("thickness", caps.thickness), ("skirt_wall", caps.skirt_wall)):
         if value < wall:

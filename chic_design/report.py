@@ -74,28 +74,11 @@ def channel_rows(geometry: FiducialGeometry) -> list[dict]:
     return rows
 
 
-def build_report(spec, spec_path, geometry: FiducialGeometry, part_volumes_mm3: dict[str, float],
-                 verify_result, feasibility_markdown: str | None, timings_s: dict[str, float],
-                 files: list[str], precision_markdown: str | None = None) -> str:
-    """The text of ``report.md``."""
+def _chic_head(spec, geometry: FiducialGeometry):
+    """Title, frame F in words, dimension table rows and cap dimensions of a CHIC build."""
     b = geometry.body
     dims = CapDims.from_spec(spec, geometry)
-    rows = channel_rows(geometry)
-    sum_nominal = sum(r["fluid_mm3"] for r in rows)
-    cut = annulus_volume_mm3(geometry) - part_volumes_mm3["body"]
-    out = [
-        f"# CHIC fiducial `{geometry.name}`",
-        "",
-        f"{spec.description}".strip() or "",
-        "",
-        f"Built from `{spec_path}` (sha256 `{(geometry.source or {}).get('spec_sha256', '?')[:16]}...`) by "
-        f"{(geometry.source or {}).get('generator', 'chic-design')}. All parts are in the fiducial frame F "
-        "(mm; origin on the axis in the bottom end face, +z to the top face, +x toward D0).",
-        "",
-        "## Dimensions",
-        "",
-        "| quantity | value |",
-        "|---|---|",
+    rows = [
         f"| body length | {b.length:g} mm |",
         f"| outer / inner diameter | {b.outer_diameter:g} / {b.inner_diameter:g} mm |",
         f"| channel diameter | {spec.channels.diameter:g} mm |",
@@ -106,6 +89,39 @@ def build_report(spec, spec_path, geometry: FiducialGeometry, part_volumes_mm3: 
         f"| fill ports (top cap) | {len(geometry.tubes) if dims.port_diameter > 0 else 0} x "
         f"{dims.port_diameter:g} mm |",
         f"| assembled height | {b.length + 2 * dims.thickness:g} mm |",
+    ]
+    frame = "mm; origin on the axis in the bottom end face, +z to the top face, +x toward D0"
+    return "CHIC fiducial", frame, rows, dims
+
+
+def build_report(spec, spec_path, geometry: FiducialGeometry, part_volumes_mm3: dict[str, float],
+                 verify_result, feasibility_markdown: str | None, timings_s: dict[str, float],
+                 files: list[str], precision_markdown: str | None = None) -> str:
+    """The text of ``report.md``."""
+    b = geometry.body
+    if geometry.family == "zframe":
+        from .zframe_report import zframe_head
+
+        title, frame_text, dim_rows, dims = zframe_head(spec, geometry)
+    else:
+        title, frame_text, dim_rows, dims = _chic_head(spec, geometry)
+    rows = channel_rows(geometry)
+    sum_nominal = sum(r["fluid_mm3"] for r in rows)
+    cut = annulus_volume_mm3(geometry) - part_volumes_mm3["body"]
+    out = [
+        f"# {title} `{geometry.name}`",
+        "",
+        f"{spec.description}".strip() or "",
+        "",
+        f"Built from `{spec_path}` (sha256 `{(geometry.source or {}).get('spec_sha256', '?')[:16]}...`) by "
+        f"{(geometry.source or {}).get('generator', 'chic-design')}. All parts are in the fiducial frame F "
+        f"({frame_text}).",
+        "",
+        "## Dimensions",
+        "",
+        "| quantity | value |",
+        "|---|---|",
+        *dim_rows,
         "",
         "## Channels",
         "",
@@ -120,7 +136,7 @@ def build_report(spec, spec_path, geometry: FiducialGeometry, part_volumes_mm3: 
     out += [
         "",
         f"Fluid to fill: {sum_nominal / 1000:.3f} mL summed over the channels (pi r^2 x centreline length); "
-        f"the CAD body has {cut / 1000:.3f} mL of channel space (annulus minus body)"
+        f"the CAD body has {cut / 1000:.3f} mL of channel space (solid frame minus body)"
         + (f": channels that touch near the end faces share {max(sum_nominal - cut, 0.0):.1f} mm^3."
            if sum_nominal - cut > 0.5 else "."),
         "Allow about 0.1 mL extra per channel for the needle and the ports.",

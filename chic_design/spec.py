@@ -14,7 +14,7 @@ from __future__ import annotations
 import hashlib
 import json
 from pathlib import Path
-from typing import Annotated
+from typing import Annotated, Literal
 
 from pydantic import BaseModel, ConfigDict, Field, ValidationError, model_validator
 
@@ -218,6 +218,8 @@ class ToolSpec(_Strict):
 class Spec(_Strict):
     """A CHIC fiducial design."""
 
+    family: Literal["chic"] = Field("chic", description="Fiducial family: chic (default) or zframe "
+                                    "(see chic_design.zframe_spec).")
     name: str = Field(pattern=r"^[A-Za-z0-9][A-Za-z0-9_.-]*$", max_length=MAX_NAME_CHARS, strict=True,
                       description="Design name: the export folder (letters, digits, _ . -; at most "
                       f"{MAX_NAME_CHARS} characters, so that every file name under it fits the file system).")
@@ -271,21 +273,21 @@ def quadrant_bounds_deg(diametric_deg, q: int) -> tuple[float, float]:
     return float(lo), float(hi)
 
 
-def json_schema() -> dict:
-    """JSON Schema of the spec (for editors)."""
-    schema = Spec.model_json_schema()
+def json_schema(family: str = "chic") -> dict:
+    """JSON Schema of the spec of ``family`` (for editors)."""
+    schema = spec_model(family).model_json_schema()
     schema["$schema"] = "https://json-schema.org/draft/2020-12/schema"
-    schema["title"] = "CHIC fiducial design spec"
+    schema["title"] = "CHIC fiducial design spec" if family == "chic" else f"{family} fiducial design spec"
     return schema
 
 
-def _format_error(path: Path, err: dict) -> str:
+def _format_error(path: Path, err: dict, root=None) -> str:
     loc = ".".join(str(p) for p in err["loc"]) or "(top level)"
     msg = err["msg"].removeprefix("Value error, ")
     kind = err["type"]
     if kind == "extra_forbidden":
         parent = err["loc"][:-1]
-        model = Spec
+        model = Spec if root is None else root
         for part in parent:
             field = model.model_fields.get(str(part))
             model = field.annotation if field is not None else None
@@ -308,10 +310,29 @@ def parse_spec(data, path="<spec>") -> Spec:
     path = Path(path)
     if not isinstance(data, dict):
         raise SpecError(f"{path}: the spec must be a YAML mapping of keys, got {type(data).__name__}")
+    family = data.get("family", "chic")
+    model = spec_model(family)
+    if model is None:
+        raise SpecError(f"{path}: family: unknown family {family!r}; allowed: {', '.join(FAMILIES)}")
     try:
-        return Spec.model_validate(data)
+        return model.model_validate(data)
     except ValidationError as exc:
-        raise SpecError(_format_error(path, exc.errors()[0])) from None
+        raise SpecError(_format_error(path, exc.errors()[0], model)) from None
+
+
+#: Spec families: the ``family`` key of a spec picks its model (default ``chic``).
+FAMILIES = ("chic", "zframe")
+
+
+def spec_model(family):
+    """The pydantic model of a spec family, or None for an unknown one."""
+    if family == "chic":
+        return Spec
+    if family == "zframe":
+        from .zframe_spec import ZFrameSpec
+
+        return ZFrameSpec
+    return None
 
 
 def load_spec(path) -> Spec:

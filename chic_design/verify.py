@@ -24,7 +24,7 @@ from pathlib import Path
 import numpy as np
 import trimesh
 
-from chic_register.geometry import FiducialGeometry, HelixTube, LineTube, Tube, load_geometry
+from chic_register.geometry import FiducialGeometry, Tube, load_geometry
 
 from .errors import BuildCheckError
 
@@ -93,13 +93,7 @@ class VerifyResult:
 
 def tube_slope_cos(tube: Tube, z_mm) -> np.ndarray:
     """cos of the angle between the tube's centreline and +z at heights ``z_mm``; shape (N,)."""
-    z = np.atleast_1d(np.asarray(z_mm, dtype=float))
-    if isinstance(tube, LineTube):
-        return np.full(z.shape, abs(tube.direction[2]))
-    if isinstance(tube, HelixTube):
-        t = (z - tube.z0) / (tube.z1 - tube.z0)
-        return np.abs(tube.tangents(t)[:, 2])
-    raise TypeError(type(tube).__name__)
+    return np.abs(tube.tangents_at_z(z_mm)[:, 2])
 
 
 def _section_circles(geometry: FiducialGeometry, z: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
@@ -131,8 +125,8 @@ def section_clearance_mm(geometry: FiducialGeometry, z_mm) -> np.ndarray:
     z = np.atleast_1d(np.asarray(z_mm, dtype=float))
     body = geometry.body
     centres, half = _section_circles(geometry, z)
-    rho = np.linalg.norm(centres, axis=2)
-    wall = np.minimum(body.outer_diameter / 2 - (rho + half), (rho - half) - body.inner_diameter / 2)
+    flat = centres.reshape(-1, 2)
+    wall = np.minimum(body.outside_gap_mm(flat), body.bore_gap_mm(flat)).reshape(half.shape) - half
     gap = wall.min(axis=1)
     for d in pair_gaps_mm(geometry, z).values():
         gap = np.minimum(gap, d)
@@ -140,19 +134,14 @@ def section_clearance_mm(geometry: FiducialGeometry, z_mm) -> np.ndarray:
 
 
 def touching_channels(geometry: FiducialGeometry, step_mm: float = 0.05) -> list[tuple[str, str, float, float]]:
-    """Pairs of channels whose section circles meet: ``[(id, id, z_lo, z_hi)]`` (mm, sampled).
+    """Pairs of channels that touch: ``[(id, id, z_lo, z_hi)]`` (mm, sampled), from :mod:`chic_design.contacts`.
 
     Such channels are connected where they meet (they fill together) and
-    their images merge there.
+    their images merge there. The same answer as the feasibility report's.
     """
-    length = geometry.body.length
-    z = np.linspace(0.0, length, int(round(length / step_mm)) + 1)
-    out = []
-    for (a, b), gap in pair_gaps_mm(geometry, z).items():
-        hit = gap < 0
-        if hit.any():
-            out.append((a, b, float(z[hit].min()), float(z[hit].max())))
-    return out
+    from .contacts import channel_contacts
+
+    return [(c.a, c.b, c.z_lo, c.z_hi) for c in channel_contacts(geometry, step_mm)]
 
 
 def section_heights(geometry: FiducialGeometry, n: int = 5, margin_mm: float = SECTION_MARGIN_MM) -> np.ndarray:
@@ -245,13 +234,16 @@ def check_body_sections(mesh: trimesh.Trimesh, geometry: FiducialGeometry, heigh
         (a_in, c_in), holes = inner[k_bore], inner[:k_bore] + inner[k_bore + 1:]
         ring_ok = (
             np.linalg.norm(c_out) < tol_mm and np.linalg.norm(c_in) < tol_mm
-            and abs(a_out / (math.pi * body.outer_diameter**2 / 4) - 1) < AREA_REL_TOL
-            and abs(a_in / (math.pi * body.inner_diameter**2 / 4) - 1) < AREA_REL_TOL
+            and abs(a_out / body.outline_area_mm2 - 1) < AREA_REL_TOL
+            and abs(a_in / body.bore_area_mm2 - 1) < AREA_REL_TOL
         )
+        if body.shape == "square":
+            size = f"sides {math.sqrt(a_out):.3f} / {math.sqrt(a_in):.3f} mm"
+        else:
+            size = f"diameters {2 * math.sqrt(a_out / math.pi):.3f} / {2 * math.sqrt(a_in / math.pi):.3f} mm"
         checks.append(Check(
             f"{label} outer wall and bore", bool(ring_ok),
-            f"diameters {2 * math.sqrt(a_out / math.pi):.3f} / {2 * math.sqrt(a_in / math.pi):.3f} mm, "
-            f"centres off axis by {np.linalg.norm(c_out):.4f} / {np.linalg.norm(c_in):.4f} mm",
+            f"{size}, centres off axis by {np.linalg.norm(c_out):.4f} / {np.linalg.norm(c_in):.4f} mm",
         ))
         centroids = np.array([c for _, c in holes])
         areas = np.array([a for a, _ in holes])

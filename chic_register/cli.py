@@ -28,7 +28,7 @@ def _parser() -> argparse.ArgumentParser:
     s = sub.add_parser("solve", help="register one or more slices: one pose from all of them")
     s.add_argument("images", nargs="+", metavar="IMAGE", help="DICOM, PNG, TIFF or NPY slices")
     s.add_argument("--geometry", required=True, help="geometry.yaml written by chic-design build")
-    s.add_argument("--json", action="store_true", help="print one JSON object (CONTRACT.md section 4)")
+    s.add_argument("--json", action="store_true", help="print one JSON object (docs/interfaces.md section 4)")
     s.add_argument("--pixel-spacing", nargs=2, type=float, metavar=("ROW", "COL"),
                    help="pixel spacing (mm) for PNG/TIFF/NPY images")
     s.add_argument("--overlay", metavar="PNG", help="draw the slice with detections, ellipse and labels")
@@ -91,6 +91,9 @@ def _parser() -> argparse.ArgumentParser:
                    help="DICOM only: scanner (LPS) position of pixel (0, 0) (default: image centre at 0)")
     m.add_argument("--image-orientation", nargs=6, type=float, metavar="V",
                    help="DICOM only: col_dir and row_dir in the scanner (default 1 0 0 0 1 0)")
+    m.add_argument("--blob-width", type=float, default=1.0, metavar="FACTOR",
+                   help="draw each blob FACTOR x its tube's nominal width, as real images do (0.7-2.5; "
+                        "> 1 blurs, < 1 narrows; default 1)")
     m.add_argument("--volume-shape", nargs=3, type=int, metavar=("NX", "NY", "NZ"),
                    help="volume mode: write a 3-D volume of NX x NY x NZ voxels (--out .nii, .nii.gz, .nrrd, "
                         ".mha or a folder for a DICOM series); its middle k-plane cuts the fiducial at "
@@ -195,6 +198,9 @@ def _run_solve(args) -> int:
         link = plan.open_link()
     except ChicRegisterError as exc:
         early.failed.append(f"{plan.igtl_flag}: {exc}")
+    if plan.igtl_listen is not None and link is not None:
+        print(f"chic-register: OpenIGTLink server listening on port {link.port} (a peer may connect now; "
+              f"the pose waits up to {plan.igtl_wait_s:g} s for one)", file=sys.stderr, flush=True)
     try:
         try:
             reg = register(slices, geom, **extra)
@@ -247,6 +253,13 @@ def _print_pose(args, reg, geom) -> None:
     sys.stdout.flush()
 
 
+def _blob_width_check(factor: float) -> tuple[bool, str]:
+    from .blob_width import BLOB_WIDTH_RANGE
+
+    lo, hi = BLOB_WIDTH_RANGE
+    return lo <= factor <= hi, f"--blob-width must be {lo:g}..{hi:g} (x the nominal diameter), got {factor:g}"
+
+
 def _run_simulate(args) -> int:
     if args.volume_shape is not None:
         return _run_simulate_volume(args)
@@ -266,6 +279,7 @@ def _run_simulate(args) -> int:
         (0 <= args.slice_thickness <= 100, f"--slice-thickness must be 0..100 mm, got {args.slice_thickness:g}"),
         (args.noise_level >= 0 and np.isfinite(args.noise_level), f"--noise-level must be >= 0, got {args.noise_level:g}"),
         (args.snr > 0 and np.isfinite(args.snr), f"--snr must be > 0, got {args.snr:g}"),
+        _blob_width_check(args.blob_width),
         (0 <= args.distractors <= 1000, f"--distractors must be 0..1000, got {args.distractors}"),
         (all(np.isfinite(v) and abs(v) <= 1e4 for v in (*args.center_offset, *(args.image_position or ()),
                                                           *(args.image_orientation or ()))),
@@ -296,7 +310,7 @@ def _run_simulate(args) -> int:
             missing_tubes=tuple(args.missing),
             image_position=(0.0, 0.0, 0.0) if plain else args.image_position,
             image_orientation=args.image_orientation,
-            rng=np.random.default_rng(args.seed),
+            rng=np.random.default_rng(args.seed), blob_width=args.blob_width,
         )
         n_in_view = len(sim.truth.centres_px)
         if n_in_view == 0 and not args.allow_empty:  # issue 10: an empty image was written with exit 0 in silence
@@ -444,6 +458,7 @@ def _run_simulate_volume(args) -> int:
          f"--voxel-size takes one or three sizes in {MIN_SPACING_MM:g}..{MAX_SPACING_MM:g} mm, "
          f"got {' '.join(f'{v:g}' for v in given)}"),
         (not unsupported, f"{', '.join(unsupported)}: not available in volume mode"),
+        _blob_width_check(args.blob_width),
         (all(np.isfinite(v) and abs(v) <= 1e4 for v in (args.depth, args.tilt, args.azimuth, args.twist)),
          "--depth, --tilt, --azimuth and --twist must be finite numbers within +-10000"),
     ]
@@ -454,8 +469,8 @@ def _run_simulate_volume(args) -> int:
     # axis-aligned volume centred on the scanner origin: the middle k-plane's frame is the identity
     T = invert(slice_frame(args.depth, args.tilt, args.azimuth, args.twist))
     try:
-        sv = simulate_volume(geom, T, (nx, ny, nz), vs, noise=args.noise,
-                             noise_level=args.noise_level, snr=args.snr, rng=np.random.default_rng(args.seed))
+        sv = simulate_volume(geom, T, (nx, ny, nz), vs, noise=args.noise, noise_level=args.noise_level,
+                             snr=args.snr, rng=np.random.default_rng(args.seed), blob_width=args.blob_width)
     except ValueError as exc:
         raise ChicRegisterError(str(exc)) from None
     out = write_volume(sv.volume, args.out)
@@ -530,69 +545,9 @@ def _run_reslice(args) -> int:
 
 
 def _run_track(args) -> int:
-    from pathlib import Path
+    from .cli_track import run_track
 
-    from .geometry import load_geometry
-    from .igtl import IgtlServer, check_port, parse_address
-    from .outputs import EXIT_OUTPUT_FAILED, OutputPlan
-
-    images = args.igtl_images is not None or args.igtl_images_listen is not None
-    if args.igtl_images is not None and args.igtl_images_listen is not None:
-        raise ChicRegisterError("--igtl-images and --igtl-images-listen: give one (connect to the bridge, or listen)")
-    if images and args.folder not in (None, "-"):
-        raise ChicRegisterError(f"track {args.folder} with --igtl-images: images come over OpenIGTLink; give '-' "
-                                "instead of a folder")
-    if not images and args.folder in (None, "-"):
-        raise ChicRegisterError("track: give the FOLDER to watch, or --igtl-images HOST:PORT")
-    if not images and not Path(args.folder).is_dir():
-        raise ChicRegisterError(f"{args.folder}: not a folder")
-    if args.igtl_images is not None:
-        parse_address(args.igtl_images, "--igtl-images")
-    if args.igtl_images_listen is not None:
-        check_port(args.igtl_images_listen, "--igtl-images-listen")
-    plan = OutputPlan.from_args(args).check()
-    if not (args.poll > 0 and args.settle >= 0):
-        raise ChicRegisterError(f"--poll must be > 0 and --settle >= 0 s, got {args.poll:g} and {args.settle:g}")
-    if args.max_files is not None and args.max_files < 1:
-        raise ChicRegisterError(f"--max-files must be >= 1, got {args.max_files}")
-    _check_spacing_flag(args)
-    geom = load_geometry(args.geometry)
-    if args.scene and not Path(args.scene).is_dir():
-        Path(args.scene).mkdir()  # its parent exists (checked above)
-
-    def on_event(event):
-        print(json.dumps(event.to_dict()) if args.json else event.text(), flush=True)
-
-    def on_message(text):
-        print(f"chic-register: {text}", file=sys.stderr, flush=True)
-
-    common = dict(scene_dir=args.scene, geometry_path=args.geometry, on_event=on_event, on_message=on_message)
-    if images:
-        from .igtl_track import track_images
-
-        listen = IgtlServer(args.igtl_images_listen) if args.igtl_images_listen is not None else None
-        where = f"port {listen.port}" if listen else args.igtl_images
-        on_message(f"registering IMAGE messages from the scanner bridge at {where} (Ctrl-C to stop)")
-        try:
-            summary = track_images(geom, connect=args.igtl_images, listen=listen, name=plan.igtl_name,
-                                   max_images=args.max_files, timeout_s=args.timeout, **common)
-        finally:
-            if listen is not None:
-                listen.close()
-    else:
-        from .track import track
-
-        link = plan.open_link()
-        if not args.json:
-            print(f"watching {args.folder} (Ctrl-C to stop)", file=sys.stderr, flush=True)
-        summary = track(args.folder, geom, pixel_spacing=args.pixel_spacing, poll_s=args.poll, settle_s=args.settle,
-                        include_existing=args.existing, max_files=args.max_files, timeout_s=args.timeout,
-                        igtl_name=plan.igtl_name, link=link, **common)
-    if args.json:
-        print(json.dumps(summary.to_dict()), flush=True)
-    else:
-        print(summary.text(), file=sys.stderr, flush=True)
-    return EXIT_OUTPUT_FAILED if summary.outputs_failed else 0
+    return run_track(args)
 
 
 def _run_precision(args) -> int:

@@ -51,3 +51,7 @@ class NoLock(ChicRegisterError):
         self.reason = reason
         self.detail = detail or {}
         super().__init__(reason)
+
+
+class ImprecisePose(NoLock):
+    """A pose that verifies but whose predicted error exceeds the trust limits (the solver may refine it first)."""

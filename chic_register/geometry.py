@@ -6,11 +6,13 @@ solver (which predicts image points from them).
 
 Frame F (CONTRACT.md section 1): millimetres, origin on the cylinder axis in the
 bottom end face, +z along the axis to the top face, +x toward tube ``D0``;
-angles counter-clockwise about +z from +x.
+angles counter-clockwise about +z from +x. For the ``zframe`` family (the
+seven-rod Z-frame), +z runs along the axial rods, the origin is on the frame's
+central axis in its bottom face, x and y as in 3D Slicer's Z-frame ``z001``.
 
 Geometry file (CONTRACT.md section 2): YAML with ``format: chic-geometry``,
-``version: 1``, ``name``, ``units``, ``body``, ``tubes``, ``source`` and
-``sha256``. The hash is the SHA-256 of the canonical JSON of every other key
+``version: 1``, ``name``, ``family`` (only when not ``chic``), ``units``,
+``body``, ``tubes``, ``source`` and ``sha256``. The hash is the SHA-256 of the canonical JSON of every other key
 (see :func:`content_sha256`).
 """
 
@@ -24,7 +26,6 @@ from pathlib import Path
 
 import numpy as np
 import yaml
-from scipy.optimize import brentq
 
 from .atomic import write_text
 from .errors import GeometryFileError, InputFileError
@@ -38,7 +39,11 @@ MAX_SOURCE_CHARS = 10_000  # the canonical JSON of ``source``
 
 FORMAT = "chic-geometry"
 VERSION = 1
-ROLES = ("diametric", "helix", "orientation", "other")
+ROLES = ("diametric", "helix", "orientation", "axial", "diagonal", "other")
+#: Fiducial families (CONTRACT.md section 1); a file without ``family`` is ``chic``.
+FAMILIES = ("chic", "zframe")
+#: Body cross-sections: a round annulus (CHIC) or a square frame (Z-frame).
+BODY_SHAPES = ("annulus", "square")
 
 
 def _vec3(values) -> tuple[float, float, float]:
@@ -48,18 +53,67 @@ def _vec3(values) -> tuple[float, float, float]:
 
 @dataclass(frozen=True)
 class Body:
-    """The annular body: ``length`` along z from 0, outer and inner diameters (mm)."""
+    """The body: ``length`` along z from 0, and its cross-section (mm).
+
+    ``shape="annulus"`` (CHIC): a ring of ``outer_diameter`` / ``inner_diameter``.
+    ``shape="square"`` (Z-frame): a square frame of outside side ``outer_side``
+    around a square bore of side ``inner_side``, both centred on the z axis;
+    its ``outer_diameter`` is then the circumscribed circle of the outside and
+    ``inner_diameter`` the circle inscribed in the bore, so a reader that knows
+    only circles still gets one enclosing the body and one inside the bore.
+    """
 
     length: float
     outer_diameter: float
     inner_diameter: float
+    shape: str = "annulus"
+    outer_side: float | None = None
+    inner_side: float | None = None
+
+    @classmethod
+    def square(cls, length: float, outer_side: float, inner_side: float) -> "Body":
+        """A square frame body (see the class docstring for its diameters)."""
+        return cls(float(length), float(outer_side) * math.sqrt(2.0), float(inner_side), "square",
+                   float(outer_side), float(inner_side))
+
+    def bore_gap_mm(self, xy) -> np.ndarray:
+        """Distance (mm) from in-body points ``xy`` (N, 2) to the bore surface; shape (N,)."""
+        xy = np.atleast_2d(np.asarray(xy, dtype=float))
+        if self.shape == "square":
+            h = self.inner_side / 2
+            return np.hypot(np.maximum(np.abs(xy[:, 0]) - h, 0.0), np.maximum(np.abs(xy[:, 1]) - h, 0.0))
+        return np.hypot(xy[:, 0], xy[:, 1]) - self.inner_diameter / 2
+
+    def outside_gap_mm(self, xy) -> np.ndarray:
+        """Distance (mm) from in-body points ``xy`` (N, 2) to the outside surface; shape (N,)."""
+        xy = np.atleast_2d(np.asarray(xy, dtype=float))
+        if self.shape == "square":
+            return self.outer_side / 2 - np.max(np.abs(xy), axis=1)
+        return self.outer_diameter / 2 - np.hypot(xy[:, 0], xy[:, 1])
+
+    @property
+    def outline_area_mm2(self) -> float:
+        """Area enclosed by the outside surface in a section across z."""
+        if self.shape == "square":
+            return self.outer_side ** 2
+        return math.pi * self.outer_diameter ** 2 / 4
+
+    @property
+    def bore_area_mm2(self) -> float:
+        """Area of the bore in a section across z."""
+        if self.shape == "square":
+            return self.inner_side ** 2
+        return math.pi * self.inner_diameter ** 2 / 4
 
     def to_dict(self) -> dict:
-        return {
+        out = {
             "length": float(self.length),
             "outer_diameter": float(self.outer_diameter),
             "inner_diameter": float(self.inner_diameter),
         }
+        if self.shape != "annulus":  # CHIC files keep their content (and hash) unchanged
+            out.update(shape=self.shape, outer_side=float(self.outer_side), inner_side=float(self.inner_side))
+        return out
 
 
 @dataclass(frozen=True)
@@ -107,6 +161,16 @@ class LineTube:
         if abs(dz) < 1e-12:
             raise ValueError(f"tube {self.id} is horizontal: no unique point at a given z")
         return self.points((np.atleast_1d(z_mm) - self.p0[2]) / dz)
+
+    def tangents_at_z(self, z_mm) -> np.ndarray:
+        """Unit tangents at heights ``z_mm`` (toward p1); shape (N, 3)."""
+        return np.tile(self.direction, (np.atleast_1d(z_mm).size, 1))
+
+    def extended(self, ext_mm: float) -> "LineTube":
+        """The same line continued by ``ext_mm`` of length past both ends."""
+        d = self.direction
+        return LineTube(self.id, self.role, np.asarray(self.p0) - ext_mm * d, np.asarray(self.p1) + ext_mm * d,
+                        self.diameter)
 
     def intersect_plane(self, origin, normal) -> np.ndarray:
         """Where the centreline crosses the plane through ``origin`` with ``normal``.
@@ -196,6 +260,16 @@ class HelixTube:
         v = np.stack([-w * np.sin(th), w * np.cos(th), np.ones_like(th)], axis=1)
         return v / np.linalg.norm(v, axis=1, keepdims=True)
 
+    def tangents_at_z(self, z_mm) -> np.ndarray:
+        """Unit tangents at heights ``z_mm`` (toward increasing z); shape (N, 3)."""
+        return self.tangents((np.atleast_1d(np.asarray(z_mm, dtype=float)) - self.z0) / (self.z1 - self.z0))
+
+    def extended(self, ext_mm: float) -> "HelixTube":
+        """The same helix continued by ``ext_mm`` of arc length past both ends."""
+        dz = ext_mm * (self.z1 - self.z0) / self.length_mm
+        return HelixTube(self.id, self.role, self.radius, float(self.angle_deg_at(self.z0 - dz)),
+                         self.pitch_deg_per_mm, self.z0 - dz, self.z1 + dz, self.diameter)
+
     def intersect_plane(self, origin, normal) -> np.ndarray:
         """Every crossing of the centreline with the plane through ``origin`` with ``normal``.
 
@@ -217,7 +291,7 @@ class HelixTube:
             if a == 0.0:
                 roots.append(zs[i])
             elif a * b < 0:
-                roots.append(brentq(f, zs[i], zs[i + 1], xtol=1e-12))
+                roots.append(bracketed_root(f, zs[i], zs[i + 1], a, b, xtol=1e-12))
         if vals[-1] == 0.0:
             roots.append(zs[-1])
         if not roots:
@@ -239,6 +313,54 @@ class HelixTube:
 
 
 Tube = LineTube | HelixTube
+
+
+def bracketed_root(f, a: float, b: float, fa: float, fb: float, *, xtol: float = 1e-12, max_iter: int = 100) -> float:
+    """A root of ``f`` in ``[a, b]`` given ``f(a) = fa`` and ``f(b) = fb`` of opposite signs.
+
+    The Illinois variant of regula falsi (superlinear on smooth functions,
+    never leaves the bracket), falling back to bisection when a secant step
+    shrinks the bracket too little. Stops when the bracket is below ``xtol``
+    (or a value is exactly 0). A few lines instead of ``scipy.optimize``,
+    whose import costs a third of a second on the solver's start-up path.
+    """
+    a, b, fa, fb = float(a), float(b), float(fa), float(fb)
+    if fa == 0.0:
+        return a
+    if fb == 0.0:
+        return b
+    if fa * fb > 0:
+        raise ValueError(f"f({a}) = {fa} and f({b}) = {fb} do not bracket a root")
+    side = 0
+    for _ in range(max_iter):
+        width = abs(b - a)
+        if width <= xtol:
+            break
+        c = (a * fb - b * fa) / (fb - fa)
+        if not (min(a, b) < c < max(a, b)):
+            c = 0.5 * (a + b)
+        fc = float(f(c))
+        if fc == 0.0:
+            return c
+        if fc * fb < 0:  # root between c and b: c replaces a
+            a, fa = b, fb
+            b, fb = c, fc
+            side = 0
+        else:  # root between a and c: c replaces b; halve the stale end's value (Illinois)
+            b, fb = c, fc
+            fa *= 0.5
+            side += 1
+            if side > 2:  # the same end stuck three times: bisect
+                m = 0.5 * (a + b)
+                fm = float(f(m))
+                if fm == 0.0:
+                    return m
+                if fm * fb < 0:
+                    a, fa = m, fm
+                else:
+                    b, fb = m, fm
+                side = 0
+    return b if abs(fb) <= abs(fa) else a
 
 
 def _rigid_4x4(values) -> np.ndarray | None:
@@ -297,9 +419,12 @@ class FiducialGeometry:
     source: dict | None = None
     units: str = "mm"
     tool: ToolFrame | None = None
+    family: str = "chic"
 
     def __post_init__(self):
         object.__setattr__(self, "tubes", tuple(self.tubes))
+        if self.family not in FAMILIES:
+            raise ValueError(f"family is {self.family!r}; allowed: {', '.join(FAMILIES)}")
         ids = [t.id for t in self.tubes]
         dupes = sorted({i for i in ids if ids.count(i) > 1})
         if dupes:
@@ -328,6 +453,7 @@ class FiducialGeometry:
             "format": FORMAT,
             "version": VERSION,
             "name": self.name,
+            **({"family": self.family} if self.family != "chic" else {}),
             "units": self.units,
             "body": self.body.to_dict(),
             "tubes": [t.to_dict() for t in self.tubes],
@@ -513,6 +639,21 @@ def check_plausible(geom: "FiducialGeometry", path="<geometry>") -> None:
                                           f"body.outer_diameter ({b.outer_diameter:g})")
 
 
+def _body_from_dict(path, b: dict) -> Body:
+    """The ``body`` mapping: an annulus (default) or a square frame (``shape: square``)."""
+    dims = [_positive(path, f"body.{k}", _require(path, b, k, "body."))
+            for k in ("length", "outer_diameter", "inner_diameter")]
+    shape = b.get("shape", "annulus")
+    if shape not in BODY_SHAPES:
+        raise GeometryFileError(path, f"body.shape is {_short(shape)}; allowed: {', '.join(BODY_SHAPES)}")
+    if shape == "annulus":
+        return Body(*dims)
+    sides = [_positive(path, f"body.{k}", _require(path, b, k, "body.")) for k in ("outer_side", "inner_side")]
+    if sides[1] >= sides[0]:
+        raise GeometryFileError(path, "body.inner_side must be smaller than body.outer_side")
+    return Body(*dims, shape, *sides)
+
+
 def tool_from_dict(data, path="<geometry>") -> ToolFrame:
     """Parse the optional ``tool`` entry: ``{T_fiducial_from_tool: 4x4}``."""
     if not isinstance(data, dict) or set(data) != {"T_fiducial_from_tool"}:
@@ -566,18 +707,17 @@ def geometry_from_dict(data, path="<geometry>", check_hash: bool = True) -> Fidu
     b = _require(path, data, "body", "")
     if not isinstance(b, dict):
         raise GeometryFileError(path, "body must be a mapping")
-    body = Body(
-        _positive(path, "body.length", _require(path, b, "length", "body.")),
-        _positive(path, "body.outer_diameter", _require(path, b, "outer_diameter", "body.")),
-        _positive(path, "body.inner_diameter", _require(path, b, "inner_diameter", "body.")),
-    )
+    family = data.get("family", "chic")
+    if family not in FAMILIES:
+        raise GeometryFileError(path, f"family is {_short(family)}; allowed: {', '.join(FAMILIES)}")
+    body = _body_from_dict(path, b)
     tubes_raw = _require(path, data, "tubes", "")
     if not isinstance(tubes_raw, list) or not tubes_raw or len(tubes_raw) > MAX_TUBES:
         raise GeometryFileError(path, f"tubes must be a list of 1..{MAX_TUBES} tubes")
     tubes = [tube_from_dict(t, path, f"tubes[{i}]") for i, t in enumerate(tubes_raw)]
     tool = tool_from_dict(data["tool"], path) if "tool" in data else None
     try:
-        geom = FiducialGeometry(str(name), body, tuple(tubes), source, units, tool)
+        geom = FiducialGeometry(str(name), body, tuple(tubes), source, units, tool=tool, family=family)
     except ValueError as exc:
         raise GeometryFileError(path, str(exc)) from None
     check_plausible(geom, path)

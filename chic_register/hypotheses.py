@@ -29,6 +29,7 @@ import numpy as np
 
 from typing import TYPE_CHECKING
 
+from .detect import median
 from .geometry import sample_centreline
 from .pose import rigid
 
@@ -49,7 +50,7 @@ def ellipse_layout(model: "TubeModel", rel_tol: float = 0.1) -> bool:
     if not model.axial.any() or not np.all(model.axial | model.is_helix):
         return False
     r = model.axis_radius_mm
-    med = float(np.median(r))
+    med = median(r)
     return med > 0 and bool(np.all(np.abs(r - med) <= rel_tol * med))
 
 
@@ -580,7 +581,7 @@ def _depth_votes(fam: ParallelFamily, xy: np.ndarray, A: np.ndarray, b: np.ndarr
     out = []
     for i in np.argsort(-n, kind="stable"):
         sel = close[i]
-        value = float(np.median(lam[sel]))
+        value = median(lam[sel])
         if any(abs(value - v) < 2 * tol[i] for v, _ in out):
             continue
         out.append((value, int(n[i])))

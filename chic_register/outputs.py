@@ -80,18 +80,19 @@ class OutputPlan:
 
     @classmethod
     def from_args(cls, args) -> "OutputPlan":
+        wait = getattr(args, "igtl_wait", None)
         return cls(**{k: getattr(args, k, None) for k in ("tfm", "scene", "overlay", "igtl", "igtl_listen")},
-                   igtl_name=getattr(args, "igtl_name", "CHIC") or "CHIC",
-                   igtl_wait_s=getattr(args, "igtl_wait", 10.0) if getattr(args, "igtl_wait", None) is not None
-                   else 10.0, geometry_path=getattr(args, "geometry", None))
+                   igtl_name=getattr(args, "igtl_name", None) or "CHIC",
+                   igtl_wait_s=10.0 if wait is None else float(wait),
+                   geometry_path=getattr(args, "geometry", None))
 
     def check(self) -> "OutputPlan":
         """Reject bad output arguments before any work (bad input, exit 2)."""
         from .atomic import check_parent
-        from .igtl import check_name, check_port, parse_address
-        from .transforms import SUFFIXES
 
         if self.tfm:
+            from .transforms import SUFFIXES  # (only with --tfm: it imports SimpleITK, slow to load)
+
             if Path(self.tfm).suffix.lower() not in SUFFIXES:
                 raise ChicRegisterError(f"--tfm {self.tfm}: transform file must end in {', '.join(SUFFIXES)}")
             check_parent(self.tfm)
@@ -103,13 +104,16 @@ class OutputPlan:
             check_parent(Path(self.scene))
         if self.igtl and self.igtl_listen is not None:
             raise ChicRegisterError("--igtl and --igtl-listen: give one (connect to a server, or be one)")
-        if self.igtl:
-            parse_address(self.igtl)
-        if self.igtl_listen is not None:
-            check_port(self.igtl_listen)
         if not (self.igtl_wait_s >= 0):
             raise ChicRegisterError(f"--igtl-wait must be >= 0 s, got {self.igtl_wait_s:g}")
-        check_name(self.igtl_name)
+        if self.igtl or self.igtl_listen is not None or self.scene:  # (the name is only used by these; and
+            from .igtl import check_name, check_port, parse_address  # .igtl loads pyigtl and SimpleITK)
+
+            if self.igtl:
+                parse_address(self.igtl)
+            if self.igtl_listen is not None:
+                check_port(self.igtl_listen)
+            check_name(self.igtl_name)
         return self
 
     @property
@@ -118,13 +122,13 @@ class OutputPlan:
 
     def open_link(self):
         """The OpenIGTLink end: a server listening now (peers may connect while we solve), a client, or None."""
+        if self.igtl_listen is None and not self.igtl:
+            return None
         from .igtl import IgtlClient, IgtlServer
 
         if self.igtl_listen is not None:
             return IgtlServer(self.igtl_listen)
-        if self.igtl:
-            return IgtlClient(self.igtl)
-        return None
+        return IgtlClient(self.igtl)
 
 
 @dataclass
@@ -157,8 +161,6 @@ def _send(link, messages, wait_s: float, what: str) -> str:
 
 def deliver(plan: OutputPlan, reg, geom, slices, link=None) -> Delivery:
     """Write/send every planned output of a pose; failures are collected, never raised."""
-    from .igtl import pose_messages
-
     out = Delivery()
     T = reg.T_scanner_from_fiducial
     if plan.overlay:
@@ -173,8 +175,11 @@ def deliver(plan: OutputPlan, reg, geom, slices, link=None) -> Delivery:
     if plan.scene:
         from .scene import write_scene
 
-        out.attempt("--scene", lambda: f"wrote {write_scene(plan.scene, reg, geom, slices, name=plan.igtl_name, geometry_path=plan.geometry_path)}")
+        out.attempt("--scene", lambda: "wrote " + str(write_scene(plan.scene, reg, geom, slices, name=plan.igtl_name,
+                                                                   geometry_path=plan.geometry_path)))
     if link is not None:
+        from .igtl import pose_messages
+
         msgs = pose_messages(T, plan.igtl_name, tool_pose(reg, geom), quality(reg))
         names = ", ".join(f"{m.message_type} {m.device_name}" for m in msgs)
         out.attempt(plan.igtl_flag, lambda: _send(link, msgs, plan.igtl_wait_s, names))
@@ -183,8 +188,6 @@ def deliver(plan: OutputPlan, reg, geom, slices, link=None) -> Delivery:
 
 def deliver_no_lock(plan: OutputPlan, reason: str, geom, slices, link=None) -> Delivery:
     """On no lock: the overlay of the candidates and the OpenIGTLink STATUS ``no_lock``; nothing else."""
-    from .igtl import no_lock_messages
-
     out = Delivery()
     if plan.overlay:
         from .detect import detect_blobs
@@ -197,6 +200,8 @@ def deliver_no_lock(plan: OutputPlan, reason: str, geom, slices, link=None) -> D
 
         out.attempt("--overlay", overlay)
     if link is not None:
+        from .igtl import no_lock_messages
+
         out.attempt(plan.igtl_flag,
                     lambda: _send(link, no_lock_messages(reason, plan.igtl_name), plan.igtl_wait_s,
                                   f"STATUS {plan.igtl_name} (no_lock)"))

@@ -35,9 +35,14 @@ import yaml
 
 from .errors import InputFileError
 
-MAX_YAML_BYTES = 1 << 20  # 1 MiB: a geometry file is a few kB, a spec < 2 kB
+MAX_YAML_BYTES = 1 << 18  # 256 KiB: a geometry file is a few kB, a spec < 2 kB (pure-Python parsing: ~2 s worst)
 MAX_DEPTH = 32
-MAX_NODES = 100_000
+MAX_NODES = 20_000  # values in a document, aliases expanded (a 16-tube geometry file has ~250)
+
+
+def _a(what: str) -> str:
+    """``what`` with its indefinite article ("an image file", "a spec file")."""
+    return f"{'an' if what[:1] in 'aeiou' else 'a'} {what}"
 
 
 def _kind(mode: int) -> str:
@@ -64,15 +69,15 @@ def open_regular_file(path, what: str = "file", max_bytes: int | None = None):
     except FileNotFoundError:
         raise InputFileError(p, "no such file" if what in ("file", "image file") else f"no such {what}") from None
     except IsADirectoryError:
-        raise InputFileError(p, f"is a directory, not a {what}") from None
+        raise InputFileError(p, f"is a directory, not {_a(what)}") from None
     except OSError as exc:
         raise InputFileError(p, f"cannot be read ({exc.strerror or exc})") from None
     try:
         st = os.fstat(fd)
         if not stat.S_ISREG(st.st_mode):
-            raise InputFileError(p, f"is {_kind(st.st_mode)}, not a {what}: only regular files are read")
+            raise InputFileError(p, f"is {_kind(st.st_mode)}, not {_a(what)}: only regular files are read")
         if max_bytes is not None and st.st_size > max_bytes:
-            raise InputFileError(p, f"is {st.st_size} bytes; a {what} is at most {max_bytes} bytes")
+            raise InputFileError(p, f"is {st.st_size} bytes; {_a(what)} is at most {max_bytes} bytes")
         if hasattr(os, "set_blocking"):
             os.set_blocking(fd, True)
         fh = os.fdopen(fd, "rb")
@@ -90,7 +95,7 @@ def read_regular_file(path, what: str = "file", max_bytes: int | None = None) ->
         except OSError as exc:
             raise InputFileError(path, f"cannot be read ({exc.strerror or exc})") from None
     if max_bytes is not None and len(data) > max_bytes:  # grew while we read it
-        raise InputFileError(path, f"is over {max_bytes} bytes; a {what} is at most {max_bytes} bytes")
+        raise InputFileError(path, f"is over {max_bytes} bytes; {_a(what)} is at most {max_bytes} bytes")
     return data
 
 
@@ -127,12 +132,16 @@ class _SafeLoader(yaml.SafeLoader):
     def __init__(self, stream):
         super().__init__(stream)
         self._depth = 0
+        self._nodes = 0
 
     def compose_node(self, parent, index):
         self._depth += 1
+        self._nodes += 1
         try:
             if self._depth > MAX_DEPTH:
                 raise _Error(f"nested deeper than {MAX_DEPTH} levels", self.peek_event())
+            if self._nodes > MAX_NODES:  # stop parsing early: the cost is in the pure-Python parser
+                raise _Error(f"holds more than {MAX_NODES} values", self.peek_event())
             return super().compose_node(parent, index)
         finally:
             self._depth -= 1
@@ -239,5 +248,5 @@ def load_yaml_file(path, what: str = "YAML file", max_bytes: int = MAX_YAML_BYTE
     try:
         text = data.decode("utf-8")
     except UnicodeDecodeError as exc:
-        raise InputFileError(path, f"not UTF-8 text (byte {exc.start}): a {what} is YAML text") from None
+        raise InputFileError(path, f"not UTF-8 text (byte {exc.start}): {_a(what)} is YAML text") from None
     return load_yaml_text(text, path)

@@ -30,6 +30,7 @@ from pathlib import Path
 import numpy as np
 
 from .atomic import write_json
+from .blob_width import BLOB_WIDTH_RANGE, BlobWidth, render_tubes_widened  # noqa: F401 (public here too)
 from .geometry import FiducialGeometry, HelixTube, LineTube
 from .pose import SliceAngles, apply, invert, rigid, slice_angles, slice_frame
 from .slices import Slice
@@ -70,12 +71,7 @@ def _crossing_params(tube, origin_F: np.ndarray, normal_F: np.ndarray, margin_mm
         u = d0 / (d0 - d1) if abs(d0 - d1) > 1e-12 else 0.5
         return np.array([min(1.0, max(0.0, u))])
     if isinstance(tube, HelixTube):
-        dz = margin_mm * (tube.z1 - tube.z0) / length
-        ext = HelixTube(
-            tube.id, tube.role, tube.radius, float(tube.angle_deg_at(tube.z0 - dz)),
-            tube.pitch_deg_per_mm, tube.z0 - dz, tube.z1 + dz, tube.diameter,
-        )
-        pts = ext.intersect_plane(origin_F, normal_F)
+        pts = tube.extended(margin_mm).intersect_plane(origin_F, normal_F)
         return (pts[:, 2] - tube.z0) / (tube.z1 - tube.z0)
     raise TypeError(f"cannot render tube kind {getattr(tube, 'kind', type(tube).__name__)!r}")
 
@@ -439,6 +435,7 @@ def simulate_slice(
     rng=None,
     supersample: int = 4,
     thickness_samples: int = 5,
+    blob_width: float = 1.0,
 ) -> SimulatedSlice:
     """A synthetic slice of ``geom`` at a known pose, with its truth.
 
@@ -454,7 +451,9 @@ def simulate_slice(
     ``image_orientation`` (col_dir, row_dir); default: an axial image whose
     centre pixel is at the scanner origin. Or give ``T_scanner_from_fiducial``
     (4x4): the fiducial's pose in the scanner, from which the slice is placed
-    (slices of one series share it).
+    (slices of one series share it). ``blob_width`` draws every tube's blob
+    that many times its nominal width, as real images do (0.7-2.5x; see
+    :class:`BlobWidth`).
     ``truth.T_scanner_from_fiducial = slice.T_scanner_from_image() @ T_image_from_S @ invert(T_F_from_S)``.
     """
     if noise not in NOISE_KINDS:
@@ -475,7 +474,8 @@ def simulate_slice(
     T_F_from_S = slice_frame(depth_mm, tilt_deg, azimuth_deg, twist_deg)
 
     tubes = [t for t in geom.tubes if t.id not in missing]
-    image = render_tubes(tubes, T_F_from_S, (rows, cols), spacing, slice_thickness_mm, center, supersample, thickness_samples)
+    image = render_tubes_widened(tubes, T_F_from_S, (rows, cols), spacing, slice_thickness_mm, center, supersample,
+                                 thickness_samples, blob_width)
     if bore_signal > 0:
         L = geom.body.length
         tool = LineTube("tool", "other", (0.0, 0.0, -L), (0.0, 0.0, 2.0 * L), 0.4 * geom.body.inner_diameter)
@@ -523,6 +523,7 @@ def simulate_slice(
         "bore_signal": float(bore_signal),
         "center_offset_mm": [dx, dy],
         "geometry": geom.name,
+        "blob_width": float(blob_width),
     }
     truth = SliceTruth(
         angles=slice_angles(T_F_from_S),

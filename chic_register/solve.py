@@ -31,11 +31,11 @@ import time
 from dataclasses import dataclass, field
 
 import numpy as np
-from scipy.optimize import linear_sum_assignment
 
-from .detect import Blobs, _dilate, detect_blobs
-from .errors import NoLock
+from .detect import Blobs, _dilate, detect_blobs, median
+from .errors import ImprecisePose, NoLock
 from .geometry import FiducialGeometry, HelixTube, LineTube, content_sha256
+from .matching import gated_matching
 from .hypotheses import (  # noqa: F401  (the first-guess stage; its public names stay importable from here)
     Ellipse,
     ellipse_layout,
@@ -304,6 +304,9 @@ class _Fit:
     inside: list  # per slice: (K,) bool
     n_matched: int
     rms_mm: float
+    # what the last fit was made of, when not the blob centroids: per slice (measured xy (N, 2) mm, square-root
+    # information L (K, 2, 2) it was weighted by, the noise sigma L assumed) (see chic_register.uncertainty)
+    measurements: list | None = None
 
 
 def _assign(pred: np.ndarray, ok: np.ndarray, blobs_xy: np.ndarray, gate_mm: float) -> np.ndarray:
@@ -320,17 +323,16 @@ def _assign(pred: np.ndarray, ok: np.ndarray, blobs_xy: np.ndarray, gate_mm: flo
         r, c = np.nonzero(within)
         out[r] = c
         return out
-    cost = np.where(within, d2, 1e6)
-    r, c = linear_sum_assignment(cost)
-    good = cost[r, c] < 1e6
-    out[r[good]] = c[good]
+    r, c = gated_matching(d2, within)
+    out[r] = c
     return out
 
 
 def refine(model: TubeModel, blobs_xy: list[np.ndarray], T_scanner_from_image: list[np.ndarray],
            T_F_from_scanner: np.ndarray, *, gates_mm=(3.0, 1.5, 1.0, 1.0), iters_per_gate: int = 3,
            final_iters: int = 4, damping: float = 1e-6, exclude: list | None = None,
-           assign0: list | None = None, offsets_mm: list | None = None, strict_ends: bool = True) -> _Fit:
+           assign0: list | None = None, offsets_mm: list | None = None, strict_ends: bool = True,
+           weights: list | None = None, tol: float = 1e-6) -> _Fit:
     """Gauss-Newton on all six DOF of ``T_F_from_scanner`` with re-assignment.
 
     ``blobs_xy``: per slice, detected centres in image mm (N_j, 2). Each gate
@@ -342,6 +344,11 @@ def refine(model: TubeModel, blobs_xy: list[np.ndarray], T_scanner_from_image: l
     the centroid of a tube's image section minus its centreline crossing).
     ``strict_ends``: leave out crossings whose section a tube end cuts
     (their blob centre is biased) unless the offsets model that cut.
+    ``weights``: per slice (K, 2, 2) or None, each tube's square-root
+    information ``L`` (``L^T L`` = the inverse covariance of its measured
+    position, mm^-2): the fit then minimises the sum of ``|L (predicted -
+    measured)|^2`` (the maximum-likelihood pose for Gaussian position errors).
+    ``tol``: the final iterations stop once a step is below it (rad and mm).
     """
     end_margin = 0.0 if strict_ends else 1e-9
     X = T_F_from_scanner.copy()
@@ -367,8 +374,14 @@ def refine(model: TubeModel, blobs_xy: list[np.ndarray], T_scanner_from_image: l
                 k = np.flatnonzero((a >= 0) & inside)
                 if k.size == 0:
                     continue
-                rs.append((qm[k] - xy[a[k]]).ravel())
-                Js.append((_crossing_jacobian(q[k], tan[k]) @ ads[j]).reshape(-1, 6))
+                res = qm[k] - xy[a[k]]
+                Jk = _crossing_jacobian(q[k], tan[k]) @ ads[j]
+                if weights is not None and weights[j] is not None:
+                    L = weights[j][k]
+                    res = np.einsum("kij,kj->ki", L, res)
+                    Jk = np.einsum("kij,kjl->kil", L, Jk)
+                rs.append(res.ravel())
+                Js.append(Jk.reshape(-1, 6))
             if not rs:
                 break
             J = Js[0] if len(Js) == 1 else np.concatenate(Js)
@@ -384,7 +397,7 @@ def refine(model: TubeModel, blobs_xy: list[np.ndarray], T_scanner_from_image: l
             X = X @ _exp_se3(xi)
             step = float(np.abs(xi).max())
             # rad and mm: under a gate, close enough to re-assign; at the end, far below any error that matters
-            if step < (1e-3 if gate is not None else 1e-6):
+            if step < (1e-3 if gate is not None else tol):
                 break
         if step > 1e-2:  # still wandering after a whole gate: a hopeless guess, give up
             break
@@ -667,6 +680,70 @@ def _template_refine(model: TubeModel, tubes, fit: _Fit, assign, xys, Ss, slices
     return fit
 
 
+def _section_refine(model: TubeModel, fit: _Fit, xys, Ss, slices, blob_sets, opts) -> _Fit:
+    """Refit ``fit`` on section-fitted tube positions (:func:`~chic_register.section.fit_sections`).
+
+    Up to ``section_iterations`` passes: fit every matched tube's section
+    model at the current pose, then refit the pose on the fitted positions,
+    each weighted by its information matrix. A tube whose section cannot be fitted
+    (window too small, no positive gain) is left out, and so is one whose
+    fitted section lies more than ``section_max_shift_px`` from where the
+    pose predicts it or has less than half the median gain (not the clean
+    section the model expects); fewer than ``min_tubes`` left is
+    :class:`NoLock`.
+    """
+    from .section import fit_sections
+
+    assign = [a.copy() for a in fit.assignments]
+    wins = [None] * len(slices)  # each tube's pixels: chosen at the first pass, kept (the pose barely moves)
+    px = min(_pixel_mm(sl) for sl in slices)
+    exact = True
+    for it in range(opts.section_iterations):
+        X0 = fit.T_F_from_scanner
+        new_xys, Ls, q_before = [], [], []
+        # a pass far from the fit's fixed point only has to bring the next one close: a coarser model (3 planes,
+        # straight edges) and one Gauss-Newton step of the pose do for it; exact passes repeat until one moves
+        # the tube crossings by less than section_done_px (its first-order fit is then exact to ~1e-3 px)
+        for j, (sl, S, b) in enumerate(zip(slices, Ss, blob_sets)):
+            a = assign[j]
+            sf, wins[j] = fit_sections(model, X0 @ S, a, np.asarray(sl.pixels), sl.pixel_spacing_mm,
+                                       float(sl.slice_thickness_mm), b.noise_sigma, footprints=b.footprints,
+                                       thickness_samples=(opts.section_thickness_samples if exact
+                                                          else min(3, opts.section_thickness_samples)),
+                                       windows=wins[j], exact=exact)
+            q_before.append(sf.predicted_mm)
+            ok = sf.fitted.copy()
+            if ok.any():  # a section far from where the locked pose puts it, or faint, is not the tube's
+                shift = np.linalg.norm(sf.position_mm - sf.predicted_mm, axis=1)
+                ok &= (shift <= opts.section_max_shift_px * _pixel_mm(sl)) & (sf.gain >= 0.5 * median(sf.gain[ok]))
+            a[(a >= 0) & ~ok] = -1
+            k = np.flatnonzero(a >= 0)
+            xy = xys[j].copy()
+            xy[a[k]] = sf.position_mm[k]
+            new_xys.append(xy)
+            L = np.zeros_like(sf.info)
+            L[k] = np.swapaxes(np.linalg.cholesky(sf.info[k]), 1, 2)
+            Ls.append(L)
+        n_all = sum(int((a >= 0).sum()) for a in assign)
+        if n_all < opts.min_tubes:
+            raise NoLock(f"only {n_all} tube sections could be fitted; need at least {opts.min_tubes}",
+                         {"n_tubes": n_all})
+        fit = refine(model, new_xys, Ss, X0, gates_mm=(), final_iters=6 if exact else 1, assign0=assign,
+                     strict_ends=False, weights=Ls, tol=1e-5)  # (1e-5 rad, mm: far below the noise)
+        fit = dataclasses.replace(fit, measurements=[(xy, L, float(b.noise_sigma))
+                                                     for xy, L, b in zip(new_xys, Ls, blob_sets)])
+        moved = 0.0  # how far the matched tubes' crossings moved in this pass (mm)
+        for j, S in enumerate(Ss):
+            k = np.flatnonzero(assign[j] >= 0)
+            q0 = q_before[j][k]
+            q1 = plane_crossings(model, fit.T_F_from_scanner @ S, margin_mm=1e-9)[0][k]
+            moved = max(moved, float(np.max(np.linalg.norm(q1 - q0, axis=1), initial=0.0)))
+        if exact and moved < opts.section_done_px * px:
+            break
+        exact = moved < opts.section_close_px * px
+    return fit
+
+
 # --------------------------------------------------------------------------- public API
 
 
@@ -692,9 +769,11 @@ class SliceResult:
     blobs_rc: np.ndarray = field(repr=False, default=None)
     predicted_rc: dict = field(repr=False, default=None)
     ellipse: Ellipse | None = field(repr=False, default=None)
+    missing_tubes: tuple[str, ...] = ()
 
     def to_dict(self) -> dict:
         return {
+            **({"missing_tubes": list(self.missing_tubes)} if self.missing_tubes else {}),
             "source": self.source,
             "depth_mm": round(self.depth_mm, 6),
             "tilt_deg": round(self.tilt_deg, 6),
@@ -755,6 +834,23 @@ class SolveOptions:
     precise than a centroid in white noise) and the pose refitted on those;
     a template landing more than ``template_max_disagreement_px`` from the
     centroid model's position gives :class:`NoLock`. 0 turns it off.
+    ``section_fit`` (the default mode, unless ``centroid_model``): after the
+    lock, each matched tube's section is located by fitting an analytic
+    model of it to its pixels (:mod:`chic_register.section`, with
+    ``section_thickness_samples`` planes across the slice) and the pose is
+    refitted on those positions, weighted by their information; up to
+    ``section_iterations`` passes (see :func:`_section_refine`); tubes whose
+    fit lands more than ``section_max_shift_px`` from the pose's prediction
+    are left out. Off: the pose fitted to blob centroids (faster, biased).
+    ``verify``: before ``ok``, prove the pose against the image
+    (:mod:`chic_register.verify_pose`: envelope, every predicted section
+    present with its shape, nothing unexplained on the tubes' circle, pixel
+    spacing, no rival that explains the pixels nearly as well, and a
+    predicted error (3 sigma) within ``trust_tre_mm`` at the frame centre and
+    ``trust_rot_deg``; when only that last test fails in the fast mode and
+    ``refine_when_imprecise``, the accuracy mode's refinement is tried before
+    refusing); off only for
+    studies of the raw fit.
     ``uncertainty``: compute the pose's covariance and predicted TRE
     (:mod:`~chic_register.uncertainty`; a few ms per slice; always when
     ``max_tre_mm`` is finite); ``max_tre_mm``: a pose whose predicted TRE at
@@ -780,6 +876,16 @@ class SolveOptions:
     centroid_min_purity: float = 0.93
     template_iterations: int = 1
     template_max_disagreement_px: float = 0.5
+    section_fit: bool = True
+    section_iterations: int = 5
+    section_close_px: float = 0.2
+    section_done_px: float = 0.05
+    section_thickness_samples: int = 5
+    section_max_shift_px: float = 1.0
+    verify: bool = True
+    trust_tre_mm: float = 0.5
+    trust_rot_deg: float = 0.5
+    refine_when_imprecise: bool = True
     max_tre_mm: float = math.inf
     uncertainty: bool = True
     prior: np.ndarray | None = None
@@ -844,7 +950,7 @@ def _solve_one(model: TubeModel, xy: np.ndarray, S: np.ndarray, opts: SolveOptio
     limit = opts.max_rms_px * pixel_mm
     fits, ell = [], None
     if ellipse_layout(model):
-        radius = float(np.median(model.axis_radius_mm))
+        radius = median(model.axis_radius_mm)
         ell_fit = fit_ellipse_robust(xy, radius, max_tilt_deg=opts.max_tilt_deg,
                                      tol_mm=max(0.08 * radius, 1.5 * pixel_mm))
         if ell_fit is not None:
@@ -995,7 +1101,7 @@ def register(slices: list[Slice], geom: FiducialGeometry, *, options: SolveOptio
         raise NoLock("no slices given")
     t0 = time.perf_counter()
     model, geom_sha = prepare_geometry(geom)
-    d_mm = float(np.median(model.diameter_mm))
+    d_mm = median(model.diameter_mm)
     blob_sets, xys = [], []
     for sl in slices:
         b = detect_blobs(sl.pixels, sl.pixel_spacing_mm, d_mm, **(detect_options or {}))
@@ -1003,7 +1109,7 @@ def register(slices: list[Slice], geom: FiducialGeometry, *, options: SolveOptio
         xys.append(_to_xy_mm(b, sl))
     t1 = time.perf_counter()
     Ss = [sl.T_scanner_from_image() for sl in slices]
-    per_slice = []
+    per_slice, rivals = [], []
     for sl, xy, S in zip(slices, xys, Ss):
         try:
             fits, ell = _solve_one(model, xy, S, opts, _pixel_mm(sl))
@@ -1013,6 +1119,7 @@ def register(slices: list[Slice], geom: FiducialGeometry, *, options: SolveOptio
                 raise NoLock(f"{sl.source}: {exc.reason}", exc.detail) from None
             raise
         per_slice.append((fits[0], ell))
+        rivals.append(fits[1:])
     if len(slices) == 1:
         best = per_slice[0][0]
     else:
@@ -1023,6 +1130,14 @@ def register(slices: list[Slice], geom: FiducialGeometry, *, options: SolveOptio
         if best.n_matched < sum(f.n_matched for f, _ in per_slice):
             raise NoLock("the slices disagree: the joint pose matches fewer tubes than the slices alone",
                          {"n_tubes": best.n_matched})
+    locked = best  # the pose fitted to the blob centres
+    if opts.section_fit and not opts.centroid_model:
+        fine = _section_refine(model, best, xys, Ss, slices, blob_sets, opts)
+        _check_trust(fine, [], model, slices, opts, Ss)
+        if _distinct(fine.T_F_from_scanner, best.T_F_from_scanner, model):
+            raise NoLock("the section fit moved the pose by more than 1 mm or 1 degree: the fit is not stable",
+                         {"n_tubes": fine.n_matched})
+        best = fine
     if opts.centroid_model:
         corrected = _centroid_refine(model, geom.tubes, best, xys, Ss, slices, blob_sets, opts)
         _check_trust(corrected, [], model, slices, opts, Ss)  # only ever stricter: the lock was checked above
@@ -1030,6 +1145,35 @@ def register(slices: list[Slice], geom: FiducialGeometry, *, options: SolveOptio
             raise NoLock("the centroid model moved the pose by more than 1 mm or 1 degree: the fit is not stable",
                          {"n_tubes": corrected.n_matched})
         best = corrected
+    checks = None
+    if opts.verify:  # the last word: the pose proved against the pixels (chic_register.verify_pose)
+        from .verify_pose import verify_fit
+
+        try:
+            checks = verify_fit(geom, model, best, rivals, slices, Ss, blob_sets, opts)
+        except ImprecisePose:
+            if opts.centroid_model or not opts.refine_when_imprecise:
+                raise
+            checks = None
+            if best is not locked:
+                # the precision test estimates the noise from the residual scatter, unweighted: the section fit's
+                # residuals along elongated sections make it pessimistic, so the centroid fit is judged as it is
+                # without the section fit (never a refusal the centroid-only solver would not make)
+                try:
+                    checks = verify_fit(geom, model, locked, rivals, slices, Ss, blob_sets, opts)
+                    best = locked
+                except ImprecisePose:
+                    pass
+        if checks is None:
+            # verified but not precise enough from the centroids: fit the sections themselves (the accuracy
+            # mode), then decide on that
+            accurate = _centroid_refine(model, geom.tubes, locked, xys, Ss, slices, blob_sets, opts)
+            _check_trust(accurate, [], model, slices, opts, Ss)
+            if _distinct(accurate.T_F_from_scanner, best.T_F_from_scanner, model):
+                raise NoLock("the accuracy refinement moved the pose by more than 1 mm or 1 degree: the fit is "
+                             "not stable", {"n_tubes": accurate.n_matched}) from None
+            best = accurate
+            checks = verify_fit(geom, model, best, rivals, slices, Ss, blob_sets, opts)
     t2 = time.perf_counter()
     T_sf = invert(best.T_F_from_scanner)
     results = []
@@ -1052,6 +1196,7 @@ def register(slices: list[Slice], geom: FiducialGeometry, *, options: SolveOptio
             predicted_rc={model.ids[i]: (float(q[i, 1] / px[0]), float(q[i, 0] / px[1]))
                           for i in np.flatnonzero(inside)},
             ellipse=per_slice[j][1],
+            missing_tubes=checks[j].missing if checks else (),
         ))
     t3 = time.perf_counter()
     unc = None

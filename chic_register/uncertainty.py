@@ -326,16 +326,19 @@ def detection_diameter_mm(blobs, model) -> float:
 def registration_uncertainty(model, fit, xys, Ss, slices, blob_sets, target_F_mm,
                              measurement: str = "centroid") -> PoseUncertainty:
     """The covariance of a solver fit (``chic_register.solve``): its Jacobian at the solution, the measured
-    centres' covariances from each slice's pixels and background noise, and the residuals' check.
+    positions' covariances, and the residuals' check.
 
-    ``fit`` holds ``T_F_from_scanner`` and per-slice ``assignments`` (tube -> blob index or -1); ``xys``
-    the measured centres (image mm) per slice, ``Ss`` the slices' ``T_scanner_from_image``.
+    ``fit`` holds ``T_F_from_scanner``, per-slice ``assignments`` (tube -> blob index or -1) and, when its
+    positions were not the blob centroids, ``measurements``: per slice (positions (N, 2) mm, square-root
+    information ``L`` (K, 2, 2) the fit was weighted by, the noise sigma ``L`` assumed); ``xys`` the blob
+    centroids (image mm) per slice, ``Ss`` the slices' ``T_scanner_from_image``.
     """
     from .pose import invert
     from .solve import _adjoint, _crossing_jacobian, plane_crossings
 
     X = fit.T_F_from_scanner
     Ad_sf = _adjoint(invert(X))
+    meas = getattr(fit, "measurements", None)
     Js, rs, blocks, noises = [], [], [], []
     for j, (sl, S, b) in enumerate(zip(slices, Ss, blob_sets)):
         noise = background_noise(sl.pixels, b.footprints)
@@ -346,7 +349,17 @@ def registration_uncertainty(model, fit, xys, Ss, slices, blob_sets, target_F_mm
         if k.size == 0:
             continue
         J_s = _crossing_jacobian(q[k], tan[k]) @ _adjoint(invert(S))  # d/d(xi) of X @ exp(xi), xi in the scanner
-        Js.append((-J_s @ Ad_sf).reshape(-1, 6))  # the same motion as delta in F: xi = -Ad(T_sf) delta
+        J_F = -J_s @ Ad_sf  # the same motion as delta in F: xi = -Ad(T_sf) delta
+        if meas is not None:  # an information-weighted fit of fitted section positions (the default mode)
+            xy, L, sigma_used = meas[j]
+            Lk = L[k]
+            Js.append(np.einsum("kij,kjl->kil", Lk, J_F).reshape(-1, 6))
+            rs.append(np.einsum("kij,kj->ki", Lk, q[k] - xy[a[k]]).ravel())
+            # L whitens the positions for the noise sigma it assumed; the image's own sigma rescales that
+            scale = (noise.sigma / sigma_used) ** 2 if sigma_used > 0 else 1.0
+            blocks += [scale * np.eye(2)] * k.size
+            continue
+        Js.append(J_F.reshape(-1, 6))
         rs.append((q[k] - xys[j][a[k]]).ravel())
         jitter = mask_jitter_covariances(sl.pixels, b.footprints, a[k], b.threshold, noise, sl.pixel_spacing_mm,
                                          detection_diameter_mm(b, model), background=b.background, seed=j)
@@ -359,4 +372,5 @@ def registration_uncertainty(model, fit, xys, Ss, slices, blob_sets, target_F_mm
     S = np.zeros((J.shape[0], J.shape[0]))
     for n, B in enumerate(blocks):
         S[2 * n:2 * n + 2, 2 * n:2 * n + 2] = B
-    return pose_uncertainty(J, S, np.concatenate(rs), noises, target_F_mm, measurement)
+    return pose_uncertainty(J, S, np.concatenate(rs), noises, target_F_mm,
+                            "section fit" if meas is not None else measurement)

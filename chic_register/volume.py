@@ -19,13 +19,16 @@ import shutil
 import tempfile
 from dataclasses import dataclass, field
 from pathlib import Path
+from typing import TYPE_CHECKING
 
 import numpy as np
-import SimpleITK as sitk
 
 from .atomic import atomic_path
 from .errors import ChicRegisterError, ImageReadError, InputFileError
 from .slices import Slice
+
+if TYPE_CHECKING:  # annotations only: SimpleITK is imported where it is used
+    import SimpleITK as sitk
 
 MAX_VOXELS = 2**26  # 64 M voxels (512 x 512 x 256): 256 MiB as float32, read and copied once
 FILE_SUFFIXES = (".nii", ".nii.gz", ".nrrd", ".nhdr", ".mha", ".mhd")
@@ -110,6 +113,8 @@ class Volume:
         )
 
     def to_sitk(self) -> sitk.Image:
+        import SimpleITK as sitk  # (imported where used: a one-slice DICOM solve never needs it)
+
         img = sitk.GetImageFromArray(np.ascontiguousarray(self.voxels))
         img.SetSpacing(self.spacing_mm)
         img.SetOrigin(tuple(self.origin_mm))
@@ -119,6 +124,8 @@ class Volume:
 
 def volume_from_sitk(img: sitk.Image, source: str = "<sitk>") -> Volume:
     """A :class:`Volume` from a 3-D scalar SimpleITK image."""
+    import SimpleITK as sitk
+
     if img.GetDimension() != 3:
         raise ImageReadError(source, f"expected a 3-D volume, got {img.GetDimension()}-D")
     if img.GetNumberOfComponentsPerPixel() != 1:
@@ -163,6 +170,8 @@ def read_volume(path, series_id: str | None = None) -> Volume:
     or non-3-D input, or a folder with no or several DICOM series (pass
     ``series_id`` to pick one).
     """
+    import SimpleITK as sitk
+
     path = Path(path)
     if not path.exists():
         raise ImageReadError(path, "no such file or folder")
@@ -300,6 +309,8 @@ def write_volume(volume: Volume, path) -> Path:
     path.parent.mkdir(parents=True, exist_ok=True)
     suffix = _suffix(path)
     if suffix in WRITE_SUFFIXES:
+        import SimpleITK as sitk
+
         try:
             with atomic_path(path, suffix=suffix) as tmp:
                 sitk.WriteImage(volume.to_sitk(), str(tmp))
@@ -375,6 +386,7 @@ def simulate_volume(
     rng=None,
     supersample: int = 3,
     thickness_samples: int = 3,
+    blob_width: float = 1.0,
 ) -> SimulatedVolume:
     """A synthetic MRI volume of ``geom`` at a known pose.
 
@@ -385,7 +397,8 @@ def simulate_volume(
     noise as in :mod:`chic_register.simulate` (``"none"``, ``"uniform"``
     amplitude ``noise_level`` x signal, ``"rician"`` at ``snr``).
     Default placement: ``direction`` identity and the volume centre at the
-    scanner origin.
+    scanner origin. ``blob_width`` widens every blob in each k-plane as
+    :func:`chic_register.blob_width.render_tubes_widened` does.
     """
     from . import simulate
 
@@ -410,9 +423,9 @@ def simulate_volume(
     voxels = np.empty((nz, ny, nx))
     for k in range(nz):
         T_F_from_S = T_fs @ plane_frame(grid, k)
-        voxels[k] = simulate.render_slice(
-            geom, T_F_from_S, (ny, nx), (sj, si), sk, center_px=(0.0, 0.0),
-            supersample=supersample, thickness_samples=thickness_samples,
+        voxels[k] = simulate.render_tubes_widened(
+            geom.tubes, T_F_from_S, (ny, nx), (sj, si), sk, center_px=(0.0, 0.0),
+            supersample=supersample, thickness_samples=thickness_samples, blob_width=blob_width,
         )
     if noise == "uniform":
         voxels = simulate.add_uniform_noise(voxels, noise_level, rng)
@@ -427,5 +440,6 @@ def simulate_volume(
         "snr": float(snr) if noise == "rician" else None,
         "supersample": int(supersample),
         "thickness_samples": int(thickness_samples),
+        "blob_width": float(blob_width),
     }
     return SimulatedVolume(vol, T_sf, settings)

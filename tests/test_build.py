@@ -287,7 +287,7 @@ def test_skirts_that_would_meet_are_refused_even_with_force(tmp_path):
     bad = tmp_path / "long-skirt.yaml"
     bad.write_text(NEURO.read_text().replace("skirt_height: 4.0", "skirt_height: 30.0"))
     with pytest.raises(InfeasibleDesign, match="caps_meet .caps.skirt_height.") as err:
-        build_design(bad, out_root=tmp_path / "exports", force=True, progress=False)
+        build_design(bad, out_root=tmp_path / "exports", force=True, progress=False, pictures_in_worker=False)
     assert "--force cannot" in str(err.value)
     assert not (tmp_path / "exports" / "neuro").exists()
     assert not any((tmp_path / "exports").iterdir())

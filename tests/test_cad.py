@@ -56,9 +56,11 @@ def test_centreline_edge_follows_the_geometry_object(neuro_geometry, which):
 
 def test_extended_tube_is_the_same_curve_continued(neuro_geometry):
     h = neuro_geometry.tube("H1")
-    e = extended_tube(h, 3.0)
-    assert (e.z0, e.z1) == (h.z0 - 3.0, h.z1 + 3.0)
-    z = np.linspace(-3, 53, 9)
+    e = extended_tube(h, 3.0)  # 3 mm of arc length: dz = 3 / sqrt(1 + (r omega)^2) at each end
+    dz = 3.0 / math.hypot(1.0, 12.5 * math.radians(h.pitch_deg_per_mm))
+    assert (e.z0, e.z1) == pytest.approx((h.z0 - dz, h.z1 + dz))
+    assert e.length_mm == pytest.approx(h.length_mm + 6.0)
+    z = np.linspace(-2.8, 52.8, 9)
     assert np.allclose(e.point_at_z(z), h.point_at_z(z))
     d = neuro_geometry.tube("D2")
     ed = extended_tube(d, 2.0)

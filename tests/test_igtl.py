@@ -235,8 +235,10 @@ def test_cli_solve_listen_mode_serves_the_pose_to_a_peer(tmp_path, neuro_geometr
     th.start()
     assert main(["solve", str(img), "--geometry", str(neuro_geometry_file), "--igtl-listen", str(port)]) == 0
     th.join(10)
-    out = capsys.readouterr().out
+    cap = capsys.readouterr()
+    out = cap.out
     assert "status: ok" in out and f"OpenIGTLink server on port {port} (1 peer)" in out
+    assert f"OpenIGTLink server listening on port {port}" in cap.err
     names = [m.device_name for m in got]
     assert names == ["CHIC", "CHICToRAS", "CHICQuality", "CHIC"] and got[-1].message_type == "STATUS"
     np.testing.assert_allclose(got[1].matrix, ras_matrix(sim.truth.T_scanner_from_fiducial), atol=0.05)

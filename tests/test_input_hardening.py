@@ -87,7 +87,7 @@ def test_a_50_mb_spec_and_a_fifo_are_refused_before_reading(tmp_path, capsys):
         fh.write(NEURO_TEXT.encode())
         fh.truncate(50 * 2**20)
     assert design_main(["check", str(big)]) == 2
-    assert "a spec file is at most 1048576 bytes" in _one_line_error(capsys, "chic-design: error: ")
+    assert "a spec file is at most 262144 bytes" in _one_line_error(capsys, "chic-design: error: ")
     fifo = tmp_path / "fifo.yaml"
     os.mkfifo(fifo)
     assert design_main(["build", str(fifo), "--out", str(tmp_path / "out")]) == 2
@@ -221,7 +221,7 @@ def test_tiny_pixel_spacing_flag_and_fifo_image_exit_2(tmp_path, capsys, neuro_g
     os.mkfifo(fifo)
     t0 = time.monotonic()
     assert register_main(["solve", str(fifo), "--geometry", str(neuro_geometry_file)]) == 2
-    assert "is a FIFO (named pipe), not a image file" in _one_line_error(capsys, "chic-register: error: ")
+    assert "is a FIFO (named pipe), not an image file" in _one_line_error(capsys, "chic-register: error: ")
     assert time.monotonic() - t0 < 10
     os.mkfifo(tmp_path / "v.nii")
     assert register_main(["solve", str(tmp_path / "v.nii"), "--geometry", str(neuro_geometry_file),

@@ -28,7 +28,7 @@ SMALL_START = {"od_halfmm": 32, "length_mm": 28, "channel_tenthmm": 16, "circle_
 
 
 def _data(path=SMALL) -> dict:
-    return yaml.safe_load(Path(path).read_text())
+    return yaml.safe_load(Path(path).read_text(encoding="utf-8"))
 
 
 # ----------------------------------------------------------------------------- requirements
@@ -157,3 +157,31 @@ def test_dask_local_cluster_gives_the_same_pareto_set(serial_run):
     assert res.evaluated == ref.evaluated and res.engine == "dask"
     assert [c["key"] for c in res.candidates] == [c["key"] for c in ref.candidates]
     assert [(p["key"], p["objectives"]) for p in res.pareto] == [(p["key"], p["objectives"]) for p in ref.pareto]
+
+
+def test_write_spec_refuses_an_invalid_spec(tmp_path):
+    from chic_design.errors import SpecError
+    from chic_design.optimize.report import write_spec
+
+    req = load_requirements(SMALL)
+    good = space.spec_dict(SMALL_START, req, "ok")
+    write_spec(good, tmp_path / "ok.yaml")
+    assert load_spec(tmp_path / "ok.yaml").body.outer_diameter == 16.0
+    bad = {**good, "channels": {"diameter": 5.0, "circle_diameter": 12.0}}  # does not fit in the wall
+    with pytest.raises(SpecError):
+        write_spec(bad, tmp_path / "bad.yaml")
+    assert not (tmp_path / "bad.yaml").exists()
+
+
+def test_impossible_requirements_write_no_design(tmp_path, capsys):
+    d = _data()
+    d["required"]["tilt_deg"] = [0, 75]  # no CHIC body of this size registers at 75 deg
+    d["search"].pop("baseline")
+    p = tmp_path / "req.yaml"
+    p.write_text(yaml.safe_dump(d))
+    out = tmp_path / "o"
+    assert main(["optimize", str(p), "--out", str(out), "--trials", "4", "--workers", "1", "--quiet"]) == 4
+    err = capsys.readouterr().err.strip()
+    assert "none of 4 candidates meets every requirement" in err and "\n" not in err
+    assert (out / "candidates.sqlite").is_file()
+    assert not (out / "specs").exists() and not (out / "report.md").exists()

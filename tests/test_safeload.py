@@ -81,7 +81,7 @@ def test_only_small_regular_files_are_read(tmp_path):
         load_yaml_file(tmp_path / "missing.yaml", "spec file")
     big = tmp_path / "big.yaml"
     big.write_bytes(b"a: 1\n" + b"# " + b"x" * (2 << 20) + b"\n")
-    with pytest.raises(InputFileError, match="is 2097160 bytes; a spec file is at most 1048576 bytes"):
+    with pytest.raises(InputFileError, match="is 2097160 bytes; a spec file is at most 262144 bytes"):
         load_yaml_file(big, "spec file")
     latin = tmp_path / "latin.yaml"
     latin.write_bytes(b"name: caf\xe9\n")
@@ -96,3 +96,10 @@ def test_geometry_files_written_by_the_dumper_read_back_identically(tmp_path, ne
     path.write_text(geometry_to_yaml(neuro_geometry))
     again = load_geometry(path)
     assert again.to_dict() == neuro_geometry.to_dict()
+
+
+def test_a_document_with_too_many_values_is_refused_while_parsing():
+    t0 = time.process_time()
+    with pytest.raises(InputFileError, match="holds more than 20000 values"):
+        load_yaml_text("a: [" + ",".join(["1"] * 100_000) + "]")
+    assert time.process_time() - t0 < 5.0

@@ -19,7 +19,7 @@ import pytest
 from chic_register.igtl import pose_messages, read_message
 from chic_register.pose import rigid, rot_y, rot_z
 from chic_register.stl import write_stl
-from chic_register.transforms import LPS_TO_RAS, write_tfm
+from chic_register.transforms import LPS_TO_RAS, slicer_matrix, write_tfm
 
 ROOT = Path(__file__).resolve().parents[1]
 PROBE = ROOT / "tests" / "slicer_probe.py"
@@ -87,6 +87,9 @@ def test_model_lands_on_the_fiducial_under_the_tfm_and_under_the_igtl_transform(
     got = run_probe(tmp_path, {"mode": "model", "stl": str(stl), "tfm": str(tfm),
                                "matrices": {"CHIC": chic.matrix.tolist(), "CHICToRAS": to_ras.matrix.tolist()}})
     truth = truth_ras(T, p_F)
+    # the .tfm becomes in Slicer exactly the matrix the OpenIGTLink CHIC message carries
+    np.testing.assert_allclose(got["tfm_to_parent"], slicer_matrix(T), atol=1e-9)
+    np.testing.assert_allclose(chic.matrix, got["tfm_to_parent"], atol=1e-4)  # float32 on the wire
     # Slicer reads the SPACE=LPS model as F-as-LPS: local RAS = diag(-1,-1,1) p_F
     np.testing.assert_allclose(got["local"], p_F * [-1, -1, 1], atol=1e-5)
     assert np.max(np.linalg.norm(np.array(got["tfm"]) - truth, axis=1)) < 0.01

@@ -95,3 +95,14 @@ def test_a_spec_given_as_geometry_gets_a_hint(capsys, tmp_path):
                  "--pixel-spacing", "1", "1"]) == 2
     err = capsys.readouterr().err
     assert "looks like a design spec" in err and "chic-design build" in err and "None" not in err
+
+
+@pytest.mark.parametrize("module, argv", [("chic_register.cli", ["solve", "--help"]),
+                                          ("chic_design.cli", ["check", "--help"])])
+def test_help_points_at_the_projects_own_interface_document(module, argv, capsys):
+    import importlib
+
+    with pytest.raises(SystemExit):
+        importlib.import_module(module).main(argv)
+    out = capsys.readouterr().out
+    assert "docs/interfaces.md" in out and "CONTRACT.md" not in out

@@ -126,13 +126,17 @@ def _check(reg, sim, depth_tol=0.1, angle_tol=0.3, point_tol=0.3):
     assert np.abs(d).max() < point_tol
 
 
+# these tests check the fit's accuracy against their own tolerances, also at poses whose single-slice precision
+# the solver cannot prove to 0.5 mm / 0.5 deg (a normal section's tilt): the precision refusal is lifted, every
+# other check of the pose (chic_register.verify_pose) still applies
+ACCURACY_TEST = {"trust_tre_mm": math.inf, "trust_rot_deg": math.inf}
 NEURO_POSES = [(25, 0, 0, 0), (10, 30, 45, 20), (40, 20, 200, -70), (25, 50, 120, 10), (30, 0, 0, 90)]
 
 
 @pytest.mark.parametrize("pose", NEURO_POSES)
 def test_simulate_then_register_neuro(neuro_geometry, pose):
     sim = simulate_slice(neuro_geometry, *pose, slice_thickness_mm=2.0, noise="uniform", noise_level=0.1, rng=7)
-    reg = register([sim.slice], neuro_geometry)
+    reg = register([sim.slice], neuro_geometry, **ACCURACY_TEST)
     _check(reg, sim)
     assert reg.slices[0].n_tubes == 9
     assert set(reg.slices[0].residuals_mm) == set(neuro_geometry.ids)
@@ -142,7 +146,7 @@ def test_simulate_then_register_neuro(neuro_geometry, pose):
 def test_simulate_then_register_needle_guide(needle_geometry, pose):
     sim = simulate_slice(needle_geometry, *pose, pixel_spacing_mm=(0.3, 0.3), slice_thickness_mm=1.5,
                          noise="rician", snr=25.0, rng=11)
-    reg = register([sim.slice], needle_geometry)
+    reg = register([sim.slice], needle_geometry, **ACCURACY_TEST)
     _check(reg, sim, depth_tol=0.15)
 
 
@@ -169,7 +173,7 @@ def test_a_missing_orientation_marker_never_gives_a_wrong_pose(neuro_geometry):
     try:
         reg = register([sim.slice], neuro_geometry)
     except NoLock as exc:
-        assert "ambiguous" in exc.reason or "matched" in exc.reason
+        assert "ambiguous" in exc.reason or "matched" in exc.reason or "precise" in exc.reason
     else:
         _check(reg, sim)
 
@@ -350,13 +354,16 @@ def test_centroid_model_removes_the_bias_of_steep_sections(neuro_geometry, pose)
     sim = simulate_slice(neuro_geometry, *pose, slice_thickness_mm=2.0)  # noise-free: any error is a bias
     T_true = invert(sim.truth.T_scanner_from_fiducial) @ sim.slice.T_scanner_from_image()
     errs = {}
-    for on in (False, True):
-        reg = register([sim.slice], neuro_geometry, centroid_model=on)
+    # centreline crossings against blob centroids (section fit off), the centroid model, the default section fit
+    for mode, kw in (("centroids", {"section_fit": False}), ("centroid_model", {"centroid_model": True}),
+                     ("default", {})):
+        reg = register([sim.slice], neuro_geometry, verify=False, **kw)  # the raw fits compared
         T = invert(reg.T_scanner_from_fiducial) @ sim.slice.T_scanner_from_image()
         normal = math.degrees(math.acos(min(1.0, abs(float(T[:3, 2] @ T_true[:3, 2])))))
-        errs[on] = (abs(reg.slices[0].depth_mm - sim.truth.angles.depth_mm), normal)
-    assert errs[True][0] < 0.01 and errs[True][1] < 0.05, errs
-    assert errs[False][0] > 2 * errs[True][0] or errs[False][1] > 2 * errs[True][1], errs  # the model did it
+        errs[mode] = (abs(reg.slices[0].depth_mm - sim.truth.angles.depth_mm), normal)
+    for mode in ("centroid_model", "default"):
+        assert errs[mode][0] < 0.01 and errs[mode][1] < 0.05, errs
+        assert errs["centroids"][0] > 2 * errs[mode][0] or errs["centroids"][1] > 2 * errs[mode][1], errs
 
 
 # ----------------------------------------------------------------------------- template fit (precision)
@@ -427,7 +434,8 @@ def test_template_fit_lowers_the_twist_scatter(neuro_geometry):
         sim = simulate_slice(neuro_geometry, 25, 0, 0, twist, slice_thickness_mm=0.0, noise="uniform",
                              noise_level=0.05, rng=rng)
         for it in (0, 1):
-            reg = register([sim.slice], neuro_geometry, centroid_model=True, template_iterations=it)
+            reg = register([sim.slice], neuro_geometry, centroid_model=True, template_iterations=it,
+                           **ACCURACY_TEST)
             errs[it].append(wrap_deg(reg.slices[0].twist_deg - twist))
     sd0, sd1 = float(np.std(errs[0])), float(np.std(errs[1]))
     assert sd1 < 0.85 * sd0, (sd1, sd0)

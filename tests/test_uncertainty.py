@@ -10,12 +10,14 @@ from chic_register.calibration import run_calibration, z001_geometry
 from chic_register.cli import main
 
 
-POSES = [(25.0, 0.0, 0.0, 0.0), (22.0, 15.0, 30.0, 10.0), (30.0, 30.0, 100.0, 40.0), (15.0, 20.0, 200.0, 5.0)]
+# tilted poses: the verification refuses single slices near tilt 0 of neuro as too imprecise to trust
+POSES = [(35.0, 25.0, 300.0, 20.0), (22.0, 15.0, 30.0, 10.0), (30.0, 30.0, 100.0, 40.0), (15.0, 20.0, 200.0, 5.0)]
 
 
 def check(cal):
-    """Mahalanobis mean 6 +- 10 % (chi-square, 6 DOF) and predicted TRE SD within 20 % of the measured."""
-    assert cal.n_no_lock == 0 and cal.mahalanobis2.size == 200
+    """Mahalanobis mean 6 +- 10 % (chi-square, 6 DOF) and predicted TRE SD within 20 % of the measured, over the
+    poses reported ok (the verification may refuse a few draws as too imprecise to trust)."""
+    assert cal.n_no_lock <= 10 and cal.mahalanobis2.size + cal.n_no_lock == 200
     assert cal.mahalanobis_mean == pytest.approx(6.0, rel=0.10), cal.mahalanobis_mean
     assert cal.tre_ratio == pytest.approx(1.0, abs=0.20), cal.tre_ratio
 

@@ -25,8 +25,9 @@ from . import space
 from .choose import compare, ideal_distances, knee_order, weakly_dominating
 from .confirm import confirm_design
 from .engine import make_engine
-from .errors import NoFeasibleDesign
-from .report import report_markdown, table_row, write_csv, write_spec
+from .errors import NoFeasibleDesign, RequirementsError
+from .report import confirmed_verdict, report_markdown, table_row, write_csv, write_spec
+from .precision import method as precision_method
 from .requirements import Requirements, baseline_path, load_requirements
 from .score import dominates, score_spec
 from .search import SearchResult, run_search
@@ -60,6 +61,9 @@ class OptimizeResult:
             lines.append(f"{bn} is at least as good as the baseline on every objective: {diffs}")
         elif self.baseline is not None:
             lines.append("no Pareto design is at least as good as the baseline on every objective")
+        for n, c in self.confirmed.items():
+            lines.append(f"simulation: {n}: {c['slices'] - c['no_lock']}/{c['slices']} slices registered; "
+                         f"confirmed: {confirmed_verdict(c)}")
         lines.append(f"report: {self.out_dir / 'report.md'}")
         return "\n".join(lines)
 
@@ -88,13 +92,22 @@ def _chosen_pictures(req: Requirements, name: str, result: dict, folder: Path) -
     from .precision import protocol_of
 
     t1 = req.required.tilt_deg[1]
-    tilts = sorted({0.0, round(t1 / 2, 1), float(t1), round(1.5 * t1, 1)}) if t1 > 0 else [0.0, 10.0, 20.0]
+    tilts = sorted({0.0, float(t1), round(1.5 * t1, 1)}) if t1 > 0 else [0.0, 10.0, 20.0]
     L = spec.body.length
-    pmap = precision_map(geom, protocol_of(req), depths_mm=[round(L * f, 1) for f in (0.1, 0.25, 0.4, 0.55, 0.7, 0.85)],
+    pmap = precision_map(geom, protocol_of(req), depths_mm=[round(L * f, 1) for f in (0.1, 0.3, 0.5, 0.7, 0.9)],
                          tilts_deg=tilts, target_F_mm=req.required.target_mm)
     write_json(folder / "precision_map.json", pmap.to_dict())
     save_precision_map(pmap, report.tilt_limits, folder / "precision_map.png",
                        f"{name}: predicted TRE at {list(req.required.target_mm)} mm (CRLB)")
+
+
+def _beats_baseline(named, baseline):
+    """The first design in choice order better than the baseline somewhere and worse nowhere; else an equal one."""
+    if baseline is None or not baseline["feasible"]:
+        return None
+    strict = [(n, r) for n, r in named if dominates(r["objectives"], baseline["objectives"])]
+    equal = [(n, r) for n, r in named if weakly_dominating([r], baseline)]
+    return (strict or equal or [None])[0]
 
 
 def optimize(req_path, out_dir=None, trials: int | None = None, seed: int = 0, scheduler: str | None = None,
@@ -109,8 +122,12 @@ def optimize(req_path, out_dir=None, trials: int | None = None, seed: int = 0, s
     baseline, start = None, None
     if bpath is not None:
         bspec = load_spec(bpath)
-        baseline = score_spec(bspec, req, None)
+        if getattr(bspec, "family", "chic") != "chic":
+            raise RequirementsError(f"{req_path}: search.baseline: {bpath} is a {bspec.family} design; the "
+                                    "optimiser searches CHIC designs, so the baseline must be one")
+        baseline = score_spec(bspec, req, bspec.model_dump())
         start = space.params_from_spec(bspec, req)
+    start = start if start is not None else space.default_start(req)
     engine = make_engine(scheduler, workers)
     try:
         with ResultStore(out / "candidates.sqlite") as store:
@@ -123,7 +140,12 @@ def optimize(req_path, out_dir=None, trials: int | None = None, seed: int = 0, s
         for rank, i in enumerate(order, 1):
             nm = f"{req.name}-p{rank:02d}"
             named.append((nm, {**front[i], "spec": {**front[i]["spec"], "name": nm}}))
+        beats = _beats_baseline(named, baseline)
         finalists = named[:n_confirm]
+        if n_confirm and beats is not None and beats not in finalists:
+            finalists.append(beats)
+        if n_confirm and baseline is not None and baseline["feasible"]:
+            finalists.append(("baseline", baseline))
         jobs = [(r["spec"], req.model_dump(), req.search.confirm_draws, seed) for _, r in finalists]
         confirmed = {}
         if jobs:
@@ -131,13 +153,6 @@ def optimize(req_path, out_dir=None, trials: int | None = None, seed: int = 0, s
                 confirmed[finalists[i][0]] = res
     finally:
         engine.close()
-    beats = None
-    if baseline is not None and baseline["feasible"]:
-        # the first design in choice order that beats the baseline (better somewhere, worse nowhere);
-        # else one that equals it
-        strict = [(n, r) for n, r in named if dominates(r["objectives"], baseline["objectives"])]
-        equal = [(n, r) for n, r in named if r in weakly_dominating([r], baseline)]
-        beats = (strict or equal or [None])[0]
     specs = out / "specs"
     specs.mkdir(parents=True, exist_ok=True)
     wanted = {f"{n}.yaml" for n, _ in named}
@@ -155,8 +170,10 @@ def optimize(req_path, out_dir=None, trials: int | None = None, seed: int = 0, s
     dist = [float(d) for d in ideal_distances([r for _, r in named])]
     ctx = {"req": req, "req_path": str(req_path), "search": search, "named": named, "rows": rows,
            "baseline": baseline, "baseline_path": str(bpath) if bpath else None, "beats_baseline": beats,
+           "all_beating": [(n, r) for n, r in named if baseline is not None and baseline["feasible"]
+                           and dominates(r["objectives"], baseline["objectives"])],
            "confirmed": confirmed, "confirm_named": finalists, "pictures": pictures, "distances": dist,
-           "precision_method": named[0][1]["precision"]["method"]}
+           "precision_method": precision_method(req)}
     write_text(out / "report.md", report_markdown(ctx))
     result = OptimizeResult(out, search, tuple(named), baseline, beats, confirmed)
     write_json(out / "result.json", {

@@ -43,6 +43,16 @@ def protocol_of(req: Requirements):
                     n_slices=im.n_slices, slice_spacing_mm=spacing)
 
 
+def method(req: Requirements) -> str:
+    """How the third objective was computed, in words (for the report)."""
+    poses = sample_poses(req)
+    depths = sorted({z for z, _, _ in poses})
+    tilts = sorted({t for _, t, _ in poses})
+    return (f"Cramér-Rao bound (chic_register.crlb, renderer quality '{QUALITY}'), worst TRE over {len(poses)} "
+            f"poses: depths {', '.join(f'{z:g}' for z in depths)} mm x tilts {', '.join(f'{t:g}' for t in tilts)} "
+            f"deg (tilted ones at azimuths {', '.join(f'{a:g}' for a in AZIMUTHS_DEG)} deg), twist 0")
+
+
 def predicted_precision(geom: FiducialGeometry, req: Requirements) -> dict:
     """Worst case over :func:`sample_poses` of the bound's SDs and TRE at the target (mm, deg)."""
     from chic_register.crlb import pose_crlb

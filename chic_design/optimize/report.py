@@ -66,7 +66,7 @@ def _cmp_lines(cmp: list[dict], a_name: str, b_name: str) -> list[str]:
 def confirm_lines(named: list[tuple[str, dict]], confirmed: dict) -> list[str]:
     out = ["| design | slices | no-lock | depth RMS / max (mm) | predicted depth SD (mm) | "
            "normal RMS / max (deg) | predicted normal SD (deg) | twist RMS / max (deg) | "
-           "predicted twist SD (deg) |", "|---|---|---|---|---|---|---|---|---|"]
+           "predicted twist SD (deg) | confirmed |", "|---|---|---|---|---|---|---|---|---|---|"]
     f = lambda v: "-" if v is None else f"{v:.3f}"  # noqa: E731
     for name, r in named:
         c = confirmed.get(name)
@@ -76,8 +76,18 @@ def confirm_lines(named: list[tuple[str, dict]], confirmed: dict) -> list[str]:
         out.append(f"| {name} | {c['slices']} | {c['no_lock']} | {f(c['depth_rms_mm'])} / {f(c['depth_max_mm'])} | "
                    f"{f(p['sd_depth_mm'])} | {f(c['normal_rms_deg'])} / {f(c['normal_max_deg'])} | "
                    f"{f(p['sd_normal_deg'])} | {f(c['twist_rms_deg'])} / {f(c['twist_max_deg'])} | "
-                   f"{f(p['sd_twist_deg'])} |")
+                   f"{f(p['sd_twist_deg'])} | {confirmed_verdict(c)} |")
     return out
+
+
+#: Largest share of simulated slices the solver may refuse for a design to count as confirmed.
+MAX_NO_LOCK_SHARE = 0.1
+
+
+def confirmed_verdict(c: dict) -> str:
+    """'yes' when the solver locked at least 90 % of the simulated slices, else 'NO' with the share refused."""
+    share = c["no_lock"] / c["slices"] if c["slices"] else 1.0
+    return "yes" if share <= MAX_NO_LOCK_SHARE else f"NO: {c['no_lock']}/{c['slices']} refused"
 
 
 def report_markdown(ctx: dict) -> str:
@@ -122,8 +132,14 @@ def report_markdown(ctx: dict) -> str:
         L += [f"### Why it beat the runner-up `{ru_name}`", "",
               f"Distance to the ideal point {ctx['distances'][0]:.3f} vs {ctx['distances'][1]:.3f} "
               "(0 = best on every objective at once). Objective by objective:", ""]
-        L += _cmp_lines(compare(chosen, ru), chosen_name, ru_name)
-        L.append("")
+        cmp = compare(chosen, ru)
+        L += _cmp_lines(cmp, chosen_name, ru_name)
+        gains = [c["label"] for c in cmp if c["verdict"] == "better"]
+        losses = [c["label"] for c in cmp if c["verdict"] == "worse"]
+        L += ["", f"`{chosen_name}` is better on {', '.join(gains) or 'nothing'}"
+              + (f" and worse on {', '.join(losses)}" if losses else "")
+              + "; with each objective scaled over the Pareto set and weighted equally, "
+              + ("its gains outweigh that loss." if losses else "it is better or equal everywhere."), ""]
     if ctx.get("baseline") is not None:
         b = ctx["baseline"]
         L += [f"## Against the baseline `{ctx['baseline_path']}`", ""]
@@ -137,13 +153,26 @@ def report_markdown(ctx: dict) -> str:
                 L += [f"`{best[0]}` is at least as good as the baseline on every objective:", ""]
                 L += _cmp_lines(compare(best[1], b), best[0], "baseline")
                 L.append("")
+                beating = ctx.get("all_beating") or []
+                if beating:
+                    L += [f"All {len(beating)} Pareto designs that beat the baseline (better somewhere, worse "
+                          "nowhere), difference to it:", "",
+                          "| design | " + " | ".join(LABELS[k][0] for k in OBJECTIVES) + " |",
+                          "|---|" + "---|" * len(OBJECTIVES)]
+                    for n, r in beating:
+                        cells = [f"{c['diff']:+.4g} {c['unit']} ({100 * c['rel']:+.1f} %)" for c in compare(r, b)]
+                        L.append(f"| {n} | " + " | ".join(cells) + " |")
+                    L.append("")
     if ctx.get("confirmed"):
         L += ["## Confirmed by simulation", "",
               "Simulated slices (Rician noise at the required SNR, the required pixel size and slice "
               "thickness) at three depths across the required range, at tilt 0 and at the highest required "
               "tilt with random azimuths, registered by `chic-register` (accuracy mode); measured errors "
               "beside the predicted bound (worst required pose). A measured RMS near the predicted SD "
-              "means the solver reaches the bound; measured errors include any bias.", ""]
+              "means the solver reaches the bound; measured errors include any bias. A design is confirmed "
+              f"when the solver locks at least {100 * (1 - MAX_NO_LOCK_SHARE):g} % of the slices: it refuses "
+              "poses it cannot trust (e.g. too imprecise from one slice), so a refused design needs a "
+              "different protocol (more slices) before use.", ""]
         L += confirm_lines(ctx["confirm_named"], ctx["confirmed"])
         L.append("")
     return "\n".join(L) + "\n"

@@ -14,7 +14,6 @@ import math
 from pathlib import Path
 from typing import Annotated
 
-import yaml
 from pydantic import BaseModel, ConfigDict, Field, ValidationError, model_validator
 
 from .errors import RequirementsError
@@ -223,15 +222,14 @@ def parse_requirements(data, path="<requirements>") -> Requirements:
 
 def load_requirements(path) -> Requirements:
     """Read and validate a requirements file."""
+    from chic_register.errors import InputFileError
+    from chic_register.safeload import load_yaml_file
+
     path = Path(path)
-    if not path.is_file():
-        raise RequirementsError(f"{path}: no such requirements file")
     try:
-        data = yaml.safe_load(path.read_text(encoding="utf-8"))
-    except (yaml.YAMLError, UnicodeDecodeError) as exc:
-        mark = getattr(exc, "problem_mark", None)
-        where = f" at line {mark.line + 1}" if mark is not None else ""
-        raise RequirementsError(f"{path}: not valid YAML{where} ({getattr(exc, 'problem', exc)})") from None
+        data = load_yaml_file(path, "requirements file")  # the loader of specs and geometry files
+    except InputFileError as exc:
+        raise RequirementsError(str(exc)) from None
     return parse_requirements(data, path)
 
 

@@ -2,7 +2,8 @@
 
 A candidate is *feasible* when its spec validates, the feasibility check
 (:func:`chic_design.feasibility.check_geometry`, for the required protocol and
-printer) finds no violation, its assembled outer diameter is within the limit,
+printer, plus what ``build`` refuses, :func:`chic_design.printability.build_violations`)
+finds no violation, its assembled outer diameter is within the limit,
 and every depth sample in the required range registers at the required
 maximum tilt. Only feasible candidates get the precision bound and can reach
 the output. The three objectives:
@@ -21,18 +22,20 @@ processes; :data:`SCORER_VERSION` is part of the store key.
 from __future__ import annotations
 
 import time
+from dataclasses import replace
 
 import numpy as np
 
 from ..errors import SpecError
 from ..feasibility import check_geometry
+from ..printability import build_violations
 from ..layout import fiducial_geometry
 from ..spec import Spec, parse_spec
 from . import space
 from .precision import predicted_precision
 from .requirements import Requirements
 
-SCORER_VERSION = "1"
+SCORER_VERSION = "3"
 OBJECTIVES = ("outer_diameter_mm", "usable_region_deg_mm", "tre_mm")
 DIRECTIONS = ("minimize", "maximize", "minimize")
 N_CONSTRAINTS = 4
@@ -68,6 +71,8 @@ def score_spec(spec: Spec, req: Requirements, spec_data: dict | None = None) -> 
     report = check_geometry(geom, pixel_size_mm=req.imaging.pixel_size,
                             slice_thickness_mm=req.imaging.slice_thickness,
                             min_wall_mm=req.printer.min_wall, max_overhang_deg=req.printer.max_overhang_deg)
+    hard = build_violations(spec, geom, req.imaging.pixel_size)  # what build refuses (check == build)
+    report = replace(report, violations=report.violations + tuple(hard))
     reasons = [f"{v.code} ({v.where})" for v in report.violations]
     envelope = spec.body.outer_diameter + 2 * (spec.caps.clearance + spec.caps.skirt_wall)
     over = max(0.0, envelope - req.limits.max_outer_diameter)
@@ -102,7 +107,9 @@ def evaluate_candidate(params: dict, req_data: dict) -> dict:
     try:
         spec = parse_spec(data, "<candidate>")
     except SpecError as exc:
-        return _infeasible([str(exc).removeprefix("<candidate>: ")], [1.0, 0.0, 0.0, 0.0], data, t0)
+        # graded, so the optimiser learns which way the wall is too thin for the channels
+        c0 = 1.0 + space.wall_deficit_mm(params, req)
+        return _infeasible([str(exc).removeprefix("<candidate>: ")], [c0, 0.0, 0.0, 0.0], data, t0)
     out = score_spec(spec, req, data)
     out["cpu_s"] = time.process_time() - t0
     return out

@@ -88,6 +88,13 @@ def circle_span_mm(req: Requirements, od_mm: float, channel_mm: float) -> tuple[
     return req.tool.bore_mm + channel_mm + 2 * w, od_mm - channel_mm - 2 * w
 
 
+def wall_deficit_mm(params: dict, req: Requirements) -> float:
+    """How much wider the body must be for the channels to fit with ``min_wall`` both sides (0 = fits)."""
+    p = canonical(params)
+    lo, hi = circle_span_mm(req, p["od_halfmm"] / 2, p["channel_tenthmm"] / 10)
+    return max(0.0, lo - hi)
+
+
 def spec_dict(params: dict, req: Requirements, name: str) -> dict:
     """The design spec (as a YAML-ready mapping) of a candidate; validated by ``chic_design.spec``."""
     p = canonical(params)
@@ -142,6 +149,21 @@ def neighbours(params: dict, req: Requirements) -> list[dict]:
             if lo <= p[name] <= hi and canonical(p) != canonical(params):
                 out.append(p)
     return out
+
+
+def default_start(req: Requirements) -> dict:
+    """Where the search starts without a baseline: the roomiest body with the shipped marker layout.
+
+    Largest allowed outer diameter and length, narrowest printable channel on
+    a circle three quarters of the way out (more room between the tubes),
+    and the layout of ``designs/needle-guide.yaml``: helix offset 15 deg,
+    orientation tubes 24 and 60 deg into the free quadrant 3.
+    """
+    r = int_ranges(req)
+    return {"od_halfmm": r["od_halfmm"][1], "length_mm": r["length_mm"][1],
+            "channel_tenthmm": r["channel_tenthmm"][0], "circle_pos": (3 * CIRCLE_STEPS) // 4,
+            "offset_deg": 15, "direction": 1, "free_quadrant": 3, "n_orientation": 2,
+            "orient_a_deg": 24, "orient_b_deg": 60}
 
 
 def params_from_spec(spec, req: Requirements) -> dict | None:

@@ -1,0 +1,369 @@
+"""Where each tube's section lies in the image, by fitting a model of the section to the pixels.
+
+A blob's intensity centroid is a biased and noisy estimate of where a tube
+crosses the slice: it sums the noise of every pixel of the footprint, and a
+curved (helix), clipped (tube end) or tilted section has its centroid off the
+centreline crossing. The efficient estimate fits the expected image of the
+section to the pixels. Here that image is a local analytic model, evaluated
+only on a small window around each matched tube and vectorised across all
+tubes at once (no renders):
+
+- the tube near its crossing is a cylinder of radius ``diameter / 2`` about
+  the centreline's second-order expansion (tangent and curvature: exact for a
+  line, a helix bends by ``kappa s^2 / 2``), with its end faces;
+- a pixel's value is the fluid fraction of the voxel, averaged over
+  ``thickness_samples`` planes across the slice thickness (as the simulator
+  renders); in each plane, the exact share of the pixel inside the section's
+  edge taken as straight (a trapezoid in the signed distance,
+  :func:`_box_edge`) less the edge's curvature times the second moment of
+  the pixel's chord along it (:func:`_chord_m2`); pixels no edge crosses are
+  1 or 0 without that work.
+
+For tube ``k`` the window's pixels ``y`` are fitted, to first order in a
+small in-plane shift ``d`` of the section, by ``y = b + a (S(x - d))``
+(``S``: the model at the current pose; offset ``b`` and gain ``a`` free), a
+linear least-squares problem in ``(b, a, a d)`` (solved for all tubes at
+once from per-window sums). The tube's measured position
+is its crossing plus ``d``; its 2 x 2 information matrix (from the same
+normal equations, scaled by ``(a / sigma)^2``) weights it in the pose fit
+(elongated sections locate a tube poorly along their length). The caller
+refits the pose on these positions and repeats at the new pose: at the true
+pose the model matches the noise-free image, so the fixed point is unbiased.
+
+Pixels a neighbouring tube's section or another blob reaches are left out of
+a window, so each fit sees one tube.
+"""
+
+from __future__ import annotations
+
+import math
+from dataclasses import dataclass
+
+import numpy as np
+
+
+@dataclass(frozen=True, eq=False)
+class SectionFit:
+    """Per tube (K,): ``position_mm`` (K, 2) image mm (NaN where not fitted), ``info`` (K, 2, 2) in mm^-2,
+    ``gain`` (fitted fluid signal), ``n_pixels`` in the window, ``fitted`` (bool); ``predicted_mm`` (K, 2):
+    the crossings of the pose the model was drawn at."""
+
+    predicted_mm: np.ndarray
+    position_mm: np.ndarray
+    info: np.ndarray
+    gain: np.ndarray
+    n_pixels: np.ndarray
+    fitted: np.ndarray
+
+
+def tube_frames(model, T_F_from_I: np.ndarray, q: np.ndarray, tan_I: np.ndarray):
+    """Local second-order geometry of every tube at its crossing, in the image frame.
+
+    Returns ``(kappa_I (K, 3), s_lo (K,), s_hi (K,))``: the curvature vector
+    of the centreline (zero for lines) and the arc length from the crossing
+    back to the tube's start and on to its end (mm).
+    """
+    K = q.shape[0]
+    R, o = T_F_from_I[:3, :3], T_F_from_I[:3, 3]
+    X = np.column_stack([q, np.zeros(K)]) @ R.T + o  # crossings in F
+    kappa_F = np.zeros((K, 3))
+    s_lo, s_hi = np.zeros(K), np.zeros(K)
+    li, hi = model.line_idx, model.helix_idx
+    if li.size:
+        d = model.d[li]
+        t = np.einsum("ij,ij->i", X[li] - model.p0[li], d) / np.einsum("ij,ij->i", d, d)
+        length = np.linalg.norm(d, axis=1)
+        s_lo[li], s_hi[li] = t * length, (1 - t) * length
+    if hi.size:
+        r, om = model.radius[hi], model.omega_rad_per_mm[hi]
+        g2 = 1 + (r * om) ** 2
+        th = np.arctan2(X[hi, 1], X[hi, 0])
+        kappa_F[hi, 0] = -r * om * om * np.cos(th) / g2
+        kappa_F[hi, 1] = -r * om * om * np.sin(th) / g2
+        g = np.sqrt(g2)
+        s_lo[hi], s_hi[hi] = (X[hi, 2] - model.z_lo[hi]) * g, (model.z_hi[hi] - X[hi, 2]) * g
+    return kappa_F @ R, s_lo, s_hi
+
+
+# the products summed per window: (i, j) of [1, S, Sx, Sy] for i <= j, then each with the pixel value y
+_PAIR_I = np.array([0, 0, 0, 0, 1, 1, 1, 2, 2, 3, 0, 1, 2, 3])
+_PAIR_J = np.array([0, 1, 2, 3, 1, 2, 3, 2, 3, 3, 4, 4, 4, 4])
+_SYM = np.array([[0, 1, 2, 3], [1, 4, 5, 6], [2, 5, 7, 8], [3, 6, 8, 9]])
+
+
+@dataclass(frozen=True, eq=False)
+class Windows:
+    """The pixels each tube's fit uses: ``rows``, ``cols`` (P,) and ``owner`` (P,), the tube index."""
+
+    rows: np.ndarray
+    cols: np.ndarray
+    owner: np.ndarray
+
+
+def section_windows(model, q: np.ndarray, tan: np.ndarray, found: np.ndarray, todo: np.ndarray, shape,
+                    pixel_spacing_mm, slice_thickness_mm: float, assignment=None, footprints=(),
+                    margin_px: float = 1.5) -> Windows:
+    """Each tube in ``todo``'s section box grown by ``margin_px``, less what another tube or blob reaches.
+
+    ``q``, ``tan``, ``found``: :func:`~chic_register.solve.plane_crossings`
+    at the pose. Pixels within half a pixel of another tube's section box,
+    or inside the footprint of a blob that is not the tube's own (nor
+    overlaps it), are left out.
+    """
+    from .solve import _section_extent  # (solve imports this module lazily)
+
+    rs, cs = (float(v) for v in pixel_spacing_mm)
+    H, W = shape
+    half_len, _, u = _section_extent(model, tan, slice_thickness_mm)
+    half_wid = 0.5 * model.diameter_mm  # across its length a section is the tube's width
+    u = np.where((np.abs(u).sum(axis=1) > 0)[:, None], u, [1.0, 0.0])  # a round section: any direction
+    m_mm = margin_px * max(rs, cs)
+    ex = np.abs(u[:, 0]) * half_len + np.abs(u[:, 1]) * half_wid + m_mm
+    ey = np.abs(u[:, 1]) * half_len + np.abs(u[:, 0]) * half_wid + m_mm
+    i0 = np.maximum(0, np.ceil((q[todo, 1] - ey[todo]) / rs)).astype(int)
+    i1 = np.minimum(H - 1, np.floor((q[todo, 1] + ey[todo]) / rs)).astype(int)
+    j0 = np.maximum(0, np.ceil((q[todo, 0] - ex[todo]) / cs)).astype(int)
+    j1 = np.minimum(W - 1, np.floor((q[todo, 0] + ex[todo]) / cs)).astype(int)
+    h, w = np.maximum(i1 - i0 + 1, 0), np.maximum(j1 - j0 + 1, 0)
+    n = h * w
+    idx = np.repeat(np.arange(todo.size), n)
+    local = np.arange(int(n.sum())) - np.repeat(np.cumsum(n) - n, n)
+    rr = i0[idx] + local // np.maximum(w[idx], 1)
+    cc = j0[idx] + local % np.maximum(w[idx], 1)
+    own = todo[idx]
+    # leave out what another tube's section (grown by half a pixel) reaches
+    others = np.flatnonzero(found)
+    dx = (cc * cs)[:, None] - q[others, 0][None]
+    dy = (rr * rs)[:, None] - q[others, 1][None]
+    grow = max(rs, cs)
+    along = np.abs(dx * u[others, 0] + dy * u[others, 1])
+    across = np.abs(dx * u[others, 1] - dy * u[others, 0])
+    mine = others[None] == own[:, None]
+    hit = (along < half_len[others] + grow) & (across < half_wid[others] + grow) & ~mine
+    # and the corners of the bounding box that lie beyond the margin of the tube's own (rotated) section box
+    far = ((along > half_len[others] + m_mm) | (across > half_wid[others] + m_mm)) & mine
+    keep = ~(hit | far).any(axis=1)
+    if len(footprints) and assignment is not None:
+        _drop_foreign_blobs(keep, rr, cc, own, assignment, footprints)
+    return Windows(rr[keep], cc[keep], own[keep])
+
+
+def _drop_foreign_blobs(keep, rr, cc, own, assignment, footprints) -> None:
+    """Clear ``keep`` on window pixels inside an unassigned blob's footprint that does not overlap the tube's own."""
+    assigned = {int(b) for b in assignment if b >= 0}
+    for n, (r0, c0, m) in enumerate(footprints):
+        if n in assigned:
+            continue
+        h, w = m.shape
+        inside = (rr >= r0) & (rr < r0 + h) & (cc >= c0) & (cc < c0 + w)
+        if not inside.any():
+            continue
+        for k in np.unique(own[inside]).tolist():
+            R0, C0, M = footprints[int(assignment[k])]
+            a0, b0 = max(r0, R0), max(c0, C0)
+            a1, b1 = min(r0 + h, R0 + M.shape[0]), min(c0 + w, C0 + M.shape[1])
+            if a0 < a1 and b0 < b1:
+                theirs, mine = m[a0 - r0:a1 - r0, b0 - c0:b1 - c0], M[a0 - R0:a1 - R0, b0 - C0:b1 - C0]
+                if (theirs & mine).any():
+                    continue  # a split half of the tube's own blob, or the whole of it
+            sel = np.flatnonzero(inside & (own == k))
+            keep[sel[m[rr[sel] - r0, cc[sel] - c0]]] = False
+
+
+def section_model(model, T_F_from_I: np.ndarray, q: np.ndarray, tan: np.ndarray, win: Windows, pixel_spacing_mm,
+                  slice_thickness_mm: float, thickness_samples: int = 5, exact: bool = True):
+    """The model image of each window pixel's tube and its derivatives for the section moving in the image.
+
+    Returns ``(S, Sx, Sy)`` (P,): the fluid fraction of the pixel and its
+    derivatives (per mm) for the section shifted along x (columns) and y (rows).
+    ``exact=False``: without the edge-curvature term (a first approximation,
+    for a pass whose only job is to bring the next one close).
+    """
+    rs, cs = (float(v) for v in pixel_spacing_mm)
+    thick = float(slice_thickness_mm)
+    kappa, s_lo, s_hi = tube_frames(model, T_F_from_I, q, tan)
+    r_tube = 0.5 * model.diameter_mm
+    own = win.owner
+    # ---- pixels no edge crosses in any plane are wholly fluid (1) or wholly outside (0), with no slope: from
+    # the middle plane, the distance to the centreline moving by at most |t_xy| T / 2 across the slab, plus the
+    # half-diagonal of the pixel and the helix's sag over the window
+    dx0, dy0 = win.cols * cs - q[own, 0], win.rows * rs - q[own, 1]
+    txy = np.hypot(tan[:, 0], tan[:, 1])
+    s00 = dx0 * tan[own, 0] + dy0 * tan[own, 1]
+    dist0 = np.sqrt(np.maximum(dx0 * dx0 + dy0 * dy0 - s00 * s00, 0.0))
+    reach = np.hypot(dx0, dy0) + 0.5 * thick + 0.5 * math.hypot(cs, rs)
+    slack = ((txy * 0.5 * thick)[own] + 0.5 * np.linalg.norm(kappa[own], axis=1) * reach * reach
+             + 0.5 * math.hypot(cs, rs) + 1e-6)
+    clear_end = np.minimum(s_lo[own] + s00, s_hi[own] - s00) - reach
+    S = np.zeros(own.size)
+    Sx, Sy = np.zeros(own.size), np.zeros(own.size)
+    S[(r_tube[own] - dist0 > slack) & (clear_end > 0)] = 1.0
+    band = np.flatnonzero((np.abs(r_tube[own] - dist0) <= slack) | ((r_tube[own] - dist0 > slack) & (clear_end <= 0)))
+    if band.size:
+        S[band], Sx[band], Sy[band] = _section_band(tan, kappa, s_lo, s_hi, r_tube, own[band], dx0[band], dy0[band],
+                                                    cs, rs, thick, thickness_samples,
+                                                    ends=bool((clear_end[band] <= 0).any()), curved=exact)
+    return S, Sx, Sy
+
+
+def _section_band(tan, kappa, s_lo, s_hi, r_tube, own, dx0, dy0, cs: float, rs: float, thick: float,
+                  thickness_samples: int, ends: bool = True, curved: bool = True):
+    """:func:`section_model` at pixels an edge may cross: every plane across the slice, the exact pixel coverage.
+
+    The distance of a point to the centreline is measured from the curve
+    point ``s0 t + kappa s0^2 / 2`` at its arc length ``s0`` along the
+    tangent (the re-projection onto the curve moves it by a second-order
+    amount, below 1e-3 mm for these curvatures). ``ends``: model the end faces;
+    ``curved``: correct the coverage for the curvature of the section's edge.
+    """
+    nz = thickness_samples if thick > 0 else 1
+    sz = (((np.arange(nz) + 0.5) / nz - 0.5) * thick)[None]
+    t, kap = tan[own], kappa[own]
+    tx, ty, tz = t[:, 0:1], t[:, 1:2], t[:, 2:3]
+    dxs, dys = dx0[:, None], dy0[:, None]
+    s0 = (dx0 * tan[own, 0] + dy0 * tan[own, 1])[:, None] + sz * tz  # arc length along the tangent
+    h = 0.5 * s0 * s0
+    ex_ = dxs - s0 * tx - h * kap[:, 0:1]
+    ey_ = dys - s0 * ty - h * kap[:, 1:2]
+    ez_ = sz - s0 * tz - h * kap[:, 2:3]
+    pxy2 = ex_ * ex_ + ey_ * ey_
+    dist = np.sqrt(pxy2 + ez_ * ez_)
+    inv_p = 1.0 / np.sqrt(np.maximum(pxy2, 1e-24))
+    nx, ny = ex_ * inv_p, ey_ * inv_p  # the section edge's in-plane outward normal
+    # in-plane signed distance to the edge (inside > 0), and the pixel's exact coverage of a straight edge
+    delta = (r_tube[own][:, None] - dist) * (dist * inv_p)
+    cov, dcov = _box_edge(delta, cs * np.abs(nx), rs * np.abs(ny))
+    # the edge is curved (curvature of the section's outline at the pixel): the inside loses kappa tau^2 / 2
+    # along the chord of the pixel at the edge, tau its coordinate along the edge from the foot point
+    if curved:
+        cross = (ex_ * ty - ey_ * tx) * inv_p
+        cov -= dcov * _chord_m2(delta, nx, ny, cs, rs) * (0.5 * (1.0 - cross * cross) * inv_p)
+    if ends:  # the tube's end faces: a ramp across the pixel along the centreline
+        inside = np.minimum(s_lo[own][:, None] + s0, s_hi[own][:, None] - s0)
+        end = np.clip(0.5 + inside / np.maximum(cs * np.abs(tx) + rs * np.abs(ty), 1e-12), 0.0, 1.0)
+        cov *= end
+        dcov *= end
+    inv_nz = 1.0 / nz
+    # moving the section by (dx, dy) raises delta by n . (dx, dy)
+    return cov.sum(axis=1) * inv_nz, np.einsum("ij,ij->i", dcov, nx) * inv_nz, np.einsum("ij,ij->i", dcov, ny) * inv_nz
+
+
+def fit_sections(model, T_F_from_I: np.ndarray, assignment: np.ndarray, pixels: np.ndarray, pixel_spacing_mm,
+                 slice_thickness_mm: float, noise_sigma: float, *, footprints=(), thickness_samples: int = 5,
+                 margin_px: float = 1.5, windows: Windows | None = None,
+                 shift_iterations: int = 1, exact: bool = True) -> tuple[SectionFit, Windows]:
+    """Fit each matched tube's section model to ``pixels`` (rows, cols) at the pose ``T_F_from_I`` (4x4).
+
+    ``assignment`` (K,): blob index per tube, -1 for unmatched (not fitted);
+    ``footprints``: the detector's ``(row0, col0, mask)`` per blob, whose
+    pixels are left out of every other tube's window; ``noise_sigma`` scales
+    the information matrices; ``windows``: the pixels to use (from an earlier
+    call at a nearby pose), else :func:`section_windows`;
+    ``shift_iterations``: fits per tube, each with the model drawn where the
+    previous one put the section (the first-order fit is then refined to
+    second order); ``exact``: see :func:`section_model`. Returns the fit and
+    the windows. See the module docstring.
+    """
+    from .solve import plane_crossings  # (solve imports this module lazily)
+
+    q, tan, _, found = plane_crossings(model, T_F_from_I, margin_mm=1e-9)
+    K = q.shape[0]
+    out_pos = np.full((K, 2), np.nan)
+    out_info, out_gain = np.zeros((K, 2, 2)), np.zeros(K)
+    n_pix, fitted = np.zeros(K, int), np.zeros(K, bool)
+    todo = np.flatnonzero((assignment >= 0) & found)
+    if windows is None:
+        windows = section_windows(model, q, tan, found, todo, pixels.shape, pixel_spacing_mm, slice_thickness_mm,
+                                  assignment, footprints, margin_px)
+    own = windows.owner
+    if todo.size == 0 or own.size == 0:
+        return SectionFit(q, out_pos, out_info, out_gain, n_pix, fitted), windows
+    y = np.asarray(pixels, dtype=float)[windows.rows, windows.cols]
+    starts = np.flatnonzero(np.r_[True, own[1:] != own[:-1]])  # windows are contiguous, one per tube
+    at = q.copy()  # where each section model is drawn: the crossing, then the fitted position
+    sel = todo
+    for _ in range(max(1, int(shift_iterations))):
+        S, Sx, Sy = section_model(model, T_F_from_I, at, tan, windows, pixel_spacing_mm, slice_thickness_mm,
+                                  thickness_samples, exact)
+        sel, shift, info, a, n_pix = _linear_fit(S, Sx, Sy, y, own, starts, K, sel, noise_sigma)
+        if sel.size == 0:
+            return SectionFit(q, out_pos, out_info, out_gain, n_pix, fitted), windows
+        at[sel] += shift
+    out_pos[sel] = at[sel]
+    out_info[sel] = info
+    out_gain[sel] = a
+    fitted[sel] = True
+    return SectionFit(q, out_pos, out_info, out_gain, n_pix, fitted), windows
+
+
+def _linear_fit(S, Sx, Sy, y, own, starts, K: int, todo, noise_sigma: float):
+    """Per tube least squares ``y = b + a S + (a dx) Sx + (a dy) Sy`` from sums over each window.
+
+    Returns ``(tubes fitted, shift (n, 2) mm, information (n, 2, 2), gain (n,), pixels per tube (K,))``.
+    """
+    F = np.column_stack([np.ones_like(S), S, Sx, Sy, y])
+    prods = F[:, _PAIR_I] * F[:, _PAIR_J]  # (P, 14): the normal matrix's 10 entries, then the right-hand side
+    sums = np.zeros((K, _PAIR_I.size))
+    sums[own[starts]] = np.add.reduceat(prods, starts, axis=0)
+    N = sums[:, _SYM]  # (K, 4, 4)
+    rhs = sums[:, 10:14]
+    n_pix = np.rint(N[:, 0, 0]).astype(int)
+    sel = todo[(n_pix[todo] >= 8) & (N[todo, 1, 1] > 0) & (N[todo, 2, 2] + N[todo, 3, 3] > 0)]
+    Ninv = np.zeros((sel.size, 4, 4))
+    try:
+        Ninv[:] = np.linalg.inv(N[sel])
+    except np.linalg.LinAlgError:  # one singular window: invert one by one
+        for i, k in enumerate(sel.tolist()):
+            try:
+                Ninv[i] = np.linalg.inv(N[k])
+            except np.linalg.LinAlgError:
+                Ninv[i] = np.nan
+    theta = np.einsum("kij,kj->ki", Ninv, rhs[sel])
+    a = theta[:, 1]
+    blk = Ninv[:, 2:4, 2:4]
+    det = blk[:, 0, 0] * blk[:, 1, 1] - blk[:, 0, 1] * blk[:, 1, 0]
+    ok = (a > 0) & np.isfinite(det) & (det > 0)
+    sel, theta, a, blk, det = sel[ok], theta[ok], a[ok], blk[ok], det[ok]
+    # the shift (x, y) mm, and its information: (a / sigma)^2 times the inverse of its block of N^-1
+    inv_blk = np.stack([np.stack([blk[:, 1, 1], -blk[:, 0, 1]], -1), np.stack([-blk[:, 1, 0], blk[:, 0, 0]], -1)], 1)
+    info = inv_blk / det[:, None, None] * ((a / max(noise_sigma, 1e-12)) ** 2)[:, None, None]
+    return sel, theta[:, 2:4] / a[:, None], info, a, n_pix
+
+
+def _box_edge(delta: np.ndarray, A: np.ndarray, B: np.ndarray):
+    """Share of a pixel inside a straight edge at signed distance ``delta`` from its centre, and its derivative.
+
+    ``A``, ``B``: the pixel's two sides projected on the edge normal. The
+    share is the distribution function of ``n . p`` for ``p`` uniform over
+    the pixel: the convolution of two boxes of widths ``A`` and ``B`` (a
+    trapezoid), so linear in the middle and quadratic in the corners:
+    ``(R(d + hi) - R(d + lo) - R(d - lo) + R(d - hi)) / (2 A B)`` with
+    ``R(x) = max(x, 0)^2``, ``hi = (A + B) / 2``, ``lo = |A - B| / 2``.
+    """
+    A = np.maximum(A, 1e-4 * (A + B) + 1e-9)  # (a side along the edge: the limit, a linear ramp)
+    B = np.maximum(B, 1e-4 * (A + B) + 1e-9)
+    hi, lo = 0.5 * (A + B), 0.5 * np.abs(A - B)
+    p1, p2 = np.maximum(delta + hi, 0), np.maximum(delta + lo, 0)
+    p3, p4 = np.maximum(delta - lo, 0), np.maximum(delta - hi, 0)
+    inv = 1.0 / (A * B)
+    share = (p1 * p1 - p2 * p2 - p3 * p3 + p4 * p4) * (0.5 * inv)
+    slope = (p1 - p2 - p3 + p4) * inv
+    return np.minimum(share, 1.0), slope
+
+
+def _chord_m2(delta, nx, ny, cs: float, rs: float):
+    """Mean of tau^2 over the chord ``n . p = delta`` of the pixel ``|x| <= cs/2, |y| <= rs/2``; tau along the edge.
+
+    On the chord ``p = delta n + tau (-ny, nx)`` each pair of pixel sides
+    bounds tau to an interval (centre, half-width); over their intersection
+    ``[t1, t2]`` the mean of tau^2 is ``(t1^2 + t1 t2 + t2^2) / 3``.
+    """
+    big = 1e6
+    sy, sx = np.abs(ny) > 1e-6, np.abs(nx) > 1e-6
+    inv_y = 1.0 / np.where(sy, ny, 1.0)
+    inv_x = 1.0 / np.where(sx, nx, 1.0)
+    ca, wa = np.where(sy, delta * nx * inv_y, 0.0), np.where(sy, 0.5 * cs * np.abs(inv_y), big)
+    cb, wb = np.where(sx, -delta * ny * inv_x, 0.0), np.where(sx, 0.5 * rs * np.abs(inv_x), big)
+    lo = np.maximum(ca - wa, cb - wb)
+    hi = np.maximum(np.minimum(ca + wa, cb + wb), lo)
+    return (lo * lo + lo * hi + hi * hi) * (1.0 / 3.0)

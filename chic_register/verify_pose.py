@@ -1,0 +1,482 @@
+"""A verified pose or none: the last check before the solver says ``ok``.
+
+The solver fits a pose to the blob centres it chose; a wrong pose can fit a
+subset of them well (a slice through an end face, a wrong pixel spacing, a
+mirror pattern). So the pose is proved against the image itself, slice by
+slice (:func:`verify_fit`):
+
+1. **Envelope**: the found plane passes the design's plane checks
+   (:func:`chic_register.envelope.plane_status`, the code behind
+   ``chic-design check``'s tilt limits) for the slice's pixel size and
+   thickness: no tube crossed twice, no two sections merged. A tube the plane
+   misses (a slice through an end face) is allowed: the rest must verify.
+2. **Every predicted tube appears where predicted, with its size and shape**:
+   the model is rendered at the pose by the simulator's partial-volume
+   renderer (:func:`chic_register.simulate.render_tubes`) tube by tube in a
+   window around its section; its fluid level is fitted to the pixels
+   (``pixels = background + gain * section + gain' * neighbours``). A tube
+   whose gain is below :data:`PRESENT_FRACTION` of the matched tubes' or not
+   :data:`PRESENT_SIGMA` noise sigmas above zero is missing; the residual
+   energy left by the section must stay below what a :data:`POSITION_TOL_PX`
+   misplacement leaves (:func:`shape_tolerance`), plus noise.
+3. **Missing tubes** are flagged (``missing_tubes`` of the slice result) when
+   the section lies well inside the body (an unfilled channel or a bubble);
+   a missing tube whose section the pose puts near an end face is a refusal:
+   there a wrong pose and a cut tube look alike.
+4. **Nothing bright unexplained on the tubes' circle**: a detected blob not
+   explained by the model, lying where the plane meets the circle of tube
+   centres inside the body, means the pattern is not the one the pose says.
+5. **Pixel spacing**: the sections seen must have the size and aspect the
+   pose predicts; a stretch of the image along rows or columns (a wrong
+   ``--pixel-spacing``) shows as an anisotropic scale of every section
+   (:data:`SPACING_TOL`, or three standard errors of its estimate over the
+   tubes if larger).
+6. **Rivals**: a distinct rival pose (the solver's other hypotheses, and the
+   pose turned about the axis by each near-symmetry of the straight tubes)
+   that explains the pixels nearly as well makes the slice ambiguous.
+7. **Precision**: the predicted 3-sigma error must be within the trust
+   limits (:func:`pose_precision`).
+
+Every threshold is in units of what the image resolves (pixels, noise sigma,
+the section's own size); each has its reason beside it.
+"""
+
+from __future__ import annotations
+
+import math
+from dataclasses import dataclass
+
+import numpy as np
+
+from .detect import Blobs, _dilate, median
+from .envelope import plane_status
+from .errors import ImprecisePose, NoLock
+from .pose import slice_angles
+from .simulate import render_tubes
+from .solve import _section_extent, plane_crossings
+
+#: A present tube's fitted fluid level, as a share of the median of the tubes the solver matched. A correctly
+#: placed section (partial volume and slab smear are in the model) gives ~1 at any SNR above a few; a section
+#: predicted where the image has background gives ~0 and one predicted half off its blob ~0.5.
+PRESENT_FRACTION = 0.5
+#: ... and that level must be this many noise sigmas (of the gain estimate) above zero.
+PRESENT_SIGMA = 5.0
+#: How far (pixels) a section may sit from where the pose predicts it before its shape counts as wrong: the
+#: solver's own RMS limit (SolveOptions.max_rms_px) plus the fast mode's centroid bias at curved, clipped sections.
+POSITION_TOL_PX = 0.75
+#: Relative error of the rendered model itself (supersampling 2 x 2, a few sub-planes): a residual energy this
+#: share of the section's energy is model error, not misfit.
+MODEL_FLOOR = 0.03
+#: Anisotropic scale between the sections seen and predicted above which the pixel spacing is called wrong.
+#: A 3 mm tube is 6 px across at 0.5 mm: the moment estimate of its width is good to ~1 %; 4 % leaves room for
+#: the rendered model's error and slab smear and still catches a 5 % spacing error.
+SPACING_TOL = 0.04
+#: Sections farther than this from an end face (in section lengths) are "well inside the body": a tube missing
+#: there is an unfilled channel, not a sign of a wrong pose.
+END_CLEARANCE_SECTIONS = 1.0
+#: The false-lock tolerance of issue 12 (defaults of SolveOptions.trust_tre_mm / trust_rot_deg): a pose reported
+#: ok must be within this of the truth (TRE at the frame centre, rotation) ...
+TRE_TOL_MM = 0.5
+ROT_TOL_DEG = 0.5
+#: ... with this many standard deviations of its own predicted error (first-order covariance of the fit:
+#: residual scatter through the crossings' Jacobian). 3: a 0.3 % tail per direction.
+PRECISION_SIGMAS = 3.0
+#: The residual scatter of 6-10 tubes is itself uncertain (12-14 degrees of freedom): the scatter used is its
+#: upper bound at this confidence (chi-square), so a few lucky residuals do not make a pose look precise.
+SCATTER_CONFIDENCE = 0.9
+#: Floor of the per-coordinate position scatter (pixels): the residual bias of a centroid in a noise-free image.
+POSITION_FLOOR_PX = 0.005
+#: A pixel belongs to a predicted section where the rendered fluid fraction exceeds this ...
+SECTION_LEVEL = 0.1
+#: ... and a detected blob is explained by the pose when this share of its footprint does.
+EXPLAINED_SHARE = 0.3
+#: A rival pose must explain the pixels worse by this many noise variances (a log-likelihood margin of half of
+#: it) plus the model's own error, else the slice is ambiguous.
+RIVAL_MARGIN = 50.0
+#: Straight tubes this close in angle after a turn about the axis count as mapped onto each other (the turn is a
+#: near-symmetry whose pose is tried as a rival).
+SYMMETRY_TOL_DEG = 3.0
+#: Render settings: sub-samples per pixel side (the renderer's coverage ramp anti-aliases edges already) and at
+#: most this many sub-planes over the slab.
+SUPERSAMPLE = 1
+MAX_THICKNESS_SAMPLES = 3
+#: One more sub-plane for every this many pixels of slab smear along a section (the renderer averages the
+#: sub-planes; between them the section's end is a ramp, within the shape tolerance at 4 px).
+SMEAR_PX_PER_SAMPLE = 4.0
+
+
+@dataclass(frozen=True)
+class SliceCheck:
+    """What the verification saw in one slice: tubes found present, missing (flagged) and the spacing scale."""
+
+    present: tuple[str, ...]
+    missing: tuple[str, ...]
+    spacing_scale: tuple[float, float]
+    envelope: str
+    merged: tuple[str, ...] = ()
+    canvas: np.ndarray = None  # the model image at the pose (fluid fraction)
+    level: float = 1.0  # fitted fluid level
+    noise_sigma: float = 0.0
+
+
+def shape_tolerance(radius_px: float) -> float:
+    """Residual energy (share of the section's energy) left by a section misplaced by ``POSITION_TOL_PX``.
+
+    Shifting a partial-volume disc of radius r px by d px changes about a
+    one-pixel band along its rim by ``d`` of the fluid level: energy ``~2 pi r d^2``
+    against the disc's ``pi r^2``, i.e. ``2 d^2 / r``.
+    """
+    return 2.0 * POSITION_TOL_PX ** 2 / max(radius_px, 1.0) + MODEL_FLOOR
+
+
+@dataclass
+class _TubeWindow:
+    k: int
+    r0: int
+    c0: int
+    own: np.ndarray  # rendered section of this tube in the window
+    others: np.ndarray  # other tubes' sections in the window
+
+
+def _windows(geom, model, T_F_from_I, shape, spacing, thickness_mm):
+    """``(windows, canvas)``: per tube whose section lies wholly inside the image its window with its own and
+    its neighbours' renders, and the whole model image (shape of the image, every section pasted in).
+
+    Each tube is rendered once, in its own window (its section's extent,
+    :func:`chic_register.solve._section_extent`, plus two pixels); a window's
+    neighbours are the other tubes' renders pasted where they overlap it.
+    """
+    rs, cs = spacing
+    px = max(rs, cs)
+    q, tan, _, found = plane_crossings(model, T_F_from_I, margin_mm=0.5 * float(model.diameter_mm.max()) + thickness_mm)
+    half_len, half_wid, u = _section_extent(model, tan, thickness_mm)
+    ex = np.abs(u[:, 0]) * half_len + np.abs(u[:, 1]) * half_wid + 2 * px
+    ey = np.abs(u[:, 1]) * half_len + np.abs(u[:, 0]) * half_wid + 2 * px
+    txy = np.hypot(tan[:, 0], tan[:, 1])
+    smear_px = float(np.max(thickness_mm * txy / np.maximum(np.abs(tan[:, 2]), 1e-3))) / px if txy.size else 0.0
+    ts = int(min(MAX_THICKNESS_SAMPLES, max(1, math.ceil(smear_px / SMEAR_PX_PER_SAMPLE) + 1)))
+    render = {"pixel_spacing_mm": (rs, cs), "slice_thickness_mm": thickness_mm, "supersample": SUPERSAMPLE,
+              "thickness_samples": ts}
+    H, W = shape
+    boxes = {}
+    for k in np.flatnonzero(found):
+        r0, r1 = int(math.floor((q[k, 1] - ey[k]) / rs)), int(math.ceil((q[k, 1] + ey[k]) / rs)) + 1
+        c0, c1 = int(math.floor((q[k, 0] - ex[k]) / cs)), int(math.ceil((q[k, 0] + ex[k]) / cs)) + 1
+        inside = r0 >= 0 and c0 >= 0 and r1 <= H and c1 <= W and r1 - r0 <= H // 2 and c1 - c0 <= W // 2
+        r0, r1, c0, c1 = max(r0, 0), min(r1, H), max(c0, 0), min(c1, W)
+        if r1 - r0 < 2 or c1 - c0 < 2 or (r1 - r0) * (c1 - c0) > H * W // 4:
+            continue
+        img = render_tubes([geom.tubes[k]], T_F_from_I, (r1 - r0, c1 - c0), center_px=(-float(r0), -float(c0)),
+                           **render)
+        if img.max() > 0:
+            boxes[int(k)] = (r0, c0, img, inside)
+    out = []
+    canvas = np.zeros(shape)
+    for k, (r0, c0, img, inside) in boxes.items():
+        sub = canvas[r0:r0 + img.shape[0], c0:c0 + img.shape[1]]
+        np.maximum(sub, img, out=sub)
+        if not inside:
+            continue  # (partly) outside the image: nothing to check, but it is a neighbour of the others
+        h, w = img.shape
+        others = np.zeros_like(img)
+        for i, (R0, C0, oimg, _) in boxes.items():
+            if i == k:
+                continue
+            a0, b0 = max(r0, R0), max(c0, C0)
+            a1, b1 = min(r0 + h, R0 + oimg.shape[0]), min(c0 + w, C0 + oimg.shape[1])
+            if a0 < a1 and b0 < b1:
+                sub = others[a0 - r0:a1 - r0, b0 - c0:b1 - c0]
+                np.maximum(sub, oimg[a0 - R0:a1 - R0, b0 - C0:b1 - C0], out=sub)
+        out.append(_TubeWindow(k, r0, c0, img, others))
+    return out, canvas
+
+
+def _fit_window(pixels, w: _TubeWindow):
+    """Least squares over the window: ``(coef, y, fit)`` of ``pixels = b + a section + a' neighbours``
+    (the gains apart: presence) and ``fit1`` of ``pixels = b + a max(section, neighbours)`` (one fluid level,
+    composited as the image is: the shape test). None when degenerate."""
+    h, wd = w.own.shape
+    y = np.asarray(pixels[w.r0:w.r0 + h, w.c0:w.c0 + wd], float).ravel()
+    m = w.own.ravel()
+    o = w.others.ravel()
+    cols = [np.ones_like(m), m] + ([o] if o.max() > 0.05 else [])
+    A = np.stack(cols, axis=1)
+    coef, _, rank, _ = np.linalg.lstsq(A, y, rcond=None)
+    if rank < A.shape[1]:
+        return None
+    A1 = np.stack([np.ones_like(m), np.maximum(m, o)], axis=1)
+    coef1 = np.linalg.lstsq(A1, y, rcond=None)[0]
+    return coef, y, A1 @ coef1
+
+
+def verify_slice(geom, model, T_F_from_I: np.ndarray, pixels: np.ndarray, spacing, thickness_mm: float,
+                 blobs: Blobs, assignment: np.ndarray, source: str, *,
+                 check_envelope: bool = True) -> SliceCheck:
+    """Prove one slice's pose against its pixels; :class:`NoLock` with the reason, else what was seen."""
+    rs, cs = (float(v) for v in spacing)
+    px = max(rs, cs)
+    ang = slice_angles(T_F_from_I)
+    where = f"depth {ang.depth_mm:.1f} mm, tilt {ang.tilt_deg:.1f} deg"
+    envelope, merged = "ok", ()
+    if check_envelope:
+        st = plane_status(geom, ang.depth_mm, ang.tilt_deg, ang.azimuth_deg, px, thickness_mm)
+        if st.twice:
+            raise NoLock(f"{source}: the pose ({where}) is outside the design's usable envelope: tube(s) "
+                         f"{', '.join(st.twice)} cross the slice twice", {"envelope": f"tube_crosses_twice:{st.twice[0]}"})
+        # the envelope's merge rule: sections closer than a pixel cannot be located apart; they are no evidence
+        # of the pose's precision (pose_precision leaves them out)
+        merged = tuple(sorted({t for pair in st.merged for t in pair}))
+        envelope = st.failure or "ok"
+    shape = np.asarray(pixels).shape
+    wins, canvas = _windows(geom, model, T_F_from_I, shape, (rs, cs), float(thickness_mm))
+    sigma = max(float(blobs.noise_sigma), 1e-12)
+    fits = {}
+    for w in wins:
+        f = _fit_window(pixels, w)
+        if f is not None:
+            fits[w.k] = (w, *f)
+    matched = [k for k in fits if assignment[k] >= 0]
+    gains = np.array([fits[k][1][1] for k in matched])
+    if gains.size == 0 or not median(gains) > 0:
+        raise NoLock(f"{source}: the rendered model at the pose ({where}) does not match the pixels of the "
+                     f"tubes it was fitted to", {"n_tubes": len(matched)})
+    level = median(gains)
+    present, missing, cut_missing = [], [], []
+    scales = []
+    L = model.length_mm
+    q, tan, zF, _ = plane_crossings(model, T_F_from_I, margin_mm=5.0)
+    half_len = _section_extent(model, tan, thickness_mm)[0]
+    for k, (w, coef, y, fit) in fits.items():
+        own = w.own.ravel()
+        a = float(coef[1])
+        energy = float(own @ own)
+        se = sigma / math.sqrt(max(energy, 1e-12))
+        tid = model.ids[k]
+        if a < PRESENT_FRACTION * level or a < PRESENT_SIGMA * se:
+            tz = max(abs(float(tan[k, 2])), 1e-3)
+            clear = min(zF[k], L - zF[k]) - END_CLEARANCE_SECTIONS * (half_len[k] * math.sqrt(1 - tz * tz) + 0.5 * model.diameter_mm[k])
+            (missing if clear > 0 else cut_missing).append(tid)
+            continue
+        # shape: the residual over the section (own support grown by a pixel), beyond noise and model error
+        hh, ww = w.own.shape
+        sup = _dilate(w.own > 0.02, 1).ravel()
+        res = (y - fit)[sup]
+        excess = max(float(res @ res) - sup.sum() * sigma * sigma, 0.0) / (level * level * energy)
+        r_px = 0.5 * float(model.diameter_mm[k]) / px
+        chi_tol = 4.0 * math.sqrt(2.0 * sup.sum()) * sigma * sigma / (level * level * energy)  # 4 sigma of the noise term
+        if excess > shape_tolerance(r_px) + chi_tol:
+            raise NoLock(f"{source}: tube {tid}'s section does not have the shape and place the pose ({where}) "
+                         f"predicts (residual {excess:.2f} of its energy; allowed {shape_tolerance(r_px) + chi_tol:.2f})",
+                         {"tube": tid, "shape_residual": round(excess, 3)})
+        present.append(tid)
+        # second moments of the section seen vs predicted (pixels), tubes with no neighbour in the window
+        if w.others.max() < 0.05:
+            obs = np.clip((y - coef[0]), 0.0, None).reshape(hh, ww) * sup.reshape(hh, ww)
+            mod = (fit - coef[0]).reshape(hh, ww) * sup.reshape(hh, ww)
+            so, sm = _spread(obs), _spread(mod)
+            if so is not None and sm is not None:
+                scales.append(np.sqrt(so / sm))
+    if cut_missing:
+        raise NoLock(f"{source}: tube(s) {', '.join(cut_missing)} predicted near an end face at the pose ({where}) "
+                     f"are not in the image: a cut tube and a wrong pose look alike there",
+                     {"missing_tubes": cut_missing})
+    scale = (1.0, 1.0)
+    if len(scales) >= 3:
+        s = np.array(scales)  # (n, 2): row, col scale seen / predicted
+        ratio = s[:, 1] / s[:, 0]
+        mean = median(ratio)
+        se = float(np.std(ratio) / math.sqrt(len(ratio)))
+        tol = max(SPACING_TOL, 3 * se)
+        scale = (median(s[:, 0]), median(s[:, 1]))
+        if abs(mean - 1.0) > tol:
+            raise NoLock(f"{source}: the tube sections are {abs(mean - 1) * 100:.0f} % "
+                         f"{'wider' if mean > 1 else 'narrower'} along the columns than along the rows relative to "
+                         f"the pose's prediction: is the pixel spacing ({rs:g}, {cs:g}) mm right?",
+                         {"spacing_ratio": round(mean, 4)})
+    _unexplained(model, T_F_from_I, blobs, assignment, canvas, (rs, cs), source, where)
+    return SliceCheck(tuple(present), tuple(missing), scale, envelope, merged, canvas, level, sigma)
+
+
+def _spread(w: np.ndarray):
+    """Weighted variance along rows and columns (pixels^2) of weights ``w`` (h, w); None if empty."""
+    total = float(w.sum())
+    if not total > 0:
+        return None
+    r = np.arange(w.shape[0], dtype=float)
+    c = np.arange(w.shape[1], dtype=float)
+    wr, wc = w.sum(axis=1), w.sum(axis=0)
+    mr, mc = wr @ r / total, wc @ c / total
+    vr, vc = wr @ (r - mr) ** 2 / total, wc @ (c - mc) ** 2 / total
+    if not (vr > 0 and vc > 0):
+        return None
+    return np.array([vr, vc])
+
+
+def _unexplained(model, T_F_from_I, blobs: Blobs, assignment, canvas, spacing, source, where):
+    """NoLock when a detected blob the model does not explain sits on the circle of tube centres, inside the body.
+
+    A blob is explained when :data:`EXPLAINED_SHARE` of its footprint lies on
+    a predicted section (``canvas`` > :data:`SECTION_LEVEL`): split halves
+    and edges of predicted sections are.
+    """
+    rs, cs = spacing
+    used = {int(i) for i in assignment if i >= 0}
+    R = T_F_from_I[:3, :3]
+    o = T_F_from_I[:3, 3]
+    r_lo = float(model.axis_radius_mm.min() - model.diameter_mm.max())
+    r_hi = float(model.axis_radius_mm.max() + model.diameter_mm.max())
+    on = canvas > SECTION_LEVEL
+    for i, (r, c) in enumerate(blobs.centres_rc):
+        if i in used:
+            continue
+        p = R @ np.array([c * cs, r * rs, 0.0]) + o
+        if not (r_lo <= math.hypot(p[0], p[1]) <= r_hi and 0.0 <= p[2] <= model.length_mm):
+            continue
+        if i < len(blobs.footprints):
+            r0, c0, mask = blobs.footprints[i]
+            cover = on[r0:r0 + mask.shape[0], c0:c0 + mask.shape[1]]
+            if cover.shape == mask.shape and cover[mask].mean() >= EXPLAINED_SHARE:
+                continue
+        raise NoLock(f"{source}: a bright blob at pixel ({r:.0f}, {c:.0f}) lies on the tubes' circle inside the body "
+                     f"where the pose ({where}) predicts no tube", {"blob_rc": [round(float(r), 1), round(float(c), 1)]})
+
+
+def pose_precision(model, fit, Ss, pixel_mm: float, exclude=None):
+    """1-sigma bounds ``(TRE at the frame centre (mm), rotation (deg))`` of a fit, to first order.
+
+    The crossings' Jacobian (:func:`chic_register.solve._crossing_jacobian`)
+    of every matched tube, with a per-coordinate scatter from the residuals
+    (``sum r^2`` over its :data:`SCATTER_CONFIDENCE` chi-square bound with
+    ``2 n - 6`` degrees of freedom, at least :data:`POSITION_FLOOR_PX`), gives the
+    covariance of the twist ``(omega, v)`` of ``T_F_from_scanner``; the frame
+    centre ``(0, 0, L/2)`` then moves by ``[p]x omega - v``. The largest
+    eigenvalue of each block is the worst direction. ``exclude``: per slice,
+    tube ids that are no evidence (merged sections).
+    """
+    from .pose import invert
+    from .solve import _adjoint, _crossing_jacobian
+
+    Js, n, sq = [], 0, 0.0
+    for j, S in enumerate(Ss):
+        q, tan, _, _ = plane_crossings(model, fit.T_F_from_scanner @ S, margin_mm=1e-9)
+        use = fit.assignments[j] >= 0
+        if exclude is not None:
+            use &= ~np.isin(np.asarray(model.ids), list(exclude[j]))
+        k = np.flatnonzero(use)
+        if k.size == 0:
+            continue
+        Js.append((_crossing_jacobian(q[k], tan[k]) @ _adjoint(invert(S))).reshape(-1, 6))
+        r = fit.residuals[j][k]
+        n += k.size
+        sq += float(np.sum(r[np.isfinite(r)] ** 2))
+    dof = 2 * n - 6
+    if not Js or dof <= 0:
+        return math.inf, math.inf
+    from scipy.special import gammaincinv  # (scipy.stats takes a second to import)
+
+    chi2_low = 2.0 * float(gammaincinv(0.5 * dof, 1.0 - SCATTER_CONFIDENCE))  # chi-square quantile, dof degrees
+    sigma = max(math.sqrt(sq / chi2_low), POSITION_FLOOR_PX * pixel_mm)
+    J = np.concatenate(Js)
+    try:
+        C = sigma * sigma * np.linalg.inv(J.T @ J)
+    except np.linalg.LinAlgError:
+        return math.inf, math.inf
+    T_sf = invert(fit.T_F_from_scanner)
+    p = T_sf[:3, :3] @ np.array([0.0, 0.0, 0.5 * model.length_mm]) + T_sf[:3, 3]
+    A = np.hstack([np.array([[0.0, -p[2], p[1]], [p[2], 0.0, -p[0]], [-p[1], p[0], 0.0]]), -np.eye(3)])
+    tre = math.sqrt(max(float(np.linalg.eigvalsh(A @ C @ A.T).max()), 0.0))
+    rot = math.degrees(math.sqrt(max(float(np.linalg.eigvalsh(C[:3, :3]).max()), 0.0)))
+    return tre, rot
+
+
+def verify_fit(geom, model, fit, rivals, slices, Ss, blob_sets, opts) -> list[SliceCheck]:
+    """Verify a solved pose (a ``solve._Fit``) in every slice, and that no distinct rival verifies as well.
+
+    ``rivals``: per slice, the other refined hypotheses of that slice alone
+    (``solve._Fit`` in the slice's own scanner frame, as ``fit``). Raises
+    :class:`NoLock` with the first failure; returns one :class:`SliceCheck` per slice.
+    """
+    from .solve import _distinct, _to_xy_mm
+
+    out = []
+    for j, (sl, S, b) in enumerate(zip(slices, Ss, blob_sets)):
+        T_F_from_I = fit.T_F_from_scanner @ S
+        check = verify_slice(geom, model, T_F_from_I, np.asarray(sl.pixels), sl.pixel_spacing_mm,
+                             float(sl.slice_thickness_mm), b, fit.assignments[j], sl.source)
+        px = float(max(sl.pixel_spacing_mm))
+        turned = _turned_rivals(model, fit.T_F_from_scanner, _to_xy_mm(b, sl), S, px)
+        for other in list(rivals[j] if rivals is not None else ()) + turned:
+            if (other.n_matched < opts.min_tubes or other.rms_mm > opts.max_rms_px * px
+                    or not _distinct(other.T_F_from_scanner, fit.T_F_from_scanner, model)):
+                continue
+            _compare_rival(geom, model, check, other.T_F_from_scanner @ S, sl)
+        out.append(check)
+    px = min(max(sl.pixel_spacing_mm) for sl in slices)
+    tre, rot = pose_precision(model, fit, Ss, px, exclude=[c.merged for c in out])
+    k = PRECISION_SIGMAS
+    tre_tol, rot_tol = getattr(opts, "trust_tre_mm", TRE_TOL_MM), getattr(opts, "trust_rot_deg", ROT_TOL_DEG)
+    if k * tre > tre_tol or k * rot > rot_tol:
+        raise ImprecisePose(f"the pose is not precise enough to trust: {k:g} sigma of its predicted error is "
+                            f"{k * tre:.2f} mm at the frame centre and {k * rot:.2f} deg (limits {tre_tol:g} mm, "
+                            f"{rot_tol:g} deg)", {"sigma_tre_mm": round(tre, 4), "sigma_rot_deg": round(rot, 4)})
+    return out
+
+
+def _turned_rivals(model, T_F_from_scanner: np.ndarray, xy: np.ndarray, S: np.ndarray, pixel_mm: float) -> list:
+    """The pose turned about the fiducial axis by each near-symmetry of its straight tubes, each refined.
+
+    A turn that maps three or more axial tubes onto axial tubes (within
+    :data:`SYMMETRY_TOL_DEG`) is a pose the first-guess stage may never have
+    offered (the 90 deg turns of four diametric tubes, say); refined against
+    the same blobs, it is a rival for :func:`_compare_rival`.
+    """
+    from .solve import refine
+
+    ang = model.angle_rad[model.axial]
+    tol = math.radians(SYMMETRY_TOL_DEG)
+    turns = []
+    for a in ang:
+        for b in ang:
+            d = float((b - a + math.pi) % (2 * math.pi) - math.pi)
+            if abs(d) < tol or any(abs(d - t) < tol for t in turns):
+                continue
+            moved = (ang[:, None] + d - ang[None, :] + math.pi) % (2 * math.pi) - math.pi
+            if int(np.sum(np.min(np.abs(moved), axis=1) < tol)) >= 3:
+                turns.append(d)
+    gate = max(float(model.diameter_mm.max()), 2 * pixel_mm)
+    out = []
+    for d in turns:
+        c, s_ = math.cos(d), math.sin(d)
+        Rz = np.array([[c, -s_, 0, 0], [s_, c, 0, 0], [0, 0, 1, 0], [0, 0, 0, 1.0]])
+        out.append(refine(model, [xy], [S], Rz @ T_F_from_scanner, gates_mm=(2 * gate, 0.6 * gate),
+                          iters_per_gate=3, final_iters=2))
+    return out
+
+
+def _compare_rival(geom, model, check: SliceCheck, T_F_from_I_rival: np.ndarray, sl) -> None:
+    """NoLock unless the pose explains the pixels clearly better than a distinct rival pose.
+
+    Both model images (the rival's rendered as the pose's) are fitted to the
+    pixels over the union of their sections grown by a pixel (``b + a model``);
+    the rival's residual sum of squares must exceed the pose's by
+    :data:`RIVAL_MARGIN` noise variances plus the model error
+    (:data:`MODEL_FLOOR` of the signal energy).
+    """
+    pixels = np.asarray(sl.pixels, float)
+    _, rival = _windows(geom, model, T_F_from_I_rival, pixels.shape, tuple(float(v) for v in sl.pixel_spacing_mm),
+                        float(sl.slice_thickness_mm))
+    region = _dilate((check.canvas > 0.02) | (rival > 0.02), 1)
+    y = pixels[region]
+    sse = []
+    for img in (check.canvas, rival):
+        A = np.stack([np.ones(y.size), img[region]], axis=1)
+        coef = np.linalg.lstsq(A, y, rcond=None)[0]
+        r = y - A @ coef
+        sse.append(float(r @ r))
+    signal = check.level ** 2 * float(np.sum(check.canvas[region] ** 2))
+    margin = RIVAL_MARGIN * check.noise_sigma ** 2 + MODEL_FLOOR * signal
+    if sse[1] - sse[0] < margin:
+        a = slice_angles(T_F_from_I_rival)
+        raise NoLock(f"{sl.source}: ambiguous: a distinct pose (depth {a.depth_mm:.1f} mm, tilt {a.tilt_deg:.1f} deg) "
+                     f"explains the image nearly as well (residual {sse[1]:.3g} vs {sse[0]:.3g}; margin needed "
+                     f"{margin:.3g})", {"n_tubes": int(np.sum(check.canvas > 0))})
