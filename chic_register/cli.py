@@ -11,6 +11,7 @@ from __future__ import annotations
 
 import argparse
 import json
+import math
 import sys
 
 from . import __version__, exits
@@ -46,6 +47,27 @@ def _parser() -> argparse.ArgumentParser:
     s.add_argument("--scene", metavar="DIR", help="also write a 3D Slicer scene (DIR/scene.mrml with the slices, "
                    "the fiducial and tool models under their transforms, detected and predicted tube centres)")
     _add_igtl_args(s)
+    s.add_argument("--target", nargs=3, type=float, metavar=("X", "Y", "Z"),
+                   help="point of F (mm) whose predicted TRE is reported (default: the tool tip, else the body centre)")
+    s.add_argument("--max-tre", type=float, metavar="MM",
+                   help="refuse (no_lock, reason 'imprecise') a pose whose predicted TRE exceeds MM")
+
+    c = sub.add_parser("precision", help="the design's precision map: Cramer-Rao bound over depth and tilt")
+    c.add_argument("--geometry", required=True, help="geometry.yaml")
+    c.add_argument("--pixel-size", type=float, default=0.5, metavar="MM", help="square pixel size (default 0.5)")
+    c.add_argument("--slice-thickness", type=float, default=2.0, metavar="MM", help="slice thickness (default 2)")
+    c.add_argument("--snr", type=float, default=20.0, metavar="S", help="fluid SNR, Rician noise (default 20)")
+    c.add_argument("--slices", type=int, default=1, metavar="N", help="parallel slices per pose (default 1)")
+    c.add_argument("--slice-spacing", type=float, default=None, metavar="MM",
+                   help="centre-to-centre slice spacing (default: the slice thickness)")
+    c.add_argument("--target", nargs=3, type=float, metavar=("X", "Y", "Z"),
+                   help="TRE point in F (mm; default: the tool tip, else the body centre)")
+    c.add_argument("--depths", nargs="+", type=float, metavar="MM", help="depths (default: 10-90 %% of the body, 9)")
+    c.add_argument("--tilts", nargs="+", type=float, default=[0.0, 15.0, 30.0, 45.0], metavar="DEG",
+                   help="tilts (default 0 15 30 45)")
+    c.add_argument("--azimuths", type=int, default=4, metavar="N", help="azimuths per cell (default 4)")
+    c.add_argument("--json", action="store_true", help="print one JSON object")
+    c.add_argument("--plot", metavar="PNG", help="write the precision map plot")
 
     m = sub.add_parser("simulate", help="write a synthetic slice at a known pose, with its truth")
     m.add_argument("--geometry", required=True, help="geometry.yaml")
@@ -173,6 +195,15 @@ def _run_solve(args) -> int:
             raise ChicRegisterError(f"--prior-max-deg must be in (0, 180] deg, got {args.prior_max_deg:g}")
         options = {"prior": _load_reference(args.prior, "--prior"), "prior_max_deg": args.prior_max_deg}
     slices, skip = _read_solve_inputs(args)
+    extra = {}
+    if args.target is not None:
+        if not all(math.isfinite(v) for v in args.target):
+            raise ChicRegisterError("--target must be three finite numbers (mm in F)")
+        extra["target_F_mm"] = tuple(args.target)
+    if args.max_tre is not None:
+        if not (args.max_tre > 0 and math.isfinite(args.max_tre)):
+            raise ChicRegisterError(f"--max-tre must be a positive number of mm, got {args.max_tre:g}")
+        extra["max_tre_mm"] = args.max_tre
     early = Delivery()  # a server that cannot listen is an output failure: the pose still comes
     link = None
     try:
@@ -184,7 +215,7 @@ def _run_solve(args) -> int:
               f"the pose waits up to {plan.igtl_wait_s:g} s for one)", file=sys.stderr, flush=True)
     try:
         try:
-            reg = register(slices, geom, skip_failed=skip, **options)
+            reg = register(slices, geom, skip_failed=skip, **options, **extra)
         except NoLock as exc:
             _report_failures(early)
             _report_failures(deliver_no_lock(plan, exc.reason, geom, slices, link))
@@ -228,6 +259,12 @@ def _print_pose(args, reg, geom) -> None:
         print("  residuals (mm): " + ", ".join(f"{k} {v:.3f}" for k, v in s.residuals_mm.items()))
     for s in reg.skipped:
         print(f"skipped {s.source}: {s.reason}")
+    u = reg.uncertainty
+    if u is not None:
+        sd = [math.sqrt(max(0.0, float(u.covariance[i, i]))) for i in range(6)]
+        print(f"predicted TRE {u.predicted_tre_mm:.3f} mm at ({', '.join(f'{v:g}' for v in u.target_F_mm)}) in F; "
+              f"SD rotation {max(sd[:3]):.3f} deg, translation {max(sd[3:]):.3f} mm (largest axis); "
+              f"image noise sigma {', '.join(f'{n.sigma:.4g}' for n in u.noise)}")
     sys.stdout.flush()
 
 
@@ -534,8 +571,40 @@ def _run_track(args) -> int:
     return run_track(args)
 
 
+def _run_precision(args) -> int:
+    from .crlb import Protocol, precision_map
+    from .geometry import load_geometry
+    from .precision_report import format_map, plot_map
+
+    geom = load_geometry(args.geometry)
+    spacing = args.slice_thickness if args.slice_spacing is None else args.slice_spacing
+    try:
+        protocol = Protocol(args.pixel_size, args.slice_thickness, args.snr, args.slices, spacing)
+    except ValueError as exc:
+        raise ChicRegisterError(f"precision: {exc}") from None
+    for name, vals in (("--depths", args.depths or []), ("--tilts", args.tilts), ("--target", args.target or [])):
+        if not all(math.isfinite(v) for v in vals):
+            raise ChicRegisterError(f"{name} must be finite numbers")
+    if not all(0.0 <= t < 90.0 for t in args.tilts):
+        raise ChicRegisterError("--tilts must be in [0, 90) degrees")
+    if args.azimuths < 1:
+        raise ChicRegisterError(f"--azimuths must be >= 1, got {args.azimuths}")
+    if args.plot and not args.plot.lower().endswith(".png"):
+        raise ChicRegisterError(f"--plot {args.plot}: the plot is a PNG file (name it *.png)")
+    pm = precision_map(geom, protocol, args.depths, args.tilts, args.target, n_azimuths=args.azimuths)
+    if args.plot:
+        plot_map(pm, args.plot, title=geom.name)
+    if args.json:
+        print(json.dumps({"geometry": geom.name, **pm.to_dict()}, indent=2))
+    else:
+        print(format_map(pm, geom.name))
+        if args.plot:
+            print(f"wrote {args.plot}")
+    return 0
+
+
 def _run(args) -> int:
-    commands = {"solve": _run_solve, "simulate": _run_simulate, "evaluate": _run_evaluate,
+    commands = {"precision": _run_precision, "solve": _run_solve, "simulate": _run_simulate, "evaluate": _run_evaluate,
                 "reslice": _run_reslice, "track": _run_track}
     return commands[args.command](args)
 

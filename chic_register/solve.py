@@ -304,6 +304,9 @@ class _Fit:
     inside: list  # per slice: (K,) bool
     n_matched: int
     rms_mm: float
+    # what the last fit was made of, when not the blob centroids: per slice (measured xy (N, 2) mm, square-root
+    # information L (K, 2, 2) it was weighted by, the noise sigma L assumed) (see chic_register.uncertainty)
+    measurements: list | None = None
 
 
 def _assign(pred: np.ndarray, ok: np.ndarray, blobs_xy: np.ndarray, gate_mm: float) -> np.ndarray:
@@ -727,6 +730,8 @@ def _section_refine(model: TubeModel, fit: _Fit, xys, Ss, slices, blob_sets, opt
             return None
         fit = refine(model, new_xys, Ss, X0, gates_mm=(), final_iters=6 if exact else 1, assign0=assign,
                      strict_ends=False, weights=Ls, tol=1e-5)  # (1e-5 rad, mm: far below the noise)
+        fit = dataclasses.replace(fit, measurements=[(xy, L, float(b.noise_sigma))
+                                                     for xy, L, b in zip(new_xys, Ls, blob_sets)])
         moved = 0.0  # how far the matched tubes' crossings moved in this pass (mm)
         for j, S in enumerate(Ss):
             k = np.flatnonzero(assign[j] >= 0)
@@ -807,9 +812,11 @@ class Registration:
     geometry_name: str = ""
     geometry_sha256: str = ""
     skipped: tuple = ()
+    uncertainty: object = field(repr=False, default=None)  # chic_register.uncertainty.PoseUncertainty
 
     def to_dict(self) -> dict:
-        """JSON-ready object, CONTRACT.md section 4 plus extra keys."""
+        """JSON-ready object, CONTRACT.md section 4 plus extra keys (``covariance``, ``noise``,
+        ``target_F_mm``, ``predicted_tre_mm``: :meth:`~chic_register.uncertainty.PoseUncertainty.to_dict`)."""
         return {
             "status": self.status,
             "T_scanner_from_fiducial": [[float(v) for v in row] for row in self.T_scanner_from_fiducial],
@@ -818,6 +825,7 @@ class Registration:
             "skipped_slices": [s.to_dict() for s in self.skipped],
             "timing_ms": {k: round(v, 3) for k, v in self.timing_ms.items()},
             "geometry": {"name": self.geometry_name, "sha256": self.geometry_sha256},
+            **(self.uncertainty.to_dict() if self.uncertainty is not None else {}),
         }
 
 
@@ -861,6 +869,10 @@ class SolveOptions:
     ``refine_when_imprecise``, the accuracy mode's refinement is tried before
     refusing); off only for
     studies of the raw fit.
+    ``uncertainty``: compute the pose's covariance and predicted TRE
+    (:mod:`~chic_register.uncertainty`; a few ms per slice; always when
+    ``max_tre_mm`` is finite); ``max_tre_mm``: a pose whose predicted TRE at
+    the registration's target exceeds it gives :class:`NoLock` (``imprecise``).
     ``prior``: an approximate ``T_scanner_from_fiducial`` (4x4, only its
     rotation is used): poses turned more than ``prior_max_deg`` from it are
     never considered. It is what resolves a geometry that maps onto itself
@@ -892,6 +904,8 @@ class SolveOptions:
     trust_tre_mm: float = 0.5
     trust_rot_deg: float = 0.5
     refine_when_imprecise: bool = True
+    max_tre_mm: float = math.inf
+    uncertainty: bool = True
     prior: np.ndarray | None = None
     prior_max_deg: float = 60.0
 
@@ -1132,7 +1146,8 @@ def _track(model: TubeModel, xy: np.ndarray, S: np.ndarray, T_F_from_scanner: np
 
 
 def register(slices: list[Slice], geom: FiducialGeometry, *, options: SolveOptions | None = None,
-             detect_options: dict | None = None, skip_failed: bool = False, **overrides) -> Registration:
+             detect_options: dict | None = None, skip_failed: bool = False, target_F_mm=None,
+             **overrides) -> Registration:
     """Register one or more slices of the fiducial: one ``T_scanner_from_fiducial`` from all.
 
     Each slice is detected and solved on its own, then all correspondences
@@ -1143,7 +1158,9 @@ def register(slices: list[Slice], geom: FiducialGeometry, *, options: SolveOptio
     joint pose is dropped; each is listed in ``Registration.skipped`` with
     its reason. ``overrides`` set fields of :class:`SolveOptions` (e.g.
     ``max_rms_px=0.4``); ``detect_options`` go to
-    :func:`~chic_register.detect.detect_blobs`. Raises :class:`NoLock` with a
+    :func:`~chic_register.detect.detect_blobs`. ``target_F_mm``: the
+    point of F whose predicted TRE is reported (default: the geometry's tool
+    tip, else the body's centre on its axis). Raises :class:`NoLock` with a
     reason when no trustworthy pose exists.
     """
     opts = dataclasses.replace(options or SolveOptions(), **overrides)
@@ -1287,8 +1304,21 @@ def register(slices: list[Slice], geom: FiducialGeometry, *, options: SolveOptio
             missing_tubes=checks[j].missing if checks else (),
         ))
     t3 = time.perf_counter()
-    timing = {"detect": (t1 - t0) * 1e3, "pose": (t2 - t1) * 1e3, "total": (t3 - t0) * 1e3}
-    return Registration("ok", T_sf, tuple(results), timing, geom.name, geom_sha, tuple(skipped))
+    unc = None
+    if opts.uncertainty or math.isfinite(opts.max_tre_mm):
+        from .uncertainty import registration_uncertainty, target_point
+
+        unc = registration_uncertainty(model, best, xys, Ss, slices, blob_sets, target_point(geom, target_F_mm),
+                                       "centroid" if not opts.centroid_model else "template (centroid covariance)")
+        if unc.predicted_tre_mm > opts.max_tre_mm:
+            raise NoLock(f"imprecise: predicted TRE {unc.predicted_tre_mm:.3f} mm at "
+                         f"({', '.join(f'{v:g}' for v in unc.target_F_mm)}) exceeds {opts.max_tre_mm:g} mm",
+                         {"code": "imprecise", "predicted_tre_mm": round(unc.predicted_tre_mm, 4),
+                          "max_tre_mm": opts.max_tre_mm})
+    t4 = time.perf_counter()
+    timing = {"detect": (t1 - t0) * 1e3, "pose": (t2 - t1) * 1e3, "uncertainty": (t4 - t3) * 1e3,
+              "total": (t4 - t0) * 1e3}
+    return Registration("ok", T_sf, tuple(results), timing, geom.name, geom_sha, tuple(skipped), unc)
 
 
 def _worth_flattening(blobs: Blobs, model: TubeModel) -> bool:
