@@ -33,7 +33,7 @@ from .errors import InfeasibleDesign
 from .feasibility import check_design
 from .layout import design_geometry
 from .lifeline import die_with_parent
-from .preview import preview_job, tilt_plot_job
+from .preview import precision_job, preview_job, tilt_plot_job
 from .printability import HARD_CODES
 from .report import build_report
 from .spec import Spec, load_spec, spec_sha256
@@ -258,6 +258,8 @@ def build_design(spec_path, out_root="exports", force: bool = False, progress: b
                 # the printability rules make the build fail or its output useless: --force cannot help
                 raise InfeasibleDesign(spec_path, hard or feasibility.violations, forceable=not hard)
             pictures.submit("tilt plot", tilt_plot_job, feasibility, tmp)
+            pictures.submit("precision", precision_job, geometry, spec.imaging.pixel_size,
+                            spec.imaging.slice_thickness, tmp)
         with steps.step("CAD model"):
             parts = design_parts(spec, geometry)
             volumes = {name: float(p.volume) for name, p in parts.items()}
@@ -271,12 +273,13 @@ def build_design(spec_path, out_root="exports", force: bool = False, progress: b
             checks = verify_export(tmp, volumes, overlaps)
         with steps.step("preview and tilt plot"):
             picture_times = pictures.collect()
-            files += ["preview.png", "tilt_limits.png"]
+            files += ["preview.png", "tilt_limits.png", "precision.md"]
+            files += ["precision.png"] if (tmp / "precision.png").is_file() else []
         with steps.step("report"):
             files.append("report.md")
             timings = {**steps.timings, **{f"{k} (parallel)": v for k, v in picture_times.items()}}
             text = build_report(spec, spec_path, geometry, volumes, checks, feasibility.markdown(),
-                                timings, files)
+                                timings, files, (tmp / "precision.md").read_text(encoding="utf-8"))
             (tmp / "report.md").write_text(text, encoding="utf-8")
         with steps.step("replace export folder"):
             _default_permissions(tmp)

@@ -37,6 +37,10 @@ def _parser() -> argparse.ArgumentParser:
     c.add_argument("--slice-thickness", type=float, metavar="MM", help="override imaging.slice_thickness")
     c.add_argument("--pixel-size", type=float, metavar="MM", help="override imaging.pixel_size")
     c.add_argument("--plot", metavar="PNG", help="also save the max-tilt-vs-depth plot here")
+    c.add_argument("--precision", action="store_true",
+                   help="add the precision map (Cramer-Rao bound over depth and tilt, one slice; a few seconds)")
+    c.add_argument("--snr", type=float, default=20.0, metavar="S", help="fluid SNR for --precision (default 20)")
+    c.add_argument("--precision-plot", metavar="PNG", help="with --precision: save the precision plot here")
 
     sc = sub.add_parser("schema", help="print the spec's JSON Schema")
     sc.add_argument("--family", default="chic", choices=["chic", "zframe"],
@@ -51,6 +55,25 @@ def _parser() -> argparse.ArgumentParser:
     o.add_argument("--workers", type=int, help="local worker processes (default: the CPU count)")
     o.add_argument("--quiet", action="store_true", help="no progress bar")
     return p
+
+
+def _precision(args, spec, report):
+    """The coarse precision map of ``chic-design check --precision`` (None for ideal pixels)."""
+    import math
+
+    from chic_register.precision_report import design_precision, plot_map
+
+    from .layout import fiducial_geometry
+
+    if not (args.snr > 0 and math.isfinite(args.snr)):
+        raise ChicDesignError(f"--snr must be > 0, got {args.snr}")
+    if args.precision_plot and not args.precision_plot.lower().endswith(".png"):
+        raise ChicDesignError(f"--precision-plot {args.precision_plot}: the plot is a PNG file (name it *.png)")
+    geometry = fiducial_geometry(spec)
+    pm = design_precision(geometry, report.pixel_size_mm, report.slice_thickness_mm, args.snr)
+    if pm is not None and args.precision_plot:
+        plot_map(pm, args.precision_plot, title=spec.name)
+    return pm
 
 
 def _run(args) -> int:
@@ -73,10 +96,19 @@ def _run(args) -> int:
         report = check_design(spec)
         if args.plot:
             save_tilt_plot(report, args.plot)
+        pm = _precision(args, spec, report) if args.precision else None
         if args.json:
-            print(json.dumps(report.to_dict(), indent=2))
+            doc = report.to_dict()
+            if args.precision:
+                doc["precision"] = pm.to_dict() if pm is not None else None
+            print(json.dumps(doc, indent=2))
         else:
             print(report.summary_text())
+            if args.precision:
+                from chic_register.precision_report import format_map
+
+                print(format_map(pm, spec.name) if pm is not None else
+                      "precision: not computed (ideal 0 mm pixels have no noise model)")
         return 0 if report.feasible else 1
     if args.command == "optimize":
         from .optimize.engine import parse_scheduler

@@ -91,3 +91,16 @@ def tilt_plot_job(feasibility_report, folder) -> float:
     t0 = time.perf_counter()
     save_tilt_plot(feasibility_report, Path(folder) / "tilt_limits.png")
     return time.perf_counter() - t0
+
+
+def precision_job(geometry: FiducialGeometry, pixel_size_mm: float, slice_thickness_mm: float, folder) -> float:
+    """Write ``folder/precision.png`` and ``folder/precision.md`` (the report's precision section); returns the wall time (s)."""
+    from chic_register.atomic import write_text
+    from chic_register.precision_report import design_precision, plot_map, report_section
+
+    t0 = time.perf_counter()
+    pm = design_precision(geometry, pixel_size_mm, slice_thickness_mm)
+    if pm is not None:
+        plot_map(pm, Path(folder) / "precision.png", title=geometry.name)
+    write_text(Path(folder) / "precision.md", report_section(pm, "precision.png" if pm is not None else None))
+    return time.perf_counter() - t0

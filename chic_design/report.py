@@ -96,7 +96,7 @@ def _chic_head(spec, geometry: FiducialGeometry):
 
 def build_report(spec, spec_path, geometry: FiducialGeometry, part_volumes_mm3: dict[str, float],
                  verify_result, feasibility_markdown: str | None, timings_s: dict[str, float],
-                 files: list[str]) -> str:
+                 files: list[str], precision_markdown: str | None = None) -> str:
     """The text of ``report.md``."""
     b = geometry.body
     if geometry.family == "zframe":
@@ -165,6 +165,7 @@ def build_report(spec, spec_path, geometry: FiducialGeometry, part_volumes_mm3: 
         FILLING_PROCEDURE.format(clearance=dims.clearance, port=dims.port_diameter),
         feasibility_markdown.strip() if feasibility_markdown else "## Feasibility\n\n(not checked)",
         "",
+        *([precision_markdown.strip(), ""] if precision_markdown else []),
         "## Output checks",
         "",
         "Body sections checked at z = "

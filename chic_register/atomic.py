@@ -82,3 +82,15 @@ def write_bytes(path, data: bytes) -> Path:
 def write_json(path, doc) -> Path:
     """Write ``doc`` as indented JSON (with a final newline) to ``path`` atomically."""
     return write_text(path, json.dumps(doc, indent=2) + "\n")
+
+
+def save_figure(fig, path, dpi: int = 110) -> Path:
+    """Save a matplotlib figure to ``path`` as PNG atomically, then close it (also on failure)."""
+    import matplotlib.pyplot as plt
+
+    try:
+        with atomic_path(path) as tmp:
+            fig.savefig(tmp, dpi=dpi, format="png")
+    finally:
+        plt.close(fig)
+    return Path(path)

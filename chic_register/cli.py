@@ -11,6 +11,7 @@ from __future__ import annotations
 
 import argparse
 import json
+import math
 import sys
 
 from . import __version__, exits
@@ -31,14 +32,42 @@ def _parser() -> argparse.ArgumentParser:
     s.add_argument("--pixel-spacing", nargs=2, type=float, metavar=("ROW", "COL"),
                    help="pixel spacing (mm) for PNG/TIFF/NPY images")
     s.add_argument("--overlay", metavar="PNG", help="draw the slice with detections, ellipse and labels")
-    s.add_argument("--slices", nargs="+", type=int, metavar="K",
+    s.add_argument("--slices", nargs="+", metavar="K",
                    help="for a volume IMAGE (.nii, .nii.gz, .nrrd, .mha or a DICOM series folder): "
-                        "indices of its slices to register jointly")
+                        "indices (5) or ranges (5-11) of its slices to register jointly; each must lock. "
+                        "Default: every slice that shows the fiducial (the others are listed as skipped)")
+    s.add_argument("--prior", metavar="FILE",
+                   help="an approximate pose of the fiducial (JSON with T_scanner_from_fiducial, or .tfm): "
+                        "only poses turned less than --prior-max-deg from it are considered. Needed for a "
+                        "geometry that maps onto itself under a rotation (the classic Z-frame)")
+    s.add_argument("--prior-max-deg", type=float, default=60.0, metavar="DEG",
+                   help="largest rotation from --prior (default 60)")
     s.add_argument("--tfm", metavar="FILE", help="also write the pose as an ITK transform file for 3D Slicer "
                    "(holds T_fiducial_from_scanner, LPS; see docs/interfaces.md)")
     s.add_argument("--scene", metavar="DIR", help="also write a 3D Slicer scene (DIR/scene.mrml with the slices, "
                    "the fiducial and tool models under their transforms, detected and predicted tube centres)")
     _add_igtl_args(s)
+    s.add_argument("--target", nargs=3, type=float, metavar=("X", "Y", "Z"),
+                   help="point of F (mm) whose predicted TRE is reported (default: the tool tip, else the body centre)")
+    s.add_argument("--max-tre", type=float, metavar="MM",
+                   help="refuse (no_lock, reason 'imprecise') a pose whose predicted TRE exceeds MM")
+
+    c = sub.add_parser("precision", help="the design's precision map: Cramer-Rao bound over depth and tilt")
+    c.add_argument("--geometry", required=True, help="geometry.yaml")
+    c.add_argument("--pixel-size", type=float, default=0.5, metavar="MM", help="square pixel size (default 0.5)")
+    c.add_argument("--slice-thickness", type=float, default=2.0, metavar="MM", help="slice thickness (default 2)")
+    c.add_argument("--snr", type=float, default=20.0, metavar="S", help="fluid SNR, Rician noise (default 20)")
+    c.add_argument("--slices", type=int, default=1, metavar="N", help="parallel slices per pose (default 1)")
+    c.add_argument("--slice-spacing", type=float, default=None, metavar="MM",
+                   help="centre-to-centre slice spacing (default: the slice thickness)")
+    c.add_argument("--target", nargs=3, type=float, metavar=("X", "Y", "Z"),
+                   help="TRE point in F (mm; default: the tool tip, else the body centre)")
+    c.add_argument("--depths", nargs="+", type=float, metavar="MM", help="depths (default: 10-90 %% of the body, 9)")
+    c.add_argument("--tilts", nargs="+", type=float, default=[0.0, 15.0, 30.0, 45.0], metavar="DEG",
+                   help="tilts (default 0 15 30 45)")
+    c.add_argument("--azimuths", type=int, default=4, metavar="N", help="azimuths per cell (default 4)")
+    c.add_argument("--json", action="store_true", help="print one JSON object")
+    c.add_argument("--plot", metavar="PNG", help="write the precision map plot")
 
     m = sub.add_parser("simulate", help="write a synthetic slice at a known pose, with its truth")
     m.add_argument("--geometry", required=True, help="geometry.yaml")
@@ -160,7 +189,21 @@ def _run_solve(args) -> int:
 
     plan = OutputPlan.from_args(args).check()
     geom = load_geometry(args.geometry)
-    slices = _read_solve_inputs(args)
+    options = {}
+    if args.prior:
+        if not (0 < args.prior_max_deg <= 180):
+            raise ChicRegisterError(f"--prior-max-deg must be in (0, 180] deg, got {args.prior_max_deg:g}")
+        options = {"prior": _load_reference(args.prior, "--prior"), "prior_max_deg": args.prior_max_deg}
+    slices, skip = _read_solve_inputs(args)
+    extra = {}
+    if args.target is not None:
+        if not all(math.isfinite(v) for v in args.target):
+            raise ChicRegisterError("--target must be three finite numbers (mm in F)")
+        extra["target_F_mm"] = tuple(args.target)
+    if args.max_tre is not None:
+        if not (args.max_tre > 0 and math.isfinite(args.max_tre)):
+            raise ChicRegisterError(f"--max-tre must be a positive number of mm, got {args.max_tre:g}")
+        extra["max_tre_mm"] = args.max_tre
     early = Delivery()  # a server that cannot listen is an output failure: the pose still comes
     link = None
     try:
@@ -172,7 +215,7 @@ def _run_solve(args) -> int:
               f"the pose waits up to {plan.igtl_wait_s:g} s for one)", file=sys.stderr, flush=True)
     try:
         try:
-            reg = register(slices, geom)
+            reg = register(slices, geom, skip_failed=skip, **options, **extra)
         except NoLock as exc:
             _report_failures(early)
             _report_failures(deliver_no_lock(plan, exc.reason, geom, slices, link))
@@ -198,8 +241,9 @@ def _print_pose(args, reg, geom) -> None:
         print(json.dumps(registration_json(reg, geom), indent=2), flush=True)
         return
     t = reg.timing_ms
-    print(f"status: ok ({len(reg.slices)} slice{'s' if len(reg.slices) > 1 else ''} of '{geom.name}', "
-          f"{t['total']:.1f} ms: detect {t['detect']:.1f}, pose {t['pose']:.1f})")
+    print(f"status: ok ({len(reg.slices)} slice{'s' if len(reg.slices) > 1 else ''} of '{geom.name}'"
+          + (f" used, {len(reg.skipped)} skipped" if reg.skipped else "")
+          + f", {t['total']:.1f} ms: detect {t['detect']:.1f}, pose {t['pose']:.1f})")
     print("T_scanner_from_fiducial (mm):")
     for row in reg.T_scanner_from_fiducial:
         print("  " + "  ".join(f"{v:11.5f}" for v in row))
@@ -213,11 +257,19 @@ def _print_pose(args, reg, geom) -> None:
         print(f"{s.source}: depth {s.depth_mm:.3f} mm, tilt {s.tilt_deg:.3f}, azimuth {s.azimuth_deg:.3f}, "
               f"twist {s.twist_deg:.3f} deg; residual RMS {s.residual_rms_mm:.3f} mm over {s.n_tubes} tubes")
         print("  residuals (mm): " + ", ".join(f"{k} {v:.3f}" for k, v in s.residuals_mm.items()))
+    for s in reg.skipped:
+        print(f"skipped {s.source}: {s.reason}")
+    u = reg.uncertainty
+    if u is not None:
+        sd = [math.sqrt(max(0.0, float(u.covariance[i, i]))) for i in range(6)]
+        print(f"predicted TRE {u.predicted_tre_mm:.3f} mm at ({', '.join(f'{v:g}' for v in u.target_F_mm)}) in F; "
+              f"SD rotation {max(sd[:3]):.3f} deg, translation {max(sd[3:]):.3f} mm (largest axis); "
+              f"image noise sigma {', '.join(f'{n.sigma:.4g}' for n in u.noise)}")
     sys.stdout.flush()
 
 
 def _blob_width_check(factor: float) -> tuple[bool, str]:
-    from .simulate import BLOB_WIDTH_RANGE
+    from .blob_width import BLOB_WIDTH_RANGE
 
     lo, hi = BLOB_WIDTH_RANGE
     return lo <= factor <= hi, f"--blob-width must be {lo:g}..{hi:g} (x the nominal diameter), got {factor:g}"
@@ -344,28 +396,34 @@ def _check_spacing_flag(args) -> None:
             raise ChicRegisterError(f"--pixel-spacing: {fault}")
 
 
-def _read_solve_inputs(args) -> list:
-    """The slices of ``solve``: 2-D image files as they are, volumes by their ``--slices`` indices."""
+def _read_solve_inputs(args) -> tuple[list, bool]:
+    """The slices of ``solve`` and whether failing ones may be skipped.
+
+    2-D image files as they are; a volume by its ``--slices`` indices and
+    ranges, or, without them, every native slice (those that do not lock are
+    then skipped and reported).
+    """
     from .imageio import read_slices
     from .volume import is_volume_path, read_volume
+    from .volume_register import parse_slice_indices
 
     _check_spacing_flag(args)
     volumes = [p for p in args.images if is_volume_path(p)]
-    if volumes and not args.slices:
-        raise ChicRegisterError(f"{volumes[0]} is a volume: pick the slices to register with --slices K [K ...]")
     if args.slices and not volumes:
         raise ChicRegisterError("--slices applies to volume inputs (.nii, .nii.gz, .nrrd, .mha, DICOM series folder)")
     slices = []
     for path in args.images:
         if is_volume_path(path):
             vol = read_volume(path)
-            slices.extend(vol.native_slice(k) for k in args.slices)
+            nk = vol.shape[0]
+            ks = parse_slice_indices(args.slices, nk) if args.slices else range(nk)
+            slices.extend(vol.native_slice(k) for k in ks)
         else:
             slices.extend(read_slices([path], args.pixel_spacing))
-    return slices
+    return slices, bool(volumes) and not args.slices
 
 
-def _load_reference(path) -> "np.ndarray":
+def _load_reference(path, flag: str = "--reference") -> "np.ndarray":
     """T_scanner_from_fiducial from a JSON file (any object with that key) or a .tfm file."""
     from pathlib import Path
 
@@ -382,16 +440,16 @@ def _load_reference(path) -> "np.ndarray":
     try:
         doc = json.loads(read_regular_file(p, "reference file", max_bytes=1 << 20).decode("utf-8"))
     except InputFileError as exc:
-        raise ChicRegisterError(f"--reference {exc}") from None
+        raise ChicRegisterError(f"{flag} {exc}") from None
     except (UnicodeDecodeError, json.JSONDecodeError, RecursionError) as exc:
-        raise ChicRegisterError(f"--reference {p}: not a JSON file ({str(exc).splitlines()[0][:100]})") from None
+        raise ChicRegisterError(f"{flag} {p}: not a JSON file ({str(exc).splitlines()[0][:100]})") from None
     T = doc.get("T_scanner_from_fiducial") if isinstance(doc, dict) else None
     try:
         T = np.asarray(T, dtype=float)
     except (TypeError, ValueError):
         T = np.zeros(0)
     if T.shape != (4, 4) or not np.all(np.isfinite(T)) or not np.allclose(T[:3, :3].T @ T[:3, :3], np.eye(3), atol=1e-5):
-        raise ChicRegisterError(f"--reference {p}: needs key 'T_scanner_from_fiducial' holding a rigid 4x4 matrix")
+        raise ChicRegisterError(f"{flag} {p}: needs key 'T_scanner_from_fiducial' holding a rigid 4x4 matrix")
     return T
 
 
@@ -513,8 +571,40 @@ def _run_track(args) -> int:
     return run_track(args)
 
 
+def _run_precision(args) -> int:
+    from .crlb import Protocol, precision_map
+    from .geometry import load_geometry
+    from .precision_report import format_map, plot_map
+
+    geom = load_geometry(args.geometry)
+    spacing = args.slice_thickness if args.slice_spacing is None else args.slice_spacing
+    try:
+        protocol = Protocol(args.pixel_size, args.slice_thickness, args.snr, args.slices, spacing)
+    except ValueError as exc:
+        raise ChicRegisterError(f"precision: {exc}") from None
+    for name, vals in (("--depths", args.depths or []), ("--tilts", args.tilts), ("--target", args.target or [])):
+        if not all(math.isfinite(v) for v in vals):
+            raise ChicRegisterError(f"{name} must be finite numbers")
+    if not all(0.0 <= t < 90.0 for t in args.tilts):
+        raise ChicRegisterError("--tilts must be in [0, 90) degrees")
+    if args.azimuths < 1:
+        raise ChicRegisterError(f"--azimuths must be >= 1, got {args.azimuths}")
+    if args.plot and not args.plot.lower().endswith(".png"):
+        raise ChicRegisterError(f"--plot {args.plot}: the plot is a PNG file (name it *.png)")
+    pm = precision_map(geom, protocol, args.depths, args.tilts, args.target, n_azimuths=args.azimuths)
+    if args.plot:
+        plot_map(pm, args.plot, title=geom.name)
+    if args.json:
+        print(json.dumps({"geometry": geom.name, **pm.to_dict()}, indent=2))
+    else:
+        print(format_map(pm, geom.name))
+        if args.plot:
+            print(f"wrote {args.plot}")
+    return 0
+
+
 def _run(args) -> int:
-    commands = {"solve": _run_solve, "simulate": _run_simulate, "evaluate": _run_evaluate,
+    commands = {"precision": _run_precision, "solve": _run_solve, "simulate": _run_simulate, "evaluate": _run_evaluate,
                 "reslice": _run_reslice, "track": _run_track}
     return commands[args.command](args)
 

@@ -1,4 +1,4 @@
-"""Cramér-Rao lower bound (CRLB) of the fiducial's pose from its MRI slices.
+"""Cramer-Rao lower bound (CRLB) of the fiducial's pose from its MRI slices.
 
 What the best unbiased estimator could reach, for a design and an imaging
 protocol, from the pixels themselves (not from detected centres):
@@ -278,7 +278,6 @@ def angle_jacobian(T_F_from_S: np.ndarray) -> np.ndarray:
     J = np.zeros((4, 6))
     J[0, :3] = u @ skew_n  # -(r x n) . u = (n x r) . u
     J[1, :3] = v @ skew_n
-    a0 = slice_angles(T)
     for i in range(6):
         h = 1e-6
         e = np.zeros(6)
@@ -287,7 +286,6 @@ def angle_jacobian(T_F_from_S: np.ndarray) -> np.ndarray:
         am = slice_angles(np.linalg.inv(perturbation(-e)) @ T)
         J[2, i] = math.radians(wrap_deg(ap.twist_deg - am.twist_deg)) / (2 * h)
         J[3, i] = (ap.depth_mm - am.depth_mm) / (2 * h)
-    del a0
     return J
 
 
@@ -308,9 +306,8 @@ def summarise(cov_deg_mm: np.ndarray, T_F_from_S: np.ndarray, target_F_mm) -> di
 def default_target(geom: FiducialGeometry) -> tuple[float, float, float]:
     """The geometry's tool tip if it has one, else the centre of the body on its axis."""
     tool = getattr(geom, "tool", None)
-    tip = getattr(tool, "tip", None) if tool is not None else None
-    if tip is not None:
-        return tuple(float(v) for v in tip)
+    if tool is not None:
+        return tuple(float(v) for v in tool.tip_mm)
     return (0.0, 0.0, 0.5 * float(geom.body.length))
 
 

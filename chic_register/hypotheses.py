@@ -4,7 +4,7 @@ Two stages, both returning ``T_F_from_I`` (4x4) guesses that
 :func:`chic_register.solve.refine` then fits on all six degrees of freedom:
 
 - the **closed form** of the paper (:func:`initial_hypotheses`): a robust
-  ellipse through the blob centres gives the tilt and azimuth, axial tubes the
+  ellipse through the blob centres (:mod:`chic_register.ellipse`) gives the tilt and azimuth, axial tubes the
   twist, helices the depth. It holds only when every tube lies on one cylinder
   about the axis (:func:`ellipse_layout`, the CHIC family) and is the fast path;
 - the **generic** stage (:func:`family_hypotheses`), for any set of ``line``
@@ -24,12 +24,12 @@ import functools
 import itertools
 import math
 from dataclasses import dataclass
+from typing import TYPE_CHECKING
 
 import numpy as np
 
-from typing import TYPE_CHECKING
-
 from .detect import median
+from .ellipse import Ellipse, fit_ellipse_robust  # noqa: F401  (fit_ellipse_robust: part of this stage's API)
 from .geometry import sample_centreline
 from .pose import rigid
 
@@ -53,173 +53,6 @@ def ellipse_layout(model: "TubeModel", rel_tol: float = 0.1) -> bool:
     med = median(r)
     return med > 0 and bool(np.all(np.abs(r - med) <= rel_tol * med))
 
-
-
-@dataclass(frozen=True)
-class Ellipse:
-    """An ellipse in image mm: centre (2,), semi-axes ``a >= b`` (mm), major-axis angle ``phi`` (rad)."""
-
-    centre: np.ndarray
-    a: float
-    b: float
-    phi: float
-
-    def points(self, n: int = 200) -> np.ndarray:
-        """Outline points, shape (n, 2)."""
-        t = np.linspace(0, 2 * np.pi, n)
-        u, w = self.a * np.cos(t), self.b * np.sin(t)
-        c, s = math.cos(self.phi), math.sin(self.phi)
-        return self.centre + np.stack([u * c - w * s, u * s + w * c], axis=1)
-
-
-def _conic_to_ellipse(coef: np.ndarray):
-    """Conic coefficients (S, 6) [A, B, C, D, E, F] -> (centre (S,2), a, b, phi, valid)."""
-    coef = coef * np.where(coef[:, 0] + coef[:, 2] < 0, -1.0, 1.0)[:, None]  # positive-definite form
-    A, B, C, D, E, F = coef.T
-    det = 4 * A * C - B * B
-    valid = det > 1e-15
-    det = np.where(valid, det, 1.0)
-    cx = (B * E - 2 * C * D) / det
-    cy = (B * D - 2 * A * E) / det
-    Fc = A * cx * cx + B * cx * cy + C * cy * cy + D * cx + E * cy + F
-    tr = A + C
-    disc = np.sqrt(np.maximum((A - C) ** 2 + B * B, 0.0))
-    l1, l2 = (tr - disc) / 2, (tr + disc) / 2  # l1 <= l2
-    with np.errstate(divide="ignore", invalid="ignore"):
-        a2, b2 = -Fc / l1, -Fc / l2
-    valid &= (a2 > 0) & (b2 > 0) & np.isfinite(a2) & np.isfinite(b2)
-    a = np.sqrt(np.where(valid, a2, 1.0))
-    b = np.sqrt(np.where(valid, b2, 1.0))
-    # major axis: eigenvector of the smaller eigenvalue l1 of [[A, B/2], [B/2, C]]
-    phi = 0.5 * np.arctan2(B, A - C) + np.pi / 2
-    return np.stack([cx, cy], axis=1), a, b, phi, valid
-
-
-def _conic_to_ellipse_1(coef: np.ndarray):
-    """One conic (6,) -> ``(centre (2,), a, b, phi)`` or None: :func:`_conic_to_ellipse` in scalar arithmetic."""
-    A, B, C, D, E, F = (float(v) for v in coef)
-    if A + C < 0:
-        A, B, C, D, E, F = -A, -B, -C, -D, -E, -F
-    det = 4 * A * C - B * B
-    if not det > 1e-15:
-        return None
-    cx = (B * E - 2 * C * D) / det
-    cy = (B * D - 2 * A * E) / det
-    Fc = A * cx * cx + B * cx * cy + C * cy * cy + D * cx + E * cy + F
-    tr = A + C
-    disc = math.sqrt(max((A - C) ** 2 + B * B, 0.0))
-    l1, l2 = (tr - disc) / 2, (tr + disc) / 2
-    if l1 == 0 or l2 == 0:
-        return None
-    a2, b2 = -Fc / l1, -Fc / l2
-    if not (a2 > 0 and b2 > 0 and math.isfinite(a2) and math.isfinite(b2)):
-        return None
-    phi = 0.5 * math.atan2(B, A - C) + math.pi / 2
-    return np.array([cx, cy]), math.sqrt(a2), math.sqrt(b2), phi
-
-
-def _sampson(coef: np.ndarray, xy: np.ndarray) -> np.ndarray:
-    """First-order geometric distance of points (N, 2) to conics (S, 6) -> (S, N)."""
-    x, y = xy[:, 0][None], xy[:, 1][None]
-    A, B, C, D, E, F = (coef[:, i : i + 1] for i in range(6))
-    val = A * x * x + B * x * y + C * y * y + D * x + E * y + F
-    gx = 2 * A * x + B * y + D
-    gy = B * x + 2 * C * y + E
-    return np.abs(val) / np.maximum(np.hypot(gx, gy), 1e-12)
-
-
-def _design(xy: np.ndarray) -> np.ndarray:
-    x, y = xy[..., 0], xy[..., 1]
-    return np.stack([x * x, x * y, y * y, x, y, np.ones_like(x)], axis=-1)
-
-
-def _lsq_conic(xy: np.ndarray) -> np.ndarray:
-    """Least-squares ellipse (Fitzgibbon-Halir-Flusser) through points (N >= 5, 2) -> (6,)."""
-    D = _design(xy)
-    D1, D2 = D[:, :3], D[:, 3:]
-    S1, S2, S3 = D1.T @ D1, D1.T @ D2, D2.T @ D2
-    try:
-        Tm = -np.linalg.solve(S3, S2.T)
-    except np.linalg.LinAlgError:
-        return np.full(6, np.nan)
-    M = S1 + S2 @ Tm
-    M = np.array([M[2] / 2, -M[1], M[0] / 2])
-    w, v = np.linalg.eig(M)
-    v = np.real(v)
-    cond = 4 * v[0] * v[2] - v[1] ** 2
-    idx = np.flatnonzero(cond > 0)
-    if idx.size == 0:
-        return np.full(6, np.nan)
-    a1 = v[:, idx[0]]
-    return np.concatenate([a1, Tm @ a1])
-
-
-def fit_ellipse_robust(xy_mm: np.ndarray, radius_mm: float, max_tilt_deg: float = 80.0,
-                       tol_mm: float | None = None, rng_seed: int = 0, samples: int = 300):
-    """Ellipse of tube centres among candidate points (N, 2), tolerant to outliers.
-
-    The ellipse of a cylinder of radius ``radius_mm`` cut at tilt t has minor
-    semi-axis ``radius_mm`` and major ``radius_mm / cos t``; only such
-    ellipses are accepted. First all points are tried; if some do not fit,
-    RANSAC on 5-point subsets picks the largest consistent set.
-    Returns ``(Ellipse, inlier mask (N,))`` or ``None``.
-    """
-    N = xy_mm.shape[0]
-    if N < 5:
-        return None
-    tol = tol_mm if tol_mm is not None else 0.1 * radius_mm
-    mu = xy_mm.mean(axis=0)
-    scale = radius_mm
-    p = (xy_mm - mu) / scale  # well-conditioned units
-    max_ratio = 1.0 / math.cos(math.radians(max_tilt_deg))
-
-    def plausible(a, b):
-        return (b > 0.75) & (b < 1.25) & (a / b < max_ratio)
-
-    def refit(mask):
-        coef = _lsq_conic(p[mask])
-        if not np.all(np.isfinite(coef)):
-            return None
-        e = _conic_to_ellipse_1(coef)
-        if e is None or not plausible(e[1], e[2]):
-            return None
-        dist = _sampson(coef[None], p)[0] * scale
-        return coef, e, dist
-
-    best = refit(np.ones(N, bool))
-    if best is not None and np.all(best[2] < tol):
-        inl = np.ones(N, bool)
-    else:
-        rng = np.random.default_rng(rng_seed)
-        idx = np.argsort(rng.random((samples, N)), axis=1)[:, :5]
-        D = _design(p[idx])  # (S,5,6)
-        _, _, vt = np.linalg.svd(D, full_matrices=True)
-        coef = vt[:, -1, :]
-        c, a, b, phi, valid = _conic_to_ellipse(coef)
-        valid &= plausible(a, b)
-        if not valid.any():
-            return None
-        dist = _sampson(coef, p) * scale
-        inliers = (dist < tol) & valid[:, None]
-        count = inliers.sum(axis=1)
-        err = np.where(inliers, dist, 0).sum(axis=1)
-        order = np.lexsort((err, -count))
-        inl = inliers[order[0]]
-        best = None
-        for _ in range(3):
-            if inl.sum() < 5:
-                return None
-            best = refit(inl)
-            if best is None:
-                return None
-            new = best[2] < tol
-            if np.array_equal(new, inl):
-                break
-            inl = new
-        if best is None or inl.sum() < 5:
-            return None
-    _, (c, a, b, phi), _ = best
-    return Ellipse(c * scale + mu, float(a * scale), float(b * scale), float(phi)), inl
 
 
 # --------------------------------------------------------------------------- hypotheses
@@ -364,9 +197,11 @@ class ParallelFamily:
     non-degenerate cross-section triangle (indices into ``idx``) and
     ``side_min_mm`` (T,) their shortest side; ``depth_idx``: the tubes not
     parallel to ``u`` (they fix the plane's position along ``u``) with their
-    centreline ``samples``: per tube, cross-section coordinates (M, 2),
-    heights along ``u`` (M,) and the depth tolerance factor (height per mm of
-    cross-section travel: 1 for a 45-degree diagonal, more for a shallow helix).
+    centreline samples, all tubes' concatenated: cross-section coordinates
+    ``sample_q`` (M, 2), heights along ``u`` ``sample_h`` (M,), each tube's
+    ``(start, stop)`` in them and its depth tolerance factor ``sample_rise``
+    (height per mm of cross-section travel: 1 for a 45-degree diagonal, more
+    for a shallow helix).
     """
 
     idx: np.ndarray
@@ -376,7 +211,10 @@ class ParallelFamily:
     triples: np.ndarray
     side_min_mm: np.ndarray
     depth_idx: np.ndarray
-    samples: tuple
+    sample_q: np.ndarray
+    sample_h: np.ndarray
+    sample_slices: tuple
+    sample_rise: tuple
 
 
 def _basis_normal_to(u: np.ndarray) -> np.ndarray:
@@ -388,7 +226,7 @@ def _basis_normal_to(u: np.ndarray) -> np.ndarray:
 
 
 @functools.lru_cache(maxsize=8)
-def parallel_family(model: "TubeModel", sample_step_mm: float = 0.25) -> ParallelFamily | None:
+def parallel_family(model: "TubeModel", sample_step_mm: float = 0.5) -> ParallelFamily | None:
     """The largest family of >= 3 parallel straight tubes not all in one plane, or None (memoised per model)."""
     li = model.line_idx
     if li.size < 3:
@@ -420,14 +258,21 @@ def parallel_family(model: "TubeModel", sample_step_mm: float = 0.25) -> Paralle
     for k in li:
         parallel[k] |= abs(model.d[k] @ u) / np.linalg.norm(model.d[k]) > _PARALLEL_COS
     depth_idx = np.flatnonzero(~parallel)
-    samples = []
+    qs, hs, spans, rises = [], [], [], []
+    start = 0
     for k in depth_idx:
         S = sample_centreline(model.tubes[k], sample_step_mm)
         Q, h = S @ E, S @ u
         travel = float(np.sum(np.linalg.norm(np.diff(Q, axis=0), axis=1)))
         rise = float(abs(h[-1] - h[0])) if h.size > 1 else 0.0
-        samples.append((Q, h, rise / travel if travel > 1e-9 else math.inf))
-    return ParallelFamily(idx, u, E, c, np.array(triples, int), np.array(sides), depth_idx, tuple(samples))
+        qs.append(Q)
+        hs.append(h)
+        spans.append((start, start + h.size))
+        rises.append(rise / travel if travel > 1e-9 else math.inf)
+        start += h.size
+    return ParallelFamily(idx, u, E, c, np.array(triples, int), np.array(sides), depth_idx,
+                          np.concatenate(qs) if qs else np.zeros((0, 2)), np.concatenate(hs) if hs else np.zeros(0),
+                          tuple(spans), tuple(rises))
 
 
 def _affine_candidates(fam: ParallelFamily, xy: np.ndarray, gate_mm: float, cos_max: float, max_pairs: int,
@@ -452,13 +297,15 @@ def _affine_candidates(fam: ParallelFamily, xy: np.ndarray, gate_mm: float, cos_
 
 
 def family_hypotheses(model: "TubeModel", xy_mm: np.ndarray, *, gate_mm: float, max_tilt_deg: float = 75.0,
-                      max_hypotheses: int = 8, max_pairs: int = 400_000, rng_seed: int = 0) -> list[np.ndarray]:
+                      max_hypotheses: int = 8, max_affines: int = 96, max_pairs: int = 400_000,
+                      rng_seed: int = 0) -> list[np.ndarray]:
     """Generic pose guesses ``T_F_from_I`` from blob centres (N, 2), best first (see the module docstring).
 
     ``gate_mm``: how far a blob may lie from a predicted crossing to count.
-    Consensus at two levels: an affine map is kept when the family's other
-    tubes land on blobs too, and a depth when the most non-family tubes agree
-    on it. Returns ``[]`` when the layout has no usable family, no tube
+    Consensus at two levels: affine maps are ranked by how many of the
+    family's tubes land on blobs (the best ``max_affines`` distinct ones are
+    kept: a missing tube and a stray blob can reorder them), and depths by
+    how many non-family tubes agree on them. Returns ``[]`` when the layout has no usable family, no tube
     outside it (the depth is then under-determined) or no consistent guess.
     """
     fam = parallel_family(model)
@@ -498,7 +345,7 @@ def family_hypotheses(model: "TubeModel", xy_mm: np.ndarray, *, gate_mm: float, 
     floor = max(3, int(n_hit.max()) - 1)
     seen, affines = [], []
     for o in order:
-        if n_hit[o] < floor or len(affines) >= 4 * max_hypotheses:
+        if n_hit[o] < floor or len(affines) >= max_affines:
             break
         Ao, bo, used = _refit_affine(fam, xy, A[o], b[o], gate_mm)
         if any(np.abs(Ao - As).max() < 0.02 and np.abs(bo - bs).max() < 0.5 for As, bs in seen):
@@ -509,8 +356,9 @@ def family_hypotheses(model: "TubeModel", xy_mm: np.ndarray, *, gate_mm: float, 
     for n_fam, Ao, bo, used in affines:
         free = np.ones(xy.shape[0], bool)
         free[used] = False  # blobs taken by the family vote for no depth (they sit where diagonals end)
-        for R, w in _rotations_from_affine(Ao, fam, cos_max):
-            for lam, n_depth in _depth_votes(fam, xy[free], Ao, bo, w, gate_mm):
+        rots = _rotations_from_affine(Ao, fam, cos_max)
+        for (R, _), votes in zip(rots, _depth_votes(fam, xy[free], Ao, bo, [w for _, w in rots], gate_mm)):
+            for lam, n_depth in votes:
                 rows.append((n_fam + n_depth, n_depth, R, fam.E @ bo + lam * fam.u))
     rows.sort(key=lambda r: (-r[0], -r[1]))
     return [rigid(R, t) for _, _, R, t in rows[:max_hypotheses]]
@@ -553,38 +401,46 @@ def _rotations_from_affine(A: np.ndarray, fam: ParallelFamily, cos_max: float):
     return out
 
 
-def _depth_votes(fam: ParallelFamily, xy: np.ndarray, A: np.ndarray, b: np.ndarray, w: np.ndarray, gate_mm: float,
-                 n_best: int = 2):
-    """Positions ``lam`` of the plane along ``u`` that the non-family tubes vote for: ``[(lam, n_tubes)]``.
+def _depth_votes(fam: ParallelFamily, xy: np.ndarray, A: np.ndarray, b: np.ndarray, ws: list, gate_mm: float,
+                 n_best: int = 2) -> list:
+    """Positions ``lam`` of the plane along ``u`` that the non-family tubes vote for, per ``w`` in ``ws``.
 
     A blob at image point p sits, for the plane at ``lam``, at section point
     ``A p + b`` and height ``w . p + lam``; each non-family tube passing
     within the gate of that section point votes for the ``lam`` putting the
     blob on it. Votes agreeing within each tube's depth tolerance are pooled.
+    Returns, for each ``w``, up to ``n_best`` ``(lam, n_tubes)``, most tubes first.
     """
+    if xy.shape[0] == 0:
+        return [[] for _ in ws]
     c = xy @ A.T + b
-    wp = xy @ w
-    lam, tube, tol = [], [], []
-    for k, (Q, h, rise) in enumerate(fam.samples):
-        d = np.linalg.norm(Q[:, None, :] - c[None], axis=-1)  # (M, N)
-        m = d.argmin(axis=0)
-        near = d[m, np.arange(c.shape[0])] < gate_mm
-        lam.extend((h[m[near]] - wp[near]).tolist())
-        tube.extend([k] * int(near.sum()))
-        tol.extend([max(0.5 * gate_mm * min(rise, 10.0), 0.5)] * int(near.sum()))
-    if not lam:
-        return []
-    lam, tube, tol = np.array(lam), np.array(tube), np.array(tol)
-    close = np.abs(lam[:, None] - lam[None]) <= np.maximum(tol[:, None], tol[None])
-    onehot = tube[:, None] == np.arange(len(fam.samples))[None]
-    n = ((close.astype(float) @ onehot) > 0).sum(axis=1)
+    Q, h = fam.sample_q, fam.sample_h
+    d2 = (Q * Q).sum(axis=1)[:, None] - 2.0 * (Q @ c.T) + (c * c).sum(axis=1)[None]  # (M, N)
+    idx, blob, tube, tol = [], [], [], []
+    for k, (lo, hi) in enumerate(fam.sample_slices):
+        m = lo + d2[lo:hi].argmin(axis=0)
+        near = np.flatnonzero(d2[m, np.arange(c.shape[0])] < gate_mm * gate_mm)
+        idx.append(m[near])
+        blob.append(near)
+        tube.append(np.full(near.size, k))
+        tol.append(np.full(near.size, max(0.5 * gate_mm * min(fam.sample_rise[k], 10.0), 0.5)))
+    idx, blob, tube, tol = (np.concatenate(v) for v in (idx, blob, tube, tol))
+    if idx.size == 0:
+        return [[] for _ in ws]
+    onehot = (tube[:, None] == np.arange(len(fam.sample_slices))[None]).astype(float)
+    tol_pair = np.maximum(tol[:, None], tol[None])
     out = []
-    for i in np.argsort(-n, kind="stable"):
-        sel = close[i]
-        value = median(lam[sel])
-        if any(abs(value - v) < 2 * tol[i] for v, _ in out):
-            continue
-        out.append((value, int(n[i])))
-        if len(out) >= n_best:
-            break
+    for w in ws:
+        lam = h[idx] - xy[blob] @ w
+        close = np.abs(lam[:, None] - lam[None]) <= tol_pair
+        n = ((close @ onehot) > 0).sum(axis=1)
+        votes = []
+        for i in np.argsort(-n, kind="stable"):
+            value = median(lam[close[i]])
+            if any(abs(value - v) < 2 * tol[i] for v, _ in votes):
+                continue
+            votes.append((value, int(n[i])))
+            if len(votes) >= n_best:
+                break
+        out.append(votes)
     return out

@@ -12,7 +12,7 @@ from pathlib import Path
 
 import numpy as np
 
-from .atomic import atomic_path
+from .atomic import save_figure
 from .errors import ChicRegisterError
 
 
@@ -83,9 +83,5 @@ def draw_overlay(path, slices, registration=None, blobs=None, title: str | None 
             ax.set_title(title or "no lock: candidates only", fontsize=9)
         ax.legend(loc="lower right", fontsize=7, framealpha=0.6)
     fig.tight_layout()
-    try:
-        with atomic_path(path) as tmp:
-            fig.savefig(tmp, dpi=110, format="png")
-    finally:
-        plt.close(fig)
+    save_figure(fig, path)
     return path

@@ -10,7 +10,9 @@ What the scene holds (node names as Slicer shows them):
   LPS geometry of the image);
 - ``detected``: every candidate blob centre (``detected.mrk.json``), labelled
   with its tube id and residual, or ``extra`` when the solver rejected it;
-  ``predicted``: the model's crossing of every matched tube with its slice;
+  ``predicted``: the model's crossing of every matched tube with its slice
+  (the residual is the solver's: when it refines on fitted section positions
+  it can differ a little from the distance between the two markups);
 - with a tool frame: ``CHICTool`` (``CHICTool.tfm``), the ``tool`` model
   (``tool.stl``, a 1 mm shaft from the tip) under it, and ``tool tip``.
 

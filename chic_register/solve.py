@@ -304,6 +304,9 @@ class _Fit:
     inside: list  # per slice: (K,) bool
     n_matched: int
     rms_mm: float
+    # what the last fit was made of, when not the blob centroids: per slice (measured xy (N, 2) mm, square-root
+    # information L (K, 2, 2) it was weighted by, the noise sigma L assumed) (see chic_register.uncertainty)
+    measurements: list | None = None
 
 
 def _assign(pred: np.ndarray, ok: np.ndarray, blobs_xy: np.ndarray, gate_mm: float) -> np.ndarray:
@@ -677,7 +680,7 @@ def _template_refine(model: TubeModel, tubes, fit: _Fit, assign, xys, Ss, slices
     return fit
 
 
-def _section_refine(model: TubeModel, fit: _Fit, xys, Ss, slices, blob_sets, opts) -> _Fit:
+def _section_refine(model: TubeModel, fit: _Fit, xys, Ss, slices, blob_sets, opts) -> _Fit | None:
     """Refit ``fit`` on section-fitted tube positions (:func:`~chic_register.section.fit_sections`).
 
     Up to ``section_iterations`` passes: fit every matched tube's section
@@ -686,8 +689,9 @@ def _section_refine(model: TubeModel, fit: _Fit, xys, Ss, slices, blob_sets, opt
     (window too small, no positive gain) is left out, and so is one whose
     fitted section lies more than ``section_max_shift_px`` from where the
     pose predicts it or has less than half the median gain (not the clean
-    section the model expects); fewer than ``min_tubes`` left is
-    :class:`NoLock`.
+    section the model expects). Fewer than ``min_tubes`` clean sections
+    (tubes in tissue, blobs much wider than the channels) return ``None``:
+    the blob-centre pose then stands, and is verified like any other.
     """
     from .section import fit_sections
 
@@ -723,10 +727,11 @@ def _section_refine(model: TubeModel, fit: _Fit, xys, Ss, slices, blob_sets, opt
             Ls.append(L)
         n_all = sum(int((a >= 0).sum()) for a in assign)
         if n_all < opts.min_tubes:
-            raise NoLock(f"only {n_all} tube sections could be fitted; need at least {opts.min_tubes}",
-                         {"n_tubes": n_all})
+            return None
         fit = refine(model, new_xys, Ss, X0, gates_mm=(), final_iters=6 if exact else 1, assign0=assign,
                      strict_ends=False, weights=Ls, tol=1e-5)  # (1e-5 rad, mm: far below the noise)
+        fit = dataclasses.replace(fit, measurements=[(xy, L, float(b.noise_sigma))
+                                                     for xy, L, b in zip(new_xys, Ls, blob_sets)])
         moved = 0.0  # how far the matched tubes' crossings moved in this pass (mm)
         for j, S in enumerate(Ss):
             k = np.flatnonzero(assign[j] >= 0)
@@ -782,6 +787,21 @@ class SliceResult:
 
 
 @dataclass(frozen=True)
+class SkippedSlice:
+    """A slice left out of a joint registration: why, and (for one that disagrees) its residual under the pose."""
+
+    source: str
+    reason: str
+    residual_rms_mm: float | None = None
+
+    def to_dict(self) -> dict:
+        out = {"source": self.source, "reason": self.reason}
+        if self.residual_rms_mm is not None:
+            out["residual_rms_mm"] = round(self.residual_rms_mm, 6)
+        return out
+
+
+@dataclass(frozen=True)
 class Registration:
     """A trusted pose: ``T_scanner_from_fiducial`` (4x4, mm) and one :class:`SliceResult` per slice."""
 
@@ -791,15 +811,21 @@ class Registration:
     timing_ms: dict
     geometry_name: str = ""
     geometry_sha256: str = ""
+    skipped: tuple = ()
+    uncertainty: object = field(repr=False, default=None)  # chic_register.uncertainty.PoseUncertainty
 
     def to_dict(self) -> dict:
-        """JSON-ready object, CONTRACT.md section 4 plus extra keys."""
+        """JSON-ready object, CONTRACT.md section 4 plus extra keys (``covariance``, ``noise``,
+        ``target_F_mm``, ``predicted_tre_mm``: :meth:`~chic_register.uncertainty.PoseUncertainty.to_dict`)."""
         return {
             "status": self.status,
             "T_scanner_from_fiducial": [[float(v) for v in row] for row in self.T_scanner_from_fiducial],
             "slices": [s.to_dict() for s in self.slices],
+            "n_slices_used": len(self.slices),
+            "skipped_slices": [s.to_dict() for s in self.skipped],
             "timing_ms": {k: round(v, 3) for k, v in self.timing_ms.items()},
             "geometry": {"name": self.geometry_name, "sha256": self.geometry_sha256},
+            **(self.uncertainty.to_dict() if self.uncertainty is not None else {}),
         }
 
 
@@ -843,6 +869,10 @@ class SolveOptions:
     ``refine_when_imprecise``, the accuracy mode's refinement is tried before
     refusing); off only for
     studies of the raw fit.
+    ``uncertainty``: compute the pose's covariance and predicted TRE
+    (:mod:`~chic_register.uncertainty`; a few ms per slice; always when
+    ``max_tre_mm`` is finite); ``max_tre_mm``: a pose whose predicted TRE at
+    the registration's target exceeds it gives :class:`NoLock` (``imprecise``).
     ``prior``: an approximate ``T_scanner_from_fiducial`` (4x4, only its
     rotation is used): poses turned more than ``prior_max_deg`` from it are
     never considered. It is what resolves a geometry that maps onto itself
@@ -874,6 +904,8 @@ class SolveOptions:
     trust_tre_mm: float = 0.5
     trust_rot_deg: float = 0.5
     refine_when_imprecise: bool = True
+    max_tre_mm: float = math.inf
+    uncertainty: bool = True
     prior: np.ndarray | None = None
     prior_max_deg: float = 60.0
 
@@ -951,12 +983,22 @@ def _solve_one(model: TubeModel, xy: np.ndarray, S: np.ndarray, opts: SolveOptio
                              "was found", {"n_candidates": int(xy.shape[0])})
         else:
             hyps = family_hypotheses(model, xy, gate_mm=gate, max_tilt_deg=opts.max_tilt_deg,
-                                     max_hypotheses=2 * opts.max_hypotheses)
-            fits = _rank(fits + _refine_guesses(model, xy, S, hyps, opts, pixel_mm, gate), limit)
+                                     max_hypotheses=6 * opts.max_hypotheses)
+            extra = _refine_guesses(model, xy, S, hyps, opts, pixel_mm, gate)
+            if ell is not None or ellipse_layout(model):
+                # a fallback where the closed form applies but found nothing: only a fit that explains
+                # (nearly) every tube it puts in the slice, as the closed form's fits would
+                extra = [f for f in extra if _unexplained(f) <= 1]
+            fits = _rank(fits + extra, limit)
     if not fits:
         raise NoLock("the detected centres do not match the geometry's tube pattern",
                      {"n_candidates": int(xy.shape[0])})
     return fits, ell
+
+
+def _unexplained(fit: _Fit) -> int:
+    """Tubes a fit puts wholly inside the slice (every slice) that no blob is assigned to."""
+    return sum(int(np.sum(ins & (a < 0))) for ins, a in zip(fit.inside, fit.assignments))
 
 
 def _refine_guesses(model: TubeModel, xy: np.ndarray, S: np.ndarray, hyps: list, opts: SolveOptions,
@@ -1032,18 +1074,24 @@ def _rank(fits: list[_Fit], rms_limit_mm: float = math.inf) -> list[_Fit]:
 
 
 def _check_trust(fit: _Fit, others: list[_Fit], model: TubeModel, slices: list[Slice], opts: SolveOptions,
-                 Ss: list | None = None):
-    """Raise :class:`NoLock` unless ``fit`` is a trustworthy pose (``Ss``: the slices' T_scanner_from_image)."""
+                 Ss: list | None = None, res_mm: list | None = None):
+    """Raise :class:`NoLock` unless ``fit`` is a trustworthy pose.
+
+    ``Ss``: the slices' T_scanner_from_image; ``res_mm``: the unit of each
+    slice's thresholds (:func:`_resolution_mm`; default its pixel).
+    """
     n_depth = 0
+    px_unit = res_mm if res_mm is not None else [_pixel_mm(sl) for sl in slices]
     for j, sl in enumerate(slices):
         a = fit.assignments[j]
-        px = _pixel_mm(sl)
+        px = px_unit[j]
         res = fit.residuals[j][a >= 0]
         n_depth += int(np.sum((a >= 0) & model.depth_coding))
         if res.size and math.sqrt(float(np.mean(res**2))) > opts.max_rms_px * px:
             raise NoLock(
                 f"{sl.source}: residual RMS {math.sqrt(float(np.mean(res ** 2))):.3f} mm exceeds "
-                f"{opts.max_rms_px:g} px ({opts.max_rms_px * px:.3f} mm)",
+                f"{opts.max_rms_px:g} px ({opts.max_rms_px * px:.3f} mm"
+                + (")" if px == _pixel_mm(sl) else f", counting the image's resolution of {px:.2f} mm as a pixel)"),
                 {"residual_rms_mm": round(math.sqrt(float(np.mean(res**2))), 4)})
         if res.size and res.max() > opts.max_residual_px * px:
             raise NoLock(f"{sl.source}: a tube residual of {res.max():.3f} mm exceeds "
@@ -1062,7 +1110,7 @@ def _check_trust(fit: _Fit, others: list[_Fit], model: TubeModel, slices: list[S
     for other in others:
         if (other.n_matched >= fit.n_matched and other.n_matched >= opts.min_tubes
                 and other.rms_mm <= opts.ambiguity_ratio * max(fit.rms_mm, 1e-3)
-                and other.rms_mm <= opts.max_rms_px * min(_pixel_mm(sl) for sl in slices)
+                and other.rms_mm <= opts.max_rms_px * min(px_unit)
                 and _distinct(fit.T_F_from_scanner, other.T_F_from_scanner, model)):
             hint = "" if opts.prior is not None else "; an approximate orientation (prior, --prior) picks one"
             raise NoLock(f"ambiguous fit: two distinct poses match {fit.n_matched} and {other.n_matched} "
@@ -1070,57 +1118,131 @@ def _check_trust(fit: _Fit, others: list[_Fit], model: TubeModel, slices: list[S
                          {"n_tubes": fit.n_matched})
 
 
+def _resolution_mm(sl: Slice, blobs: Blobs) -> float:
+    """The unit of a slice's trust thresholds (mm): what its image can resolve, never less than a pixel.
+
+    A centre is as precise as the blob is sharp: blobs wider than the tube
+    (blur, partial volume, fluid around a printed channel; ``blobs.width_mm``
+    measured in the image) and thick slices (a tilted tube's section is
+    smeared over the thickness) both widen the error, so the unit is the
+    largest of the pixel, a 7.5th of the blob width and a 6th of the slice
+    thickness (equal to the pixel for 3 mm tubes at 0.5 mm pixels and 2-3 mm slices).
+    """
+    w = blobs.width_mm if math.isfinite(blobs.width_mm) else 0.0
+    return max(_pixel_mm(sl), w / 7.5, float(sl.slice_thickness_mm) / 6.0)
+
+
+def _track(model: TubeModel, xy: np.ndarray, S: np.ndarray, T_F_from_scanner: np.ndarray, sl: Slice,
+           opts: SolveOptions, res_mm: float):
+    """A slice's fit refined from a pose found in another slice of the same volume, if trustworthy; else None."""
+    gate = max(float(model.diameter_mm.max()), 2 * res_mm)
+    fit = refine(model, [xy], [S], T_F_from_scanner, gates_mm=(gate, 0.6 * gate), iters_per_gate=3, final_iters=2)
+    fit = _reject_outliers(model, [xy], [S], fit, [res_mm], opts)
+    try:
+        _check_trust(fit, [], model, [sl], opts, [S], [res_mm])
+    except NoLock:
+        return None
+    return fit
+
+
 def register(slices: list[Slice], geom: FiducialGeometry, *, options: SolveOptions | None = None,
-             detect_options: dict | None = None, **overrides) -> Registration:
+             detect_options: dict | None = None, skip_failed: bool = False, target_F_mm=None,
+             **overrides) -> Registration:
     """Register one or more slices of the fiducial: one ``T_scanner_from_fiducial`` from all.
 
-    Each slice is detected and solved on its own (every slice must lock),
-    then all correspondences are refined jointly. ``overrides`` set fields
-    of :class:`SolveOptions` (e.g. ``max_rms_px=0.4``); ``detect_options``
-    go to :func:`~chic_register.detect.detect_blobs`. Raises :class:`NoLock`
-    with a reason when no trustworthy pose exists.
+    Each slice is detected and solved on its own, then all correspondences
+    are refined jointly. By default every slice must lock; with
+    ``skip_failed`` (a volume's slices, most of which may miss the fiducial)
+    slices that do not lock are skipped, later slices are first tried from
+    the pose already found (tracking), and a slice that disagrees with the
+    joint pose is dropped; each is listed in ``Registration.skipped`` with
+    its reason. ``overrides`` set fields of :class:`SolveOptions` (e.g.
+    ``max_rms_px=0.4``); ``detect_options`` go to
+    :func:`~chic_register.detect.detect_blobs`. ``target_F_mm``: the
+    point of F whose predicted TRE is reported (default: the geometry's tool
+    tip, else the body's centre on its axis). Raises :class:`NoLock` with a
+    reason when no trustworthy pose exists.
     """
     opts = dataclasses.replace(options or SolveOptions(), **overrides)
     if not slices:
         raise NoLock("no slices given")
     t0 = time.perf_counter()
     model, geom_sha = prepare_geometry(geom)
-    d_mm = median(model.diameter_mm)
     blob_sets, xys = [], []
     for sl in slices:
-        b = detect_blobs(sl.pixels, sl.pixel_spacing_mm, d_mm, **(detect_options or {}))
+        b = detect_blobs(sl.pixels, sl.pixel_spacing_mm, model.diameter_mm, **(detect_options or {}))
         blob_sets.append(b)
         xys.append(_to_xy_mm(b, sl))
     t1 = time.perf_counter()
     Ss = [sl.T_scanner_from_image() for sl in slices]
-    per_slice, rivals = [], []
-    for sl, xy, S in zip(slices, xys, Ss):
+    res_mm = [_resolution_mm(sl, b) for sl, b in zip(slices, blob_sets)]
+    per_slice = [None] * len(slices)
+    rivals = [[] for _ in slices]  # per slice: the distinct fits that came close (for the verification)
+    skipped = []
+    anchor = None
+    for j in _solve_order(xys, model, skip_failed):
+        sl, xy, S = slices[j], xys[j], Ss[j]
+        if anchor is not None:
+            fit = _track(model, xy, S, anchor, sl, opts, res_mm[j])
+            if fit is not None:
+                per_slice[j] = (fit, None)
+                continue
         try:
-            fits, ell = _solve_one(model, xy, S, opts, _pixel_mm(sl))
-            _check_trust(fits[0], fits[1:], model, [sl], opts, [S])
+            try:
+                fits, ell = _solve_one(model, xy, S, opts, res_mm[j])
+                _check_trust(fits[0], fits[1:], model, [sl], opts, [S], [res_mm[j]])
+            except NoLock as first:
+                if (detect_options or {}).get("flatten_background") or not _worth_flattening(blob_sets[j], model):
+                    raise
+                # tissue touching the tubes or a dim side of the image: once more on the flattened image
+                b = detect_blobs(sl.pixels, sl.pixel_spacing_mm, model.diameter_mm, flatten_background=True,
+                                 **(detect_options or {}))
+                xy2, res2 = _to_xy_mm(b, sl), _resolution_mm(sl, b)
+                try:
+                    fits, ell = _solve_one(model, xy2, S, opts, res2)
+                    _check_trust(fits[0], fits[1:], model, [sl], opts, [S], [res2])
+                    if _unexplained(fits[0]) > 1:  # a second look is held to explaining (nearly) every tube
+                        raise NoLock("more than one predicted tube unexplained on the flattened image")
+                except NoLock:
+                    raise first from None  # the plain image's reason says more
+                xy = xys[j] = xy2
+                blob_sets[j], res_mm[j] = b, res2
         except NoLock as exc:
-            if len(slices) > 1 and not exc.reason.startswith(f"{sl.source}: "):
-                raise NoLock(f"{sl.source}: {exc.reason}", exc.detail) from None
+            reason = exc.reason if exc.reason.startswith(f"{sl.source}: ") else f"{sl.source}: {exc.reason}"
+            if skip_failed:
+                skipped.append((j, SkippedSlice(sl.source, reason[len(sl.source) + 2:])))
+                continue
+            if len(slices) > 1:
+                raise NoLock(reason, exc.detail) from None
             raise
-        per_slice.append((fits[0], ell))
-        rivals.append(fits[1:])
+        per_slice[j] = (fits[0], ell)
+        rivals[j] = fits[1:]
+        if skip_failed and anchor is None:
+            anchor = fits[0].T_F_from_scanner
+    skipped = [s for _, s in sorted(skipped, key=lambda js: js[0])]  # in the slices' order
+    used = [j for j in range(len(slices)) if per_slice[j] is not None]
+    if not used:
+        raise NoLock(_no_slice_locked(skipped), {"n_skipped": len(skipped)})
+    slices, xys, Ss, blob_sets, res_mm, per_slice, rivals = (
+        [seq[j] for j in used] for seq in (slices, xys, Ss, blob_sets, res_mm, per_slice, rivals))
     if len(slices) == 1:
         best = per_slice[0][0]
     else:
-        start = min(per_slice, key=lambda fe: fe[0].rms_mm)[0].T_F_from_scanner
-        gate = max(model.diameter_mm.max(), 2 * max(_pixel_mm(s) for s in slices))
-        best = refine(model, xys, Ss, start, gates_mm=(gate, 0.6 * gate))
-        _check_trust(best, [], model, slices, opts, Ss)
-        if best.n_matched < sum(f.n_matched for f, _ in per_slice):
-            raise NoLock("the slices disagree: the joint pose matches fewer tubes than the slices alone",
-                         {"n_tubes": best.n_matched})
+        best, dropped = _joint(model, slices, xys, Ss, res_mm, per_slice, opts, skip_failed)
+        if dropped:
+            skipped += [SkippedSlice(slices[j].source, why, rms) for j, why, rms in dropped]
+            keep = [j for j in range(len(slices)) if j not in {d[0] for d in dropped}]  # the fit's slices, in order
+            slices, xys, Ss, blob_sets, res_mm, per_slice, rivals = (
+                [seq[j] for j in keep] for seq in (slices, xys, Ss, blob_sets, res_mm, per_slice, rivals))
+    locked = best  # the pose fitted to the blob centres
     if opts.section_fit and not opts.centroid_model:
         fine = _section_refine(model, best, xys, Ss, slices, blob_sets, opts)
-        _check_trust(fine, [], model, slices, opts, Ss)
-        if _distinct(fine.T_F_from_scanner, best.T_F_from_scanner, model):
-            raise NoLock("the section fit moved the pose by more than 1 mm or 1 degree: the fit is not stable",
-                         {"n_tubes": fine.n_matched})
-        best = fine
+        if fine is not None:
+            _check_trust(fine, [], model, slices, opts, Ss, res_mm)
+            if _distinct(fine.T_F_from_scanner, best.T_F_from_scanner, model):
+                raise NoLock("the section fit moved the pose by more than 1 mm or 1 degree: the fit is not stable",
+                             {"n_tubes": fine.n_matched})
+            best = fine
     if opts.centroid_model:
         corrected = _centroid_refine(model, geom.tubes, best, xys, Ss, slices, blob_sets, opts)
         _check_trust(corrected, [], model, slices, opts, Ss)  # only ever stricter: the lock was checked above
@@ -1137,9 +1259,20 @@ def register(slices: list[Slice], geom: FiducialGeometry, *, options: SolveOptio
         except ImprecisePose:
             if opts.centroid_model or not opts.refine_when_imprecise:
                 raise
+            checks = None
+            if best is not locked:
+                # the precision test estimates the noise from the residual scatter, unweighted: the section fit's
+                # residuals along elongated sections make it pessimistic, so the centroid fit is judged as it is
+                # without the section fit (never a refusal the centroid-only solver would not make)
+                try:
+                    checks = verify_fit(geom, model, locked, rivals, slices, Ss, blob_sets, opts)
+                    best = locked
+                except ImprecisePose:
+                    pass
+        if checks is None:
             # verified but not precise enough from the centroids: fit the sections themselves (the accuracy
             # mode), then decide on that
-            accurate = _centroid_refine(model, geom.tubes, best, xys, Ss, slices, blob_sets, opts)
+            accurate = _centroid_refine(model, geom.tubes, locked, xys, Ss, slices, blob_sets, opts)
             _check_trust(accurate, [], model, slices, opts, Ss)
             if _distinct(accurate.T_F_from_scanner, best.T_F_from_scanner, model):
                 raise NoLock("the accuracy refinement moved the pose by more than 1 mm or 1 degree: the fit is "
@@ -1171,5 +1304,98 @@ def register(slices: list[Slice], geom: FiducialGeometry, *, options: SolveOptio
             missing_tubes=checks[j].missing if checks else (),
         ))
     t3 = time.perf_counter()
-    timing = {"detect": (t1 - t0) * 1e3, "pose": (t2 - t1) * 1e3, "total": (t3 - t0) * 1e3}
-    return Registration("ok", T_sf, tuple(results), timing, geom.name, geom_sha)
+    unc = None
+    if opts.uncertainty or math.isfinite(opts.max_tre_mm):
+        from .uncertainty import registration_uncertainty, target_point
+
+        unc = registration_uncertainty(model, best, xys, Ss, slices, blob_sets, target_point(geom, target_F_mm),
+                                       "centroid" if not opts.centroid_model else "template (centroid covariance)")
+        if unc.predicted_tre_mm > opts.max_tre_mm:
+            raise NoLock(f"imprecise: predicted TRE {unc.predicted_tre_mm:.3f} mm at "
+                         f"({', '.join(f'{v:g}' for v in unc.target_F_mm)}) exceeds {opts.max_tre_mm:g} mm",
+                         {"code": "imprecise", "predicted_tre_mm": round(unc.predicted_tre_mm, 4),
+                          "max_tre_mm": opts.max_tre_mm})
+    t4 = time.perf_counter()
+    timing = {"detect": (t1 - t0) * 1e3, "pose": (t2 - t1) * 1e3, "uncertainty": (t4 - t3) * 1e3,
+              "total": (t4 - t0) * 1e3}
+    return Registration("ok", T_sf, tuple(results), timing, geom.name, geom_sha, tuple(skipped), unc)
+
+
+def _worth_flattening(blobs: Blobs, model: TubeModel) -> bool:
+    """A slice whose detection may have lost tubes to their surroundings: something bright, but not a blank image."""
+    bright = blobs.threshold - blobs.background > 4 * blobs.noise_sigma  # Otsu split more than noise
+    return math.isfinite(blobs.threshold) and blobs.noise_sigma > 0 and bright and len(blobs) < 3 * len(model.ids)
+
+
+def _solve_order(xys: list, model: TubeModel, skip_failed: bool) -> list[int]:
+    """The order slices are solved in: as given, or (skipping) those with about one blob per tube first."""
+    if not skip_failed:
+        return list(range(len(xys)))
+    K = len(model.ids)
+    return sorted(range(len(xys)), key=lambda j: (abs(xys[j].shape[0] - K), j))
+
+
+def _no_slice_locked(skipped: list) -> str:
+    """One line for slices of which none locked: how many, the commonest reasons, and one in full."""
+    import re
+
+    groups: dict[str, list] = {}
+    for s in skipped:
+        key = re.sub(r"\d+(\.\d+)?", "N", s.reason.split(":")[0]).strip()
+        groups.setdefault(key, []).append(s)
+    common = sorted(groups.items(), key=lambda kv: -len(kv[1]))
+    head = common[0][1][len(common[0][1]) // 2]
+    return (f"no slice of {len(skipped)} locked (" + "; ".join(f"{len(v)}x {k}" for k, v in common[:3])
+            + f"); e.g. {head.source}: {head.reason}")
+
+
+def _joint(model: TubeModel, slices, xys, Ss, res_mm, per_slice, opts: SolveOptions, skip_failed: bool):
+    """The joint fit of every slice's correspondences; ``(fit, dropped)``.
+
+    Without ``skip_failed`` any disagreement is :class:`NoLock`. With it, a
+    slice whose residual under the joint pose breaks its trust thresholds, or
+    that matches fewer tubes than it did alone, is dropped (the worst first,
+    then refit) and returned in ``dropped`` as ``(index, reason, RMS mm)``;
+    ``fit`` then covers the remaining slices, in their order.
+    """
+    start = min(per_slice, key=lambda fe: fe[0].rms_mm)[0].T_F_from_scanner
+    active = list(range(len(slices)))
+    dropped = []
+    while True:
+        gate = max(model.diameter_mm.max(), 2 * max(res_mm[j] for j in active))
+        sub = [xys[j] for j in active], [Ss[j] for j in active]
+        best = refine(model, sub[0], sub[1], start, gates_mm=(gate, 0.6 * gate))
+        if not skip_failed:
+            _check_trust(best, [], model, slices, opts, Ss, res_mm)
+            if best.n_matched < sum(f.n_matched for f, _ in per_slice):
+                raise NoLock("the slices disagree: the joint pose matches fewer tubes than the slices alone",
+                             {"n_tubes": best.n_matched})
+            return best, dropped
+        worst, why, worst_score = None, "", 1.0
+        for n, j in enumerate(active):
+            a, r = best.assignments[n], best.residuals[n]
+            rms = math.sqrt(float(np.mean(r[a >= 0] ** 2))) if (a >= 0).any() else math.inf
+            score = rms / (opts.max_rms_px * res_mm[j])
+            if (a >= 0).sum() < per_slice[j][0].n_matched:
+                score, reason = max(score, 1.0 + 1e-9) + 10.0, (
+                    f"disagrees with the other slices: {int((a >= 0).sum())} tubes matched under the joint pose, "
+                    f"{per_slice[j][0].n_matched} alone")
+            else:
+                reason = (f"disagrees with the other slices: residual RMS {rms:.3f} mm under the joint pose "
+                          f"(limit {opts.max_rms_px * res_mm[j]:.3f} mm)")
+            if score > worst_score:
+                worst, why, worst_score = n, reason, score
+        if worst is None or len(active) == 1:
+            _check_trust(best, [], model, [slices[j] for j in active], opts, [Ss[j] for j in active],
+                         [res_mm[j] for j in active])
+            return best, dropped
+        j = active[worst]
+        own = per_slice[j][0].assignments[0]  # the slice's own correspondences, at the joint pose
+        q = plane_crossings(model, best.T_F_from_scanner @ Ss[j], margin_mm=5.0)[0]
+        k = np.flatnonzero(own >= 0)
+        rms = math.sqrt(float(np.mean(np.sum((q[k] - xys[j][own[k]]) ** 2, axis=1)))) if k.size else float("nan")
+        if "tubes matched" in why:
+            why += f"; its own tubes are {rms:.3f} mm RMS from the joint pose's crossings"
+        dropped.append((j, why, rms))
+        active.pop(worst)
+        start = best.T_F_from_scanner

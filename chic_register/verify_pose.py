@@ -53,7 +53,7 @@ from .envelope import plane_status
 from .errors import ImprecisePose, NoLock
 from .pose import slice_angles
 from .simulate import render_tubes
-from .solve import _section_extent, plane_crossings
+from .solve import _near_prior, _section_extent, plane_crossings
 
 #: A present tube's fitted fluid level, as a share of the median of the tubes the solver matched. A correctly
 #: placed section (partial volume and slab smear are in the model) gives ~1 at any SNR above a few; a section
@@ -372,9 +372,7 @@ def pose_precision(model, fit, Ss, pixel_mm: float, exclude=None):
     dof = 2 * n - 6
     if not Js or dof <= 0:
         return math.inf, math.inf
-    from scipy.special import gammaincinv  # (scipy.stats takes a second to import)
-
-    chi2_low = 2.0 * float(gammaincinv(0.5 * dof, 1.0 - SCATTER_CONFIDENCE))  # chi-square quantile, dof degrees
+    chi2_low = 2.0 * gamma_p_inverse(0.5 * dof, 1.0 - SCATTER_CONFIDENCE)  # chi-square quantile, dof degrees
     sigma = max(math.sqrt(sq / chi2_low), POSITION_FLOOR_PX * pixel_mm)
     J = np.concatenate(Js)
     try:
@@ -387,6 +385,52 @@ def pose_precision(model, fit, Ss, pixel_mm: float, exclude=None):
     tre = math.sqrt(max(float(np.linalg.eigvalsh(A @ C @ A.T).max()), 0.0))
     rot = math.degrees(math.sqrt(max(float(np.linalg.eigvalsh(C[:3, :3]).max()), 0.0)))
     return tre, rot
+
+
+def gamma_p(a: float, x: float) -> float:
+    """The regularised lower incomplete gamma function P(a, x) (``scipy.special.gammainc``), a > 0.
+
+    Series below ``x = a + 1``, Lentz's continued fraction for ``1 - P``
+    above (Numerical Recipes' ``gammp``); to ~1e-14. Here rather than
+    ``scipy.special``, whose import costs a fifth of a one-shot solve.
+    """
+    if x <= 0.0:
+        return 0.0
+    log_front = -x + a * math.log(x) - math.lgamma(a)
+    if x < a + 1.0:
+        term = total = 1.0 / a
+        n = 0
+        while abs(term) > abs(total) * 1e-16 and n < 10000:
+            n += 1
+            term *= x / (a + n)
+            total += term
+        return min(1.0, total * math.exp(log_front))
+    tiny = 1e-300
+    b = x + 1.0 - a
+    c, d = 1.0 / tiny, 1.0 / b
+    h = d
+    for i in range(1, 10000):
+        an = -i * (i - a)
+        b += 2.0
+        d = an * d + b
+        d = tiny if abs(d) < tiny else d
+        c = b + an / c
+        c = tiny if abs(c) < tiny else c
+        d = 1.0 / d
+        h *= d * c
+        if abs(d * c - 1.0) < 1e-16:
+            break
+    return max(0.0, 1.0 - math.exp(log_front) * h)
+
+
+def gamma_p_inverse(a: float, p: float) -> float:
+    """The x with ``gamma_p(a, x) = p`` (``scipy.special.gammaincinv``), for 0 < p < 1."""
+    from .geometry import bracketed_root
+
+    hi = a + 10.0 * math.sqrt(a) + 10.0
+    while gamma_p(a, hi) < p:
+        hi *= 2.0
+    return bracketed_root(lambda x: gamma_p(a, x) - p, 0.0, hi, -p, gamma_p(a, hi) - p, xtol=1e-12 * hi)
 
 
 def verify_fit(geom, model, fit, rivals, slices, Ss, blob_sets, opts) -> list[SliceCheck]:
@@ -407,7 +451,8 @@ def verify_fit(geom, model, fit, rivals, slices, Ss, blob_sets, opts) -> list[Sl
         turned = _turned_rivals(model, fit.T_F_from_scanner, _to_xy_mm(b, sl), S, px)
         for other in list(rivals[j] if rivals is not None else ()) + turned:
             if (other.n_matched < opts.min_tubes or other.rms_mm > opts.max_rms_px * px
-                    or not _distinct(other.T_F_from_scanner, fit.T_F_from_scanner, model)):
+                    or not _distinct(other.T_F_from_scanner, fit.T_F_from_scanner, model)
+                    or not _near_prior(other.T_F_from_scanner, opts)):  # the user's prior orientation excludes it
                 continue
             _compare_rival(geom, model, check, other.T_F_from_scanner @ S, sl)
         out.append(check)

@@ -398,7 +398,7 @@ def simulate_volume(
     amplitude ``noise_level`` x signal, ``"rician"`` at ``snr``).
     Default placement: ``direction`` identity and the volume centre at the
     scanner origin. ``blob_width`` widens every blob in each k-plane as
-    :func:`chic_register.simulate.render_tubes_widened` does.
+    :func:`chic_register.blob_width.render_tubes_widened` does.
     """
     from . import simulate
 

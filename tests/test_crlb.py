@@ -42,6 +42,7 @@ def test_rician_information_limits():
     assert w[3] == pytest.approx(1.0, abs=0.03) and w[-1] == 1.0  # high SNR: Gaussian
 
 
+@pytest.mark.slow
 def test_crlb_matches_monte_carlo(neuro_geometry):
     """200 Rician draws fitted by maximum likelihood reach the bound within 15 % (normal, twist, depth, TRE)."""
     geom = neuro_geometry
@@ -88,3 +89,28 @@ def test_bound_behaves(neuro_geometry):
     assert normal[1] < normal[0]  # tilt helps the normal (issue 9's measured trend)
     with pytest.raises(ValueError, match="snr"):
         Protocol(snr=0)
+
+
+@pytest.mark.slow
+def test_design_check_precision_section(tmp_path, capsys):
+    """``chic-design check --precision``: the design's precision map for its own protocol, in JSON and a plot."""
+    import json
+
+    from chic_design.cli import main as design_main
+    from chic_register.precision_report import report_section
+
+    from .conftest import NEURO
+
+    plot = tmp_path / "p.png"
+    assert design_main(["check", str(NEURO), "--json", "--precision", "--precision-plot", str(plot)]) == 0
+    doc = json.loads(capsys.readouterr().out)
+    assert "tilt_limits" in doc and doc["precision"]["protocol"]["pixel_size_mm"] == 0.5
+    rows = doc["precision"]["rows"]
+    assert len(rows) == 15 and {r["tilt_deg"] for r in rows} == {0.0, 15.0, 30.0}
+    mid = [r for r in rows if r["depth_mm"] == 25.0]
+    assert mid[0]["sd_normal_deg"] == pytest.approx(0.21, rel=0.15)  # issue 9's figure at tilt 0
+    assert plot.read_bytes()[:4] == b"\x89PNG"
+    assert design_main(["check", str(NEURO), "--precision", "--pixel-size", "0"]) == 0
+    assert "precision: not computed" in capsys.readouterr().out
+    assert "Not computed" in report_section(None)
+    assert design_main(["check", str(NEURO), "--precision", "--snr", "-1"]) == 2

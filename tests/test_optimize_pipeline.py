@@ -3,7 +3,6 @@
 from __future__ import annotations
 
 import csv
-import math
 import os
 import signal
 import sqlite3
@@ -53,13 +52,16 @@ def test_optimize_specs_validate_and_the_chosen_one_builds_and_registers(tmp_pat
     # the chosen design builds, and its geometry file registers a simulated slice
     res = build_design(out / "specs" / "small-p01.yaml", out_root=tmp_path / "exports", progress=False)
     geom = load_geometry(res.folder / "geometry.yaml")
-    sim = simulate_slice(geom, 13.0, 8.0, 40.0, 15.0, pixel_spacing_mm=(0.3, 0.3), slice_thickness_mm=1.5,
-                         noise="rician", snr=20.0, rng=5)
-    # a near-normal single slice (tilt 8 deg) knows its tilt to a few tenths of a degree: more than the solver's
-    # default trust limits prove (0.5 deg at 3 sigma); this test states its own tolerance below instead
-    reg = register([sim.slice], geom, trust_tre_mm=math.inf, trust_rot_deg=math.inf)
+    # three parallel slices 1.5 mm apart (one slice of this slim design is refused as too imprecise)
+    truth, slices = None, []
+    for i, depth in enumerate((11.5, 13.0, 14.5)):
+        sim = simulate_slice(geom, depth, 8.0, 40.0, 15.0, pixel_spacing_mm=(0.3, 0.3), slice_thickness_mm=1.5,
+                             noise="rician", snr=20.0, rng=5 + i, T_scanner_from_fiducial=truth)
+        truth = sim.truth.T_scanner_from_fiducial
+        slices.append(sim.slice)
+    reg = register(slices, geom)
     pts = np.array([[0, 0, 0, 1], [0, 0, -30, 1]], float).T  # axis point and the target
-    d = (reg.T_scanner_from_fiducial @ pts - sim.truth.T_scanner_from_fiducial @ pts)[:3]
+    d = (reg.T_scanner_from_fiducial @ pts - truth @ pts)[:3]
     assert np.abs(d).max() < 1.0
 
 

@@ -39,7 +39,8 @@ def test_one_shot_dicom_solve_imports_only_what_a_slice_needs(tmp_path, neuro_ge
             "assert rc == 0, rc")
     mods = _modules_after(code)
     assert "chic_register.solve" in mods and "pydicom" in mods  # it did solve, from the DICOM
-    assert not [m for m in mods if m.split(".")[0] in ("SimpleITK", "matplotlib") or m.startswith("scipy.optimize")]
+    assert not [m for m in mods if m.split(".")[0] in ("SimpleITK", "matplotlib", "pyigtl")
+                or m.startswith(("scipy.optimize", "scipy.ndimage", "scipy.special"))]
 
 
 def test_bracketed_root_matches_known_roots_and_keeps_to_the_bracket():
@@ -93,3 +94,15 @@ def test_gated_matching_maximises_allowed_pairs_first():
     assert dict(zip(r.tolist(), c.tolist())) == {0: 1, 1: 0}
     r, c = gated_matching(cost, np.zeros((2, 2), bool))
     assert r.size == c.size == 0
+
+
+def test_chi_square_quantile_without_scipy_matches_scipy():
+    from scipy.special import gammainc, gammaincinv
+
+    from chic_register.verify_pose import gamma_p, gamma_p_inverse
+
+    for a in (1.5, 3.0, 4.5, 10.0, 27.0, 100.0):
+        for p in (0.01, 0.1, 0.5, 0.9):
+            assert gamma_p_inverse(a, p) == pytest.approx(float(gammaincinv(a, p)), rel=1e-9)
+        for x in (0.2, 1.0, 5.0, 30.0, 150.0):
+            assert gamma_p(a, x) == pytest.approx(float(gammainc(a, x)), abs=1e-12)

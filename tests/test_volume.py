@@ -297,8 +297,13 @@ def test_cli_bad_inputs(tmp_path, neuro_geometry_file, capsys):
     write_volume(_random_volume(), tmp_path / "v.nii")
     assert main(["reslice", str(tmp_path / "v.nii"), "--geometry", g, "--reference", str(bad)]) == 2
     assert "needs key 'T_scanner_from_fiducial' holding a rigid 4x4 matrix" in capsys.readouterr().err
-    assert main(["solve", str(tmp_path / "v.nii"), "--geometry", g]) == 2
-    assert "is a volume: pick the slices to register with --slices" in capsys.readouterr().err
+    # without --slices every slice is tried: random voxels hold no fiducial, so no slice locks (exit 3, not 2)
+    assert main(["solve", str(tmp_path / "v.nii"), "--geometry", g]) == 3
+    assert "no lock: no slice of 6 locked (" in capsys.readouterr().err
+    for bad_range in (["3-1"], ["x"], ["2-99"]):
+        assert main(["solve", str(tmp_path / "v.nii"), "--geometry", g, "--slices", *bad_range]) == 2
+        err = capsys.readouterr().err
+        assert f"--slices {bad_range[0]}:" in err and err.count("\n") == 1
 
 
 def test_cli_solve_volume_slices_jointly(tmp_path, neuro_geometry_file, sim_volume, capsys):

@@ -14,10 +14,11 @@ from chic_design.feasibility import check_design
 from chic_design.frame_symmetry import frame_symmetries
 from chic_design.layout import design_geometry, fiducial_geometry
 from chic_design.spec import load_spec, parse_spec
+from chic_register.blob_width import BlobWidth, render_tubes_widened
 from chic_register.cli import main as register_main
 from chic_register.geometry import Body, content_sha256, geometry_from_dict, load_geometry, write_geometry
 from chic_register.pose import slice_frame
-from chic_register.simulate import BlobWidth, render_tubes_widened, simulate_slice
+from chic_register.simulate import simulate_slice
 
 from .conftest import NEEDLE, NEURO, ROOT
 
@@ -284,7 +285,7 @@ def test_simulate_cli_on_a_zframe_geometry_slices_and_volume(zgeom, tmp_path, ca
 
 
 def test_check_and_solver_agree_on_ambiguity(zgeom, zcheck, tmp_path):
-    """design -> geometry.yaml -> simulated slice (SNR 20, 2x wide blobs, tilted) -> solve.
+    """design -> geometry.yaml -> simulated slice (SNR 20, tilted) -> solve.
 
     z001, which check calls ambiguous, is refused without an orientation prior and registers
     with one; with the -x diagonal reversed, which check calls unambiguous, it registers alone.
@@ -298,7 +299,7 @@ def test_check_and_solver_agree_on_ambiguity(zgeom, zcheck, tmp_path):
         return np.linalg.norm((reg.T_scanner_from_fiducial @ centre)[:3] - (sim.truth.T_scanner_from_fiducial @ centre)[:3])
 
     geom = load_geometry(write_geometry(zgeom, tmp_path / "geometry.yaml"))
-    sim = simulate_slice(geom, 22.0, 10.0, 40.0, 15.0, noise="rician", snr=20, blob_width=2.0, rng=7)
+    sim = simulate_slice(geom, 22.0, 10.0, 40.0, 15.0, noise="rician", snr=20, rng=7)
     assert zcheck.unambiguity.unambiguous is False
     with pytest.raises(NoLock, match="ambiguous"):
         register([sim.slice], geom)
@@ -317,7 +318,7 @@ def test_check_and_solver_agree_on_ambiguity(zgeom, zcheck, tmp_path):
     lo, hi = sym.depth_range_mm
     assert 26 <= lo < 30 < hi <= 34 and sym.mismatch_mm < 1e-6 and sym.at_depth_mm == 30.0
     # outside the band a single slice registers without a prior; inside it the solver refuses
-    sim = simulate_slice(asym, 38.0, 15.0, 120.0, 15.0, noise="rician", snr=20, blob_width=2.0, rng=8)
+    sim = simulate_slice(asym, 38.0, 15.0, 120.0, 15.0, noise="rician", snr=20, rng=8)
     assert tre(register([sim.slice], asym), sim) < 0.3
     sim = simulate_slice(asym, 30.0, 0.0, 0.0, 15.0, noise="rician", snr=20, rng=9)
     with pytest.raises(NoLock, match="ambiguous"):

@@ -26,7 +26,7 @@ from .choose import compare, ideal_distances, knee_order, weakly_dominating
 from .confirm import confirm_design
 from .engine import make_engine
 from .errors import NoFeasibleDesign, RequirementsError
-from .report import report_markdown, table_row, write_csv, write_spec
+from .report import confirmed_verdict, report_markdown, table_row, write_csv, write_spec
 from .precision import method as precision_method
 from .requirements import Requirements, baseline_path, load_requirements
 from .score import dominates, score_spec
@@ -61,6 +61,9 @@ class OptimizeResult:
             lines.append(f"{bn} is at least as good as the baseline on every objective: {diffs}")
         elif self.baseline is not None:
             lines.append("no Pareto design is at least as good as the baseline on every objective")
+        for n, c in self.confirmed.items():
+            lines.append(f"simulation: {n}: {c['slices'] - c['no_lock']}/{c['slices']} slices registered; "
+                         f"confirmed: {confirmed_verdict(c)}")
         lines.append(f"report: {self.out_dir / 'report.md'}")
         return "\n".join(lines)
 

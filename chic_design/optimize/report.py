@@ -66,7 +66,7 @@ def _cmp_lines(cmp: list[dict], a_name: str, b_name: str) -> list[str]:
 def confirm_lines(named: list[tuple[str, dict]], confirmed: dict) -> list[str]:
     out = ["| design | slices | no-lock | depth RMS / max (mm) | predicted depth SD (mm) | "
            "normal RMS / max (deg) | predicted normal SD (deg) | twist RMS / max (deg) | "
-           "predicted twist SD (deg) |", "|---|---|---|---|---|---|---|---|---|"]
+           "predicted twist SD (deg) | confirmed |", "|---|---|---|---|---|---|---|---|---|---|"]
     f = lambda v: "-" if v is None else f"{v:.3f}"  # noqa: E731
     for name, r in named:
         c = confirmed.get(name)
@@ -76,8 +76,18 @@ def confirm_lines(named: list[tuple[str, dict]], confirmed: dict) -> list[str]:
         out.append(f"| {name} | {c['slices']} | {c['no_lock']} | {f(c['depth_rms_mm'])} / {f(c['depth_max_mm'])} | "
                    f"{f(p['sd_depth_mm'])} | {f(c['normal_rms_deg'])} / {f(c['normal_max_deg'])} | "
                    f"{f(p['sd_normal_deg'])} | {f(c['twist_rms_deg'])} / {f(c['twist_max_deg'])} | "
-                   f"{f(p['sd_twist_deg'])} |")
+                   f"{f(p['sd_twist_deg'])} | {confirmed_verdict(c)} |")
     return out
+
+
+#: Largest share of simulated slices the solver may refuse for a design to count as confirmed.
+MAX_NO_LOCK_SHARE = 0.1
+
+
+def confirmed_verdict(c: dict) -> str:
+    """'yes' when the solver locked at least 90 % of the simulated slices, else 'NO' with the share refused."""
+    share = c["no_lock"] / c["slices"] if c["slices"] else 1.0
+    return "yes" if share <= MAX_NO_LOCK_SHARE else f"NO: {c['no_lock']}/{c['slices']} refused"
 
 
 def report_markdown(ctx: dict) -> str:
@@ -159,7 +169,10 @@ def report_markdown(ctx: dict) -> str:
               "thickness) at three depths across the required range, at tilt 0 and at the highest required "
               "tilt with random azimuths, registered by `chic-register` (accuracy mode); measured errors "
               "beside the predicted bound (worst required pose). A measured RMS near the predicted SD "
-              "means the solver reaches the bound; measured errors include any bias.", ""]
+              "means the solver reaches the bound; measured errors include any bias. A design is confirmed "
+              f"when the solver locks at least {100 * (1 - MAX_NO_LOCK_SHARE):g} % of the slices: it refuses "
+              "poses it cannot trust (e.g. too imprecise from one slice), so a refused design needs a "
+              "different protocol (more slices) before use.", ""]
         L += confirm_lines(ctx["confirm_named"], ctx["confirmed"])
         L.append("")
     return "\n".join(L) + "\n"
