@@ -281,7 +281,8 @@ def json_schema(family: str = "chic") -> dict:
     return schema
 
 
-def _format_error(path: Path, err: dict, root=None) -> str:
+def format_validation_error(path: Path, err: dict, root=None, schema_hint: str = "see `chic-design schema`") -> str:
+    """One line for a pydantic error in a YAML file: the file, the key path, what is wrong and what was given."""
     loc = ".".join(str(p) for p in err["loc"]) or "(top level)"
     msg = err["msg"].removeprefix("Value error, ")
     kind = err["type"]
@@ -294,7 +295,7 @@ def _format_error(path: Path, err: dict, root=None) -> str:
             if not isinstance(model, type) or not issubclass(model, BaseModel):
                 model = None
                 break
-        allowed = ", ".join(model.model_fields) if model is not None else "see `chic-design schema`"
+        allowed = ", ".join(model.model_fields) if model is not None else schema_hint
         return f"{path}: unknown key '{loc}'; allowed keys here: {allowed}"
     if kind == "missing":
         return f"{path}: missing key '{loc}'"
@@ -317,7 +318,7 @@ def parse_spec(data, path="<spec>") -> Spec:
     try:
         return model.model_validate(data)
     except ValidationError as exc:
-        raise SpecError(_format_error(path, exc.errors()[0], model)) from None
+        raise SpecError(format_validation_error(path, exc.errors()[0], model)) from None
 
 
 #: Spec families: the ``family`` key of a spec picks its model (default ``chic``).

@@ -17,6 +17,7 @@ from typing import Annotated
 from pydantic import BaseModel, ConfigDict, Field, ValidationError, model_validator
 
 from .errors import RequirementsError
+from ..spec import format_validation_error
 
 PositiveMM = Annotated[float, Field(gt=0)]
 
@@ -188,27 +189,6 @@ def json_schema() -> dict:
     return schema
 
 
-def _format_error(path: Path, err: dict) -> str:
-    loc = ".".join(str(p) for p in err["loc"]) or "(top level)"
-    msg = err["msg"].removeprefix("Value error, ")
-    kind = err["type"]
-    if kind == "extra_forbidden":
-        model = Requirements
-        for part in err["loc"][:-1]:
-            field = model.model_fields.get(str(part)) if model is not None else None
-            model = field.annotation if field is not None else None
-            if not (isinstance(model, type) and issubclass(model, BaseModel)):
-                model = None
-        allowed = ", ".join(model.model_fields) if model is not None else "see the requirements schema"
-        return f"{path}: unknown key '{loc}'; allowed keys here: {allowed}"
-    if kind == "missing":
-        return f"{path}: missing key '{loc}'"
-    shown = err.get("input")
-    if isinstance(shown, (dict, list)) or kind.startswith("value_error"):
-        return f"{path}: {loc}: {msg}"
-    return f"{path}: {loc}: {msg} (got {shown!r})"
-
-
 def parse_requirements(data, path="<requirements>") -> Requirements:
     """Validate parsed YAML ``data``; raises :class:`RequirementsError` with a one-line message."""
     path = Path(path)
@@ -217,7 +197,8 @@ def parse_requirements(data, path="<requirements>") -> Requirements:
     try:
         return Requirements.model_validate(data)
     except ValidationError as exc:
-        raise RequirementsError(_format_error(path, exc.errors()[0])) from None
+        raise RequirementsError(format_validation_error(path, exc.errors()[0], Requirements,
+                                                        "see the requirements schema")) from None
 
 
 def load_requirements(path) -> Requirements:
