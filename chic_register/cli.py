@@ -51,6 +51,10 @@ def _parser() -> argparse.ArgumentParser:
                    help="point of F (mm) whose predicted TRE is reported (default: the tool tip, else the body centre)")
     s.add_argument("--max-tre", type=float, metavar="MM",
                    help="refuse (no_lock, reason 'imprecise') a pose whose predicted TRE exceeds MM")
+    s.add_argument("--trust", nargs=2, type=float, metavar=("MM", "DEG"),
+                   help="the verification's precision limits: refuse a pose whose 3-sigma predicted error exceeds "
+                        "MM at the frame centre or DEG in rotation (default 0.5 0.5; a single near-normal slice "
+                        "of a CHIC fiducial knows its tilt only to ~0.2-0.3 deg at 1 sigma)")
 
     c = sub.add_parser("precision", help="the design's precision map: Cramer-Rao bound over depth and tilt")
     c.add_argument("--geometry", required=True, help="geometry.yaml")
@@ -204,6 +208,11 @@ def _run_solve(args) -> int:
         if not (args.max_tre > 0 and math.isfinite(args.max_tre)):
             raise ChicRegisterError(f"--max-tre must be a positive number of mm, got {args.max_tre:g}")
         extra["max_tre_mm"] = args.max_tre
+    if args.trust is not None:
+        tre_mm, rot_deg = args.trust
+        if not all(math.isfinite(v) and v > 0 for v in args.trust):
+            raise ChicRegisterError(f"--trust takes two positive numbers (mm, deg), got {tre_mm:g} {rot_deg:g}")
+        extra.update(trust_tre_mm=tre_mm, trust_rot_deg=rot_deg)
     early = Delivery()  # a server that cannot listen is an output failure: the pose still comes
     link = None
     try:

@@ -463,7 +463,8 @@ def verify_fit(geom, model, fit, rivals, slices, Ss, blob_sets, opts) -> list[Sl
     if k * tre > tre_tol or k * rot > rot_tol:
         raise ImprecisePose(f"the pose is not precise enough to trust: {k:g} sigma of its predicted error is "
                             f"{k * tre:.2f} mm at the frame centre and {k * rot:.2f} deg (limits {tre_tol:g} mm, "
-                            f"{rot_tol:g} deg)", {"sigma_tre_mm": round(tre, 4), "sigma_rot_deg": round(rot, 4)})
+                            f"{rot_tol:g} deg; a tilted slice or several parallel slices are more precise; --trust MM DEG sets "
+                            f"the limits)", {"sigma_tre_mm": round(tre, 4), "sigma_rot_deg": round(rot, 4)})
     return out
 
 
