@@ -6,7 +6,7 @@ from pathlib import Path
 
 import numpy as np
 
-from chic_register.atomic import atomic_path
+from chic_register.atomic import save_figure
 
 from .choose import LABELS
 from .score import OBJECTIVES
@@ -45,11 +45,10 @@ def save_pareto_plot(candidates, front, chosen: dict, baseline: dict | None, png
         fig.suptitle("Pareto set: size (min) vs usable tilt x depth region (max) vs predicted TRE (min)",
                      fontsize=9)
         fig.tight_layout()
-        with atomic_path(png_path) as tmp:
-            fig.savefig(tmp, format="png")
-    finally:
+    except BaseException:
         plt.close(fig)
-    return Path(png_path)
+        raise
+    return save_figure(fig, png_path, dpi=fig.dpi)  # atomic, and closes the figure
 
 
 def save_precision_map(pmap, tilt_limits, png_path, title: str) -> Path:
@@ -82,8 +81,7 @@ def save_precision_map(pmap, tilt_limits, png_path, title: str) -> Path:
         fig.colorbar(im, ax=ax, label="predicted TRE, worst azimuth (mm)")
         ax.set_title(f"{title}\n(x: beyond the design's tilt limit)", fontsize=9)
         fig.tight_layout()
-        with atomic_path(png_path) as tmp:
-            fig.savefig(tmp, format="png")
-    finally:
+    except BaseException:
         plt.close(fig)
-    return Path(png_path)
+        raise
+    return save_figure(fig, png_path, dpi=fig.dpi)  # atomic, and closes the figure
