@@ -57,8 +57,8 @@ def main() -> None:
     ap.add_argument("--efficiency-draws", type=int, default=20, help="noise draws per pose for RMS / CRLB (0: skip)")
     ap.add_argument("--verify", choices=("on", "off"), default="on",
                     help="prove each pose against the image before ok (chic_register.verify_pose; default on)")
-    ap.add_argument("--trust-rot-deg", type=float, default=0.5,
-                    help="largest predicted 3-sigma rotation error accepted (default 0.5; inf: time every slice's "
+    ap.add_argument("--trust-rot-deg", type=float, default=0.75,
+                    help="largest predicted 3-sigma rotation error accepted (default 0.75; inf: time every slice's "
                          "verification without the precision refusal and its accuracy refinement)")
     args = ap.parse_args()
     opts = {**MODES[args.mode], "verify": args.verify == "on", "trust_rot_deg": args.trust_rot_deg}

@@ -53,8 +53,8 @@ def _parser() -> argparse.ArgumentParser:
                    help="refuse (no_lock, reason 'imprecise') a pose whose predicted TRE exceeds MM")
     s.add_argument("--trust", nargs=2, type=float, metavar=("MM", "DEG"),
                    help="the verification's precision limits: refuse a pose whose 3-sigma predicted error exceeds "
-                        "MM at the frame centre or DEG in rotation (default 0.5 0.5; a single near-normal slice "
-                        "of a CHIC fiducial knows its tilt only to ~0.2-0.3 deg at 1 sigma)")
+                        "MM at the frame centre or DEG in rotation (default 1 0.75; a single near-normal slice "
+                        "of a CHIC fiducial knows its tilt to ~0.2-0.25 deg at 1 sigma)")
 
     c = sub.add_parser("precision", help="the design's precision map: Cramer-Rao bound over depth and tilt")
     c.add_argument("--geometry", required=True, help="geometry.yaml")

@@ -901,9 +901,9 @@ class SolveOptions:
     section_thickness_samples: int = 5
     section_max_shift_px: float = 1.0
     verify: bool = True
-    trust_tre_mm: float = 0.5
-    trust_rot_deg: float = 0.5
-    refine_when_imprecise: bool = True
+    trust_tre_mm: float = 1.0
+    trust_rot_deg: float = 0.75
+    refine_when_imprecise: bool = False
     max_tre_mm: float = math.inf
     uncertainty: bool = True
     prior: np.ndarray | None = None

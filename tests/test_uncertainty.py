@@ -100,18 +100,19 @@ def test_default_target_is_the_tool_tip(needle_geometry, neuro_geometry):
 
 
 def test_trust_limits_from_the_command_line(tmp_path, neuro_geometry_file, capsys):
-    """A normal single slice is refused at the default 0.5 mm / 0.5 deg (3 sigma) and says how to proceed; with
-    --trust looser limits it locks on the true pose, within what its own covariance predicts."""
+    """A normal single slice locks at the default limits (1 mm / 0.75 deg at 3 sigma) on the true pose, within what
+    its own covariance predicts; --trust tighter than its tilt precision (~0.2 deg at 1 sigma) refuses it and says
+    how to proceed."""
     img = tmp_path / "s.dcm"
     assert main(["simulate", "--geometry", str(neuro_geometry_file), "--out", str(img), "--depth", "25", "--tilt",
                  "0", "--azimuth", "30", "--twist", "10", "--noise", "rician", "--snr", "20", "--seed", "1"]) == 0
     truth = json.loads((tmp_path / "s.dcm.truth.json").read_text())["T_scanner_from_fiducial"]
     capsys.readouterr()
     base = ["solve", str(img), "--geometry", str(neuro_geometry_file), "--json"]
-    assert main(base) == 3
+    assert main(base + ["--trust", "0.3", "0.3"]) == 3
     refused = json.loads(capsys.readouterr().out)
     assert "not precise enough" in refused["reason"] and "--trust MM DEG" in refused["reason"]
-    assert main(base + ["--trust", "2", "2"]) == 0
+    assert main(base) == 0
     doc = json.loads(capsys.readouterr().out)
     T, T0 = np.array(doc["T_scanner_from_fiducial"]), np.array(truth)
     centre = np.array([0.0, 0.0, 25.0, 1.0])

@@ -114,6 +114,29 @@ def test_a_wrong_pixel_spacing_is_refused(neuro_geometry, spacing):
     assert _outcome(neuro_geometry, sim, spacing=spacing) == "no_lock"
 
 
+@pytest.mark.parametrize("tilt, declared, axis", [(0, (0.53, 0.5), "rows"), (30, (0.5, 0.53), "columns")])
+def test_a_stretch_the_pose_absorbs_is_seen_in_the_positions(neuro_geometry, tilt, declared, axis):
+    """A 6 % spacing error that a tilted pose fits to 0.1 px (the section aspect cannot see it) is named by the
+    positions' stretch test, along the right axis; the same slice with its true spacing does not trigger it."""
+    sim = _sim(neuro_geometry, 25, tilt, 40, 10, noise="rician", snr=20, seed=5)
+    with pytest.raises(NoLock, match=f"stretched -\\d+\\.\\d % along its {axis}") as info:
+        register([Slice(sim.slice.pixels, declared, slice_thickness_mm=2.0, source="stretched")], neuro_geometry)
+    assert info.value.detail["stretch_p"] < 1e-3
+    right = Slice(sim.slice.pixels, (0.5, 0.5), slice_thickness_mm=2.0, source="right")
+    try:
+        register([right], neuro_geometry)
+    except NoLock as exc:
+        assert "stretched" not in exc.reason
+
+
+def test_hunt_case_223_wrong_spacing_at_high_tilt_is_refused():
+    """The last false lock of the 5000-case hunt (seed 0): a 12.6 % row-spacing error at 58.5 deg tilt, locked 5.4 mm
+    off with a 0.05 mm residual by the section fit, is now refused by the stretch test."""
+    geoms = hunt.load_geometries()
+    out = hunt.run_case(hunt.make_case(223, 0, geoms), geoms)
+    assert out["outcome"] == "no_lock" and "stretched" in out["reason"], out
+
+
 def test_plane_status_is_the_design_checks_on_one_plane(neuro_geometry):
     ok = plane_status(neuro_geometry, 25, 0, 0, 0.5, 2.0)
     assert ok.ok and ok.failure == "" and not ok.merged and not ok.outside
