@@ -22,8 +22,6 @@ from .tube_model import TubeModel, _adjoint, _crossing_jacobian, _exp_se3, plane
 if TYPE_CHECKING:
     from .solve import SolveOptions
 
-# --------------------------------------------------------------------------- refinement
-
 
 @dataclass(frozen=True, eq=False)
 class _Fit:

@@ -15,7 +15,7 @@ from .detect import median
 from .errors import NoLock
 from .hypotheses import ellipse_layout, family_hypotheses, fit_ellipse_robust, initial_hypotheses, parallel_family
 from .pose import invert
-from .refine import _assign, _reject_outliers, _rank, _unexplained, refine
+from .refine import _assign, _rank, _reject_outliers, _unexplained, refine
 from .trust import _distinct, _near_prior
 from .tube_model import TubeModel, plane_crossings
 

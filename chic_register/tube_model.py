@@ -19,8 +19,6 @@ import numpy as np
 
 from .geometry import FiducialGeometry, HelixTube, LineTube, content_sha256
 
-# --------------------------------------------------------------------------- model
-
 
 @dataclass(frozen=True, eq=False)
 class TubeModel:
