@@ -213,7 +213,7 @@ class DepthSensitivity:
 
 @dataclass(frozen=True)
 class FeasibilityReport:
-    """Everything :func:`check_design` found. ``feasible`` = no violations."""
+    """Everything :func:`~chic_design.feasibility.check_design` found. ``feasible`` = no violations."""
 
     name: str
     pixel_size_mm: float

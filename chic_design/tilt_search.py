@@ -77,8 +77,8 @@ def tilt_limits(geom: FiducialGeometry, pixel_size_mm: float, slice_thickness_mm
     ``merges=False`` checks visibility (tubes inside the body, crossed once) only.
     ``exact=True`` replaces the ellipse gap of pairs with a helix or a blob cut
     by an end face, where it is within ``0.1 mm`` of one pixel, by the exact
-    :func:`section_gap` (about 15x slower; for designs/neuro.yaml it gives the
-    same limits to 0.1 deg, so :func:`check_geometry` uses the ellipse model).
+    :func:`~chic_register.envelope.section_gap` (about 15x slower; for designs/neuro.yaml it gives the
+    same limits to 0.1 deg, so :func:`~chic_design.feasibility.check_geometry` uses the ellipse model).
     """
     checker = _PlaneChecker(geom, pixel_size_mm, slice_thickness_mm, merges=merges, exact=exact)
     zs = depth_samples(geom.body.length) if depths_mm is None else np.asarray(depths_mm, dtype=float)
