@@ -357,7 +357,9 @@ def verify_slice(geom, model, T_F_from_I: np.ndarray, pixels: np.ndarray, spacin
     try:
         return assess(wins, canvas, 0.0)
     except NoLock as exc:
-        if ("shape_residual" not in exc.detail and "n_tubes" not in exc.detail) or not PSF_SIGMAS_RADII:
+        # what a blur explains: a section's shape, the level of the sections, their second moments (a blur widens a
+        # section more across its width than along its length: the aspect test misreads it as a spacing error)
+        if not ({"shape_residual", "n_tubes", "spacing_ratio"} & set(exc.detail)) or not PSF_SIGMAS_RADII:
             raise
         # the blobs may be wider than the tubes drawn (point spread, partial volume, fluid in a printed channel):
         # fit a Gaussian point spread to the matched sections and judge the blurred model by the same rules
