@@ -178,10 +178,15 @@ def plane_crossings(model: TubeModel, T_F_from_I: np.ndarray, margin_mm: float =
                 th = th0 + om * (z - z0)
                 c, s = cos(th), sin(th)
                 dg = om * (rny * c - rnx * s) + nz
-                step = (rnx * c + rny * s + nz * z - no) / (dg if abs(dg) > 1e-9 else 1e-9)
-                step = max(-20.0, min(20.0, step))
+                if -1e-9 < dg < 1e-9:
+                    dg = 1e-9
+                step = (rnx * c + rny * s + nz * z - no) / dg
+                if step > 20.0:
+                    step = 20.0
+                elif step < -20.0:
+                    step = -20.0
                 z -= step
-                if abs(step) < 1e-11:
+                if -1e-11 < step < 1e-11:
                     good = True
                     break
             th = th0 + om * (z - z0)
