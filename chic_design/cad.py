@@ -1,7 +1,7 @@
 """The CAD model: body and caps as build123d parts, in frame F, in assembled position.
 
-Every channel is a circle swept along a centreline object of
-:mod:`chic_register.geometry` (via :func:`centreline_edge`), so the printed
+Every channel is a circle swept along a tube object of
+:mod:`chic_register.tubes` (via :func:`centreline_edge`), so the printed
 channels and ``geometry.yaml`` cannot disagree.
 
 - :class:`FiducialBody`: the annulus ``inner_diameter..outer_diameter``,
