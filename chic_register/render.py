@@ -33,7 +33,7 @@ import numpy as np
 from .geometry import FiducialGeometry
 
 
-def _sample_offsets(n: int) -> np.ndarray:
+def sample_offsets(n: int) -> np.ndarray:
     """Sub-sample centres within a unit pixel, relative to its centre; shape (n,)."""
     return (np.arange(n) + 0.5) / n - 0.5
 
@@ -42,7 +42,7 @@ def _plane_offsets_mm(thickness_mm: float, n: int) -> np.ndarray:
     """Midpoint-rule sub-plane offsets along the slice normal; shape (K,)."""
     if thickness_mm <= 0 or n <= 1:
         return np.zeros(1)
-    return _sample_offsets(n) * thickness_mm
+    return sample_offsets(n) * thickness_mm
 
 
 @dataclass(frozen=True)
@@ -136,7 +136,8 @@ def _render_crossing(tube, u_c: float, T_F_from_S: np.ndarray, z_mm: float, grid
     np.maximum(region, frac, out=region)
 
 
-def _check_grid(shape, pixel_spacing_mm, center_px, supersample, thickness_samples, slice_thickness_mm):
+def check_grid(shape, pixel_spacing_mm, center_px, supersample, thickness_samples, slice_thickness_mm):
+    """The checked grid: ``(rows, cols), (row_mm, col_mm), (rc, cc)`` (default centre: the image centre)."""
     rows, cols = (int(v) for v in shape)
     if rows < 1 or cols < 1:
         raise ValueError(f"shape must be positive, got {tuple(shape)}")
@@ -162,12 +163,12 @@ def render_tubes(
     supersample: int = 4,
     thickness_samples: int = 5,
 ) -> np.ndarray:
-    """Fluid fraction image of any tubes (``LineTube`` / ``HelixTube`` in F); shape (rows, cols), in [0, 1]."""
-    shape, spacing, center = _check_grid(
+    """Fluid fraction image of any :class:`~chic_register.tubes.Tube` objects (in F); shape (rows, cols), in [0, 1]."""
+    shape, spacing, center = check_grid(
         shape, pixel_spacing_mm, center_px, supersample, thickness_samples, slice_thickness_mm
     )
     T = np.asarray(T_F_from_S, dtype=float)
-    grid = _Grid(shape, spacing, center, _sample_offsets(int(supersample)))
+    grid = _Grid(shape, spacing, center, sample_offsets(int(supersample)))
     offsets = _plane_offsets_mm(float(slice_thickness_mm), int(thickness_samples))
     normal = T[:3, 2]
     image = np.zeros(shape)

@@ -26,7 +26,7 @@ from .atomic import write_json
 from .blob_width import BLOB_WIDTH_RANGE, BlobWidth, render_tubes_widened  # noqa: F401 (public here too)
 from .geometry import FiducialGeometry, LineTube
 from .pose import SliceAngles, apply, invert, rigid, slice_angles, slice_frame
-from .render import _check_grid, _sample_offsets, render_slice, render_tubes  # noqa: F401 (public here too)
+from .render import check_grid, render_slice, render_tubes, sample_offsets  # noqa: F401 (render_*: public here too)
 from .slices import Slice
 
 NOISE_KINDS = ("none", "uniform", "rician")
@@ -173,7 +173,7 @@ def _render_distractors(n, geom, T_F_from_S, grid_shape, spacing, center, rng, s
     R, tF = T_F_from_S[:3, :3], T_F_from_S[:3, 3]
     r_out = 0.5 * geom.body.outer_diameter
     length = geom.body.length
-    sub = _sample_offsets(supersample)
+    sub = sample_offsets(supersample)
     placed = 0
     for _ in range(200 * n):
         if placed == n:
@@ -260,7 +260,7 @@ def simulate_slice(
     if not (bore_signal >= 0 and math.isfinite(bore_signal)):
         raise ValueError(f"bore_signal must be >= 0, got {bore_signal}")
     rng = rng if isinstance(rng, np.random.Generator) else np.random.default_rng(rng)
-    (rows, cols), spacing, _ = _check_grid(shape, pixel_spacing_mm, None, supersample, thickness_samples, slice_thickness_mm)
+    (rows, cols), spacing, _ = check_grid(shape, pixel_spacing_mm, None, supersample, thickness_samples, slice_thickness_mm)
     rs, cs = spacing
     dx, dy = (float(v) for v in center_offset_mm)
     center = ((rows - 1) / 2.0 + dy / rs, (cols - 1) / 2.0 + dx / cs)
