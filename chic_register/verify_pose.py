@@ -97,6 +97,10 @@ EXPLAINED_SHARE = 0.3
 #: A rival pose must explain the pixels worse by this many noise variances (a log-likelihood margin of half of
 #: it) plus the model's own error, else the slice is ambiguous.
 RIVAL_MARGIN = 50.0
+#: Blob widths the verification will model when the sections look wider than drawn (real images: point spread,
+#: partial volume, fluid spread in a printed channel make blobs 0.7-2.5x the tube): the Gaussian point spread
+#: sigmas tried, in tube radii (0.15 r barely widens a section; 2 r is a blob ~2.7x the tube's width).
+PSF_SIGMAS_RADII = (0.15, 0.25, 0.35, 0.5, 0.7, 1.0, 1.4, 2.0)
 #: Straight tubes this close in angle after a turn about the axis count as mapped onto each other (the turn is a
 #: near-symmetry whose pose is tried as a rival).
 SYMMETRY_TOL_DEG = 3.0
@@ -121,6 +125,7 @@ class SliceCheck:
     canvas: np.ndarray = None  # the model image at the pose (fluid fraction)
     level: float = 1.0  # fitted fluid level
     noise_sigma: float = 0.0
+    psf_px: float = 0.0  # Gaussian point spread (sigma, pixels) the model was blurred by to match the blobs
 
 
 def shape_tolerance(radius_px: float) -> float:
@@ -142,20 +147,20 @@ class _TubeWindow:
     others: np.ndarray  # other tubes' sections in the window
 
 
-def _windows(geom, model, T_F_from_I, shape, spacing, thickness_mm):
+def _windows(geom, model, T_F_from_I, shape, spacing, thickness_mm, margin_px: float = 2.0):
     """``(windows, canvas)``: per tube whose section lies wholly inside the image its window with its own and
     its neighbours' renders, and the whole model image (shape of the image, every section pasted in).
 
     Each tube is rendered once, in its own window (its section's extent,
-    :func:`chic_register.solve._section_extent`, plus two pixels); a window's
+    :func:`chic_register.solve._section_extent`, plus ``margin_px``); a window's
     neighbours are the other tubes' renders pasted where they overlap it.
     """
     rs, cs = spacing
     px = max(rs, cs)
     q, tan, _, found = plane_crossings(model, T_F_from_I, margin_mm=0.5 * float(model.diameter_mm.max()) + thickness_mm)
     half_len, half_wid, u = _section_extent(model, tan, thickness_mm)
-    ex = np.abs(u[:, 0]) * half_len + np.abs(u[:, 1]) * half_wid + 2 * px
-    ey = np.abs(u[:, 1]) * half_len + np.abs(u[:, 0]) * half_wid + 2 * px
+    ex = np.abs(u[:, 0]) * half_len + np.abs(u[:, 1]) * half_wid + margin_px * px
+    ey = np.abs(u[:, 1]) * half_len + np.abs(u[:, 0]) * half_wid + margin_px * px
     txy = np.hypot(tan[:, 0], tan[:, 1])
     smear_px = float(np.max(thickness_mm * txy / np.maximum(np.abs(tan[:, 2]), 1e-3))) / px if txy.size else 0.0
     ts = int(min(MAX_THICKNESS_SAMPLES, max(1, math.ceil(smear_px / SMEAR_PX_PER_SAMPLE) + 1)))
@@ -213,6 +218,56 @@ def _fit_window(pixels, w: _TubeWindow):
     return coef, y, A1 @ coef1
 
 
+def gaussian_blur(img: np.ndarray, sigma_px: float) -> np.ndarray:
+    """``img`` (H, W) blurred by an isotropic Gaussian of ``sigma_px``, zero outside (separable, numpy only:
+    scipy stays off the solve path's imports)."""
+    if sigma_px <= 0:
+        return img
+
+    def matrix(n):
+        x = np.arange(n, dtype=float)
+        K = np.exp(-0.5 * ((x[:, None] - x[None, :]) / sigma_px) ** 2)
+        return K / (sigma_px * math.sqrt(2 * math.pi))
+
+    return matrix(img.shape[0]) @ img @ matrix(img.shape[1]).T
+
+
+def _blurred(wins, canvas, sigma_px: float):
+    """The windows and the model image with every section blurred by ``sigma_px``."""
+    out = [_TubeWindow(w.k, w.r0, w.c0, gaussian_blur(w.own, sigma_px), gaussian_blur(w.others, sigma_px))
+           for w in wins]
+    return out, gaussian_blur(canvas, sigma_px)
+
+
+def _shape_excess(w: _TubeWindow, y: np.ndarray, fit: np.ndarray, sigma: float, level: float):
+    """``(excess, allowed_noise, support)`` of a fitted window (:func:`_fit_window`): the residual energy over
+    the section (its support grown by a pixel) beyond the noise, as a share of the section's energy, and four
+    noise sigmas of that term."""
+    own = w.own.ravel()
+    energy = max(float(own @ own), 1e-12)
+    sup = _dilate(w.own > 0.02, 1).ravel()
+    res = (y - fit)[sup]
+    excess = max(float(res @ res) - sup.sum() * sigma * sigma, 0.0) / (level * level * energy)
+    chi_tol = 4.0 * math.sqrt(2.0 * sup.sum()) * sigma * sigma / (level * level * energy)
+    return excess, chi_tol, sup
+
+
+def _fit_psf(pixels, wins, matched, sigma: float, level: float, r_px: float):
+    """The point spread (sigma, pixels; from :data:`PSF_SIGMAS_RADII` x ``r_px``) whose blurred model leaves the
+    least shape residual over the matched tubes, or None."""
+    best, best_sse = None, math.inf
+    for radii in PSF_SIGMAS_RADII:
+        blurred, _ = _blurred(wins, np.zeros((1, 1)), radii * r_px)
+        total = 0.0
+        for w in blurred:
+            if w.k in matched:
+                f = _fit_window(pixels, w)
+                total += math.inf if f is None else _shape_excess(w, f[1], f[2], sigma, level)[0]
+        if total < best_sse:
+            best, best_sse = radii * r_px, total
+    return best
+
+
 def verify_slice(geom, model, T_F_from_I: np.ndarray, pixels: np.ndarray, spacing, thickness_mm: float,
                  blobs: Blobs, assignment: np.ndarray, source: str, *,
                  check_envelope: bool = True) -> SliceCheck:
@@ -232,73 +287,90 @@ def verify_slice(geom, model, T_F_from_I: np.ndarray, pixels: np.ndarray, spacin
         merged = tuple(sorted({t for pair in st.merged for t in pair}))
         envelope = st.failure or "ok"
     shape = np.asarray(pixels).shape
-    wins, canvas = _windows(geom, model, T_F_from_I, shape, (rs, cs), float(thickness_mm))
     sigma = max(float(blobs.noise_sigma), 1e-12)
-    fits = {}
-    for w in wins:
-        f = _fit_window(pixels, w)
-        if f is not None:
-            fits[w.k] = (w, *f)
-    matched = [k for k in fits if assignment[k] >= 0]
-    gains = np.array([fits[k][1][1] for k in matched])
-    if gains.size == 0 or not median(gains) > 0:
-        raise NoLock(f"{source}: the rendered model at the pose ({where}) does not match the pixels of the "
-                     f"tubes it was fitted to", {"n_tubes": len(matched)})
-    level = median(gains)
-    present, missing, cut_missing = [], [], []
-    scales = []
     L = model.length_mm
     q, tan, zF, _ = plane_crossings(model, T_F_from_I, margin_mm=5.0)
     half_len = _section_extent(model, tan, thickness_mm)[0]
-    for k, (w, coef, y, fit) in fits.items():
-        own = w.own.ravel()
-        a = float(coef[1])
-        energy = float(own @ own)
-        se = sigma / math.sqrt(max(energy, 1e-12))
-        tid = model.ids[k]
-        if a < PRESENT_FRACTION * level or a < PRESENT_SIGMA * se:
-            tz = max(abs(float(tan[k, 2])), 1e-3)
-            clear = min(zF[k], L - zF[k]) - END_CLEARANCE_SECTIONS * (half_len[k] * math.sqrt(1 - tz * tz) + 0.5 * model.diameter_mm[k])
-            (missing if clear > 0 else cut_missing).append(tid)
-            continue
-        # shape: the residual over the section (own support grown by a pixel), beyond noise and model error
-        hh, ww = w.own.shape
-        sup = _dilate(w.own > 0.02, 1).ravel()
-        res = (y - fit)[sup]
-        excess = max(float(res @ res) - sup.sum() * sigma * sigma, 0.0) / (level * level * energy)
-        r_px = 0.5 * float(model.diameter_mm[k]) / px
-        chi_tol = 4.0 * math.sqrt(2.0 * sup.sum()) * sigma * sigma / (level * level * energy)  # 4 sigma of the noise term
-        if excess > shape_tolerance(r_px) + chi_tol:
-            raise NoLock(f"{source}: tube {tid}'s section does not have the shape and place the pose ({where}) "
-                         f"predicts (residual {excess:.2f} of its energy; allowed {shape_tolerance(r_px) + chi_tol:.2f})",
-                         {"tube": tid, "shape_residual": round(excess, 3)})
-        present.append(tid)
-        # second moments of the section seen vs predicted (pixels), tubes with no neighbour in the window
-        if w.others.max() < 0.05:
-            obs = np.clip((y - coef[0]), 0.0, None).reshape(hh, ww) * sup.reshape(hh, ww)
-            mod = (fit - coef[0]).reshape(hh, ww) * sup.reshape(hh, ww)
-            so, sm = _spread(obs), _spread(mod)
-            if so is not None and sm is not None:
-                scales.append(np.sqrt(so / sm))
-    if cut_missing:
-        raise NoLock(f"{source}: tube(s) {', '.join(cut_missing)} predicted near an end face at the pose ({where}) "
-                     f"are not in the image: a cut tube and a wrong pose look alike there",
-                     {"missing_tubes": cut_missing})
-    scale = (1.0, 1.0)
-    if len(scales) >= 3:
-        s = np.array(scales)  # (n, 2): row, col scale seen / predicted
-        ratio = s[:, 1] / s[:, 0]
-        mean = median(ratio)
-        se = float(np.std(ratio) / math.sqrt(len(ratio)))
-        tol = max(SPACING_TOL, 3 * se)
-        scale = (median(s[:, 0]), median(s[:, 1]))
-        if abs(mean - 1.0) > tol:
-            raise NoLock(f"{source}: the tube sections are {abs(mean - 1) * 100:.0f} % "
-                         f"{'wider' if mean > 1 else 'narrower'} along the columns than along the rows relative to "
-                         f"the pose's prediction: is the pixel spacing ({rs:g}, {cs:g}) mm right?",
-                         {"spacing_ratio": round(mean, 4)})
-    _unexplained(model, T_F_from_I, blobs, assignment, canvas, (rs, cs), source, where)
-    return SliceCheck(tuple(present), tuple(missing), scale, envelope, merged, canvas, level, sigma)
+
+    def assess(wins, canvas, psf_px):
+        fits = {}
+        for w in wins:
+            f = _fit_window(pixels, w)
+            if f is not None:
+                fits[w.k] = (w, *f)
+        matched = [k for k in fits if assignment[k] >= 0]
+        gains = np.array([fits[k][1][1] for k in matched])
+        if gains.size == 0 or not median(gains) > 0:
+            raise NoLock(f"{source}: the rendered model at the pose ({where}) does not match the pixels of the "
+                         f"tubes it was fitted to", {"n_tubes": len(matched)})
+        level = median(gains)
+        present, missing, cut_missing = [], [], []
+        scales = []
+        for k, (w, coef, y, fit) in fits.items():
+            own = w.own.ravel()
+            a = float(coef[1])
+            energy = float(own @ own)
+            se = sigma / math.sqrt(max(energy, 1e-12))
+            tid = model.ids[k]
+            if a < PRESENT_FRACTION * level or a < PRESENT_SIGMA * se:
+                tz = max(abs(float(tan[k, 2])), 1e-3)
+                clear = min(zF[k], L - zF[k]) - END_CLEARANCE_SECTIONS * (half_len[k] * math.sqrt(1 - tz * tz) + 0.5 * model.diameter_mm[k])
+                (missing if clear > 0 else cut_missing).append(tid)
+                continue
+            # shape: the residual over the section (own support grown by a pixel), beyond noise and model error
+            hh, ww = w.own.shape
+            excess, chi_tol, sup = _shape_excess(w, y, fit, sigma, level)
+            r_px = 0.5 * float(model.diameter_mm[k]) / px
+            if excess > shape_tolerance(r_px) + chi_tol:
+                raise NoLock(f"{source}: tube {tid}'s section does not have the shape and place the pose ({where}) "
+                             f"predicts (residual {excess:.2f} of its energy; allowed {shape_tolerance(r_px) + chi_tol:.2f})",
+                             {"tube": tid, "shape_residual": round(excess, 3)})
+            present.append(tid)
+            # second moments of the section seen vs predicted (pixels), tubes with no neighbour in the window
+            if w.others.max() < 0.05:
+                obs = np.clip((y - coef[0]), 0.0, None).reshape(hh, ww) * sup.reshape(hh, ww)
+                mod = (fit - coef[0]).reshape(hh, ww) * sup.reshape(hh, ww)
+                so, sm = _spread(obs), _spread(mod)
+                if so is not None and sm is not None:
+                    scales.append(np.sqrt(so / sm))
+        if cut_missing:
+            raise NoLock(f"{source}: tube(s) {', '.join(cut_missing)} predicted near an end face at the pose ({where}) "
+                         f"are not in the image: a cut tube and a wrong pose look alike there",
+                         {"missing_tubes": cut_missing})
+        scale = (1.0, 1.0)
+        if len(scales) >= 3:
+            s = np.array(scales)  # (n, 2): row, col scale seen / predicted
+            ratio = s[:, 1] / s[:, 0]
+            mean = median(ratio)
+            se = float(np.std(ratio) / math.sqrt(len(ratio)))
+            tol = max(SPACING_TOL, 3 * se)
+            scale = (median(s[:, 0]), median(s[:, 1]))
+            if abs(mean - 1.0) > tol:
+                raise NoLock(f"{source}: the tube sections are {abs(mean - 1) * 100:.0f} % "
+                             f"{'wider' if mean > 1 else 'narrower'} along the columns than along the rows relative to "
+                             f"the pose's prediction: is the pixel spacing ({rs:g}, {cs:g}) mm right?",
+                             {"spacing_ratio": round(mean, 4)})
+        _unexplained(model, T_F_from_I, blobs, assignment, canvas, (rs, cs), source, where)
+        return SliceCheck(tuple(present), tuple(missing), scale, envelope, merged, canvas, level, sigma, psf_px)
+
+    wins, canvas = _windows(geom, model, T_F_from_I, shape, (rs, cs), float(thickness_mm))
+    try:
+        return assess(wins, canvas, 0.0)
+    except NoLock as exc:
+        if ("shape_residual" not in exc.detail and "n_tubes" not in exc.detail) or not PSF_SIGMAS_RADII:
+            raise
+        # the blobs may be wider than the tubes drawn (point spread, partial volume, fluid in a printed channel):
+        # fit a Gaussian point spread to the matched sections and judge the blurred model by the same rules
+        r_px = 0.5 * float(np.median(model.diameter_mm)) / px
+        wide, wide_canvas = _windows(geom, model, T_F_from_I, shape, (rs, cs), float(thickness_mm),
+                                     margin_px=2.0 + math.ceil(3.0 * PSF_SIGMAS_RADII[-1] * r_px))
+        psf = _fit_psf(pixels, wide, {int(k) for k in np.flatnonzero(assignment >= 0)}, sigma, 1.0, r_px)
+        if psf is None:
+            raise
+        try:
+            return assess(*_blurred(wide, wide_canvas, psf), psf)
+        except NoLock:
+            raise exc from None
 
 
 def _spread(w: np.ndarray):
@@ -430,6 +502,7 @@ def _compare_rival(geom, model, check: SliceCheck, T_F_from_I_rival: np.ndarray,
     pixels = np.asarray(sl.pixels, float)
     _, rival = _windows(geom, model, T_F_from_I_rival, pixels.shape, tuple(float(v) for v in sl.pixel_spacing_mm),
                         float(sl.slice_thickness_mm))
+    rival = gaussian_blur(rival, check.psf_px)  # drawn as the pose's model was
     region = _dilate((check.canvas > 0.02) | (rival > 0.02), 1)
     y = pixels[region]
     sse = []
