@@ -12,7 +12,7 @@ slice (:func:`verify_fit`):
    misses (a slice through an end face) is allowed: the rest must verify.
 2. **Every predicted tube appears where predicted, with its size and shape**:
    the model is rendered at the pose by the simulator's partial-volume
-   renderer (:func:`chic_register.simulate.render_tubes`) tube by tube in a
+   renderer (:func:`chic_register.render.render_tubes`) tube by tube in a
    window around its section; its fluid level is fitted to the pixels
    (``pixels = background + gain * section + gain' * neighbours``). A tube
    whose gain is below :data:`PRESENT_FRACTION` of the matched tubes' or not
@@ -69,7 +69,7 @@ from .fit_checks import (  # noqa: F401
 )
 from .pose import slice_angles
 from .psf import blurred_windows, fit_psf, gaussian_blur
-from .simulate import render_tubes
+from .render import render_tubes
 from .solve import _near_prior, _section_extent, plane_crossings
 
 #: A present tube's fitted fluid level, as a share of the median of the tubes the solver matched. A correctly
