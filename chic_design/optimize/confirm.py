@@ -103,7 +103,8 @@ def confirm_design(spec_data: dict, req_data: dict, draws: int, seed: int) -> di
                 reg = register([s.slice for s in sims], geom)
             except NoLock as exc:
                 imprecise += isinstance(exc, ImprecisePose)
-                kind = exc.reason.split(":")[0] if isinstance(exc, ImprecisePose) else exc.reason[:60]
+                why = exc.reason.removeprefix("<simulated>: ")
+                kind = why.split(":")[0] if isinstance(exc, ImprecisePose) else why.split(" (")[0].split(" with ")[0]
                 reasons[kind] = reasons.get(kind, 0) + 1
                 continue
             m = len(sims) // 2
@@ -116,7 +117,8 @@ def confirm_design(spec_data: dict, req_data: dict, draws: int, seed: int) -> di
             twist[i, k] = wrap_deg(got.twist_deg - truth.angles.twist_deg)
     n = axial.size
     locked = int(np.isfinite(axial).sum())
-    return {"slices": n, "no_lock": n - locked, "imprecise": imprecise, "refusals": reasons,
+    by_case = {c.label: int(np.isfinite(axial[i]).sum()) for i, c in enumerate(cases)}
+    return {"slices": n, "no_lock": n - locked, "imprecise": imprecise, "refusals": reasons, "locked_by_case": by_case,
             "depth_rms_mm": _rms(axial), "depth_max_mm": _max(axial), "normal_rms_deg": _rms(normal),
             "normal_max_deg": _max(normal), "twist_rms_deg": _rms(twist), "twist_max_deg": _max(twist),
             "settings": {"geometry": geom.name, "draws": draws, "seed": seed, "noise": "rician", "snr": im.snr,

@@ -79,6 +79,12 @@ def confirm_lines(named: list[tuple[str, dict]], confirmed: dict) -> list[str]:
                    f"{f(p['sd_depth_mm'])} | {f(c['normal_rms_deg'])} / {f(c['normal_max_deg'])} | "
                    f"{f(p['sd_normal_deg'])} | {f(c['twist_rms_deg'])} / {f(c['twist_max_deg'])} | "
                    f"{f(p['sd_twist_deg'])} | {confirmed_verdict(c)} |")
+    for name, _ in named:
+        c = confirmed.get(name)
+        if c and c["no_lock"] and c.get("refusals"):
+            why = "; ".join(f"{k} x{v}" for k, v in sorted(c["refusals"].items(), key=lambda kv: -kv[1])[:3])
+            cases = ", ".join(f"{k} {v}" for k, v in c.get("locked_by_case", {}).items())
+            out.append(f"\n`{name}` refused: {why}. Locked per pose (of {c['settings']['draws']}): {cases}.")
     return out
 
 
@@ -112,8 +118,8 @@ def trust_lines(candidates, limits) -> list[str]:
         p = c["precision"]
         z, t, _ = p["solver_worst_pose"]
         out.append(f"| {c.get('key', '')[:12]} | {c.get('outer_diameter_mm', float('nan')):g} | "
-                   f"{p['solver_rot_deg']:.2f} | {p['solver_tre_mm']:.2f} | "
-                   f"{100 * trust_excess(p, limits):.0f} % | {z:g} mm, {t:g} deg |")
+                   f"{p['solver_rot_deg']:.3f} | {p['solver_tre_mm']:.3f} | "
+                   f"{100 * trust_excess(p, limits):.1f} % | {z:g} mm, {t:g} deg |")
     return out + [""]
 
 

@@ -47,9 +47,9 @@ def solver_limits() -> TrustLimits:
 def solver_sds(cov_deg_mm, length_mm: float) -> tuple[float, float]:
     """Worst-direction 1-sigma of the frame centre's displacement (mm) and of the rotation (deg) of a pose
     covariance in :data:`chic_register.crlb.PARAMETER_ORDER` (what ``pose_precision`` reports, from the bound)."""
-    from chic_register.crlb import target_jacobian
+    from chic_register.crlb import _scale, target_jacobian
 
-    s = np.array([math.degrees(1.0)] * 3 + [1.0] * 3)
+    s = _scale()
     C = np.asarray(cov_deg_mm, dtype=float) / np.outer(s, s)  # rad, mm
     J = target_jacobian((0.0, 0.0, 0.5 * float(length_mm)))
     tre = math.sqrt(max(float(np.linalg.eigvalsh(J @ C @ J.T).max()), 0.0))
