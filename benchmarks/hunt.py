@@ -73,11 +73,18 @@ class Case:
     snr: float
     mutation: str
     mutation_seed: int
+    blob_width: float = 1.0  # every blob this x its tube's width (--blob-width; 1: as drawn)
 
 
-def make_case(index: int, seed: int, geometries: dict) -> Case:
-    """The ``index``-th case of the hunt seeded ``seed`` (independent of every other case)."""
+def make_case(index: int, seed: int, geometries: dict, blob_width=(1.0, 1.0)) -> Case:
+    """The ``index``-th case of the hunt seeded ``seed`` (independent of every other case).
+
+    ``blob_width`` (lo, hi): draw every blob a factor from this range x its
+    tube's width (its own random stream, so the rest of the case is the same
+    as without it)."""
     rng = np.random.default_rng([seed, index])
+    lo, hi = (float(v) for v in blob_width)
+    width = float(np.random.default_rng([seed, index, 1]).uniform(lo, hi)) if hi > lo else lo
     name = sorted(geometries)[int(rng.integers(len(geometries)))]
     geom = geometries[name]
     L = geom.body.length
@@ -98,7 +105,7 @@ def make_case(index: int, seed: int, geometries: dict) -> Case:
         azimuth_deg=float(rng.uniform(-180, 180)), twist_deg=float(rng.uniform(-180, 180)),
         pixel_mm=pixel, size=int(max(32, round(fov / pixel))), slice_thickness_mm=thick,
         offset_mm=(float(rng.uniform(-0.3, 0.3) * od), float(rng.uniform(-0.3, 0.3) * od)),
-        snr=snr, mutation=mutation, mutation_seed=int(rng.integers(2**31)),
+        snr=snr, mutation=mutation, mutation_seed=int(rng.integers(2**31)), blob_width=width,
     )
 
 
@@ -147,7 +154,7 @@ def build_case(case: Case, geom):
     sim = simulate_slice(geom, case.depth_mm, case.tilt_deg, case.azimuth_deg, case.twist_deg, shape=shape,
                          pixel_spacing_mm=px, slice_thickness_mm=case.slice_thickness_mm,
                          center_offset_mm=case.offset_mm, image_position=(0.0, 0.0, 0.0), rng=rng,
-                         supersample=3, thickness_samples=5, **extra)
+                         supersample=3, thickness_samples=5, blob_width=case.blob_width, **extra)
     img = np.array(sim.slice.pixels, float)
     truth = sim.truth
     T_true = np.array(truth.T_scanner_from_fiducial, float)
@@ -275,10 +282,11 @@ def run_case(case: Case, geometries: dict | None = None) -> dict:
     return out
 
 
-def hunt(n_cases: int, seed: int = 0, workers: int = 2, paths=None, start: int = 0) -> list[dict]:
+def hunt(n_cases: int, seed: int = 0, workers: int = 2, paths=None, start: int = 0,
+         blob_width=(1.0, 1.0)) -> list[dict]:
     """Run cases ``start .. start + n_cases - 1``; one result dict per case, in order."""
     geoms = load_geometries(paths)
-    cases = [make_case(i, seed, geoms) for i in range(start, start + n_cases)]
+    cases = [make_case(i, seed, geoms, blob_width) for i in range(start, start + n_cases)]
     if workers <= 1:
         return [run_case(c, geoms) for c in cases]
     with ProcessPoolExecutor(max_workers=workers, initializer=_init, initargs=(paths,)) as ex:
@@ -344,14 +352,16 @@ def main(argv=None) -> int:
     ap.add_argument("--geometry", nargs="+", metavar="G", help="geometry files (default: neuro and needle-guide)")
     ap.add_argument("--case", type=int, metavar="INDEX", help="run one case and print it in full")
     ap.add_argument("--json", metavar="FILE", help="also write every case's result to FILE")
+    ap.add_argument("--blob-width", nargs=2, type=float, default=(1.0, 1.0), metavar=("LO", "HI"),
+                    help="draw every blob LO-HI x its tube's width, as real images do (default 1 1: as drawn)")
     args = ap.parse_args(argv)
     if args.case is not None:
         geoms = load_geometries(args.geometry)
-        case = make_case(args.case, args.seed, geoms)
+        case = make_case(args.case, args.seed, geoms, args.blob_width)
         print(json.dumps({"case": asdict(case), "result": run_case(case, geoms)}, indent=2))
         return 0
     t0, c0, load0 = time.perf_counter(), time.process_time(), os.getloadavg()[0]
-    results = hunt(args.cases, args.seed, args.workers, args.geometry, args.start)
+    results = hunt(args.cases, args.seed, args.workers, args.geometry, args.start, args.blob_width)
     wall = time.perf_counter() - t0
     s = summarise(results)
     print(format_summary(s))

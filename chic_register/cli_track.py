@@ -9,6 +9,7 @@ from __future__ import annotations
 import json
 import sys
 
+from .cli_inputs import check_spacing_flag
 from .errors import ChicRegisterError
 
 
@@ -39,9 +40,7 @@ def run_track(args) -> int:
         raise ChicRegisterError(f"--poll must be > 0 and --settle >= 0 s, got {args.poll:g} and {args.settle:g}")
     if args.max_files is not None and args.max_files < 1:
         raise ChicRegisterError(f"--max-files must be >= 1, got {args.max_files}")
-    from .cli import _check_spacing_flag
-
-    _check_spacing_flag(args)
+    check_spacing_flag(args)
     geom = load_geometry(args.geometry)
     if args.scene and not Path(args.scene).is_dir():
         Path(args.scene).mkdir()  # its parent exists (checked above)

@@ -56,6 +56,17 @@ import numpy as np
 from .detect import Blobs, _dilate, median
 from .envelope import plane_status
 from .errors import ImprecisePose, NoLock
+from .fit_checks import (  # noqa: F401
+    PRECISION_SIGMAS,
+    ROT_TOL_DEG,
+    STRETCH_MIN,
+    STRETCH_P,
+    TRE_TOL_MM,
+    gamma_p,
+    gamma_p_inverse,
+    pose_precision,
+    stretch_test,
+)
 from .pose import slice_angles
 from .simulate import render_tubes
 from .solve import _near_prior, _section_extent, plane_crossings
@@ -79,22 +90,6 @@ SPACING_TOL = 0.04
 #: Sections farther than this from an end face (in section lengths) are "well inside the body": a tube missing
 #: there is an unfilled channel, not a sign of a wrong pose.
 END_CLEARANCE_SECTIONS = 1.0
-#: Default trust limits (SolveOptions.trust_tre_mm / trust_rot_deg): the predicted error (TRE at the frame centre,
-#: rotation) ...
-TRE_TOL_MM = 1.0
-ROT_TOL_DEG = 0.75
-#: ... at this many standard deviations of its own predicted error (first-order covariance of the fit:
-#: residual scatter through the crossings' Jacobian). 3: a 0.3 % tail per direction. Why these limits: a single
-#: slice near normal to the axis knows its tilt to 0.2-0.25 deg (1 sigma, the Cramer-Rao bound at SNR 20), so a
-#: 0.5 deg limit refuses the paper's own protocol; a wrong pose that survived the image checks fits with a residual
-#: scatter well above its noise, and in the false-lock hunt (benchmarks/hunt.py, 5000 cases) every such pose had a
-#: 3-sigma rotation above 0.8 deg, while the correct poses that 0.75 deg lets through were all within 0.5 mm, 0.5 deg.
-PRECISION_SIGMAS = 3.0
-#: The residual scatter of 6-10 tubes is itself uncertain (12-14 degrees of freedom): the scatter used is its
-#: upper bound at this confidence (chi-square), so a few lucky residuals do not make a pose look precise.
-SCATTER_CONFIDENCE = 0.9
-#: Floor of the per-coordinate position scatter (pixels): the residual bias of a centroid in a noise-free image.
-POSITION_FLOOR_PX = 0.005
 #: A pixel belongs to a predicted section where the rendered fluid fraction exceeds this ...
 SECTION_LEVEL = 0.1
 #: ... and a detected blob is explained by the pose when this share of its footprint does.
@@ -102,12 +97,10 @@ EXPLAINED_SHARE = 0.3
 #: A rival pose must explain the pixels worse by this many noise variances (a log-likelihood margin of half of
 #: it) plus the model's own error, else the slice is ambiguous.
 RIVAL_MARGIN = 50.0
-#: A stretch of the section positions along the image rows or columns is a wrong pixel spacing when it explains
-#: the residuals at this tail probability (F test, 2 parameters) ...
-STRETCH_P = 1e-3
-#: ... and is at least this large: clinical scanners' gradient calibration is good to well under 1 %, and a 2 %
-#: error moves a tube 25 mm off-centre by 0.5 mm.
-STRETCH_MIN = 0.02
+#: Blob widths the verification will model when the sections look wider than drawn (real images: point spread,
+#: partial volume, fluid spread in a printed channel make blobs 0.7-2.5x the tube): the Gaussian point spread
+#: sigmas tried, in tube radii (0.15 r barely widens a section; 2 r is a blob ~2.7x the tube's width).
+PSF_SIGMAS_RADII = (0.15, 0.25, 0.35, 0.5, 0.7, 1.0, 1.4, 2.0)
 #: Straight tubes this close in angle after a turn about the axis count as mapped onto each other (the turn is a
 #: near-symmetry whose pose is tried as a rival).
 SYMMETRY_TOL_DEG = 3.0
@@ -132,6 +125,7 @@ class SliceCheck:
     canvas: np.ndarray = None  # the model image at the pose (fluid fraction)
     level: float = 1.0  # fitted fluid level
     noise_sigma: float = 0.0
+    psf_px: float = 0.0  # Gaussian point spread (sigma, pixels) the model was blurred by to match the blobs
 
 
 def shape_tolerance(radius_px: float) -> float:
@@ -153,20 +147,20 @@ class _TubeWindow:
     others: np.ndarray  # other tubes' sections in the window
 
 
-def _windows(geom, model, T_F_from_I, shape, spacing, thickness_mm):
+def _windows(geom, model, T_F_from_I, shape, spacing, thickness_mm, margin_px: float = 2.0):
     """``(windows, canvas)``: per tube whose section lies wholly inside the image its window with its own and
     its neighbours' renders, and the whole model image (shape of the image, every section pasted in).
 
     Each tube is rendered once, in its own window (its section's extent,
-    :func:`chic_register.solve._section_extent`, plus two pixels); a window's
+    :func:`chic_register.solve._section_extent`, plus ``margin_px``); a window's
     neighbours are the other tubes' renders pasted where they overlap it.
     """
     rs, cs = spacing
     px = max(rs, cs)
     q, tan, _, found = plane_crossings(model, T_F_from_I, margin_mm=0.5 * float(model.diameter_mm.max()) + thickness_mm)
     half_len, half_wid, u = _section_extent(model, tan, thickness_mm)
-    ex = np.abs(u[:, 0]) * half_len + np.abs(u[:, 1]) * half_wid + 2 * px
-    ey = np.abs(u[:, 1]) * half_len + np.abs(u[:, 0]) * half_wid + 2 * px
+    ex = np.abs(u[:, 0]) * half_len + np.abs(u[:, 1]) * half_wid + margin_px * px
+    ey = np.abs(u[:, 1]) * half_len + np.abs(u[:, 0]) * half_wid + margin_px * px
     txy = np.hypot(tan[:, 0], tan[:, 1])
     smear_px = float(np.max(thickness_mm * txy / np.maximum(np.abs(tan[:, 2]), 1e-3))) / px if txy.size else 0.0
     ts = int(min(MAX_THICKNESS_SAMPLES, max(1, math.ceil(smear_px / SMEAR_PX_PER_SAMPLE) + 1)))
@@ -224,6 +218,56 @@ def _fit_window(pixels, w: _TubeWindow):
     return coef, y, A1 @ coef1
 
 
+def gaussian_blur(img: np.ndarray, sigma_px: float) -> np.ndarray:
+    """``img`` (H, W) blurred by an isotropic Gaussian of ``sigma_px``, zero outside (separable, numpy only:
+    scipy stays off the solve path's imports)."""
+    if sigma_px <= 0:
+        return img
+
+    def matrix(n):
+        x = np.arange(n, dtype=float)
+        K = np.exp(-0.5 * ((x[:, None] - x[None, :]) / sigma_px) ** 2)
+        return K / (sigma_px * math.sqrt(2 * math.pi))
+
+    return matrix(img.shape[0]) @ img @ matrix(img.shape[1]).T
+
+
+def _blurred(wins, canvas, sigma_px: float):
+    """The windows and the model image with every section blurred by ``sigma_px``."""
+    out = [_TubeWindow(w.k, w.r0, w.c0, gaussian_blur(w.own, sigma_px), gaussian_blur(w.others, sigma_px))
+           for w in wins]
+    return out, gaussian_blur(canvas, sigma_px)
+
+
+def _shape_excess(w: _TubeWindow, y: np.ndarray, fit: np.ndarray, sigma: float, level: float):
+    """``(excess, allowed_noise, support)`` of a fitted window (:func:`_fit_window`): the residual energy over
+    the section (its support grown by a pixel) beyond the noise, as a share of the section's energy, and four
+    noise sigmas of that term."""
+    own = w.own.ravel()
+    energy = max(float(own @ own), 1e-12)
+    sup = _dilate(w.own > 0.02, 1).ravel()
+    res = (y - fit)[sup]
+    excess = max(float(res @ res) - sup.sum() * sigma * sigma, 0.0) / (level * level * energy)
+    chi_tol = 4.0 * math.sqrt(2.0 * sup.sum()) * sigma * sigma / (level * level * energy)
+    return excess, chi_tol, sup
+
+
+def _fit_psf(pixels, wins, matched, sigma: float, level: float, r_px: float):
+    """The point spread (sigma, pixels; from :data:`PSF_SIGMAS_RADII` x ``r_px``) whose blurred model leaves the
+    least shape residual over the matched tubes, or None."""
+    best, best_sse = None, math.inf
+    for radii in PSF_SIGMAS_RADII:
+        blurred, _ = _blurred(wins, np.zeros((1, 1)), radii * r_px)
+        total = 0.0
+        for w in blurred:
+            if w.k in matched:
+                f = _fit_window(pixels, w)
+                total += math.inf if f is None else _shape_excess(w, f[1], f[2], sigma, level)[0]
+        if total < best_sse:
+            best, best_sse = radii * r_px, total
+    return best
+
+
 def verify_slice(geom, model, T_F_from_I: np.ndarray, pixels: np.ndarray, spacing, thickness_mm: float,
                  blobs: Blobs, assignment: np.ndarray, source: str, *,
                  check_envelope: bool = True) -> SliceCheck:
@@ -243,73 +287,90 @@ def verify_slice(geom, model, T_F_from_I: np.ndarray, pixels: np.ndarray, spacin
         merged = tuple(sorted({t for pair in st.merged for t in pair}))
         envelope = st.failure or "ok"
     shape = np.asarray(pixels).shape
-    wins, canvas = _windows(geom, model, T_F_from_I, shape, (rs, cs), float(thickness_mm))
     sigma = max(float(blobs.noise_sigma), 1e-12)
-    fits = {}
-    for w in wins:
-        f = _fit_window(pixels, w)
-        if f is not None:
-            fits[w.k] = (w, *f)
-    matched = [k for k in fits if assignment[k] >= 0]
-    gains = np.array([fits[k][1][1] for k in matched])
-    if gains.size == 0 or not median(gains) > 0:
-        raise NoLock(f"{source}: the rendered model at the pose ({where}) does not match the pixels of the "
-                     f"tubes it was fitted to", {"n_tubes": len(matched)})
-    level = median(gains)
-    present, missing, cut_missing = [], [], []
-    scales = []
     L = model.length_mm
     q, tan, zF, _ = plane_crossings(model, T_F_from_I, margin_mm=5.0)
     half_len = _section_extent(model, tan, thickness_mm)[0]
-    for k, (w, coef, y, fit) in fits.items():
-        own = w.own.ravel()
-        a = float(coef[1])
-        energy = float(own @ own)
-        se = sigma / math.sqrt(max(energy, 1e-12))
-        tid = model.ids[k]
-        if a < PRESENT_FRACTION * level or a < PRESENT_SIGMA * se:
-            tz = max(abs(float(tan[k, 2])), 1e-3)
-            clear = min(zF[k], L - zF[k]) - END_CLEARANCE_SECTIONS * (half_len[k] * math.sqrt(1 - tz * tz) + 0.5 * model.diameter_mm[k])
-            (missing if clear > 0 else cut_missing).append(tid)
-            continue
-        # shape: the residual over the section (own support grown by a pixel), beyond noise and model error
-        hh, ww = w.own.shape
-        sup = _dilate(w.own > 0.02, 1).ravel()
-        res = (y - fit)[sup]
-        excess = max(float(res @ res) - sup.sum() * sigma * sigma, 0.0) / (level * level * energy)
-        r_px = 0.5 * float(model.diameter_mm[k]) / px
-        chi_tol = 4.0 * math.sqrt(2.0 * sup.sum()) * sigma * sigma / (level * level * energy)  # 4 sigma of the noise term
-        if excess > shape_tolerance(r_px) + chi_tol:
-            raise NoLock(f"{source}: tube {tid}'s section does not have the shape and place the pose ({where}) "
-                         f"predicts (residual {excess:.2f} of its energy; allowed {shape_tolerance(r_px) + chi_tol:.2f})",
-                         {"tube": tid, "shape_residual": round(excess, 3)})
-        present.append(tid)
-        # second moments of the section seen vs predicted (pixels), tubes with no neighbour in the window
-        if w.others.max() < 0.05:
-            obs = np.clip((y - coef[0]), 0.0, None).reshape(hh, ww) * sup.reshape(hh, ww)
-            mod = (fit - coef[0]).reshape(hh, ww) * sup.reshape(hh, ww)
-            so, sm = _spread(obs), _spread(mod)
-            if so is not None and sm is not None:
-                scales.append(np.sqrt(so / sm))
-    if cut_missing:
-        raise NoLock(f"{source}: tube(s) {', '.join(cut_missing)} predicted near an end face at the pose ({where}) "
-                     f"are not in the image: a cut tube and a wrong pose look alike there",
-                     {"missing_tubes": cut_missing})
-    scale = (1.0, 1.0)
-    if len(scales) >= 3:
-        s = np.array(scales)  # (n, 2): row, col scale seen / predicted
-        ratio = s[:, 1] / s[:, 0]
-        mean = median(ratio)
-        se = float(np.std(ratio) / math.sqrt(len(ratio)))
-        tol = max(SPACING_TOL, 3 * se)
-        scale = (median(s[:, 0]), median(s[:, 1]))
-        if abs(mean - 1.0) > tol:
-            raise NoLock(f"{source}: the tube sections are {abs(mean - 1) * 100:.0f} % "
-                         f"{'wider' if mean > 1 else 'narrower'} along the columns than along the rows relative to "
-                         f"the pose's prediction: is the pixel spacing ({rs:g}, {cs:g}) mm right?",
-                         {"spacing_ratio": round(mean, 4)})
-    _unexplained(model, T_F_from_I, blobs, assignment, canvas, (rs, cs), source, where)
-    return SliceCheck(tuple(present), tuple(missing), scale, envelope, merged, canvas, level, sigma)
+
+    def assess(wins, canvas, psf_px):
+        fits = {}
+        for w in wins:
+            f = _fit_window(pixels, w)
+            if f is not None:
+                fits[w.k] = (w, *f)
+        matched = [k for k in fits if assignment[k] >= 0]
+        gains = np.array([fits[k][1][1] for k in matched])
+        if gains.size == 0 or not median(gains) > 0:
+            raise NoLock(f"{source}: the rendered model at the pose ({where}) does not match the pixels of the "
+                         f"tubes it was fitted to", {"n_tubes": len(matched)})
+        level = median(gains)
+        present, missing, cut_missing = [], [], []
+        scales = []
+        for k, (w, coef, y, fit) in fits.items():
+            own = w.own.ravel()
+            a = float(coef[1])
+            energy = float(own @ own)
+            se = sigma / math.sqrt(max(energy, 1e-12))
+            tid = model.ids[k]
+            if a < PRESENT_FRACTION * level or a < PRESENT_SIGMA * se:
+                tz = max(abs(float(tan[k, 2])), 1e-3)
+                clear = min(zF[k], L - zF[k]) - END_CLEARANCE_SECTIONS * (half_len[k] * math.sqrt(1 - tz * tz) + 0.5 * model.diameter_mm[k])
+                (missing if clear > 0 else cut_missing).append(tid)
+                continue
+            # shape: the residual over the section (own support grown by a pixel), beyond noise and model error
+            hh, ww = w.own.shape
+            excess, chi_tol, sup = _shape_excess(w, y, fit, sigma, level)
+            r_px = 0.5 * float(model.diameter_mm[k]) / px
+            if excess > shape_tolerance(r_px) + chi_tol:
+                raise NoLock(f"{source}: tube {tid}'s section does not have the shape and place the pose ({where}) "
+                             f"predicts (residual {excess:.2f} of its energy; allowed {shape_tolerance(r_px) + chi_tol:.2f})",
+                             {"tube": tid, "shape_residual": round(excess, 3)})
+            present.append(tid)
+            # second moments of the section seen vs predicted (pixels), tubes with no neighbour in the window
+            if w.others.max() < 0.05:
+                obs = np.clip((y - coef[0]), 0.0, None).reshape(hh, ww) * sup.reshape(hh, ww)
+                mod = (fit - coef[0]).reshape(hh, ww) * sup.reshape(hh, ww)
+                so, sm = _spread(obs), _spread(mod)
+                if so is not None and sm is not None:
+                    scales.append(np.sqrt(so / sm))
+        if cut_missing:
+            raise NoLock(f"{source}: tube(s) {', '.join(cut_missing)} predicted near an end face at the pose ({where}) "
+                         f"are not in the image: a cut tube and a wrong pose look alike there",
+                         {"missing_tubes": cut_missing})
+        scale = (1.0, 1.0)
+        if len(scales) >= 3:
+            s = np.array(scales)  # (n, 2): row, col scale seen / predicted
+            ratio = s[:, 1] / s[:, 0]
+            mean = median(ratio)
+            se = float(np.std(ratio) / math.sqrt(len(ratio)))
+            tol = max(SPACING_TOL, 3 * se)
+            scale = (median(s[:, 0]), median(s[:, 1]))
+            if abs(mean - 1.0) > tol:
+                raise NoLock(f"{source}: the tube sections are {abs(mean - 1) * 100:.0f} % "
+                             f"{'wider' if mean > 1 else 'narrower'} along the columns than along the rows relative to "
+                             f"the pose's prediction: is the pixel spacing ({rs:g}, {cs:g}) mm right?",
+                             {"spacing_ratio": round(mean, 4)})
+        _unexplained(model, T_F_from_I, blobs, assignment, canvas, (rs, cs), source, where)
+        return SliceCheck(tuple(present), tuple(missing), scale, envelope, merged, canvas, level, sigma, psf_px)
+
+    wins, canvas = _windows(geom, model, T_F_from_I, shape, (rs, cs), float(thickness_mm))
+    try:
+        return assess(wins, canvas, 0.0)
+    except NoLock as exc:
+        if ("shape_residual" not in exc.detail and "n_tubes" not in exc.detail) or not PSF_SIGMAS_RADII:
+            raise
+        # the blobs may be wider than the tubes drawn (point spread, partial volume, fluid in a printed channel):
+        # fit a Gaussian point spread to the matched sections and judge the blurred model by the same rules
+        r_px = 0.5 * float(np.median(model.diameter_mm)) / px
+        wide, wide_canvas = _windows(geom, model, T_F_from_I, shape, (rs, cs), float(thickness_mm),
+                                     margin_px=2.0 + math.ceil(3.0 * PSF_SIGMAS_RADII[-1] * r_px))
+        psf = _fit_psf(pixels, wide, {int(k) for k in np.flatnonzero(assignment >= 0)}, sigma, 1.0, r_px)
+        if psf is None:
+            raise
+        try:
+            return assess(*_blurred(wide, wide_canvas, psf), psf)
+        except NoLock:
+            raise exc from None
 
 
 def _spread(w: np.ndarray):
@@ -356,98 +417,6 @@ def _unexplained(model, T_F_from_I, blobs: Blobs, assignment, canvas, spacing, s
                      f"where the pose ({where}) predicts no tube", {"blob_rc": [round(float(r), 1), round(float(c), 1)]})
 
 
-def pose_precision(model, fit, Ss, pixel_mm: float, exclude=None):
-    """1-sigma bounds ``(TRE at the frame centre (mm), rotation (deg))`` of a fit, to first order.
-
-    The crossings' Jacobian (:func:`chic_register.solve._crossing_jacobian`)
-    of every matched tube, with a per-coordinate scatter from the residuals
-    (``sum r^2`` over its :data:`SCATTER_CONFIDENCE` chi-square bound with
-    ``2 n - 6`` degrees of freedom, at least :data:`POSITION_FLOOR_PX`), gives the
-    covariance of the twist ``(omega, v)`` of ``T_F_from_scanner``; the frame
-    centre ``(0, 0, L/2)`` then moves by ``[p]x omega - v``. The largest
-    eigenvalue of each block is the worst direction. ``exclude``: per slice,
-    tube ids that are no evidence (merged sections).
-    """
-    from .pose import invert
-    from .solve import _adjoint, _crossing_jacobian
-
-    Js, n, sq = [], 0, 0.0
-    for j, S in enumerate(Ss):
-        q, tan, _, _ = plane_crossings(model, fit.T_F_from_scanner @ S, margin_mm=1e-9)
-        use = fit.assignments[j] >= 0
-        if exclude is not None:
-            use &= ~np.isin(np.asarray(model.ids), list(exclude[j]))
-        k = np.flatnonzero(use)
-        if k.size == 0:
-            continue
-        Js.append((_crossing_jacobian(q[k], tan[k]) @ _adjoint(invert(S))).reshape(-1, 6))
-        r = fit.residuals[j][k]
-        n += k.size
-        sq += float(np.sum(r[np.isfinite(r)] ** 2))
-    dof = 2 * n - 6
-    if not Js or dof <= 0:
-        return math.inf, math.inf
-    chi2_low = 2.0 * gamma_p_inverse(0.5 * dof, 1.0 - SCATTER_CONFIDENCE)  # chi-square quantile, dof degrees
-    sigma = max(math.sqrt(sq / chi2_low), POSITION_FLOOR_PX * pixel_mm)
-    J = np.concatenate(Js)
-    try:
-        C = sigma * sigma * np.linalg.inv(J.T @ J)
-    except np.linalg.LinAlgError:
-        return math.inf, math.inf
-    T_sf = invert(fit.T_F_from_scanner)
-    p = T_sf[:3, :3] @ np.array([0.0, 0.0, 0.5 * model.length_mm]) + T_sf[:3, 3]
-    A = np.hstack([np.array([[0.0, -p[2], p[1]], [p[2], 0.0, -p[0]], [-p[1], p[0], 0.0]]), -np.eye(3)])
-    tre = math.sqrt(max(float(np.linalg.eigvalsh(A @ C @ A.T).max()), 0.0))
-    rot = math.degrees(math.sqrt(max(float(np.linalg.eigvalsh(C[:3, :3]).max()), 0.0)))
-    return tre, rot
-
-
-def gamma_p(a: float, x: float) -> float:
-    """The regularised lower incomplete gamma function P(a, x) (``scipy.special.gammainc``), a > 0.
-
-    Series below ``x = a + 1``, Lentz's continued fraction for ``1 - P``
-    above (Numerical Recipes' ``gammp``); to ~1e-14. Here rather than
-    ``scipy.special``, whose import costs a fifth of a one-shot solve.
-    """
-    if x <= 0.0:
-        return 0.0
-    log_front = -x + a * math.log(x) - math.lgamma(a)
-    if x < a + 1.0:
-        term = total = 1.0 / a
-        n = 0
-        while abs(term) > abs(total) * 1e-16 and n < 10000:
-            n += 1
-            term *= x / (a + n)
-            total += term
-        return min(1.0, total * math.exp(log_front))
-    tiny = 1e-300
-    b = x + 1.0 - a
-    c, d = 1.0 / tiny, 1.0 / b
-    h = d
-    for i in range(1, 10000):
-        an = -i * (i - a)
-        b += 2.0
-        d = an * d + b
-        d = tiny if abs(d) < tiny else d
-        c = b + an / c
-        c = tiny if abs(c) < tiny else c
-        d = 1.0 / d
-        h *= d * c
-        if abs(d * c - 1.0) < 1e-16:
-            break
-    return max(0.0, 1.0 - math.exp(log_front) * h)
-
-
-def gamma_p_inverse(a: float, p: float) -> float:
-    """The x with ``gamma_p(a, x) = p`` (``scipy.special.gammaincinv``), for 0 < p < 1."""
-    from .geometry import bracketed_root
-
-    hi = a + 10.0 * math.sqrt(a) + 10.0
-    while gamma_p(a, hi) < p:
-        hi *= 2.0
-    return bracketed_root(lambda x: gamma_p(a, x) - p, 0.0, hi, -p, gamma_p(a, hi) - p, xtol=1e-12 * hi)
-
-
 def verify_fit(geom, model, fit, rivals, slices, Ss, blob_sets, opts) -> list[SliceCheck]:
     """Verify a solved pose (a ``solve._Fit``) in every slice, and that no distinct rival verifies as well.
 
@@ -471,7 +440,7 @@ def verify_fit(geom, model, fit, rivals, slices, Ss, blob_sets, opts) -> list[Sl
                 continue
             _compare_rival(geom, model, check, other.T_F_from_scanner @ S, sl)
         out.append(check)
-    scale, F, p = stretch_test(model, fit, [_to_xy_mm(b, sl) for sl, b in zip(slices, blob_sets)], Ss)
+    scale, _, p = stretch_test(model, fit, [_to_xy_mm(b, sl) for sl, b in zip(slices, blob_sets)], Ss)
     if p < STRETCH_P and float(np.max(np.abs(scale))) > STRETCH_MIN:
         axis = "columns (x)" if abs(scale[0]) >= abs(scale[1]) else "rows (y)"
         worst = float(scale[0] if abs(scale[0]) >= abs(scale[1]) else scale[1])
@@ -533,6 +502,7 @@ def _compare_rival(geom, model, check: SliceCheck, T_F_from_I_rival: np.ndarray,
     pixels = np.asarray(sl.pixels, float)
     _, rival = _windows(geom, model, T_F_from_I_rival, pixels.shape, tuple(float(v) for v in sl.pixel_spacing_mm),
                         float(sl.slice_thickness_mm))
+    rival = gaussian_blur(rival, check.psf_px)  # drawn as the pose's model was
     region = _dilate((check.canvas > 0.02) | (rival > 0.02), 1)
     y = pixels[region]
     sse = []
@@ -548,53 +518,3 @@ def _compare_rival(geom, model, check: SliceCheck, T_F_from_I_rival: np.ndarray,
         raise NoLock(f"{sl.source}: ambiguous: a distinct pose (depth {a.depth_mm:.1f} mm, tilt {a.tilt_deg:.1f} deg) "
                      f"explains the image nearly as well (residual {sse[1]:.3g} vs {sse[0]:.3g}; margin needed "
                      f"{margin:.3g})", {"n_tubes": int(np.sum(check.canvas > 0))})
-
-
-def stretch_test(model, fit, xys, Ss):
-    """Does a stretch of the image along its rows or columns explain the fit's residuals? ``(scale, F, p)``.
-
-    A wrong pixel spacing scales every position about the image origin
-    (``xy = rc * spacing``); a tilt of the pose absorbs part of it, the
-    rest stays in the residuals as a pattern no noise makes. The fit is
-    extended, to first order at its solution, by the two scales
-    (``xy -> (1 + s) * xy``); ``F`` is the share of the residual energy the
-    two extra parameters explain, over what is left, per degree of freedom
-    (an F(2, m - 8) statistic, ``m`` the residual count) and ``p`` its tail
-    probability (closed form for 2 numerator degrees of freedom). ``scale``
-    (2,): the fitted relative stretch along x (columns) and y (rows). The
-    residuals are whitened as the fit weighed them (``fit.measurements``).
-    """
-    from .pose import invert
-    from .solve import _adjoint, _crossing_jacobian
-
-    meas = getattr(fit, "measurements", None)
-    Jp, Js, rs = [], [], []
-    for j, S in enumerate(Ss):
-        q, tan, _, inside = plane_crossings(model, fit.T_F_from_scanner @ S, margin_mm=1e-9)
-        a = fit.assignments[j]
-        k = np.flatnonzero((a >= 0) & inside)
-        if k.size == 0:
-            continue
-        xy = np.asarray(meas[j][0] if meas is not None else xys[j], float)[a[k]]
-        L = meas[j][1][k] if meas is not None else np.broadcast_to(np.eye(2), (k.size, 2, 2))
-        J = _crossing_jacobian(q[k], tan[k]) @ _adjoint(invert(S))
-        D = np.zeros((k.size, 2, 2))
-        D[:, 0, 0], D[:, 1, 1] = -xy[:, 0], -xy[:, 1]  # d(q - (1 + s) xy) / ds
-        Jp.append(np.einsum("kij,kjl->kil", L, J).reshape(-1, 6))
-        Js.append(np.einsum("kij,kjl->kil", L, D).reshape(-1, 2))
-        rs.append(np.einsum("kij,kj->ki", L, q[k] - xy).ravel())
-    if not rs:
-        return np.zeros(2), 0.0, 1.0
-    Jp, Js, r = np.concatenate(Jp), np.concatenate(Js), np.concatenate(rs)
-    dof = r.size - 8
-    if dof <= 0:
-        return np.zeros(2), 0.0, 1.0
-    Q, _ = np.linalg.qr(Jp)
-    Js_perp = Js - Q @ (Q.T @ Js)
-    r_perp = r - Q @ (Q.T @ r)
-    s, *_ = np.linalg.lstsq(Js_perp, -r_perp, rcond=None)
-    explained = float(np.sum((Js_perp @ s) ** 2))
-    rest = max(float(r_perp @ r_perp) - explained, 1e-30)
-    F = (explained / 2.0) / (rest / dof)
-    p = (1.0 + 2.0 * F / dof) ** (-0.5 * dof)
-    return s, F, p

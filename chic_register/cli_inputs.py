@@ -1,0 +1,51 @@
+"""Inputs that several ``chic-register`` commands share: the ``--pixel-spacing`` check, a reference pose.
+
+:func:`check_spacing_flag` runs before ``solve`` and ``track`` read a file;
+:func:`load_reference` reads the pose of ``solve --prior`` and ``reslice --reference``.
+"""
+
+from __future__ import annotations
+
+import json
+
+from .errors import ChicRegisterError
+
+
+def check_spacing_flag(args) -> None:
+    """A --pixel-spacing outside the physical range is refused before any file is read."""
+    from .imageio import spacing_fault
+
+    if getattr(args, "pixel_spacing", None) is not None:
+        fault = spacing_fault(args.pixel_spacing)
+        if fault:
+            raise ChicRegisterError(f"--pixel-spacing: {fault}")
+
+
+def load_reference(path, flag: str = "--reference") -> "np.ndarray":
+    """T_scanner_from_fiducial from a JSON file (any object with that key) or a .tfm file."""
+    from pathlib import Path
+
+    import numpy as np
+
+    from .transforms import SUFFIXES, read_tfm
+
+    p = Path(path)
+    if p.suffix.lower() in SUFFIXES:
+        return read_tfm(p)
+    from .errors import InputFileError
+    from .safeload import read_regular_file
+
+    try:
+        doc = json.loads(read_regular_file(p, "reference file", max_bytes=1 << 20).decode("utf-8"))
+    except InputFileError as exc:
+        raise ChicRegisterError(f"{flag} {exc}") from None
+    except (UnicodeDecodeError, json.JSONDecodeError, RecursionError) as exc:
+        raise ChicRegisterError(f"{flag} {p}: not a JSON file ({str(exc).splitlines()[0][:100]})") from None
+    T = doc.get("T_scanner_from_fiducial") if isinstance(doc, dict) else None
+    try:
+        T = np.asarray(T, dtype=float)
+    except (TypeError, ValueError):
+        T = np.zeros(0)
+    if T.shape != (4, 4) or not np.all(np.isfinite(T)) or not np.allclose(T[:3, :3].T @ T[:3, :3], np.eye(3), atol=1e-5):
+        raise ChicRegisterError(f"{flag} {p}: needs key 'T_scanner_from_fiducial' holding a rigid 4x4 matrix")
+    return T
