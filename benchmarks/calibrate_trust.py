@@ -76,7 +76,7 @@ def main(argv=None) -> int:
                         f = (lambda v: f"{np.median(v):7.2f} / {np.max(v):6.2f}" if v else f"{'-':>17}")  # noqa: E731
                         print(f"{name:<17} {n:>2} {z:>5g} {t:>4g} {az:>3g} {c_rot:>8.3f} {c_tre:>8.3f} "
                               f"{len(rr):>2}/{args.draws:<2} {f(rr):>17} {f(tr):>17}", flush=True)
-    q = [50, 90, 95, 100]
+    q = [0, 50, 90, 95, 100]
     print(f"all locks ({len(all_rot)}): rotation ratio percentiles {q}: "
           f"{np.round(np.percentile(all_rot, q), 2).tolist()}; TRE ratio: {np.round(np.percentile(all_tre, q), 2).tolist()}")
     print(f"wall {time.perf_counter() - t_wall:.0f} s, CPU {time.process_time() - t_cpu:.0f} s")
