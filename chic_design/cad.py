@@ -1,7 +1,7 @@
 """The CAD model: body and caps as build123d parts, in frame F, in assembled position.
 
-Every channel is a circle swept along a centreline object of
-:mod:`chic_register.geometry` (via :func:`centreline_edge`), so the printed
+Every channel is a circle swept along a tube object of
+:mod:`chic_register.tubes` (via :func:`centreline_edge`), so the printed
 channels and ``geometry.yaml`` cannot disagree.
 
 - :class:`FiducialBody`: the annulus ``inner_diameter..outer_diameter``,
@@ -20,8 +20,7 @@ no CAD kernel and are tested on their own.
 
 from __future__ import annotations
 
-import math
-from dataclasses import dataclass, replace
+from dataclasses import dataclass
 
 import numpy as np
 from build123d import (
@@ -41,7 +40,7 @@ from build123d import (
     sweep,
 )
 
-from chic_register.geometry import FiducialGeometry, HelixTube, LineTube, Tube
+from chic_register.geometry import FiducialGeometry, Tube
 
 _BOTTOM = (Align.CENTER, Align.CENTER, Align.MIN)
 
@@ -70,15 +69,11 @@ def channel_volume_mm3(tube: Tube, z_lo_mm: float, z_hi_mm: float) -> float:
     """Fluid volume of one channel between two heights (mm^3): pi a^2 times the centreline length.
 
     Exact for a straight channel cut by parallel planes (Cavalieri), and for a
-    helix to within its curvature (radius of curvature >> channel radius).
-    Overlaps with other channels are not subtracted (see :func:`annulus_volume_mm3`).
+    helix to within its curvature (radius of curvature >> channel radius):
+    ``tube.fluid_volume_mm3``. Overlaps with other channels are not subtracted
+    (see :func:`annulus_volume_mm3`).
     """
-    a = tube.diameter / 2
-    if isinstance(tube, LineTube):
-        dz = abs(tube.direction[2])
-        return math.pi * a * a * (z_hi_mm - z_lo_mm) / dz
-    part = replace(tube, theta0_deg=float(tube.angle_deg_at(z_lo_mm)), z0=z_lo_mm, z1=z_hi_mm)
-    return math.pi * a * a * part.length_mm
+    return tube.fluid_volume_mm3(z_lo_mm, z_hi_mm)
 
 
 def annulus_volume_mm3(geometry: FiducialGeometry) -> float:
@@ -137,23 +132,27 @@ class CapDims:
 # ---------------------------------------------------------------- CAD
 
 
+class _EdgeBuilder:
+    """Makes the build123d edge a tube asks for in :meth:`~chic_register.tubes.Tube.sweep_path`."""
+
+    @staticmethod
+    def line(p0, p1) -> Edge:
+        return Line(p0, p1)
+
+    @staticmethod
+    def helix(pitch: float, height: float, radius: float, lefthand: bool, theta0_deg: float, z0: float) -> Edge:
+        """build123d's Helix starts at ``(radius, 0, 0)``: rotated to ``theta0_deg``, moved to ``z0``."""
+        helix = Helix(pitch=pitch, height=height, radius=radius, lefthand=lefthand)
+        return helix.rotate(Axis.Z, theta0_deg).translate((0, 0, z0))
+
+
 def centreline_edge(tube: Tube) -> Edge:
     """A tube's centreline as a build123d edge: a :class:`Line` or a :class:`Helix`, in F.
 
     build123d's Helix starts at ``(radius, 0, 0)`` turning counter-clockwise
     (clockwise if ``lefthand``); it is rotated to ``theta0_deg`` and moved to ``z0``.
     """
-    if isinstance(tube, LineTube):
-        return Line(tuple(tube.p0), tuple(tube.p1))
-    if isinstance(tube, HelixTube):
-        helix = Helix(
-            pitch=360.0 / abs(tube.pitch_deg_per_mm),
-            height=tube.z1 - tube.z0,
-            radius=tube.radius,
-            lefthand=tube.pitch_deg_per_mm < 0,
-        )
-        return helix.rotate(Axis.Z, tube.theta0_deg).translate((0, 0, tube.z0))
-    raise TypeError(f"no CAD for tube kind {type(tube).__name__}")
+    return tube.sweep_path(_EdgeBuilder)
 
 
 def channel_solid(tube: Tube, ext_mm: float | None = None) -> Part:

@@ -52,7 +52,7 @@ def render_preview(geometry: FiducialGeometry, png_path, window_size: tuple[int,
         labels.append(tube.id)
         # straight tubes labelled above their top end, helices below their bottom end:
         # a helix ends next to a diametric tube, and the two labels would overlap
-        if tube.kind == "helix":
+        if tube.curved:
             label_pts.append(pts[np.argmin(pts[:, 2])] - np.array([0.0, 0.0, 3.0]))
         elif tube.role == "diagonal":  # a Z-frame diagonal ends on the axial rods' corners
             label_pts.append(pts[len(pts) // 2])

@@ -2,9 +2,7 @@
 
 from __future__ import annotations
 
-import math
-
-from chic_register.geometry import FiducialGeometry, HelixTube, LineTube
+from chic_register.geometry import FiducialGeometry
 
 from .cad import CapDims, annulus_volume_mm3, channel_volume_mm3
 from .verify import touching_channels
@@ -32,15 +30,6 @@ FILLING_PROCEDURE = """\
 """
 
 
-def _fmt_tube(t) -> tuple[str, str, str]:
-    if isinstance(t, LineTube):
-        a0 = math.degrees(math.atan2(t.p0[1], t.p0[0])) % 360
-        return "line", f"{a0:.1f}", "-"
-    if isinstance(t, HelixTube):
-        return "helix", f"{t.theta0_deg:.1f} -> {float(t.theta1_deg):.1f}", f"{t.pitch_deg_per_mm:+.4g}"
-    return t.kind, "-", "-"
-
-
 def _touching_text(geometry: FiducialGeometry) -> str:
     """Which channels meet (near the end faces, typically) and so form connected groups."""
     pairs = touching_channels(geometry)
@@ -65,7 +54,7 @@ def channel_rows(geometry: FiducialGeometry) -> list[dict]:
     length = geometry.body.length
     rows = []
     for t in geometry.tubes:
-        kind, angles, pitch = _fmt_tube(t)
+        kind, angles, pitch = t.describe()
         rows.append({
             "id": t.id, "role": t.role, "kind": kind, "angle_deg": angles, "pitch": pitch,
             "diameter_mm": t.diameter, "length_mm": t.length_mm,

@@ -27,7 +27,7 @@ import numpy as np
 from scipy.optimize import least_squares
 from scipy.spatial.transform import Rotation
 
-from chic_register.geometry import FiducialGeometry, LineTube
+from chic_register.geometry import FiducialGeometry
 
 
 @dataclass(frozen=True)
@@ -82,7 +82,7 @@ def slice_twins(geom: FiducialGeometry, depths_mm, tolerance_mm: float, prefilte
     from the dots at the same depth are not fitted: a twin needs a small change
     of pose. Tubes must all be straight and cross each plane once.
     """
-    if not all(isinstance(t, LineTube) for t in geom.tubes):
+    if any(t.curved for t in geom.tubes):
         raise ValueError("slice_twins handles straight tubes only")
     p0 = np.array([t.p0 for t in geom.tubes])
     d = np.array([t.direction for t in geom.tubes])

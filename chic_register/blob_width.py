@@ -82,7 +82,7 @@ def render_tubes_widened(tubes, T_F_from_S: np.ndarray, shape, pixel_spacing_mm,
     Tubes of one diameter are rendered and blurred together; groups are
     max-composited. ``blob_width = 1`` is :func:`render_tubes` exactly.
     """
-    from .simulate import render_tubes
+    from .render import render_tubes
 
     if blob_width == 1.0:
         return render_tubes(tubes, T_F_from_S, shape, pixel_spacing_mm, slice_thickness_mm, center_px,

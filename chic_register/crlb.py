@@ -4,7 +4,7 @@ What the best unbiased estimator could reach, for a design and an imaging
 protocol, from the pixels themselves (not from detected centres):
 
 - image model: the simulator's noise-free fluid-fraction image
-  (:func:`chic_register.simulate.render_slice`: partial volume over the pixel
+  (:func:`chic_register.render.render_slice`: partial volume over the pixel
   and the slice thickness) times an unknown fluid gain ``g`` (a nuisance
   parameter, 1 at the truth), plus magnitude noise: Rician of scale
   ``sigma = 1 / snr`` (the simulator's ``add_rician_noise``), or Gaussian;
@@ -205,7 +205,7 @@ def _slice_frames(depth_mm, tilt_deg, azimuth_deg, twist_deg, protocol: Protocol
 def model_image(geom: FiducialGeometry, T_F_from_S: np.ndarray, protocol: Protocol, shape, delta=None,
                 quality: str = "default") -> np.ndarray:
     """Noise-free image (gain 1) of the slice ``T_F_from_S`` with the fiducial moved by ``delta`` (see :func:`perturbation`)."""
-    from .simulate import render_slice
+    from .render import render_slice
 
     ss, ts = QUALITY[quality]
     T = np.asarray(T_F_from_S, dtype=float)

@@ -18,7 +18,8 @@ from dataclasses import dataclass
 
 import numpy as np
 
-from .geometry import FiducialGeometry, LineTube
+from .geometry import FiducialGeometry
+from .tubes import slab_reach_mm
 
 OUTSIDE = "tube_outside_body"
 _ROLE_RANK = {"helix": 0, "orientation": 1, "diametric": 2, "other": 3}
@@ -35,18 +36,9 @@ def plane_normals(tilt_deg, azimuth_deg) -> np.ndarray:
     return np.stack([np.sin(t) * np.cos(a), np.sin(t) * np.sin(a), np.cos(t)], axis=-1)
 
 
-def _sample_params(tube, eps_mm: float = 1e-6) -> np.ndarray:
-    """Parameters along a tube where plane crossings are bracketed (a hair beyond both ends)."""
-    eps = eps_mm / max(tube.length_mm, 1e-9)
-    if isinstance(tube, LineTube):
-        return np.array([-eps, 1.0 + eps])
-    n = max(9, int(math.ceil(tube.length_mm / 2.0)) + 1)
-    return np.linspace(-eps, 1.0 + eps, n)
-
-
 def crossing_counts(tube, origins, normals) -> np.ndarray:
     """How many times a tube centreline crosses each plane (origins, normals: (P, 3)); shape (P,)."""
-    pts = tube.points(_sample_params(tube))
+    pts = tube.points(tube.bracket_params())
     g = np.asarray(normals, dtype=float) @ pts.T - np.einsum("pi,pi->p", origins, normals)[:, None]
     pos = g >= 0
     return (pos[:, 1:] != pos[:, :-1]).sum(axis=1)
@@ -64,7 +56,7 @@ def plane_crossings(tube, origins, normals, n_iter: int = 4):
     """
     o = np.asarray(origins, dtype=float)
     n = np.asarray(normals, dtype=float)
-    ts = _sample_params(tube)
+    ts = tube.bracket_params()
     pts = tube.points(ts)  # (K, 3)
     off = np.einsum("pi,pi->p", o, n)
     g = n @ pts.T - off[:, None]  # (P, K)
@@ -78,7 +70,7 @@ def plane_crossings(tube, origins, normals, n_iter: int = 4):
     ga, gb = g[rows, k], g[rows, k + 1]
     denom = np.where(gb != ga, gb - ga, 1.0)
     t = ta - ga * (tb - ta) / denom
-    if not isinstance(tube, LineTube):
+    if tube.curved:
         side = np.zeros(len(t))  # +1: end a was replaced last time, -1: end b
         for _ in range(n_iter):
             gt = np.einsum("pi,pi->p", n, tube.points(t)) - off
@@ -269,8 +261,7 @@ def section_gap(tube_a, tube_b, origins, normals, slice_thickness_mm: float, bod
     for tube, tc in ((tube_a, ca), (tube_b, cb)):
         tg = tube.tangents(tc)
         cosb = np.abs(np.einsum("ki,ki->k", tg, n))
-        reach = tube.diameter / 2 + 0.5 * S
-        halves.append(np.minimum(1.05 * reach / np.maximum(cosb, 1e-3) + 0.1, tube.length_mm))
+        halves.append(np.minimum(tube.slab_reach_mm(cosb, S, scale=1.05) + 0.1, tube.length_mm))
     ha, hb = halves
     # face half-plane f >= 0, f = sigma (x_z - z_face) / sin(tilt): in-plane distance to the face line
     sin_t = np.sqrt(np.maximum(1.0 - n[:, 2] ** 2, 0.0))
@@ -320,7 +311,7 @@ class _PlaneChecker:
         self.I = np.array([p[0] for p in self.pairs], dtype=int)
         self.J = np.array([p[1] for p in self.pairs], dtype=int)
         self.semi = np.array([t.diameter / 2 for t in self.tubes])
-        self.curved = np.array([not isinstance(t, LineTube) for t in self.tubes])
+        self.curved = np.array([t.curved for t in self.tubes])
         self.exact = exact
         n = len(self.tubes)
         self.labels = ["ok", OUTSIDE] + [f"tube_crosses_twice:{t.id}" for t in self.tubes] + [
@@ -378,7 +369,7 @@ class _PlaneChecker:
         """
         L = self.geom.body.length
         with np.errstate(divide="ignore", invalid="ignore"):
-            reach = (self.semi[None, :] + 0.5 * self.slice) / np.maximum(cosb, 1e-3) + 0.5 * self.slice
+            reach = slab_reach_mm(self.semi[None, :], cosb, self.slice) + 0.5 * self.slice
         near_face = (np.minimum(C[..., 2], L - C[..., 2]) < reach)  # (P, N)
         special = self.curved[self.I][None, :] | self.curved[self.J][None, :] | near_face[:, self.I] | near_face[:, self.J]
         rows, cols = np.nonzero(special & (gap < self.pixel + margin_mm) & np.isfinite(gap))

@@ -1,7 +1,7 @@
 """First guesses of the pose from one slice's blob centres, before any refinement.
 
 Two stages, both returning ``T_F_from_I`` (4x4) guesses that
-:func:`chic_register.solve.refine` then fits on all six degrees of freedom:
+:func:`chic_register.refine.refine` then fits on all six degrees of freedom:
 
 - the **closed form** of the paper (:func:`initial_hypotheses`): a robust
   ellipse through the blob centres (:mod:`chic_register.ellipse`) gives the tilt and azimuth, axial tubes the
@@ -34,7 +34,7 @@ from .geometry import sample_centreline
 from .pose import rigid
 
 if TYPE_CHECKING:
-    from .solve import TubeModel
+    from .tube_model import TubeModel
 
 # --------------------------------------------------------------------------- closed form (ellipse)
 

@@ -60,7 +60,7 @@ def reslice(
     Pixel (row i, col j) is centred at S coordinates ``((j - cc) *
     col_spacing, (i - rc) * row_spacing, 0)`` with ``(rc, cc) = center_px``
     (default: the image centre), the convention of
-    :func:`chic_register.simulate.render_slice`. Samples are trilinear;
+    :func:`chic_register.render.render_slice`. Samples are trilinear;
     outside the volume they are 0. With ``slice_thickness_mm > 0`` each
     pixel averages ``thickness_samples`` planes across the thickness (a slab,
     default one plane per 0.5 voxel). Returns a Slice with pixels of shape

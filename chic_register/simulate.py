@@ -1,19 +1,12 @@
 """Synthetic MRI slices of a fiducial at a known pose, with partial volume and noise.
 
-The image of a slice is the fluid fraction of each voxel: the share of the
-pixel's area, averaged over the slice thickness, that lies inside a tube
-(a point within ``diameter / 2`` of a tube centreline, inside the tube's
-extent). It is rendered tube crossing by tube crossing, only in a bounding box
-around each crossing:
-
-- the slice thickness is sampled by ``thickness_samples`` sub-planes;
-- in each sub-plane, every crossing of a tube centreline is found exactly
-  (``intersect_plane`` of the geometry objects) and each pixel is
-  ``supersample x supersample`` sampled; a sample's distance to the centreline
-  is measured to the tangent line at the nearest centreline point (one exact
-  re-projection for helices), and its coverage is a linear ramp across the
-  sample's footprint, so edges are anti-aliased and blob centroids are
-  unbiased to a few thousandths of a pixel.
+A slice's image is the fluid fraction of each pixel, rendered by
+:mod:`chic_register.render` (:func:`render_tubes` and :func:`render_slice`
+are importable from here too), widened to a blob-width factor if asked
+(:mod:`chic_register.blob_width`), with bright distractors, a tool in the
+bore, uniform or Rician noise; placed in the scanner as a DICOM-like
+:class:`~chic_register.slices.Slice`, with its truth (the pose and the
+analytic crossings in pixels) written beside the image file.
 
 Pixel (row i, col j) has its centre at slice-frame coordinates
 ``x = (j - cc) * col_spacing``, ``y = (i - rc) * row_spacing`` with
@@ -31,212 +24,12 @@ import numpy as np
 
 from .atomic import write_json
 from .blob_width import BLOB_WIDTH_RANGE, BlobWidth, render_tubes_widened  # noqa: F401 (public here too)
-from .geometry import FiducialGeometry, HelixTube, LineTube
+from .geometry import FiducialGeometry, LineTube
 from .pose import SliceAngles, apply, invert, rigid, slice_angles, slice_frame
+from .render import check_grid, render_slice, render_tubes, sample_offsets  # noqa: F401 (render_*: public here too)
 from .slices import Slice
 
 NOISE_KINDS = ("none", "uniform", "rician")
-
-
-# --------------------------------------------------------------------------- rendering
-
-
-def _sample_offsets(n: int) -> np.ndarray:
-    """Sub-sample centres within a unit pixel, relative to its centre; shape (n,)."""
-    return (np.arange(n) + 0.5) / n - 0.5
-
-
-def _plane_offsets_mm(thickness_mm: float, n: int) -> np.ndarray:
-    """Midpoint-rule sub-plane offsets along the slice normal; shape (K,)."""
-    if thickness_mm <= 0 or n <= 1:
-        return np.zeros(1)
-    return _sample_offsets(n) * thickness_mm
-
-
-def _crossing_params(tube, origin_F: np.ndarray, normal_F: np.ndarray, margin_mm: float) -> np.ndarray:
-    """Centreline parameters u (0..1 inside the tube) where the plane cuts the centreline.
-
-    A helix centreline is extended by ``margin_mm`` at both ends so that a
-    plane cutting the tube's end near its face still renders the cut part (the
-    per-sample extent test trims it). Shape (K,).
-    """
-    length = tube.length_mm
-    if isinstance(tube, LineTube):
-        # exact for a line whatever point of it is used: take the crossing, clipped
-        # to the segment, whenever the tube reaches the plane (also when parallel to it)
-        d0 = float(normal_F @ (np.asarray(tube.p0) - origin_F))
-        d1 = float(normal_F @ (np.asarray(tube.p1) - origin_F))
-        if d0 * d1 > 0 and min(abs(d0), abs(d1)) > 0.5 * tube.diameter:
-            return np.empty(0)
-        u = d0 / (d0 - d1) if abs(d0 - d1) > 1e-12 else 0.5
-        return np.array([min(1.0, max(0.0, u))])
-    if isinstance(tube, HelixTube):
-        pts = tube.extended(margin_mm).intersect_plane(origin_F, normal_F)
-        return (pts[:, 2] - tube.z0) / (tube.z1 - tube.z0)
-    raise TypeError(f"cannot render tube kind {getattr(tube, 'kind', type(tube).__name__)!r}")
-
-
-@dataclass(frozen=True)
-class _Grid:
-    """Pixel grid of the image in the slice frame."""
-
-    shape: tuple[int, int]
-    spacing: tuple[float, float]  # (row, col) mm
-    center: tuple[float, float]  # (rc, cc) pixel coordinates of the S origin
-    sub: np.ndarray  # (s,) sub-sample offsets in pixels
-
-    def box(self, x_mm: float, y_mm: float, hx_mm: float, hy_mm: float):
-        """Pixel index ranges (i0, i1, j0, j1) (inclusive) covering a rectangle, clipped; None if empty."""
-        rs, cs = self.spacing
-        rc, cc = self.center
-        j0 = max(0, int(math.floor((x_mm - hx_mm) / cs + cc)) - 1)
-        j1 = min(self.shape[1] - 1, int(math.ceil((x_mm + hx_mm) / cs + cc)) + 1)
-        i0 = max(0, int(math.floor((y_mm - hy_mm) / rs + rc)) - 1)
-        i1 = min(self.shape[0] - 1, int(math.ceil((y_mm + hy_mm) / rs + rc)) + 1)
-        if j0 > j1 or i0 > i1:
-            return None
-        return i0, i1, j0, j1
-
-    def samples(self, i0, i1, j0, j1, z_mm: float) -> np.ndarray:
-        """Sample points in S for the pixel box; shape (ni, nj, s*s, 3)."""
-        rs, cs = self.spacing
-        rc, cc = self.center
-        s = self.sub.size
-        ys = ((np.arange(i0, i1 + 1)[:, None] + self.sub[None, :]) - rc) * rs  # (ni, s)
-        xs = ((np.arange(j0, j1 + 1)[:, None] + self.sub[None, :]) - cc) * cs  # (nj, s)
-        ni, nj = ys.shape[0], xs.shape[0]
-        pts = np.empty((ni, nj, s, s, 3))
-        pts[..., 0] = xs[None, :, None, :]
-        pts[..., 1] = ys[:, None, :, None]
-        pts[..., 2] = z_mm
-        return pts.reshape(ni, nj, s * s, 3)
-
-
-def _render_crossing(tube, u_c: float, T_F_from_S: np.ndarray, z_mm: float, grid: _Grid, layer: np.ndarray):
-    """Fluid fraction of one tube crossing in the sub-plane ``z = z_mm`` of S, max-composited into ``layer``."""
-    R = T_F_from_S[:3, :3]
-    tF = T_F_from_S[:3, 3]
-    c = (tube.points(u_c)[0] - tF) @ R
-    t = tube.tangents(u_c)[0] @ R
-    r = 0.5 * tube.diameter
-    length = tube.length_mm
-    # in-plane section: inside the ellipse (semi-axes a along the tangent's projection,
-    # and r) about the tangent line's crossing; c itself is off the plane when a line
-    # crossing was clipped to the tube's end
-    shift = (c[2] - z_mm) / t[2] if abs(t[2]) > 1e-9 else math.inf
-    if abs(shift) <= length:
-        centre = c - shift * t
-        a = min(r / max(abs(t[2]), 1e-6), length + r)
-    else:  # (nearly) parallel to the plane: a band along the segment
-        centre, a = c, length + r
-    txy = math.hypot(t[0], t[1])
-    ux, uy = (t[0] / txy, t[1] / txy) if txy > 1e-12 else (1.0, 0.0)
-    margin = 2.0 * max(grid.spacing)
-    hx = math.sqrt((a * ux) ** 2 + (r * uy) ** 2) + margin
-    hy = math.sqrt((a * uy) ** 2 + (r * ux) ** 2) + margin
-    box = grid.box(centre[0], centre[1], hx, hy)
-    if box is None:
-        return
-    i0, i1, j0, j1 = box
-    p = grid.samples(i0, i1, j0, j1, z_mm)
-    s0 = (p - c) @ t  # arc length along the tangent line
-    u = u_c + s0 / length
-    if isinstance(tube, HelixTube):
-        # re-project on the exact centreline: the nearest point to second order
-        q = (tube.points(u.ravel()) - tF) @ R
-        tq = tube.tangents(u.ravel()) @ R
-        d = p.reshape(-1, 3) - q
-        along = np.einsum("ij,ij->i", d, tq)
-        perp = (d - along[:, None] * tq).reshape(p.shape)
-        u = u + along.reshape(u.shape) / length
-    else:
-        perp = (p - c) - s0[..., None] * t
-    dist = np.sqrt(np.einsum("...i,...i->...", perp, perp))
-    rs, cs = grid.spacing
-    hs_x, hs_y = cs / grid.sub.size, rs / grid.sub.size
-    with np.errstate(invalid="ignore", divide="ignore"):
-        gx = np.abs(perp[..., 0]) / dist
-        gy = np.abs(perp[..., 1]) / dist
-    w_r = np.nan_to_num(hs_x * gx + hs_y * gy, nan=0.0)
-    cov = np.clip(0.5 + (r - dist) / np.maximum(w_r, 1e-12), 0.0, 1.0)
-    inside_mm = np.minimum(u, 1.0 - u) * length
-    w_e = hs_x * abs(t[0]) + hs_y * abs(t[1])
-    cov *= np.clip(0.5 + inside_mm / max(w_e, 1e-12), 0.0, 1.0)
-    frac = cov.mean(axis=-1)
-    region = layer[i0 : i1 + 1, j0 : j1 + 1]
-    np.maximum(region, frac, out=region)
-
-
-def _check_grid(shape, pixel_spacing_mm, center_px, supersample, thickness_samples, slice_thickness_mm):
-    rows, cols = (int(v) for v in shape)
-    if rows < 1 or cols < 1:
-        raise ValueError(f"shape must be positive, got {tuple(shape)}")
-    rs, cs = (float(v) for v in pixel_spacing_mm)
-    if not (rs > 0 and cs > 0 and math.isfinite(rs) and math.isfinite(cs)):
-        raise ValueError(f"pixel_spacing_mm must be two positive numbers, got {tuple(pixel_spacing_mm)}")
-    if int(supersample) < 1 or int(thickness_samples) < 1:
-        raise ValueError("supersample and thickness_samples must be >= 1")
-    if not (slice_thickness_mm >= 0 and math.isfinite(slice_thickness_mm)):
-        raise ValueError(f"slice_thickness_mm must be >= 0, got {slice_thickness_mm}")
-    if center_px is None:
-        center_px = ((rows - 1) / 2.0, (cols - 1) / 2.0)
-    return (rows, cols), (rs, cs), (float(center_px[0]), float(center_px[1]))
-
-
-def render_tubes(
-    tubes,
-    T_F_from_S: np.ndarray,
-    shape=(256, 256),
-    pixel_spacing_mm=(0.5, 0.5),
-    slice_thickness_mm: float = 0.0,
-    center_px=None,
-    supersample: int = 4,
-    thickness_samples: int = 5,
-) -> np.ndarray:
-    """Fluid fraction image of any tubes (``LineTube`` / ``HelixTube`` in F); shape (rows, cols), in [0, 1]."""
-    shape, spacing, center = _check_grid(
-        shape, pixel_spacing_mm, center_px, supersample, thickness_samples, slice_thickness_mm
-    )
-    T = np.asarray(T_F_from_S, dtype=float)
-    grid = _Grid(shape, spacing, center, _sample_offsets(int(supersample)))
-    offsets = _plane_offsets_mm(float(slice_thickness_mm), int(thickness_samples))
-    normal = T[:3, 2]
-    image = np.zeros(shape)
-    layer = np.empty(shape)
-    for dz in offsets:
-        layer.fill(0.0)
-        origin = T[:3, 3] + dz * normal
-        for tube in tubes:
-            margin = 4.0 * tube.diameter + 0.5 * float(slice_thickness_mm)
-            for u_c in _crossing_params(tube, origin, normal, margin):
-                _render_crossing(tube, float(u_c), T, float(dz), grid, layer)
-        image += layer
-    image /= offsets.size
-    return np.clip(image, 0.0, 1.0)
-
-
-def render_slice(
-    geom: FiducialGeometry,
-    T_F_from_S: np.ndarray,
-    shape=(256, 256),
-    pixel_spacing_mm=(0.5, 0.5),
-    slice_thickness_mm: float = 0.0,
-    center_px=None,
-    supersample: int = 4,
-    thickness_samples: int = 5,
-) -> np.ndarray:
-    """Fluid fraction of each voxel of a slice through ``geom``; shape (rows, cols), float64 in [0, 1].
-
-    ``T_F_from_S`` (4x4) places the slice frame S in F; the pixel (i, j)
-    centre is at S coordinates ``((j - cc) * col_spacing, (i - rc) * row_spacing, 0)``
-    with ``(rc, cc) = center_px`` (default: the image centre). Partial volume
-    covers the pixel area (``supersample``² samples) and the slice thickness
-    (``thickness_samples`` sub-planes over ``slice_thickness_mm``; one plane if 0).
-    """
-    return render_tubes(
-        geom.tubes, T_F_from_S, shape, pixel_spacing_mm, slice_thickness_mm,
-        center_px, supersample, thickness_samples,
-    )
 
 
 def crossings_px(geom: FiducialGeometry, T_F_from_S: np.ndarray, pixel_spacing_mm=(0.5, 0.5), center_px=(0.0, 0.0)):
@@ -380,7 +173,7 @@ def _render_distractors(n, geom, T_F_from_S, grid_shape, spacing, center, rng, s
     R, tF = T_F_from_S[:3, :3], T_F_from_S[:3, 3]
     r_out = 0.5 * geom.body.outer_diameter
     length = geom.body.length
-    sub = _sample_offsets(supersample)
+    sub = sample_offsets(supersample)
     placed = 0
     for _ in range(200 * n):
         if placed == n:
@@ -467,7 +260,7 @@ def simulate_slice(
     if not (bore_signal >= 0 and math.isfinite(bore_signal)):
         raise ValueError(f"bore_signal must be >= 0, got {bore_signal}")
     rng = rng if isinstance(rng, np.random.Generator) else np.random.default_rng(rng)
-    (rows, cols), spacing, _ = _check_grid(shape, pixel_spacing_mm, None, supersample, thickness_samples, slice_thickness_mm)
+    (rows, cols), spacing, _ = check_grid(shape, pixel_spacing_mm, None, supersample, thickness_samples, slice_thickness_mm)
     rs, cs = spacing
     dx, dy = (float(v) for v in center_offset_mm)
     center = ((rows - 1) / 2.0 + dy / rs, (cols - 1) / 2.0 + dx / cs)

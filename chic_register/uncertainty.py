@@ -334,7 +334,7 @@ def registration_uncertainty(model, fit, xys, Ss, slices, blob_sets, target_F_mm
     centroids (image mm) per slice, ``Ss`` the slices' ``T_scanner_from_image``.
     """
     from .pose import invert
-    from .solve import _adjoint, _crossing_jacobian, plane_crossings
+    from .tube_model import _adjoint, _crossing_jacobian, plane_crossings
 
     X = fit.T_F_from_scanner
     Ad_sf = _adjoint(invert(X))

@@ -12,7 +12,7 @@ slice (:func:`verify_fit`):
    misses (a slice through an end face) is allowed: the rest must verify.
 2. **Every predicted tube appears where predicted, with its size and shape**:
    the model is rendered at the pose by the simulator's partial-volume
-   renderer (:func:`chic_register.simulate.render_tubes`) tube by tube in a
+   renderer (:func:`chic_register.render.render_tubes`) tube by tube in a
    window around its section; its fluid level is fitted to the pixels
    (``pixels = background + gain * section + gain' * neighbours``). A tube
    whose gain is below :data:`PRESENT_FRACTION` of the matched tubes' or not
@@ -68,7 +68,8 @@ from .fit_checks import (  # noqa: F401
     stretch_test,
 )
 from .pose import slice_angles
-from .simulate import render_tubes
+from .psf import blurred_windows, fit_psf, gaussian_blur
+from .render import render_tubes
 from .solve import _near_prior, _section_extent, plane_crossings
 
 #: A present tube's fitted fluid level, as a share of the median of the tubes the solver matched. A correctly
@@ -218,27 +219,6 @@ def _fit_window(pixels, w: _TubeWindow):
     return coef, y, A1 @ coef1
 
 
-def gaussian_blur(img: np.ndarray, sigma_px: float) -> np.ndarray:
-    """``img`` (H, W) blurred by an isotropic Gaussian of ``sigma_px``, zero outside (separable, numpy only:
-    scipy stays off the solve path's imports)."""
-    if sigma_px <= 0:
-        return img
-
-    def matrix(n):
-        x = np.arange(n, dtype=float)
-        K = np.exp(-0.5 * ((x[:, None] - x[None, :]) / sigma_px) ** 2)
-        return K / (sigma_px * math.sqrt(2 * math.pi))
-
-    return matrix(img.shape[0]) @ img @ matrix(img.shape[1]).T
-
-
-def _blurred(wins, canvas, sigma_px: float):
-    """The windows and the model image with every section blurred by ``sigma_px``."""
-    out = [_TubeWindow(w.k, w.r0, w.c0, gaussian_blur(w.own, sigma_px), gaussian_blur(w.others, sigma_px))
-           for w in wins]
-    return out, gaussian_blur(canvas, sigma_px)
-
-
 def _shape_excess(w: _TubeWindow, y: np.ndarray, fit: np.ndarray, sigma: float, level: float):
     """``(excess, allowed_noise, support)`` of a fitted window (:func:`_fit_window`): the residual energy over
     the section (its support grown by a pixel) beyond the noise, as a share of the section's energy, and four
@@ -250,22 +230,6 @@ def _shape_excess(w: _TubeWindow, y: np.ndarray, fit: np.ndarray, sigma: float, 
     excess = max(float(res @ res) - sup.sum() * sigma * sigma, 0.0) / (level * level * energy)
     chi_tol = 4.0 * math.sqrt(2.0 * sup.sum()) * sigma * sigma / (level * level * energy)
     return excess, chi_tol, sup
-
-
-def _fit_psf(pixels, wins, matched, sigma: float, level: float, r_px: float):
-    """The point spread (sigma, pixels; from :data:`PSF_SIGMAS_RADII` x ``r_px``) whose blurred model leaves the
-    least shape residual over the matched tubes, or None."""
-    best, best_sse = None, math.inf
-    for radii in PSF_SIGMAS_RADII:
-        blurred, _ = _blurred(wins, np.zeros((1, 1)), radii * r_px)
-        total = 0.0
-        for w in blurred:
-            if w.k in matched:
-                f = _fit_window(pixels, w)
-                total += math.inf if f is None else _shape_excess(w, f[1], f[2], sigma, level)[0]
-        if total < best_sse:
-            best, best_sse = radii * r_px, total
-    return best
 
 
 def verify_slice(geom, model, T_F_from_I: np.ndarray, pixels: np.ndarray, spacing, thickness_mm: float,
@@ -357,18 +321,25 @@ def verify_slice(geom, model, T_F_from_I: np.ndarray, pixels: np.ndarray, spacin
     try:
         return assess(wins, canvas, 0.0)
     except NoLock as exc:
-        if ("shape_residual" not in exc.detail and "n_tubes" not in exc.detail) or not PSF_SIGMAS_RADII:
+        # what a blur explains: a section's shape, the level of the sections, their second moments (a blur widens a
+        # section more across its width than along its length: the aspect test misreads it as a spacing error)
+        if not ({"shape_residual", "n_tubes", "spacing_ratio"} & set(exc.detail)) or not PSF_SIGMAS_RADII:
             raise
         # the blobs may be wider than the tubes drawn (point spread, partial volume, fluid in a printed channel):
         # fit a Gaussian point spread to the matched sections and judge the blurred model by the same rules
         r_px = 0.5 * float(np.median(model.diameter_mm)) / px
         wide, wide_canvas = _windows(geom, model, T_F_from_I, shape, (rs, cs), float(thickness_mm),
                                      margin_px=2.0 + math.ceil(3.0 * PSF_SIGMAS_RADII[-1] * r_px))
-        psf = _fit_psf(pixels, wide, {int(k) for k in np.flatnonzero(assignment >= 0)}, sigma, 1.0, r_px)
+        def misfit(w):
+            f = _fit_window(pixels, w)
+            return math.inf if f is None else _shape_excess(w, f[1], f[2], sigma, 1.0)[0]
+
+        psf = fit_psf(wide, {int(k) for k in np.flatnonzero(assignment >= 0)},
+                      [f * r_px for f in PSF_SIGMAS_RADII], misfit)
         if psf is None:
             raise
         try:
-            return assess(*_blurred(wide, wide_canvas, psf), psf)
+            return assess(*blurred_windows(wide, wide_canvas, psf), psf)
         except NoLock:
             raise exc from None
 

@@ -393,7 +393,7 @@ def simulate_volume(
     ``shape_vox``: (NX, NY, NZ) voxels along i, j, k; ``spacing_mm``: (si, sj, sk).
     Each voxel holds ``signal`` times its fluid fraction (partial volume over
     the voxel), rendered k-plane by k-plane with
-    :func:`chic_register.simulate.render_slice` (plane thickness = sk), then
+    :func:`chic_register.render.render_slice` (plane thickness = sk), then
     noise as in :mod:`chic_register.simulate` (``"none"``, ``"uniform"``
     amplitude ``noise_level`` x signal, ``"rician"`` at ``snr``).
     Default placement: ``direction`` identity and the volume centre at the

@@ -1,0 +1,190 @@
+"""Refinement: Gauss-Newton on the six DOF of a pose, with the blob-to-tube assignment re-solved on the way.
+
+:func:`refine` turns a guess of ``T_F_from_scanner`` into a :class:`_Fit`
+(pose, assignments, residuals) from the detected centres of one or more
+slices; :func:`_reject_outliers` drops tubes that spoil a fit;
+:func:`_rank` orders fits best first. The model and its derivatives are
+:mod:`chic_register.tube_model`'s.
+"""
+
+from __future__ import annotations
+
+import math
+from dataclasses import dataclass
+from typing import TYPE_CHECKING
+
+import numpy as np
+
+from .matching import gated_matching
+from .pose import invert
+from .tube_model import TubeModel, _adjoint, _crossing_jacobian, _exp_se3, plane_crossings
+
+if TYPE_CHECKING:
+    from .solve import SolveOptions
+
+
+@dataclass(frozen=True, eq=False)
+class _Fit:
+    """One refined joint hypothesis."""
+
+    T_F_from_scanner: np.ndarray
+    assignments: list  # per slice: (K,) int blob index or -1
+    residuals: list  # per slice: (K,) mm, NaN where unassigned
+    inside: list  # per slice: (K,) bool
+    n_matched: int
+    rms_mm: float
+    # what the last fit was made of, when not the blob centroids: per slice (measured xy (N, 2) mm, square-root
+    # information L (K, 2, 2) it was weighted by, the noise sigma L assumed) (see chic_register.uncertainty)
+    measurements: list | None = None
+
+
+def _assign(pred: np.ndarray, ok: np.ndarray, blobs_xy: np.ndarray, gate_mm: float) -> np.ndarray:
+    """Blob index per tube (K,), -1 for none: minimum-cost matching within ``gate_mm``."""
+    K = pred.shape[0]
+    out = np.full(K, -1)
+    if blobs_xy.shape[0] == 0 or not ok.any():
+        return out
+    diff = pred[:, None, :] - blobs_xy[None, :, :]
+    d2 = np.einsum("ijk,ijk->ij", diff, diff)  # squared distances (K, N)
+    within = (d2 < gate_mm * gate_mm) & ok[:, None]
+    if within.sum(axis=0).max() <= 1 and within.sum(axis=1).max() <= 1:
+        # every gated pair is alone in its row and column: they are the (unique) optimal matching
+        r, c = np.nonzero(within)
+        out[r] = c
+        return out
+    r, c = gated_matching(d2, within)
+    out[r] = c
+    return out
+
+
+def refine(model: TubeModel, blobs_xy: list[np.ndarray], T_scanner_from_image: list[np.ndarray],
+           T_F_from_scanner: np.ndarray, *, gates_mm=(3.0, 1.5, 1.0, 1.0), iters_per_gate: int = 3,
+           final_iters: int = 4, damping: float = 1e-6, exclude: list | None = None,
+           assign0: list | None = None, offsets_mm: list | None = None, strict_ends: bool = True,
+           weights: list | None = None, tol: float = 1e-6) -> _Fit:
+    """Gauss-Newton on all six DOF of ``T_F_from_scanner`` with re-assignment.
+
+    ``blobs_xy``: per slice, detected centres in image mm (N_j, 2). Each gate
+    in ``gates_mm`` re-solves the blob-tube assignment, then iterates; the
+    final iterations keep the last assignment (``assign0``, per slice (K,)
+    blob indices, when there are no gates). ``exclude``: per slice, a (K,)
+    bool mask of tubes left unassigned (rejected outliers). ``offsets_mm``:
+    per slice (K, 2), added to the predicted crossings (the centroid model:
+    the centroid of a tube's image section minus its centreline crossing).
+    ``strict_ends``: leave out crossings whose section a tube end cuts
+    (their blob centre is biased) unless the offsets model that cut.
+    ``weights``: per slice (K, 2, 2) or None, each tube's square-root
+    information ``L`` (``L^T L`` = the inverse covariance of its measured
+    position, mm^-2): the fit then minimises the sum of ``|L (predicted -
+    measured)|^2`` (the maximum-likelihood pose for Gaussian position errors).
+    ``tol``: the final iterations stop once a step is below it (rad and mm).
+    """
+    end_margin = 0.0 if strict_ends else 1e-9
+    X = T_F_from_scanner.copy()
+    ads = [_adjoint(invert(S)) for S in T_scanner_from_image]
+    assign = list(assign0) if assign0 is not None else [None] * len(blobs_xy)
+    offs = offsets_mm if offsets_mm is not None else [None] * len(blobs_xy)
+    schedule = [(g, iters_per_gate) for g in gates_mm] + [(None, final_iters)]
+    step = 1.0
+    for gate, iters in schedule:
+        changed = False
+        for it in range(iters):
+            if it == 1 and not changed and step < 1e-5:
+                break  # converged and the assignment did not change
+            Js, rs = [], []
+            for j, (xy, S) in enumerate(zip(blobs_xy, T_scanner_from_image)):
+                q, tan, _, inside = plane_crossings(model, X @ S, margin_mm=5.0 if gate is not None else end_margin)
+                qm = q + offs[j] if offs[j] is not None else q  # what the detector measures
+                if gate is not None and it == 0:
+                    new = _assign(qm, inside & ~exclude[j] if exclude else inside, xy, gate)
+                    changed = changed or assign[j] is None or not np.array_equal(new, assign[j])
+                    assign[j] = new
+                a = assign[j]
+                k = np.flatnonzero((a >= 0) & inside)
+                if k.size == 0:
+                    continue
+                res = qm[k] - xy[a[k]]
+                Jk = _crossing_jacobian(q[k], tan[k]) @ ads[j]
+                if weights is not None and weights[j] is not None:
+                    L = weights[j][k]
+                    res = np.einsum("kij,kj->ki", L, res)
+                    Jk = np.einsum("kij,kjl->kil", L, Jk)
+                rs.append(res.ravel())
+                Js.append(Jk.reshape(-1, 6))
+            if not rs:
+                break
+            J = Js[0] if len(Js) == 1 else np.concatenate(Js)
+            r = rs[0] if len(rs) == 1 else np.concatenate(rs)
+            H = J.T @ J
+            diag = H.reshape(-1)[::7]  # a view of the diagonal
+            diag *= 1 + damping
+            diag += 1e-9
+            try:
+                xi = -np.linalg.solve(H, J.T @ r)
+            except np.linalg.LinAlgError:
+                break
+            X = X @ _exp_se3(xi)
+            step = float(np.abs(xi).max())
+            # rad and mm: under a gate, close enough to re-assign; at the end, far below any error that matters
+            if step < (1e-3 if gate is not None else tol):
+                break
+        if step > 1e-2:  # still wandering after a whole gate: a hopeless guess, give up
+            break
+    # final bookkeeping
+    residuals, insides, total, sq = [], [], 0, 0.0
+    for j, (xy, S) in enumerate(zip(blobs_xy, T_scanner_from_image)):
+        q, _, _, inside = plane_crossings(model, X @ S, margin_mm=end_margin)
+        if offs[j] is not None:
+            q = q + offs[j]
+        a = assign[j] if assign[j] is not None else np.full(model.is_helix.size, -1)
+        a = np.where(inside, a, -1)
+        assign[j] = a
+        res = np.full(a.size, np.nan)
+        k = np.flatnonzero(a >= 0)
+        res[k] = np.linalg.norm(q[k] - xy[a[k]], axis=1)
+        residuals.append(res)
+        insides.append(inside)
+        total += k.size
+        sq += float(np.sum(res[k] ** 2))
+    rms = math.sqrt(sq / total) if total else float("inf")
+    return _Fit(X, assign, residuals, insides, total, rms)
+
+
+def _reject_outliers(model: TubeModel, xys, Ss, fit: _Fit, px_mm: list[float], opts: SolveOptions) -> _Fit:
+    """Drop the worst-fitting tube while that makes the fit markedly better, and refit.
+
+    Tried while the worst residual exceeds ``max_rms_px`` pixels (two
+    touching tubes, a bubble, a blob merged with anatomy); a drop is kept
+    when the RMS falls by at least a third. Never below ``min_tubes`` /
+    ``min_depth_tubes``.
+    """
+    K = len(model.ids)
+    excl = [np.zeros(K, bool) for _ in xys]
+    gate = max(float(model.diameter_mm.max()), 2 * max(px_mm))
+    for _ in range(max(0, fit.n_matched - opts.min_tubes)):
+        res = [np.where(np.isfinite(r), r / px, -1.0) for r, px in zip(fit.residuals, px_mm)]
+        j = int(np.argmax([r.max() for r in res]))
+        k = int(np.argmax(res[j]))
+        if res[j][k] <= opts.max_rms_px:
+            break
+        n_depth = sum(int(np.sum((a >= 0) & model.depth_coding)) for a in fit.assignments)
+        if model.depth_coding[k] and n_depth <= opts.min_depth_tubes:
+            break
+        trial_excl = [e.copy() for e in excl]
+        trial_excl[j][k] = True
+        trial = refine(model, xys, Ss, fit.T_F_from_scanner, gates_mm=(0.6 * gate,), iters_per_gate=4,
+                       final_iters=2, exclude=trial_excl)
+        if trial.n_matched < fit.n_matched - 1 or trial.rms_mm > fit.rms_mm / 1.5:
+            break
+        fit, excl = trial, trial_excl
+    return fit
+
+
+def _rank(fits: list[_Fit], rms_limit_mm: float = math.inf) -> list[_Fit]:
+    """Best first: fits within the RMS limit, then the most tubes, then the lowest RMS."""
+    return sorted(fits, key=lambda f: (f.rms_mm > rms_limit_mm, -f.n_matched, f.rms_mm))
+
+
+def _unexplained(fit: _Fit) -> int:
+    """Tubes a fit puts wholly inside the slice (every slice) that no blob is assigned to."""
+    return sum(int(np.sum(ins & (a < 0))) for ins, a in zip(fit.inside, fit.assignments))
