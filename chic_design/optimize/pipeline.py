@@ -32,6 +32,7 @@ from .requirements import Requirements, baseline_path, load_requirements
 from .score import dominates, score_spec
 from .search import SearchResult, run_search
 from .store import ResultStore
+from .trust import solver_limits, trust_excess
 from .plots import save_pareto_plot, save_precision_map
 
 
@@ -69,10 +70,16 @@ class OptimizeResult:
 
 
 def _no_feasible_message(req: Requirements, search: SearchResult) -> str:
-    reasons = Counter(c["reasons"][0].split(" (")[0] for c in search.candidates if c["reasons"])
+    reasons = Counter(c["reasons"][0].split(" (")[0].split(": predicted")[0] for c in search.candidates
+                      if c["reasons"])
     common = ", ".join(f"{k} x{n}" for k, n in reasons.most_common(3))
+    limits = solver_limits()
+    refused = sorted((c for c in search.candidates if c.get("precision") is not None and not c["feasible"]),
+                     key=lambda c: trust_excess(c["precision"], limits))
+    nearest = f"; nearest to the solver's trust: {refused[0]['reasons'][0]}" if refused else ""
     return (f"requirements '{req.name}': none of {len(search.candidates)} candidates meets every requirement "
-            f"(most common reasons: {common}); relax the limits or the required tilt/depth, or search longer")
+            f"(most common reasons: {common}{nearest}); relax the limits or the required tilt/depth, use more "
+            "parallel slices (imaging.n_slices), or search longer")
 
 
 def _chosen_pictures(req: Requirements, name: str, result: dict, folder: Path) -> None:
@@ -173,7 +180,7 @@ def optimize(req_path, out_dir=None, trials: int | None = None, seed: int = 0, s
            "all_beating": [(n, r) for n, r in named if baseline is not None and baseline["feasible"]
                            and dominates(r["objectives"], baseline["objectives"])],
            "confirmed": confirmed, "confirm_named": finalists, "pictures": pictures, "distances": dist,
-           "precision_method": precision_method(req)}
+           "precision_method": precision_method(req), "trust_limits": solver_limits()}
     write_text(out / "report.md", report_markdown(ctx))
     result = OptimizeResult(out, search, tuple(named), baseline, beats, confirmed)
     write_json(out / "result.json", {

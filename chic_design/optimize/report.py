@@ -15,7 +15,8 @@ from .choose import LABELS, compare
 from .score import OBJECTIVES
 
 TABLE_COLUMNS = ("name", "outer_diameter_mm", "envelope_od_mm", "length_mm", "usable_region_deg_mm",
-                 "usable_15deg_mm", "tre_mm", "sd_depth_mm", "sd_normal_deg", "sd_twist_deg",
+                 "usable_15deg_mm", "tre_mm", "sd_depth_mm", "sd_normal_deg", "sd_twist_deg", "solver_rot_deg",
+                 "solver_tre_mm",
                  "channel_mm", "circle_mm", "offset_deg", "direction", "orientation_deg", "key")
 
 
@@ -25,7 +26,8 @@ def table_row(name: str, r: dict) -> dict:
             "length_mm": r["length_mm"], "usable_region_deg_mm": round(o["usable_region_deg_mm"], 1),
             "usable_15deg_mm": round(r["usable_depth_mm"].get("15", 0.0), 1), "tre_mm": round(o["tre_mm"], 4),
             "sd_depth_mm": round(p["sd_depth_mm"], 4), "sd_normal_deg": round(p["sd_normal_deg"], 4),
-            "sd_twist_deg": round(p["sd_twist_deg"], 4), "channel_mm": s["channels"]["diameter"],
+            "sd_twist_deg": round(p["sd_twist_deg"], 4), "solver_rot_deg": round(p["solver_rot_deg"], 3),
+            "solver_tre_mm": round(p["solver_tre_mm"], 3), "channel_mm": s["channels"]["diameter"],
             "circle_mm": s["channels"]["circle_diameter"], "offset_deg": s["helix"]["offset_deg"],
             "direction": "cw" if "pitch_deg_per_mm" in s["helix"] else "ccw",
             "orientation_deg": " ".join(f"{a:g}" for a in s["markers"]["orientation_deg"]),
@@ -77,6 +79,12 @@ def confirm_lines(named: list[tuple[str, dict]], confirmed: dict) -> list[str]:
                    f"{f(p['sd_depth_mm'])} | {f(c['normal_rms_deg'])} / {f(c['normal_max_deg'])} | "
                    f"{f(p['sd_normal_deg'])} | {f(c['twist_rms_deg'])} / {f(c['twist_max_deg'])} | "
                    f"{f(p['sd_twist_deg'])} | {confirmed_verdict(c)} |")
+    for name, _ in named:
+        c = confirmed.get(name)
+        if c and c["no_lock"] and c.get("refusals"):
+            why = "; ".join(f"{k} x{v}" for k, v in sorted(c["refusals"].items(), key=lambda kv: -kv[1])[:3])
+            cases = ", ".join(f"{k} {v}" for k, v in c.get("locked_by_case", {}).items())
+            out.append(f"\n`{name}` refused: {why}. Locked per pose (of {c['settings']['draws']}): {cases}.")
     return out
 
 
@@ -85,9 +93,34 @@ MAX_NO_LOCK_SHARE = 0.1
 
 
 def confirmed_verdict(c: dict) -> str:
-    """'yes' when the solver locked at least 90 % of the simulated slices, else 'NO' with the share refused."""
+    """'yes' when the solver locked at least 90 % of the simulated series, else 'NO' with the share refused."""
     share = c["no_lock"] / c["slices"] if c["slices"] else 1.0
-    return "yes" if share <= MAX_NO_LOCK_SHARE else f"NO: {c['no_lock']}/{c['slices']} refused"
+    if share <= MAX_NO_LOCK_SHARE:
+        return "yes"
+    why = f" ({c['imprecise']} as too imprecise)" if c.get("imprecise") else ""
+    return f"NO: {c['no_lock']}/{c['slices']} refused{why}"
+
+
+def trust_lines(candidates, limits) -> list[str]:
+    """The candidates the solver-trust constraint alone made infeasible, nearest the limits first."""
+    from .trust import SOLVER_OVER_CRLB, trust_excess
+
+    failed = [c for c in candidates if not c["feasible"] and c.get("precision") is not None]
+    if not failed:
+        return []
+    failed.sort(key=lambda c: trust_excess(c["precision"], limits))
+    out = [f"{len(failed)} candidates passed every other check but the bound (x {SOLVER_OVER_CRLB:g}, the solver's "
+           f"measured conservatism) predicts the solver would refuse their slices ({limits.sigmas:g} sigma over "
+           f"{limits.rot_deg:g} deg or {limits.tre_mm:g} mm at the frame centre); nearest the limits:", "",
+           "| key | OD (mm) | predicted rotation (deg) | predicted centre TRE (mm) | over by | at depth, tilt |",
+           "|---|---|---|---|---|---|"]
+    for c in failed[:5]:
+        p = c["precision"]
+        z, t, _ = p["solver_worst_pose"]
+        out.append(f"| {c.get('key', '')[:12]} | {c.get('outer_diameter_mm', float('nan')):g} | "
+                   f"{p['solver_rot_deg']:.3f} | {p['solver_tre_mm']:.3f} | "
+                   f"{100 * trust_excess(p, limits):.1f} % | {z:g} mm, {t:g} deg |")
+    return out + [""]
 
 
 def report_markdown(ctx: dict) -> str:
@@ -111,8 +144,11 @@ def report_markdown(ctx: dict) -> str:
          "Objectives: outer diameter of the body (min; the assembly adds "
          f"{req.cap_allowance_mm:g} mm of cap skirts), usable tilt x depth region = area under the max-tilt "
          "curve of `chic-design check` (max), predicted TRE at the target, worst over the required poses (min). "
-         "A candidate is feasible only if `check` finds no violation, the assembly fits, and every required "
-         "depth works at the required tilt; infeasible candidates are never written.", "",
+         "A candidate is feasible only if `check` finds no violation, the assembly fits, every required "
+         "depth works at the required tilt, and the solver will trust its poses (the bound times the "
+         "solver's measured conservatism keeps its 3-sigma error within the trust limits at every required "
+         "pose); infeasible candidates are never written.", "",
+         *trust_lines(search.candidates, ctx["trust_limits"]),
          "![Pareto set](pareto.png)", "", "## Pareto set", "",
          "Specs in `specs/` (each validated; `chic-design build specs/<name>.yaml`). Ordered by distance to "
          "the ideal point (each objective scaled over the set): the first is chosen.", "",
@@ -165,9 +201,10 @@ def report_markdown(ctx: dict) -> str:
                     L.append("")
     if ctx.get("confirmed"):
         L += ["## Confirmed by simulation", "",
-              "Simulated slices (Rician noise at the required SNR, the required pixel size and slice "
-              "thickness) at three depths across the required range, at tilt 0 and at the highest required "
-              "tilt with random azimuths, registered by `chic-register` (accuracy mode); measured errors "
+              "Simulated series of the required protocol (its number of parallel slices, Rician noise at the "
+              "required SNR, the required pixel size and slice thickness) at three depths across the required "
+              "range, at tilt 0 and at the highest required tilt with random azimuths, registered by "
+              "`chic-register` with its default options (every trust check on); 'slices' counts series; measured errors "
               "beside the predicted bound (worst required pose). A measured RMS near the predicted SD "
               "means the solver reaches the bound; measured errors include any bias. A design is confirmed "
               f"when the solver locks at least {100 * (1 - MAX_NO_LOCK_SHARE):g} % of the slices: it refuses "

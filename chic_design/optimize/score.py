@@ -4,8 +4,12 @@ A candidate is *feasible* when its spec validates, the feasibility check
 (:func:`chic_design.feasibility.check_geometry`, for the required protocol and
 printer, plus what ``build`` refuses, :func:`chic_design.printability.build_violations`)
 finds no violation, its assembled outer diameter is within the limit,
-and every depth sample in the required range registers at the required
-maximum tilt. Only feasible candidates get the precision bound and can reach
+every depth sample in the required range registers at the required
+maximum tilt, and the solver will trust its poses there: the precision bound
+times the solver's measured conservatism (:mod:`.trust`) predicts a 3-sigma
+error within ``SolveOptions``' trust limits at every required pose (else
+``register`` would refuse the slices as too imprecise). Only candidates
+passing the first checks get the precision bound; only feasible ones reach
 the output. The three objectives:
 
 - ``outer_diameter_mm`` (minimise): the body's outer diameter (the assembly is
@@ -34,11 +38,12 @@ from ..spec import Spec, parse_spec
 from . import space
 from .precision import predicted_precision
 from .requirements import Requirements
+from .trust import solver_limits, trust_excess, trust_reason
 
-SCORER_VERSION = "3"
+SCORER_VERSION = "4"
 OBJECTIVES = ("outer_diameter_mm", "usable_region_deg_mm", "tre_mm")
 DIRECTIONS = ("minimize", "maximize", "minimize")
-N_CONSTRAINTS = 4
+N_CONSTRAINTS = 5
 
 
 def usable_region(report) -> float:
@@ -84,12 +89,17 @@ def score_spec(spec: Spec, req: Requirements, spec_data: dict | None = None) -> 
                        f"{req.required.tilt_deg[1]:g} deg tilt")
     if spec.channels.diameter < req.printer.min_channel_diameter - 1e-9:
         reasons.append("channel narrower than printer.min_channel_diameter")
-    constraints = [0.0, float(len(report.violations)), short / 10.0, over]
+    constraints = [0.0, float(len(report.violations)), short / 10.0, over, 0.0]
     if reasons:
         return _infeasible(reasons, constraints, spec_data, t0)
     prec = predicted_precision(geom, req)
     if not np.isfinite(prec["tre_mm"]):
-        return _infeasible(["precision bound is infinite (pose not determined)"], [0, 1, 0, 0], spec_data, t0)
+        return _infeasible(["precision bound is infinite (pose not determined)"], [0, 1, 0, 0, 0], spec_data, t0)
+    limits = solver_limits()
+    refused = trust_reason(prec, limits)
+    if refused is not None:  # graded by how far the worse of the two errors is over its limit
+        out = _infeasible([refused], [0, 0, 0, 0, trust_excess(prec, limits)], spec_data, t0)
+        return {**out, "precision": prec, "outer_diameter_mm": float(spec.body.outer_diameter)}
     objectives = {"outer_diameter_mm": float(spec.body.outer_diameter),
                   "usable_region_deg_mm": usable_region(report), "tre_mm": prec["tre_mm"]}
     usable = {f"{u.tilt_deg:g}": u.total_mm for u in report.usable_depth}
@@ -109,7 +119,7 @@ def evaluate_candidate(params: dict, req_data: dict) -> dict:
     except SpecError as exc:
         # graded, so the optimiser learns which way the wall is too thin for the channels
         c0 = 1.0 + space.wall_deficit_mm(params, req)
-        return _infeasible([str(exc).removeprefix("<candidate>: ")], [c0, 0.0, 0.0, 0.0], data, t0)
+        return _infeasible([str(exc).removeprefix("<candidate>: ")], [c0, 0.0, 0.0, 0.0, 0.0], data, t0)
     out = score_spec(spec, req, data)
     out["cpu_s"] = time.process_time() - t0
     return out
