@@ -53,5 +53,9 @@ class NoLock(ChicRegisterError):
         super().__init__(reason)
 
 
+class AmbiguousFit(NoLock):
+    """Two distinct poses explain the blobs nearly equally well (in one slice of a series, the others may decide)."""
+
+
 class ImprecisePose(NoLock):
     """A pose that verifies but whose predicted error exceeds the trust limits (the solver may refine it first)."""

@@ -13,10 +13,10 @@ from typing import TYPE_CHECKING
 
 import numpy as np
 
-from .errors import NoLock
+from .errors import AmbiguousFit, NoLock
 from .refine import _reject_outliers, refine
 from .slices import Slice
-from .trust import _check_trust
+from .trust import _check_trust, _distinct
 from .tube_model import TubeModel, plane_crossings
 
 if TYPE_CHECKING:
@@ -44,14 +44,34 @@ def _track(model: TubeModel, xy: np.ndarray, S: np.ndarray, T_F_from_scanner: np
     return fit
 
 
-def _joint(model: TubeModel, slices, xys, Ss, res_mm, per_slice, opts: SolveOptions, skip_failed: bool):
+def _decide(model: TubeModel, first, others, opts: SolveOptions, res_mm) -> "object":
+    """The best of joint fits refined from several starts; :class:`AmbiguousFit` when a distinct one matches as
+    many tubes within ``ambiguity_ratio`` of its RMS (the same rule as one slice's, over the whole series)."""
+    fits = sorted([first, *others], key=lambda f: (-f.n_matched, f.rms_mm))
+    best = fits[0]
+    for other in fits[1:]:
+        if (other.n_matched >= best.n_matched and other.rms_mm <= opts.ambiguity_ratio * max(best.rms_mm, 1e-3)
+                and other.rms_mm <= opts.max_rms_px * min(res_mm)
+                and _distinct(best.T_F_from_scanner, other.T_F_from_scanner, model)):
+            raise AmbiguousFit(f"ambiguous fit: the slices together fit two distinct poses, matching {best.n_matched} "
+                               f"and {other.n_matched} tubes with RMS {best.rms_mm:.3f} and {other.rms_mm:.3f} mm"
+                               + ("" if opts.prior is not None else "; an approximate orientation (prior, --prior) "
+                                  "picks one"), {"n_tubes": best.n_matched})
+    return best
+
+
+def _joint(model: TubeModel, slices, xys, Ss, res_mm, per_slice, opts: SolveOptions, skip_failed: bool,
+           starts=()):
     """The joint fit of every slice's correspondences; ``(fit, dropped)``.
 
     Without ``skip_failed`` any disagreement is :class:`NoLock`. With it, a
     slice whose residual under the joint pose breaks its trust thresholds, or
     that matches fewer tubes than it did alone, is dropped (the worst first,
     then refit) and returned in ``dropped`` as ``(index, reason, RMS mm)``;
-    ``fit`` then covers the remaining slices, in their order.
+    ``fit`` then covers the remaining slices, in their order. ``starts``:
+    more starting poses (the distinct fits of slices that alone were
+    ambiguous); each is refined on all slices, and the series must single
+    one out (:func:`_decide`).
     """
     start = min(per_slice, key=lambda fe: fe[0].rms_mm)[0].T_F_from_scanner
     active = list(range(len(slices)))
@@ -60,6 +80,9 @@ def _joint(model: TubeModel, slices, xys, Ss, res_mm, per_slice, opts: SolveOpti
         gate = max(model.diameter_mm.max(), 2 * max(res_mm[j] for j in active))
         sub = [xys[j] for j in active], [Ss[j] for j in active]
         best = refine(model, sub[0], sub[1], start, gates_mm=(gate, 0.6 * gate))
+        if starts and not skip_failed:
+            best = _decide(model, best, [refine(model, sub[0], sub[1], T, gates_mm=(gate, 0.6 * gate))
+                                         for T in starts], opts, res_mm)
         if not skip_failed:
             _check_trust(best, [], model, slices, opts, Ss, res_mm)
             if best.n_matched < sum(f.n_matched for f, _ in per_slice):

@@ -42,7 +42,7 @@ import numpy as np
 
 from .accuracy import _centroid_refine, _section_refine, centroid_offsets, template_shifts  # noqa: F401
 from .detect import Blobs, detect_blobs
-from .errors import ImprecisePose, NoLock
+from .errors import AmbiguousFit, ImprecisePose, NoLock
 from .geometry import FiducialGeometry
 from .hypotheses import (  # noqa: F401  (the first-guess stage; its public names stay importable from here)
     Ellipse,
@@ -263,6 +263,7 @@ def register(slices: list[Slice], geom: FiducialGeometry, *, options: SolveOptio
     rivals = [[] for _ in slices]  # per slice: the distinct fits that came close (for the verification)
     skipped = []
     anchor = None
+    undecided = []  # slices of a series that alone fit two distinct poses: the series decides (joint.py)
     for j in _solve_order(xys, model, skip_failed):
         sl, xy, S = slices[j], xys[j], Ss[j]
         if anchor is not None:
@@ -274,6 +275,10 @@ def register(slices: list[Slice], geom: FiducialGeometry, *, options: SolveOptio
             try:
                 fits, ell = _solve_one(model, xy, S, opts, res_mm[j])
                 _check_trust(fits[0], fits[1:], model, [sl], opts, [S], [res_mm[j]])
+            except AmbiguousFit:
+                if len(slices) == 1 or skip_failed:
+                    raise
+                undecided.append(j)  # fits[0] and its rivals are all kept: the joint fit tries each
             except NoLock as first:
                 if (detect_options or {}).get("flatten_background") or not _worth_flattening(blob_sets[j], model):
                     raise
@@ -306,12 +311,13 @@ def register(slices: list[Slice], geom: FiducialGeometry, *, options: SolveOptio
     used = [j for j in range(len(slices)) if per_slice[j] is not None]
     if not used:
         raise NoLock(_no_slice_locked(skipped), {"n_skipped": len(skipped)})
+    starts = [f.T_F_from_scanner for j in undecided for f in [per_slice[j][0], *rivals[j]]]
     slices, xys, Ss, blob_sets, res_mm, per_slice, rivals = (
         [seq[j] for j in used] for seq in (slices, xys, Ss, blob_sets, res_mm, per_slice, rivals))
     if len(slices) == 1:
         best = per_slice[0][0]
     else:
-        best, dropped = _joint(model, slices, xys, Ss, res_mm, per_slice, opts, skip_failed)
+        best, dropped = _joint(model, slices, xys, Ss, res_mm, per_slice, opts, skip_failed, starts)
         if dropped:
             skipped += [SkippedSlice(slices[j].source, why, rms) for j, why, rms in dropped]
             keep = [j for j in range(len(slices)) if j not in {d[0] for d in dropped}]  # the fit's slices, in order

@@ -14,7 +14,7 @@ from typing import TYPE_CHECKING
 import numpy as np
 
 from .detect import Blobs
-from .errors import NoLock
+from .errors import AmbiguousFit, NoLock
 from .pose import slice_angles
 from .refine import _Fit
 from .slices import Slice
@@ -118,6 +118,6 @@ def _check_trust(fit: _Fit, others: list[_Fit], model: TubeModel, slices: list[S
                 and other.rms_mm <= opts.max_rms_px * min(px_unit)
                 and _distinct(fit.T_F_from_scanner, other.T_F_from_scanner, model)):
             hint = "" if opts.prior is not None else "; an approximate orientation (prior, --prior) picks one"
-            raise NoLock(f"ambiguous fit: two distinct poses match {fit.n_matched} and {other.n_matched} "
+            raise AmbiguousFit(f"ambiguous fit: two distinct poses match {fit.n_matched} and {other.n_matched} "
                          f"tubes with RMS {fit.rms_mm:.3f} and {other.rms_mm:.3f} mm{hint}",
                          {"n_tubes": fit.n_matched})

@@ -397,7 +397,7 @@ def verify_fit(geom, model, fit, rivals, slices, Ss, blob_sets, opts) -> list[Sl
     """
     from .solve import _distinct, _to_xy_mm
 
-    out = []
+    out, contenders = [], []
     for j, (sl, S, b) in enumerate(zip(slices, Ss, blob_sets)):
         T_F_from_I = fit.T_F_from_scanner @ S
         check = verify_slice(geom, model, T_F_from_I, np.asarray(sl.pixels), sl.pixel_spacing_mm,
@@ -409,8 +409,28 @@ def verify_fit(geom, model, fit, rivals, slices, Ss, blob_sets, opts) -> list[Sl
                     or not _distinct(other.T_F_from_scanner, fit.T_F_from_scanner, model)
                     or not _near_prior(other.T_F_from_scanner, opts)):  # the user's prior orientation excludes it
                 continue
-            _compare_rival(geom, model, check, other.T_F_from_scanner @ S, sl)
+            contenders.append(other.T_F_from_scanner)
         out.append(check)
+    # a rival pose must explain every slice of the series nearly as well: the evidence of all slices adds up; a
+    # rival one slice offered is first refined on the blobs of all of them (it may fall back onto the pose)
+    if len(slices) > 1 and contenders:
+        from .solve import refine
+
+        xys = [_to_xy_mm(b, sl) for sl, b in zip(slices, blob_sets)]
+        gate = max(float(model.diameter_mm.max()), 2 * max(float(max(sl.pixel_spacing_mm)) for sl in slices))
+        refined = [refine(model, xys, Ss, T, gates_mm=(gate, 0.6 * gate)) for T in contenders]
+        contenders = [r.T_F_from_scanner for r in refined
+                      if r.n_matched >= opts.min_tubes and _distinct(r.T_F_from_scanner, fit.T_F_from_scanner, model)
+                      and _near_prior(r.T_F_from_scanner, opts)]
+    for T_rival in contenders:
+        scores = [_compare_rival(geom, model, check, T_rival @ S, sl) for check, S, sl in zip(out, Ss, slices)]
+        gap, margin = sum(g for g, _ in scores), sum(m for _, m in scores)
+        if gap < margin:
+            a = slice_angles(T_rival @ Ss[0])
+            where = slices[0].source if len(slices) == 1 else f"{len(slices)} slices"
+            raise NoLock(f"{where}: ambiguous: a distinct pose (depth {a.depth_mm:.1f} mm, tilt {a.tilt_deg:.1f} deg) "
+                         f"explains the image{'s' if len(slices) > 1 else ''} nearly as well (residual larger by "
+                         f"{gap:.3g}; margin needed {margin:.3g})", {"n_tubes": int(fit.n_matched)})
     scale, _, p = stretch_test(model, fit, [_to_xy_mm(b, sl) for sl, b in zip(slices, blob_sets)], Ss)
     if p < STRETCH_P and float(np.max(np.abs(scale))) > STRETCH_MIN:
         axis = "columns (x)" if abs(scale[0]) >= abs(scale[1]) else "rows (y)"
@@ -461,14 +481,14 @@ def _turned_rivals(model, T_F_from_scanner: np.ndarray, xy: np.ndarray, S: np.nd
     return out
 
 
-def _compare_rival(geom, model, check: SliceCheck, T_F_from_I_rival: np.ndarray, sl) -> None:
-    """NoLock unless the pose explains the pixels clearly better than a distinct rival pose.
+def _compare_rival(geom, model, check: SliceCheck, T_F_from_I_rival: np.ndarray, sl) -> tuple[float, float]:
+    """How much worse a distinct rival pose explains a slice's pixels than the pose: ``(gap, margin)``.
 
     Both model images (the rival's rendered as the pose's) are fitted to the
     pixels over the union of their sections grown by a pixel (``b + a model``);
-    the rival's residual sum of squares must exceed the pose's by
-    :data:`RIVAL_MARGIN` noise variances plus the model error
-    (:data:`MODEL_FLOOR` of the signal energy).
+    ``gap`` is the rival's residual sum of squares less the pose's, and
+    ``margin`` what it must exceed: :data:`RIVAL_MARGIN` noise variances plus
+    the model error (:data:`MODEL_FLOOR` of the signal energy).
     """
     pixels = np.asarray(sl.pixels, float)
     _, rival = _windows(geom, model, T_F_from_I_rival, pixels.shape, tuple(float(v) for v in sl.pixel_spacing_mm),
@@ -483,9 +503,4 @@ def _compare_rival(geom, model, check: SliceCheck, T_F_from_I_rival: np.ndarray,
         r = y - A @ coef
         sse.append(float(r @ r))
     signal = check.level ** 2 * float(np.sum(check.canvas[region] ** 2))
-    margin = RIVAL_MARGIN * check.noise_sigma ** 2 + MODEL_FLOOR * signal
-    if sse[1] - sse[0] < margin:
-        a = slice_angles(T_F_from_I_rival)
-        raise NoLock(f"{sl.source}: ambiguous: a distinct pose (depth {a.depth_mm:.1f} mm, tilt {a.tilt_deg:.1f} deg) "
-                     f"explains the image nearly as well (residual {sse[1]:.3g} vs {sse[0]:.3g}; margin needed "
-                     f"{margin:.3g})", {"n_tubes": int(np.sum(check.canvas > 0))})
+    return sse[1] - sse[0], RIVAL_MARGIN * check.noise_sigma ** 2 + MODEL_FLOOR * signal
