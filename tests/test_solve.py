@@ -2,6 +2,7 @@
 
 import json
 import math
+from pathlib import Path
 
 import numpy as np
 import pytest
@@ -448,3 +449,29 @@ def test_template_fit_disagreeing_with_the_centroid_is_no_lock(neuro_geometry):
     with pytest.raises(NoLock) as exc:  # a bound no noisy fit can meet: the check must fire
         register([sim.slice], neuro_geometry, centroid_model=True, template_max_disagreement_px=1e-6)
     assert "template fit" in exc.value.reason
+
+
+def test_a_series_decides_what_one_slice_cannot():
+    """A slim needle guide (10 mm body, 0.8 mm channels; the optimiser's design for 0.3 mm pixels) seen normal to its
+    axis: one slice alone fits two mirror tilts equally well and is refused; three parallel slices 1.5 mm apart
+    refine every slice's candidates on all of them, single one out, and lock on the truth."""
+    from chic_design.layout import design_geometry
+    from chic_design.optimize.confirm import simulate_parallel
+    from chic_design.spec import load_spec
+
+    geom = design_geometry(load_spec(Path(__file__).parent / "data" / "needle-guide-slim.yaml"))
+    rng = np.random.default_rng(0)
+    centre = np.array([0.0, 0.0, geom.body.length / 2, 1.0])
+    locked = 0
+    for draw in range(3):
+        sims = simulate_parallel(geom, 17.5, 0.0, 37.0 * draw, 23.0 * draw, 3, 1.5, 0.3, 1.5, 20.0, rng)
+        T_true = sims[0].truth.T_scanner_from_fiducial
+        with pytest.raises(NoLock):
+            register([sims[1].slice], geom)
+        try:
+            reg = register([s.slice for s in sims], geom)
+        except NoLock:
+            continue
+        locked += 1
+        assert np.linalg.norm((reg.T_scanner_from_fiducial - T_true) @ centre) < 0.3
+    assert locked >= 2
