@@ -91,6 +91,8 @@ def tube_frames(model, T_F_from_I: np.ndarray, q: np.ndarray, tan_I: np.ndarray)
 #: Passes of the joint fit (each tube refitted on the pixels it shares with fitted neighbours, their sections
 #: subtracted): the second uses the neighbours' positions and levels from the first.
 JOINT_PASSES = 2
+#: ... using a shared pixel only where the neighbour's model (fluid fraction) is at most this.
+JOINT_NEIGHBOUR_LEVEL = 0.05
 
 # the products summed per window: (i, j) of [1, S, Sx, Sy] for i <= j, then each with the pixel value y
 _PAIR_I = np.array([0, 0, 0, 0, 1, 1, 1, 2, 2, 3, 0, 1, 2, 3])
@@ -357,11 +359,26 @@ def _joint_pass(model, T_F_from_I, q, tan, found, pixels, pixel_spacing_mm, slic
     gain[sel] = a
     fitted_at = q.copy()
     fitted_at[sel] = at[sel]
+    # only a neighbour's faint reach is used: where its model is above JOINT_NEIGHBOUR_LEVEL the subtraction would
+    # carry its partial-volume model error (largest at steep, elongated sections) into the tube's fit
+    neighbours = Windows(jw.rows[nb_p], jw.cols[nb_p], nb_k)
+    Sn0 = section_model(model, T_F_from_I, fitted_at, tan, neighbours, pixel_spacing_mm, slice_thickness_mm,
+                        thickness_samples, exact)[0]
+    strong = np.zeros(jw.owner.size, bool)
+    np.logical_or.at(strong, nb_p, Sn0 > JOINT_NEIGHBOUR_LEVEL)
+    if strong.any():
+        keep = ~strong
+        remap = np.cumsum(keep) - 1
+        pair_ok = keep[nb_p]
+        jw = Windows(jw.rows[keep], jw.cols[keep], jw.owner[keep])
+        nb_p, nb_k = remap[nb_p[pair_ok]], nb_k[pair_ok]
+        if nb_p.size == 0:
+            return sel, at, info, a, n_pix
+        neighbours = Windows(jw.rows[nb_p], jw.cols[nb_p], nb_k)
     y = np.asarray(pixels, dtype=float)[jw.rows, jw.cols]
     starts = np.flatnonzero(np.r_[True, jw.owner[1:] != jw.owner[:-1]])
     S, Sx, Sy = section_model(model, T_F_from_I, q, tan, jw, pixel_spacing_mm, slice_thickness_mm,
                               thickness_samples, exact)
-    neighbours = Windows(jw.rows[nb_p], jw.cols[nb_p], nb_k)
     for _ in range(JOINT_PASSES):
         Sn = section_model(model, T_F_from_I, fitted_at, tan, neighbours, pixel_spacing_mm, slice_thickness_mm,
                            thickness_samples, exact)[0]
