@@ -89,8 +89,8 @@ def tube_frames(model, T_F_from_I: np.ndarray, q: np.ndarray, tan_I: np.ndarray)
 
 
 #: Passes of the joint fit (each tube refitted on the pixels it shares with fitted neighbours, their sections
-#: subtracted): the second uses the neighbours' positions and levels from the first.
-JOINT_PASSES = 2
+#: subtracted; a second pass, with the neighbours' refitted positions, changed no figure of the study poses) ...
+JOINT_PASSES = 1
 #: ... using a shared pixel only where the neighbour's model (fluid fraction) is at most this.
 JOINT_NEIGHBOUR_LEVEL = 0.05
 
@@ -107,6 +107,7 @@ class Windows:
     rows: np.ndarray
     cols: np.ndarray
     owner: np.ndarray
+    shared: bool = True  # some pixel was left out for a neighbouring tube's sake (the joint pass has work)
 
 
 def section_windows(model, q: np.ndarray, tan: np.ndarray, found: np.ndarray, todo: np.ndarray, shape,
@@ -122,9 +123,10 @@ def section_windows(model, q: np.ndarray, tan: np.ndarray, found: np.ndarray, to
     rr, cc, own, hit, far, _ = _window_pixels(model, q, tan, found, todo, shape, pixel_spacing_mm,
                                               slice_thickness_mm, margin_px)
     keep = ~(hit | far).any(axis=1)
+    shared = bool((hit.any(axis=1) & ~far.any(axis=1)).any())
     if len(footprints) and assignment is not None:
         _drop_foreign_blobs(keep, rr, cc, own, assignment, footprints)
-    return Windows(rr[keep], cc[keep], own[keep])
+    return Windows(rr[keep], cc[keep], own[keep], shared)
 
 
 def _window_pixels(model, q, tan, found, todo, shape, pixel_spacing_mm, slice_thickness_mm: float, margin_px: float):
@@ -330,7 +332,7 @@ def fit_sections(model, T_F_from_I: np.ndarray, assignment: np.ndarray, pixels: 
         if sel.size == 0:
             return SectionFit(q, out_pos, out_info, out_gain, n_pix, fitted), windows
         at[sel] += shift
-    if joint and sel.size >= 2 and int(shift_iterations) <= 1:
+    if joint and windows.shared and exact and sel.size >= 2 and int(shift_iterations) <= 1:
         sel, at, info, a, n_pix = _joint_pass(model, T_F_from_I, q, tan, found, pixels, pixel_spacing_mm,
                                               slice_thickness_mm, thickness_samples, exact, noise_sigma, assignment,
                                               footprints, margin_px, sel, at, info, a, n_pix)
