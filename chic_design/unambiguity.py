@@ -13,7 +13,7 @@ import math
 import numpy as np
 
 from chic_register.envelope import plane_crossings
-from chic_register.geometry import FiducialGeometry, LineTube
+from chic_register.geometry import FiducialGeometry
 
 from .feasibility_report import Finding, Symmetry
 from .tilt_search import _runs
@@ -27,7 +27,7 @@ def helix_quadrant_crossings(geom: FiducialGeometry, step_mm: float = 0.05) -> t
     """Helices whose angle crosses the angle of a straight tube within their common z extent."""
     out = []
     for h in (t for t in geom.tubes if t.role == "helix"):
-        for line in (t for t in geom.tubes if isinstance(t, LineTube)):
+        for line in (t for t in geom.tubes if not t.curved):
             z0 = max(h.z_range[0], line.z_range[0])
             z1 = min(h.z_range[1], line.z_range[1])
             if z1 <= z0 or line.z_range[1] - line.z_range[0] < 1e-9:

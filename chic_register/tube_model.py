@@ -17,7 +17,7 @@ from dataclasses import dataclass
 
 import numpy as np
 
-from .geometry import FiducialGeometry, HelixTube, LineTube, content_sha256
+from .geometry import FiducialGeometry, content_sha256
 
 
 @dataclass(frozen=True, eq=False)
@@ -83,12 +83,12 @@ class TubeModel:
         angle, rad_axis = nan.copy(), np.zeros(K)
         for k, t in enumerate(geom.tubes):
             z_lo[k], z_hi[k] = t.z_range
-            if isinstance(t, HelixTube):
+            if t.curved:  # a helix (the Tube protocol's only curved kind)
                 is_helix[k] = True
                 radius[k], th0[k] = t.radius, math.radians(t.theta0_deg)
                 om[k], z0[k] = math.radians(t.pitch_deg_per_mm), t.z0
                 rad_axis[k] = t.radius
-            elif isinstance(t, LineTube):
+            else:
                 p0[k], d[k] = t.p0, np.subtract(t.p1, t.p0)
                 direction = t.direction
                 mid = (np.asarray(t.p0) + np.asarray(t.p1)) / 2
