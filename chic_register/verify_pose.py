@@ -102,6 +102,9 @@ RIVAL_MARGIN = 50.0
 #: partial volume, fluid spread in a printed channel make blobs 0.7-2.5x the tube): the Gaussian point spread
 #: sigmas tried, in tube radii (0.15 r barely widens a section; 2 r is a blob ~2.7x the tube's width).
 PSF_SIGMAS_RADII = (0.15, 0.25, 0.35, 0.5, 0.7, 1.0, 1.4, 2.0)
+#: A fitted point spread below this (sigma, pixels) is no blur the image can show: the sharp model's refusal stands
+#: (in the wide-blob hunt a 0.3 px "blur" turned a marginal shape refusal into a pose 0.52 deg off).
+PSF_MIN_PX = 0.5
 #: Straight tubes this close in angle after a turn about the axis count as mapped onto each other (the turn is a
 #: near-symmetry whose pose is tried as a rival).
 SYMMETRY_TOL_DEG = 3.0
@@ -325,6 +328,8 @@ def verify_slice(geom, model, T_F_from_I: np.ndarray, pixels: np.ndarray, spacin
         # section more across its width than along its length: the aspect test misreads it as a spacing error)
         if not ({"shape_residual", "n_tubes", "spacing_ratio"} & set(exc.detail)) or not PSF_SIGMAS_RADII:
             raise
+        if envelope != "ok":  # a blurred model is weaker evidence: only where the design's envelope holds
+            raise
         # the blobs may be wider than the tubes drawn (point spread, partial volume, fluid in a printed channel):
         # fit a Gaussian point spread to the matched sections and judge the blurred model by the same rules
         r_px = 0.5 * float(np.median(model.diameter_mm)) / px
@@ -336,7 +341,7 @@ def verify_slice(geom, model, T_F_from_I: np.ndarray, pixels: np.ndarray, spacin
 
         psf = fit_psf(wide, {int(k) for k in np.flatnonzero(assignment >= 0)},
                       [f * r_px for f in PSF_SIGMAS_RADII], misfit)
-        if psf is None:
+        if psf is None or psf < PSF_MIN_PX:  # no blur the pixels can show: the sharp model's verdict stands
             raise
         try:
             return assess(*blurred_windows(wide, wide_canvas, psf), psf)
