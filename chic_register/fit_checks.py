@@ -14,7 +14,8 @@ import math
 
 import numpy as np
 
-from .solve import plane_crossings
+from .roots import bracketed_root
+from .tube_model import _adjoint, _crossing_jacobian, plane_crossings
 
 #: Default trust limits (SolveOptions.trust_tre_mm / trust_rot_deg): the predicted error (TRE at the frame centre,
 #: rotation) ...
@@ -53,8 +54,6 @@ def pose_precision(model, fit, Ss, pixel_mm: float, exclude=None):
     tube ids that are no evidence (merged sections).
     """
     from .pose import invert
-    from .solve import _adjoint, _crossing_jacobian
-
     Js, n, sq = [], 0, 0.0
     for j, S in enumerate(Ss):
         q, tan, _, _ = plane_crossings(model, fit.T_F_from_scanner @ S, margin_mm=1e-9)
@@ -124,8 +123,6 @@ def gamma_p(a: float, x: float) -> float:
 
 def gamma_p_inverse(a: float, p: float) -> float:
     """The x with ``gamma_p(a, x) = p`` (``scipy.special.gammaincinv``), for 0 < p < 1."""
-    from .geometry import bracketed_root
-
     hi = a + 10.0 * math.sqrt(a) + 10.0
     while gamma_p(a, hi) < p:
         hi *= 2.0
@@ -147,8 +144,6 @@ def stretch_test(model, fit, xys, Ss):
     residuals are whitened as the fit weighed them (``fit.measurements``).
     """
     from .pose import invert
-    from .solve import _adjoint, _crossing_jacobian
-
     meas = getattr(fit, "measurements", None)
     Jp, Js, rs = [], [], []
     for j, S in enumerate(Ss):

@@ -30,9 +30,10 @@ def gaussian_blur(img: np.ndarray, sigma_px: float) -> np.ndarray:
 
 
 def blurred_windows(wins, canvas, sigma_px: float):
-    """The verification's tube windows (own and neighbours' renders) and its model image blurred by ``sigma_px``."""
+    """The verification's tube windows (own and neighbours' renders) and its model image blurred by ``sigma_px``
+    (``canvas`` None: the windows only)."""
     out = [type(w)(w.k, w.r0, w.c0, gaussian_blur(w.own, sigma_px), gaussian_blur(w.others, sigma_px)) for w in wins]
-    return out, gaussian_blur(canvas, sigma_px)
+    return out, None if canvas is None else gaussian_blur(canvas, sigma_px)
 
 
 def fit_psf(wins, matched, sigmas_px, misfit) -> float | None:
@@ -40,7 +41,7 @@ def fit_psf(wins, matched, sigmas_px, misfit) -> float | None:
     of the ``matched`` tubes (``misfit`` returns inf for a window it cannot fit); None if none fits."""
     best, best_total = None, math.inf
     for sigma in sigmas_px:
-        blurred, _ = blurred_windows(wins, np.zeros((1, 1)), sigma)
+        blurred, _ = blurred_windows(wins, None, sigma)
         total = sum(misfit(w) for w in blurred if w.k in matched)
         if total < best_total:
             best, best_total = sigma, total

@@ -44,6 +44,8 @@ from dataclasses import dataclass
 
 import numpy as np
 
+from .tube_model import _section_extent, plane_crossings
+
 
 @dataclass(frozen=True, eq=False)
 class SectionFit:
@@ -133,8 +135,6 @@ def _window_pixels(model, q, tan, found, todo, shape, pixel_spacing_mm, slice_th
     """Every tube in ``todo``'s bounding-box pixels ``(rows, cols, owner)`` (P,), which other found tubes' grown
     section boxes reach each (``hit`` (P, n_others)), the box corners beyond the tube's own grown box (``far``),
     and the other tubes' indices."""
-    from .solve import _section_extent  # (solve imports this module lazily)
-
     rs, cs = (float(v) for v in pixel_spacing_mm)
     H, W = shape
     half_len, _, u = _section_extent(model, tan, slice_thickness_mm)
@@ -307,8 +307,6 @@ def fit_sections(model, T_F_from_I: np.ndarray, assignment: np.ndarray, pixels: 
     sections are subtracted (:func:`_joint_pass`). Returns the fit and the
     windows. See the module docstring.
     """
-    from .solve import plane_crossings  # (solve imports this module lazily)
-
     q, tan, _, found = plane_crossings(model, T_F_from_I, margin_mm=1e-9)
     K = q.shape[0]
     out_pos = np.full((K, 2), np.nan)

@@ -69,8 +69,10 @@ from .fit_checks import (  # noqa: F401
 )
 from .pose import slice_angles
 from .psf import blurred_windows, fit_psf, gaussian_blur
+from .refine import refine
 from .render import render_tubes
-from .solve import _near_prior, _section_extent, plane_crossings
+from .trust import _distinct, _near_prior, _to_xy_mm
+from .tube_model import _section_extent, plane_crossings
 
 #: A present tube's fitted fluid level, as a share of the median of the tubes the solver matched. A correctly
 #: placed section (partial volume and slab smear are in the model) gives ~1 at any SNR above a few; a section
@@ -400,15 +402,14 @@ def verify_fit(geom, model, fit, rivals, slices, Ss, blob_sets, opts) -> list[Sl
     (``solve._Fit`` in the slice's own scanner frame, as ``fit``). Raises
     :class:`NoLock` with the first failure; returns one :class:`SliceCheck` per slice.
     """
-    from .solve import _distinct, _to_xy_mm
-
+    xys = [_to_xy_mm(b, sl) for sl, b in zip(slices, blob_sets)]
     out, contenders = [], []
     for j, (sl, S, b) in enumerate(zip(slices, Ss, blob_sets)):
         T_F_from_I = fit.T_F_from_scanner @ S
         check = verify_slice(geom, model, T_F_from_I, np.asarray(sl.pixels), sl.pixel_spacing_mm,
                              float(sl.slice_thickness_mm), b, fit.assignments[j], sl.source)
         px = float(max(sl.pixel_spacing_mm))
-        turned = _turned_rivals(model, fit.T_F_from_scanner, _to_xy_mm(b, sl), S, px)
+        turned = _turned_rivals(model, fit.T_F_from_scanner, xys[j], S, px)
         for other in list(rivals[j] if rivals is not None else ()) + turned:
             if (other.n_matched < opts.min_tubes or other.rms_mm > opts.max_rms_px * px
                     or not _distinct(other.T_F_from_scanner, fit.T_F_from_scanner, model)
@@ -419,9 +420,6 @@ def verify_fit(geom, model, fit, rivals, slices, Ss, blob_sets, opts) -> list[Sl
     # a rival pose must explain every slice of the series nearly as well: the evidence of all slices adds up; a
     # rival one slice offered is first refined on the blobs of all of them (it may fall back onto the pose)
     if len(slices) > 1 and contenders:
-        from .solve import refine
-
-        xys = [_to_xy_mm(b, sl) for sl, b in zip(slices, blob_sets)]
         gate = max(float(model.diameter_mm.max()), 2 * max(float(max(sl.pixel_spacing_mm)) for sl in slices))
         refined = [refine(model, xys, Ss, T, gates_mm=(gate, 0.6 * gate)) for T in contenders]
         contenders = [r.T_F_from_scanner for r in refined
@@ -436,7 +434,7 @@ def verify_fit(geom, model, fit, rivals, slices, Ss, blob_sets, opts) -> list[Sl
             raise NoLock(f"{where}: ambiguous: a distinct pose (depth {a.depth_mm:.1f} mm, tilt {a.tilt_deg:.1f} deg) "
                          f"explains the image{'s' if len(slices) > 1 else ''} nearly as well (residual larger by "
                          f"{gap:.3g}; margin needed {margin:.3g})", {"n_tubes": int(fit.n_matched)})
-    scale, _, p = stretch_test(model, fit, [_to_xy_mm(b, sl) for sl, b in zip(slices, blob_sets)], Ss)
+    scale, _, p = stretch_test(model, fit, xys, Ss)
     if p < STRETCH_P and float(np.max(np.abs(scale))) > STRETCH_MIN:
         axis = "columns (x)" if abs(scale[0]) >= abs(scale[1]) else "rows (y)"
         worst = float(scale[0] if abs(scale[0]) >= abs(scale[1]) else scale[1])
@@ -463,8 +461,6 @@ def _turned_rivals(model, T_F_from_scanner: np.ndarray, xy: np.ndarray, S: np.nd
     offered (the 90 deg turns of four diametric tubes, say); refined against
     the same blobs, it is a rival for :func:`_compare_rival`.
     """
-    from .solve import refine
-
     ang = model.angle_rad[model.axial]
     tol = math.radians(SYMMETRY_TOL_DEG)
     turns = []
