@@ -40,9 +40,15 @@ from dataclasses import dataclass, field
 
 import numpy as np
 
-from .accuracy import _centroid_refine, _section_refine, centroid_offsets, template_shifts  # noqa: F401
+from .accuracy import (  # noqa: F401
+    _centroid_refine,
+    _section_refine,
+    centroid_offsets,
+    template_shifts,
+)
 from .detect import Blobs, detect_blobs
 from .errors import AmbiguousFit, ImprecisePose, NoLock
+from .fit_checks import ROT_TOL_DEG, TRE_TOL_MM
 from .geometry import FiducialGeometry
 from .hypotheses import (  # noqa: F401  (the first-guess stage; its public names stay importable from here)
     Ellipse,
@@ -57,9 +63,22 @@ from .pose import invert, slice_angles
 from .refine import _assign, _Fit, _unexplained, refine  # noqa: F401
 from .single_slice import _solve_one
 from .slices import Slice
-from .trust import _check_trust, _depth_tube_name, _distinct, _near_prior, _resolution_mm, _to_xy_mm  # noqa: F401
+from .trust import (  # noqa: F401
+    _check_trust,
+    _depth_tube_name,
+    _distinct,
+    _near_prior,
+    _resolution_mm,
+    _to_xy_mm,
+)
 from .tube_model import (  # noqa: F401
-    TubeModel, _adjoint, _crossing_jacobian, _exp_se3, _section_extent, plane_crossings, prepare_geometry,
+    TubeModel,
+    _adjoint,
+    _crossing_jacobian,
+    _exp_se3,
+    _section_extent,
+    plane_crossings,
+    prepare_geometry,
 )
 
 # --------------------------------------------------------------------------- public API
@@ -219,8 +238,8 @@ class SolveOptions:
     section_thickness_samples: int = 5
     section_max_shift_px: float = 1.0
     verify: bool = True
-    trust_tre_mm: float = 1.0
-    trust_rot_deg: float = 0.75
+    trust_tre_mm: float = TRE_TOL_MM  # (why these limits: chic_register.fit_checks)
+    trust_rot_deg: float = ROT_TOL_DEG
     refine_when_imprecise: bool = False
     max_tre_mm: float = math.inf
     uncertainty: bool = True

@@ -444,7 +444,7 @@ def verify_fit(geom, model, fit, rivals, slices, Ss, blob_sets, opts) -> list[Sl
     px = min(max(sl.pixel_spacing_mm) for sl in slices)
     tre, rot = pose_precision(model, fit, Ss, px, exclude=[c.merged for c in out])
     k = PRECISION_SIGMAS
-    tre_tol, rot_tol = getattr(opts, "trust_tre_mm", TRE_TOL_MM), getattr(opts, "trust_rot_deg", ROT_TOL_DEG)
+    tre_tol, rot_tol = opts.trust_tre_mm, opts.trust_rot_deg
     if k * tre > tre_tol or k * rot > rot_tol:
         raise ImprecisePose(f"the pose is not precise enough to trust: {k:g} sigma of its predicted error is "
                             f"{k * tre:.2f} mm at the frame centre and {k * rot:.2f} deg (limits {tre_tol:g} mm, "
