@@ -476,6 +476,11 @@ def verify_fit(geom, model, fit, rivals, slices, Ss, blob_sets, opts, precision=
             raise NoLock(f"{where}: ambiguous: a distinct pose (depth {a.depth_mm:.1f} mm, tilt {a.tilt_deg:.1f} deg) "
                          f"explains the image{'s' if len(slices) > 1 else ''} nearly as well (residual larger by "
                          f"{gap:.3g}; margin needed {margin:.3g})", {"n_tubes": int(fit.n_matched)})
+    if precision is not None:  # a pose fitted through a blurred model is weaker evidence: only inside the envelope
+        for sl, c in zip(slices, out):
+            if c.envelope != "ok":
+                raise NoLock(f"{sl.source}: the pose fitted to the blurred sections lies outside the design's usable "
+                             f"envelope ({c.envelope}): wide blobs there cannot be told apart", {"envelope": c.envelope})
     scale, _, p = stretch_test(model, fit, xys, Ss)
     if p < STRETCH_P and float(np.max(np.abs(scale))) > STRETCH_MIN:
         axis = "columns (x)" if abs(scale[0]) >= abs(scale[1]) else "rows (y)"
