@@ -15,7 +15,9 @@ model. The pixels of the boxes are fitted by ``b + sum_k a_k M_k(pose)``
 (one fluid level per tube, an offset) with Gauss-Newton over the six pose
 parameters (the model's pose derivatives by forward differences; the
 levels and offset solved jointly each step), after choosing the blur that
-explains the pixels best. The pose's covariance follows from the same
+explains the pixels best, and a stretch of the image along its rows and
+columns (a wrong pixel spacing would otherwise be absorbed by a tilt: the
+solver refuses a significant one). The pose's covariance follows from the same
 normal equations with the noise from the residuals, over thousands of
 pixels (the sandwich estimate, each pixel's squared residual its variance),
 so a model that does not fit widens it.
@@ -39,11 +41,15 @@ REACH_SIGMAS = 3.0
 #: Gauss-Newton iterations at most, and the step (deg, mm) below which it has converged.
 ITERATIONS = 8
 DONE_DEG, DONE_MM = 1e-3, 1e-3
-#: Forward-difference steps: rad for the turns, mm for the shifts, pixels for the blur.
-STEP_RAD, STEP_MM, STEP_PX = 2e-4, 2e-3, 1e-2
+#: Forward-difference steps: rad for the turns, mm for the shifts, pixels for the blur, the stretch's share.
+STEP_RAD, STEP_MM, STEP_PX, STEP_STRETCH = 2e-4, 2e-3, 1e-2, 1e-3
 #: Blobs this many times wider than the channels (median over the slices' measured widths) take the blurred fit
 #: (:func:`blob_width_ratio` reads 0.99-1.05 for sharp sections, 1.14-1.36 for blobs 1.5x, 1.2-1.7 for 2x).
 WIDE_RATIO = 1.15
+#: The image's stretch is fitted within +-this share (a wrong pixel spacing; the verification refuses above 2 %).
+MAX_STRETCH = 0.3
+#: A fitted stretch this many of its standard deviations from zero (and above fit_checks.STRETCH_MIN) is refused.
+STRETCH_SIGMAS = 3.0
 #: Sub-planes across the slab for the sharp model (the blur hides finer detail).
 THICKNESS_SAMPLES = 3
 
@@ -51,8 +57,9 @@ THICKNESS_SAMPLES = 3
 @dataclass(frozen=True, eq=False)
 class BlurredFit:
     """The outcome: ``T_F_from_scanner`` (4x4), the point spread (``psf_px``, sigma in pixels of the first slice),
-    the pose's 6x6 covariance (``covariance``, twist (rad, mm) about ``centre_scanner`` in the scanner frame),
-    the residual noise sigma and the number of pixels fitted."""
+    the pose's 6x6 covariance (``covariance``, twist (rad, mm) about ``centre_scanner`` in the scanner frame; the
+    stretch's uncertainty included), the image's fitted ``stretch`` (x = columns, y = rows: the share by which the
+    pixel spacing looks too small) and its standard deviation, the residual noise sigma and the pixel count."""
 
     T_F_from_scanner: np.ndarray
     psf_px: float
@@ -60,6 +67,8 @@ class BlurredFit:
     centre_scanner: np.ndarray
     noise_sigma: float
     n_pixels: int
+    stretch: tuple = (0.0, 0.0)
+    stretch_sd: tuple = (0.0, 0.0)
 
     def precision(self, length_mm: float) -> tuple[float, float]:
         """1-sigma bounds ``(TRE at the frame centre (0, 0, L/2) in mm, rotation in deg)``: the worst direction."""
@@ -107,6 +116,7 @@ class _Problem:
 
     def __init__(self, model, slices, Ss, boxes, sigma_px: float, blob_sets, assignments):
         self.model, self.slices, self.Ss, self.boxes, self.sigma_px = model, slices, Ss, boxes, sigma_px
+        self.stretch = np.zeros(2)  # (x, y): the pixel spacing along columns and rows scaled by 1 + stretch
         self.tubes = sorted({b.tube for b in boxes})
         col = {k: i for i, k in enumerate(self.tubes)}
         # the fitted pixels: the union of the boxes, per slice (flat indices, sorted); per slice the boxes' pixels
@@ -152,7 +162,9 @@ class _Problem:
             sl = self.slices[j]
             T = X @ self.Ss[j]
             q, tan, _, _ = plane_crossings(self.model, T, margin_mm=1e-9)
-            sharp = section_model(self.model, T, q, tan, win, sl.pixel_spacing_mm, float(sl.slice_thickness_mm),
+            rs, cs = (float(v) for v in sl.pixel_spacing_mm)
+            spacing = (rs * (1.0 + self.stretch[1]), cs * (1.0 + self.stretch[0]))
+            sharp = section_model(self.model, T, q, tan, win, spacing, float(sl.slice_thickness_mm),
                                   THICKNESS_SAMPLES)[0]
             start = 0
             for b, idx, c in zip(mine, where, cols):
@@ -179,9 +191,10 @@ def _perturb(X: np.ndarray, xi: np.ndarray, centre: np.ndarray) -> np.ndarray:
 
 
 def _jacobian(prob: _Problem, X: np.ndarray, coef: np.ndarray, centre: np.ndarray, base: np.ndarray) -> np.ndarray:
-    """(P, 7) derivative of the model ``M a`` (levels ``coef`` held) along the six twists and the blur sigma."""
+    """(P, 9) derivative of the model ``M a`` (levels ``coef`` held) along the six twists, the blur sigma and the
+    image's stretch along x and y."""
     steps = np.array([STEP_RAD] * 3 + [STEP_MM] * 3)
-    J = np.empty((prob.y.size, 7))
+    J = np.empty((prob.y.size, 9))
     for i in range(6):
         xi = np.zeros(6)
         xi[i] = steps[i]
@@ -190,6 +203,10 @@ def _jacobian(prob: _Problem, X: np.ndarray, coef: np.ndarray, centre: np.ndarra
     prob.sigma_px = sigma + STEP_PX
     J[:, 6] = (prob.columns(X) @ coef - base) / STEP_PX
     prob.sigma_px = sigma
+    for i in range(2):
+        prob.stretch[i] += STEP_STRETCH
+        J[:, 7 + i] = (prob.columns(X) @ coef - base) / STEP_STRETCH
+        prob.stretch[i] -= STEP_STRETCH
     return J
 
 
@@ -229,39 +246,59 @@ def blurred_fit(model: TubeModel, T_F_from_scanner: np.ndarray, slices, Ss, blob
     # the turns are about the first slice's mean section (in scanner mm): a turn then barely shifts the sections
     q0 = plane_crossings(model, X @ Ss[0], margin_mm=1e-9)[0][prob.tubes]
     centre = (Ss[0] @ np.array([*q0.mean(axis=0), 0.0, 1.0]))[:3]
+    # first with the image's stretch free (the test of the pixel spacing), then with the spacing as given: the pose
+    # and its covariance (a stretch below the refusal threshold is the scanner's calibration, not the pose's)
+    X, stretch_fit = _gauss_newton(prob, X, centre, sigma, n_free=9)
+    if stretch_fit is None:
+        return None
+    stretch, stretch_sd = prob.stretch.copy(), stretch_fit[1]
+    prob.stretch = np.zeros(2)
+    X, fitted = _gauss_newton(prob, X, centre, sigma, n_free=7)
+    if fitted is None:
+        return None
+    cov, _, noise = fitted
+    return BlurredFit(X, float(prob.sigma_px), cov[:6, :6], centre, noise, int(prob.y.size),
+                      tuple(float(v) for v in stretch), tuple(float(v) for v in stretch_sd))
+
+
+def _gauss_newton(prob: _Problem, X: np.ndarray, centre: np.ndarray, sigma0: float, n_free: int):
+    """Gauss-Newton of the pose, the blur (within half of ``sigma0`` either way) and, with ``n_free`` 9, the
+    stretch: ``(X, (covariance (n_free, n_free), stretch sd (2,), noise sigma))``, the second None if singular."""
     M = prob.columns(X)
     coef, r = prob.linear(M)
     ssr = float(r @ r)
     for _ in range(ITERATIONS):
-        J = _jacobian(prob, X, coef, centre, M @ coef)
+        J = _jacobian(prob, X, coef, centre, M @ coef)[:, :n_free]
         A = np.column_stack([J, prob.offsets, M])
-        step = np.linalg.lstsq(A, r, rcond=None)[0][:7]
+        step = np.linalg.lstsq(A, r, rcond=None)[0][:n_free]
         X_new = _perturb(X, step[:6], centre)
-        sigma_new = float(np.clip(prob.sigma_px + step[6], 0.5 * sigma, 1.5 * sigma))
-        sigma_old, prob.sigma_px = prob.sigma_px, sigma_new
+        old = prob.sigma_px, prob.stretch.copy()
+        prob.sigma_px = float(np.clip(prob.sigma_px + step[6], 0.5 * sigma0, 1.5 * sigma0))
+        if n_free > 7:
+            prob.stretch = np.clip(prob.stretch + step[7:9], -MAX_STRETCH, MAX_STRETCH)
         M_new = prob.columns(X_new)
         coef_new, r_new = prob.linear(M_new)
         ssr_new = float(r_new @ r_new)
         if not ssr_new < ssr:
-            prob.sigma_px = sigma_old
+            prob.sigma_px, prob.stretch = old
             break
         X, M, coef, r, ssr = X_new, M_new, coef_new, r_new, ssr_new
         if math.degrees(float(np.linalg.norm(step[:3]))) < DONE_DEG and float(np.linalg.norm(step[3:6])) < DONE_MM:
             break
-    J = _jacobian(prob, X, coef, centre, M @ coef)
+    J = _jacobian(prob, X, coef, centre, M @ coef)[:, :n_free]
     A = np.column_stack([J, prob.offsets, M])
     dof = max(prob.y.size - A.shape[1], 1)
-    noise = math.sqrt(ssr / dof)
     try:
         N_inv = np.linalg.inv(A.T @ A)
     except np.linalg.LinAlgError:
-        return None
+        return X, None
     # the sandwich (heteroscedasticity-robust) covariance: a magnitude image's noise is smaller in the background
     # (Rayleigh, 0.66 sigma) than on the fluid (sigma), where the pose's information is; one pooled variance would
     # understate the error by up to 1.5x (measured), the pixels' own squared residuals do not
     meat = (A * (r * r)[:, None]).T @ A
-    cov = (N_inv @ meat @ N_inv)[:6, :6] * (prob.y.size / dof)
-    return BlurredFit(X, float(prob.sigma_px), cov, centre, noise, int(prob.y.size))
+    cov = ((N_inv @ meat @ N_inv) * (prob.y.size / dof))[:n_free, :n_free]
+    sd = np.sqrt(np.maximum(np.diag(cov)[7:9], 0.0)) if n_free > 7 else np.zeros(2)
+    return X, (cov, sd, math.sqrt(ssr / dof))
 
 
 def blob_width_ratio(model: TubeModel, slices, blob_sets, assignments) -> float:
@@ -286,12 +323,13 @@ def blob_width_ratio(model: TubeModel, slices, blob_sets, assignments) -> float:
             total = float(w.sum())
             if not total > 0:
                 continue
-            rr, cc = np.mgrid[:mask.shape[0], :mask.shape[1]]
-            y, x = rr * rs, cc * cs
-            my, mx = float((w * y).sum() / total), float((w * x).sum() / total)
-            cyy = float((w * (y - my) ** 2).sum() / total) - rs * rs / 12
-            cxx = float((w * (x - mx) ** 2).sum() / total) - cs * cs / 12
-            cxy = float((w * (x - mx) * (y - my)).sum() / total)
+            y = np.arange(mask.shape[0]) * rs
+            x = np.arange(mask.shape[1]) * cs
+            wy, wx = w.sum(axis=1), w.sum(axis=0)  # the marginals give the means and variances
+            my, mx = float(wy @ y) / total, float(wx @ x) / total
+            cyy = float(wy @ (y - my) ** 2) / total - rs * rs / 12
+            cxx = float(wx @ (x - mx) ** 2) / total - cs * cs / 12
+            cxy = float((y - my) @ w @ (x - mx)) / total
             minor = 0.5 * (cxx + cyy) - math.sqrt(0.25 * (cxx - cyy) ** 2 + cxy * cxy)
             if minor > 0:
                 ratios.append(4.0 * math.sqrt(minor) / float(model.diameter_mm[k]))

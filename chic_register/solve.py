@@ -46,11 +46,11 @@ from .accuracy import (  # noqa: F401
     centroid_offsets,
     template_shifts,
 )
-from .blurred_fit import WIDE_RATIO, blob_width_ratio, blurred_fit
+from .blurred_fit import STRETCH_SIGMAS, WIDE_RATIO, blob_width_ratio, blurred_fit
 from .detect import Blobs, detect_blobs
 from .dropout import fill_dropouts
 from .errors import AmbiguousFit, ImprecisePose, NoLock
-from .fit_checks import ROT_TOL_DEG, TRE_TOL_MM
+from .fit_checks import ROT_TOL_DEG, STRETCH_MIN, TRE_TOL_MM
 from .geometry import FiducialGeometry
 from .hypotheses import (  # noqa: F401  (the first-guess stage; its public names stay importable from here)
     Ellipse,
@@ -363,6 +363,14 @@ def register(slices: list[Slice], geom: FiducialGeometry, *, options: SolveOptio
                           assign0=best.assignments)  # the blob residuals at the pose, for the report
             # a pixel fit pulled more than 1 mm or 1 degree from the blobs' pose is not trusted (something in the
             # boxes the model does not have: tissue, another object): the blobs' pose stands, judged as it is
+            stretch, sd = np.array(blurred.stretch), np.array(blurred.stretch_sd)
+            worst = int(np.argmax(np.abs(stretch)))
+            if abs(stretch[worst]) > STRETCH_MIN and abs(stretch[worst]) > STRETCH_SIGMAS * sd[worst]:
+                axis = ("columns (x)", "rows (y)")[worst]
+                raise NoLock(f"the pixels fit best with the image stretched {100 * stretch[worst]:+.1f} % along its "
+                             f"{axis} ({abs(stretch[worst]) / max(sd[worst], 1e-12):.1f} sigma): the pixel spacing "
+                             f"looks wrong; check --pixel-spacing or the file's PixelSpacing",
+                             {"stretch": [round(float(v), 4) for v in stretch]})
             if not _distinct(blurred.T_F_from_scanner, best.T_F_from_scanner, model):
                 best = dataclasses.replace(fine, T_F_from_scanner=blurred.T_F_from_scanner)
                 precision = blurred.precision(model.length_mm)

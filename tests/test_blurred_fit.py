@@ -106,3 +106,14 @@ def test_a_blurred_fit_outside_the_envelope_is_refused():
     sl, _, _ = hunt.build_case(case, geoms["neuro"])
     with pytest.raises(NoLock, match="usable envelope"):
         register([sl], geoms["neuro"])
+
+
+def test_a_wrong_pixel_spacing_is_seen_by_the_blurred_fit(neuro_geometry):
+    """A 2x-blurred slice declared with a column spacing 6 % off either way: the fitted stretch of the image names it
+    (the wide-blob hunt's case 1659, 14 % off, was a 4 mm false lock before the stretch was fitted)."""
+    sl, _, _ = _blurred(neuro_geometry, (22, 35, 60, 20), 2.0, 30.0, 4)
+    rs, cs = sl.pixel_spacing_mm
+    for factor, sign in ((0.94, r"\+"), (1.06, "-")):
+        wrong = dataclasses.replace(sl, pixel_spacing_mm=(rs, cs * factor))
+        with pytest.raises(NoLock, match=sign + r"[56]\.\d % along its columns \(x\) \(\d+\.\d sigma\)"):
+            register([wrong], neuro_geometry)
