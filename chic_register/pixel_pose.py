@@ -100,6 +100,17 @@ def _group_fit(R: np.ndarray, Y: np.ndarray, w: np.ndarray, group: np.ndarray, G
     return Y - np.einsum("pm,pmn->pn", R, coef[group]), coef
 
 
+def _weighted_fit(S: np.ndarray, y2: np.ndarray, w0: np.ndarray, sig2: float, group: np.ndarray, G: int):
+    """Per tube fit of the squared magnitudes ``y2`` (P, 1) on :func:`_regressors` of ``S`` with weights
+    ``1 / var(y^2) = 1 / (4 sigma^2 (A^2 + sigma^2))`` (``A^2 + sigma^2`` = the fitted mean less ``sigma^2``;
+    the mean from a first fit weighted ``w0``). Returns ``(residuals (P, 1), coefficients (G, 3, 1), weights)``."""
+    R = _regressors(S)
+    res = _group_fit(R, y2, w0, group, G)[0]
+    w = 1.0 / (4.0 * sig2 * np.maximum(y2[:, 0] - res[:, 0] - sig2, sig2))
+    res, coef = _group_fit(R, y2, w, group, G)
+    return res, coef, w
+
+
 def _regressors(S: np.ndarray) -> np.ndarray:
     """Per pixel ``[1, S, S^2]``: the squared magnitude of ``b + g S`` plus noise has mean ``c0 + c1 S + c2 S^2``."""
     return np.column_stack([np.ones_like(S), S, S * S])
@@ -148,10 +159,7 @@ def pixel_pose_refine(model: TubeModel, T_F_from_scanner: np.ndarray, Ss, slices
     y2 = (y * y)[:, None]
     sig2 = max(noise_sigma, 1e-12) ** 2
     m0 = _model_at(model, X, Ss_u, wins, sl_u, thickness_samples)
-    # weights: 1 / var(y^2) = 1 / (4 sigma^2 (A^2 + sigma^2)), A the noise-free magnitude (E[y^2] = A^2 + 2 sigma^2)
-    res, coef = _group_fit(_regressors(m0), y2, np.ones_like(m0), group, G)
-    w = 1.0 / (4.0 * sig2 * np.maximum(y2[:, 0] - res[:, 0] - sig2, sig2))
-    res, coef = _group_fit(_regressors(m0), y2, w, group, G)
+    res, coef, w = _weighted_fit(m0, y2, np.ones_like(m0), sig2, group, G)
     ssr0 = ssr = float(res[:, 0] ** 2 @ w)
     tried, moved = [], False
     info = np.zeros((6, 6))
@@ -177,9 +185,12 @@ def pixel_pose_refine(model: TubeModel, T_F_from_scanner: np.ndarray, Ss, slices
             break
         X_new = X @ P @ _exp_se3(xi) @ P_inv
         m_new = _model_at(model, X_new, Ss_u, wins, sl_u, thickness_samples)
-        res_new, coef_new = _group_fit(_regressors(m_new), y2, w, group, G)
+        res_new = _group_fit(_regressors(m_new), y2, w, group, G)[0]
         ssr_new = float(res_new[:, 0] ** 2 @ w)
         if not ssr_new < ssr:
             break
-        X, m0, res, coef, ssr, moved = X_new, m_new, res_new, coef_new, ssr_new, True
+        # kept: the weights follow the model at the new pose (compared at the old weights, so the test is fair)
+        X, m0, moved = X_new, m_new, True
+        res, coef, w = _weighted_fit(m0, y2, w, sig2, group, G)
+        ssr = float(res[:, 0] ** 2 @ w)
     return PixelPose(X, moved, tuple(tried), ssr0, ssr, info)
