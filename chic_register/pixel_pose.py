@@ -51,6 +51,8 @@ from .tube_model import TubeModel, _exp_se3, plane_crossings
 #: Forward-difference steps of the pose: rad for the turns, mm for the shifts (~1e-3 of a pixel at 15 mm).
 STEP_RAD = 1e-4
 STEP_MM = 1e-3
+#: The weights' noise floor, as a share of the fluid signal (SNR 100).
+MIN_NOISE = 0.01
 
 
 @dataclass(frozen=True, eq=False)
@@ -157,8 +159,12 @@ def pixel_pose_refine(model: TubeModel, T_F_from_scanner: np.ndarray, Ss, slices
     P_inv = invert(P)
     h = np.array([STEP_RAD] * 3 + [STEP_MM] * 3)
     y2 = (y * y)[:, None]
-    sig2 = max(noise_sigma, 1e-12) ** 2
     m0 = _model_at(model, X, Ss_u, wins, sl_u, thickness_samples)
+    # the weights' noise: at least MIN_NOISE of the fluid signal (a clean or synthetic image reads as noise ~0,
+    # which would weight the background pixels without bound)
+    coef1 = _group_fit(_regressors(m0), y2, np.ones_like(m0), group, G)[1][:, :, 0]
+    fluid = float(np.median(np.sqrt(np.maximum(coef1.sum(axis=1), 0.0))))
+    sig2 = max(noise_sigma, MIN_NOISE * fluid, 1e-12) ** 2
     res, coef, w = _weighted_fit(m0, y2, np.ones_like(m0), sig2, group, G)
     ssr0 = ssr = float(res[:, 0] ** 2 @ w)
     tried, moved = [], False
