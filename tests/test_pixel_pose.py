@@ -60,8 +60,8 @@ def test_a_step_longer_than_its_limit_is_rejected(neuro_geometry):
                             max_step_sigma=3.0, noise_sigma=0.05)
     assert not out.moved and np.array_equal(out.T_F_from_scanner, X0)
     assert len(out.step_sigma) == 1 and out.step_sigma[0] > 3.0  # 0.23 deg and 0.1 mm: many SDs at SNR 20
-    # and through the solver: a noise-free slice reads as sigma ~ 0, so every step is "long" and the section
-    # fit's (unbiased) pose stands
+    # and through the solver on the noise-free slice (noise read as ~0, floored at 1 % of the fluid for the
+    # weights): whether or not its step is kept, no bias
     reg = register([sim.slice], neuro_geometry, pixel_pose_steps=1)
     e = pose_errors(reg.T_scanner_from_fiducial, sim.truth.T_scanner_from_fiducial, sim.slice.T_scanner_from_image(),
                     TARGET)
