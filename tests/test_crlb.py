@@ -80,7 +80,7 @@ def test_bound_does_not_depend_on_the_difference_step(neuro_geometry, monkeypatc
     third-order term passed for tilt information (normal angle 0.133 deg at a
     1e-3 rad step, 0.21 deg at 1e-4; the Monte Carlo RMS of the solver there is
     0.22 deg)."""
-    import chic_register.crlb as crlb
+    from chic_register import crlb
 
     bounds = []
     for step_rad, step_mm in ((3e-4, 0.005), (3e-3, 0.05)):
