@@ -47,6 +47,7 @@ from .accuracy import (  # noqa: F401
     template_shifts,
 )
 from .detect import Blobs, detect_blobs
+from .dropout import fill_dropouts
 from .errors import AmbiguousFit, ImprecisePose, NoLock
 from .fit_checks import ROT_TOL_DEG, TRE_TOL_MM
 from .geometry import FiducialGeometry
@@ -107,10 +108,12 @@ class SliceResult:
     predicted_rc: dict = field(repr=False, default=None)
     ellipse: Ellipse | None = field(repr=False, default=None)
     missing_tubes: tuple[str, ...] = ()
+    filled_pixels: int = 0  # lost pixels (scattered exact zeros) filled before the solve (chic_register.dropout)
 
     def to_dict(self) -> dict:
         return {
             **({"missing_tubes": list(self.missing_tubes)} if self.missing_tubes else {}),
+            **({"filled_pixels": self.filled_pixels} if self.filled_pixels else {}),
             "source": self.source,
             "depth_mm": round(self.depth_mm, 6),
             "tilt_deg": round(self.tilt_deg, 6),
@@ -276,6 +279,7 @@ def register(slices: list[Slice], geom: FiducialGeometry, *, options: SolveOptio
     if not slices:
         raise NoLock("no slices given")
     t0 = time.perf_counter()
+    slices, filled = _fill_dropouts(slices)
     model, geom_sha = prepare_geometry(geom)
     blob_sets, xys = [], []
     for sl in slices:
@@ -417,6 +421,7 @@ def register(slices: list[Slice], geom: FiducialGeometry, *, options: SolveOptio
                           for i in np.flatnonzero(inside)},
             ellipse=per_slice[j][1],
             missing_tubes=checks[j].missing if checks else (),
+            filled_pixels=filled[sl.source] if sl.source in filled else 0,
         ))
     t3 = time.perf_counter()
     unc = None
@@ -434,6 +439,18 @@ def register(slices: list[Slice], geom: FiducialGeometry, *, options: SolveOptio
     timing = {"detect": (t1 - t0) * 1e3, "pose": (t2 - t1) * 1e3, "uncertainty": (t4 - t3) * 1e3,
               "total": (t4 - t0) * 1e3}
     return Registration("ok", T_sf, tuple(results), timing, geom.name, geom_sha, tuple(skipped), unc)
+
+
+def _fill_dropouts(slices: list[Slice]) -> tuple[list[Slice], dict]:
+    """The slices with their lost pixels filled (:mod:`chic_register.dropout`), and ``{source: n filled}``."""
+    out, filled = [], {}
+    for sl in slices:
+        pixels, n = fill_dropouts(sl.pixels)
+        if n:
+            sl = dataclasses.replace(sl, pixels=pixels)
+            filled[sl.source] = filled.get(sl.source, 0) + n
+        out.append(sl)
+    return out, filled
 
 
 def _worth_flattening(blobs: Blobs, model: TubeModel) -> bool:

@@ -25,7 +25,11 @@ slice (:func:`verify_fit`):
    there a wrong pose and a cut tube look alike.
 4. **Nothing bright unexplained on the tubes' circle**: a detected blob not
    explained by the model, lying where the plane meets the circle of tube
-   centres inside the body, means the pattern is not the one the pose says.
+   centres inside the body, may be a tube of another pose: the slice is
+   solved again without each blob the pose uses, and those poses are rivals
+   (6.). Outside the envelope, beside a missing tube, or with more than
+   :data:`MAX_STRAYS` such blobs, the pattern is not the one the pose says:
+   a refusal.
 5. **Pixel spacing**: the sections seen must have the size and aspect the
    pose predicts; a stretch of the image along rows or columns (a wrong
    ``--pixel-spacing``) shows as an anisotropic scale of every section
@@ -107,6 +111,9 @@ PSF_SIGMAS_RADII = (0.15, 0.25, 0.35, 0.5, 0.7, 1.0, 1.4, 2.0)
 #: A fitted point spread below this (sigma, pixels) is no blur the image can show: the sharp model's refusal stands
 #: (in the wide-blob hunt a 0.3 px "blur" turned a marginal shape refusal into a pose 0.52 deg off).
 PSF_MIN_PX = 0.5
+#: More detected blobs than this on the tubes' circle that the pose does not explain: the pattern is not the pose's
+#: (up to this many, each gets its rival poses, :func:`_stray_rivals`, and the pixels decide).
+MAX_STRAYS = 2
 #: Straight tubes this close in angle after a turn about the axis count as mapped onto each other (the turn is a
 #: near-symmetry whose pose is tried as a rival).
 SYMMETRY_TOL_DEG = 3.0
@@ -132,6 +139,7 @@ class SliceCheck:
     level: float = 1.0  # fitted fluid level
     noise_sigma: float = 0.0
     psf_px: float = 0.0  # Gaussian point spread (sigma, pixels) the model was blurred by to match the blobs
+    strays: tuple[int, ...] = ()  # detected blobs on the tubes' circle inside the body that the pose leaves unexplained
 
 
 def shape_tolerance(radius_px: float) -> float:
@@ -319,8 +327,15 @@ def verify_slice(geom, model, T_F_from_I: np.ndarray, pixels: np.ndarray, spacin
                              f"{'wider' if mean > 1 else 'narrower'} along the columns than along the rows relative to "
                              f"the pose's prediction: is the pixel spacing ({rs:g}, {cs:g}) mm right?",
                              {"spacing_ratio": round(mean, 4)})
-        _unexplained(model, T_F_from_I, blobs, assignment, canvas, (rs, cs), source, where)
-        return SliceCheck(tuple(present), tuple(missing), scale, envelope, merged, canvas, level, sigma, psf_px)
+        strays = _unexplained(model, T_F_from_I, blobs, assignment, canvas, (rs, cs))
+        # a stray blob beside a missing tube is the signature of a wrong pose (the tube is there, elsewhere)
+        if strays and (envelope != "ok" or len(strays) > MAX_STRAYS or missing):
+            r, c = blobs.centres_rc[strays[0]]
+            raise NoLock(f"{source}: a bright blob at pixel ({r:.0f}, {c:.0f}) lies on the tubes' circle inside the "
+                         f"body where the pose ({where}) predicts no tube",
+                         {"blob_rc": [round(float(r), 1), round(float(c), 1)]})
+        return SliceCheck(tuple(present), tuple(missing), scale, envelope, merged, canvas, level, sigma, psf_px,
+                          tuple(strays))
 
     wins, canvas = _windows(geom, model, T_F_from_I, shape, (rs, cs), float(thickness_mm))
     try:
@@ -366,8 +381,8 @@ def _spread(w: np.ndarray):
     return np.array([vr, vc])
 
 
-def _unexplained(model, T_F_from_I, blobs: Blobs, assignment, canvas, spacing, source, where):
-    """NoLock when a detected blob the model does not explain sits on the circle of tube centres, inside the body.
+def _unexplained(model, T_F_from_I, blobs: Blobs, assignment, canvas, spacing) -> list[int]:
+    """Indices of the detected blobs the model does not explain that sit on the circle of tube centres, inside the body.
 
     A blob is explained when :data:`EXPLAINED_SHARE` of its footprint lies on
     a predicted section (``canvas`` > :data:`SECTION_LEVEL`): split halves
@@ -380,6 +395,7 @@ def _unexplained(model, T_F_from_I, blobs: Blobs, assignment, canvas, spacing, s
     r_lo = float(model.axis_radius_mm.min() - model.diameter_mm.max())
     r_hi = float(model.axis_radius_mm.max() + model.diameter_mm.max())
     on = canvas > SECTION_LEVEL
+    out = []
     for i, (r, c) in enumerate(blobs.centres_rc):
         if i in used:
             continue
@@ -391,8 +407,29 @@ def _unexplained(model, T_F_from_I, blobs: Blobs, assignment, canvas, spacing, s
             cover = on[r0:r0 + mask.shape[0], c0:c0 + mask.shape[1]]
             if cover.shape == mask.shape and cover[mask].mean() >= EXPLAINED_SHARE:
                 continue
-        raise NoLock(f"{source}: a bright blob at pixel ({r:.0f}, {c:.0f}) lies on the tubes' circle inside the body "
-                     f"where the pose ({where}) predicts no tube", {"blob_rc": [round(float(r), 1), round(float(c), 1)]})
+        out.append(i)
+    return out
+
+
+def _stray_rivals(model, xy: np.ndarray, S: np.ndarray, assignment: np.ndarray, opts, pixel_mm: float) -> list:
+    """Poses that put a tube on a stray blob: the slice solved again without each blob the pose matched.
+
+    A bright blob on the tubes' circle that the pose leaves unexplained may be
+    a tube of a different pose (one that leaves out a blob this pose uses).
+    The first-guess stage, seeing every blob, may not have offered it; with
+    each matched blob removed in turn, it does. Each such fit is a rival for
+    :func:`_compare_rival`.
+    """
+    from .single_slice import _solve_one  # the first-guess stage (imported here: it imports the trust checks)
+
+    out = []
+    for m in sorted({int(i) for i in assignment if i >= 0}):
+        try:
+            fits, _ = _solve_one(model, np.delete(xy, m, axis=0), S, opts, pixel_mm)
+        except NoLock:
+            continue
+        out.extend(fits)
+    return out
 
 
 def verify_fit(geom, model, fit, rivals, slices, Ss, blob_sets, opts) -> list[SliceCheck]:
@@ -410,6 +447,8 @@ def verify_fit(geom, model, fit, rivals, slices, Ss, blob_sets, opts) -> list[Sl
                              float(sl.slice_thickness_mm), b, fit.assignments[j], sl.source)
         px = float(max(sl.pixel_spacing_mm))
         turned = _turned_rivals(model, fit.T_F_from_scanner, xys[j], S, px)
+        if check.strays:
+            turned += _stray_rivals(model, xys[j], S, fit.assignments[j], opts, px)
         for other in list(rivals[j] if rivals is not None else ()) + turned:
             if (other.n_matched < opts.min_tubes or other.rms_mm > opts.max_rms_px * px
                     or not _distinct(other.T_F_from_scanner, fit.T_F_from_scanner, model)
