@@ -204,7 +204,7 @@ class SolveOptions:
     Gauss-Newton steps of the pose on the windows' pixels themselves
     (:mod:`chic_register.pixel_pose`), a step longer than
     ``pixel_pose_max_sigma`` of its own predicted SDs rejected; measured
-    within a few per cent of the section fit's precision, at ~4-5 ms more.
+    within a few per cent of the section fit's precision, at ~5.5 ms CPU more.
     ``verify``: before ``ok``, prove the pose against the image
     (:mod:`chic_register.verify_pose`: envelope, every predicted section
     present with its shape, nothing unexplained on the tubes' circle, pixel
