@@ -46,6 +46,7 @@ from .accuracy import (  # noqa: F401
     centroid_offsets,
     template_shifts,
 )
+from .blurred_fit import WIDE_RATIO, blob_width_ratio, blurred_fit
 from .detect import Blobs, detect_blobs
 from .dropout import fill_dropouts
 from .errors import AmbiguousFit, ImprecisePose, NoLock
@@ -214,6 +215,10 @@ class SolveOptions:
     ``refine_when_imprecise``, the accuracy mode's refinement is tried before
     refusing); off only for
     studies of the raw fit.
+    ``blurred_fit``: when the blobs are clearly wider than the channels,
+    the pose is fitted to the pixels through a blurred model of all the
+    sections at once (:mod:`chic_register.blurred_fit`) instead of the
+    section fit, and verified with that fit's precision.
     ``uncertainty``: compute the pose's covariance and predicted TRE
     (:mod:`~chic_register.uncertainty`; a few ms per slice; always when
     ``max_tre_mm`` is finite); ``max_tre_mm``: a pose whose predicted TRE at
@@ -251,6 +256,7 @@ class SolveOptions:
     trust_tre_mm: float = TRE_TOL_MM  # (why these limits: chic_register.fit_checks)
     trust_rot_deg: float = ROT_TOL_DEG
     refine_when_imprecise: bool = False
+    blurred_fit: bool = True
     max_tre_mm: float = math.inf
     uncertainty: bool = True
     prior: np.ndarray | None = None
@@ -354,7 +360,20 @@ def register(slices: list[Slice], geom: FiducialGeometry, *, options: SolveOptio
             slices, xys, Ss, blob_sets, res_mm, per_slice, rivals = (
                 [seq[j] for j in keep] for seq in (slices, xys, Ss, blob_sets, res_mm, per_slice, rivals))
     locked = best  # the pose fitted to the blob centres
-    if opts.section_fit and not opts.centroid_model:
+    precision = None  # the pose's (TRE mm, rotation deg) 1-sigma when fitted to the pixels, not to positions
+    wide = (opts.blurred_fit and not opts.centroid_model
+            and blob_width_ratio(model, slices, blob_sets, best.assignments) >= WIDE_RATIO)
+    if wide:  # the sections are blurred: the sharp section model does not describe them, a blurred one does
+        blurred = blurred_fit(model, best.T_F_from_scanner, slices, Ss, blob_sets, best.assignments)
+        if blurred is not None:
+            fine = refine(model, xys, Ss, blurred.T_F_from_scanner, gates_mm=(), final_iters=0,
+                          assign0=best.assignments)  # the blob residuals at the pose, for the report
+            # a pixel fit pulled more than 1 mm or 1 degree from the blobs' pose is not trusted (something in the
+            # boxes the model does not have: tissue, another object): the blobs' pose stands, judged as it is
+            if not _distinct(blurred.T_F_from_scanner, best.T_F_from_scanner, model):
+                best = dataclasses.replace(fine, T_F_from_scanner=blurred.T_F_from_scanner)
+                precision = blurred.precision(model.length_mm)
+    elif opts.section_fit and not opts.centroid_model:
         fine = _section_refine(model, best, xys, Ss, slices, blob_sets, opts)
         if fine is not None:
             _check_trust(fine, [], model, slices, opts, Ss, res_mm)
@@ -374,20 +393,21 @@ def register(slices: list[Slice], geom: FiducialGeometry, *, options: SolveOptio
         from .verify_pose import verify_fit
 
         try:
-            checks = verify_fit(geom, model, best, rivals, slices, Ss, blob_sets, opts)
+            checks = verify_fit(geom, model, best, rivals, slices, Ss, blob_sets, opts, precision=precision)
         except ImprecisePose:
-            if opts.centroid_model or not opts.refine_when_imprecise:
+            if opts.centroid_model or not opts.refine_when_imprecise or precision is not None:
                 raise
-            checks = None
-            if best is not locked:
-                # the precision test estimates the noise from the residual scatter, unweighted: the section fit's
-                # residuals along elongated sections make it pessimistic, so the centroid fit is judged as it is
-                # without the section fit (never a refusal the centroid-only solver would not make)
-                try:
-                    checks = verify_fit(geom, model, locked, rivals, slices, Ss, blob_sets, opts)
-                    best = locked
-                except ImprecisePose:
-                    pass
+            else:
+                checks = None
+                if best is not locked:
+                    # the precision test estimates the noise from the residual scatter, unweighted: the section
+                    # fit's residuals along elongated sections make it pessimistic, so the centroid fit is judged
+                    # as it is without the section fit (never a refusal the centroid-only solver would not make)
+                    try:
+                        checks = verify_fit(geom, model, locked, rivals, slices, Ss, blob_sets, opts)
+                        best = locked
+                    except ImprecisePose:
+                        pass
         if checks is None:
             # verified but not precise enough from the centroids: fit the sections themselves (the accuracy
             # mode), then decide on that

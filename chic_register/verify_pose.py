@@ -432,11 +432,14 @@ def _stray_rivals(model, xy: np.ndarray, S: np.ndarray, assignment: np.ndarray, 
     return out
 
 
-def verify_fit(geom, model, fit, rivals, slices, Ss, blob_sets, opts) -> list[SliceCheck]:
+def verify_fit(geom, model, fit, rivals, slices, Ss, blob_sets, opts, precision=None) -> list[SliceCheck]:
     """Verify a solved pose (a ``solve._Fit``) in every slice, and that no distinct rival verifies as well.
 
     ``rivals``: per slice, the other refined hypotheses of that slice alone
-    (``solve._Fit`` in the slice's own scanner frame, as ``fit``). Raises
+    (``solve._Fit`` in the slice's own scanner frame, as ``fit``);
+    ``precision``: the pose's 1-sigma ``(TRE mm, rotation deg)`` when the
+    pose was fitted to the pixels (:mod:`chic_register.blurred_fit`), else
+    from the positions' residuals (:func:`pose_precision`). Raises
     :class:`NoLock` with the first failure; returns one :class:`SliceCheck` per slice.
     """
     xys = [_to_xy_mm(b, sl) for sl, b in zip(slices, blob_sets)]
@@ -481,7 +484,7 @@ def verify_fit(geom, model, fit, rivals, slices, Ss, blob_sets, opts) -> list[Sl
                      f"(F test p = {p:.1g}): the pixel spacing looks wrong; check --pixel-spacing or the file's "
                      f"PixelSpacing", {"stretch": [round(float(v), 4) for v in scale], "stretch_p": float(p)})
     px = min(max(sl.pixel_spacing_mm) for sl in slices)
-    tre, rot = pose_precision(model, fit, Ss, px, exclude=[c.merged for c in out])
+    tre, rot = precision or pose_precision(model, fit, Ss, px, exclude=[c.merged for c in out])
     k = PRECISION_SIGMAS
     tre_tol, rot_tol = opts.trust_tre_mm, opts.trust_rot_deg
     if k * tre > tre_tol or k * rot > rot_tol:
