@@ -217,15 +217,37 @@ def model_image(geom: FiducialGeometry, T_F_from_S: np.ndarray, protocol: Protoc
 
 def image_jacobian(geom: FiducialGeometry, T_F_from_S: np.ndarray, protocol: Protocol, shape,
                    quality: str = "default") -> tuple[np.ndarray, np.ndarray]:
-    """Noise-free image ``mu`` (rows, cols) and its derivatives (6, rows, cols) w.r.t. delta (rad, mm)."""
+    """Noise-free image ``mu`` (rows, cols) and its derivatives (6, rows, cols) w.r.t. delta (rad, mm).
+
+    The central differences turn the fiducial about the slice's centre ``c``
+    (where the image normal through the frame origin meets F), not about F's
+    origin, then map to delta (a turn ``r`` about ``c`` with a shift ``t'``
+    is ``delta = (r, t' + c x r)``): about F's origin a finite turn also
+    shifts every section by the lever ``|c|`` (40 mm at 40 mm depth), and the
+    step's third-order term (that shift times the second-order change of the
+    section shapes) then passes for tilt information. At a normal slice at
+    40 mm depth that made the normal-angle bound 0.133 deg instead of 0.225 deg
+    (turning about ``c`` the bound changes by < 2 % for steps of 1e-4 to
+    3e-3 rad and renderer sampling of 4 or 12).
+    """
+    from scipy.spatial.transform import Rotation
+
     mu = model_image(geom, T_F_from_S, protocol, shape, quality=quality)
-    D = np.empty((6,) + mu.shape)
+    c = np.asarray(T_F_from_S, dtype=float)[:3, 3]
+    Dc = np.empty((6,) + mu.shape)
     for i in range(6):
         h = _STEP_RAD if i < 3 else _STEP_MM
-        e = np.zeros(6)
-        e[i] = h
-        D[i] = (model_image(geom, T_F_from_S, protocol, shape, e, quality)
-                - model_image(geom, T_F_from_S, protocol, shape, -e, quality)) / (2 * h)
+        imgs = []
+        for sign in (1.0, -1.0):
+            e = np.zeros(6)
+            e[i] = sign * h
+            e[3:] += c - Rotation.from_rotvec(e[:3]).as_matrix() @ c  # the turn about c, as a motion in F
+            imgs.append(model_image(geom, T_F_from_S, protocol, shape, e, quality))
+        Dc[i] = (imgs[0] - imgs[1]) / (2 * h)
+    # delta = M (r, t'), M = [[I, 0], [[c]x, I]]: d mu / d delta = M^-T (d mu / d(r, t'))
+    skew_c = -target_jacobian(c)[:, :3]
+    D = Dc.copy()
+    D[:3] -= np.einsum("ji,j...->i...", skew_c, Dc[3:])
     return mu, D
 
 
