@@ -3,7 +3,7 @@
     .venv/bin/python benchmarks/bench_accuracy.py [--draws 20] [--levels 0.1 0.05 0.025 0.01] [--snr 20 50 | --snr]
         [--centroid-model on|off]
     .venv/bin/python benchmarks/bench_accuracy.py --crlb [--draws 100] [--snr 10 20 50] [--poses study grid]
-        [--mode default|fast|centroid|pixel] [--json OUT.json]
+        [--mode default|fast|centroid] [--json OUT.json]
 
 Efficiency (``--crlb``): on the paper's study poses (its 18 cases, each
 tilted case at a fixed azimuth) and on a grid of tilts 0-45 deg x depths
@@ -41,8 +41,7 @@ from chic_register.evaluate import PAPER, format_summary, paper_cases, run_study
 ROOT = Path(__file__).resolve().parents[1]
 
 
-MODES = {"default": {}, "fast": {"section_fit": False}, "centroid": {"centroid_model": True},
-         "pixel": {"pixel_pose_steps": 1}}
+MODES = {"default": {}, "fast": {"section_fit": False}, "centroid": {"centroid_model": True}}
 
 
 def load_note() -> str:

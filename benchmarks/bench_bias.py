@@ -1,15 +1,11 @@
 """Systematic (noise-free) error of the solver over a sweep of poses.
 
-    .venv/bin/python benchmarks/bench_bias.py [--thickness 0] [--centroid-model on|off] [--pixel-steps N]
+    .venv/bin/python benchmarks/bench_bias.py [--thickness 0] [--centroid-model on|off]
 
 Noise-free slices of designs/neuro.yaml (256 x 256, 0.5 mm pixels) at tilts
 0..60 degrees, several depths, azimuths and twists; prints, per tilt, the
 largest depth error (mm), normal-vector error (deg) and twist error (deg).
 Without noise every error is a bias of the model or of the detector.
-``--pixel-steps N``: the section fit followed by N Gauss-Newton steps of the
-pose on the pixels (:mod:`chic_register.pixel_pose`), with the step-length
-limit lifted (a noise-free image reads as noise ~0, so every step would be
-"too long" and refused): the refinement's own fixed point.
 """
 
 from __future__ import annotations
@@ -34,14 +30,11 @@ def main() -> None:
     ap = argparse.ArgumentParser(description=__doc__.splitlines()[0])
     ap.add_argument("--thickness", type=float, default=0.0)
     ap.add_argument("--centroid-model", choices=("on", "off", "default"), default="default")
-    ap.add_argument("--pixel-steps", type=int, default=0)
     ap.add_argument("--design", default=str(ROOT / "designs" / "neuro.yaml"))
     args = ap.parse_args()
     geom = fiducial_geometry(load_spec(args.design))
     L = geom.body.length
     kw = {} if args.centroid_model == "default" else {"centroid_model": args.centroid_model == "on"}
-    if args.pixel_steps:
-        kw.update(pixel_pose_steps=args.pixel_steps, pixel_pose_max_sigma=float("inf"))
     print(f"{'tilt':>5} {'n':>3} {'nolock':>6} {'depth mm':>9} {'normal deg':>10} {'twist deg':>9}")
     worst = np.zeros(3)
     for tilt in (0, 15, 30, 45, 60):

@@ -1,7 +1,7 @@
 """Speed of detection + pose on 256 x 256 slices on one core, and the solver's efficiency against the CRLB.
 
     OMP_NUM_THREADS=1 taskset -c 1 .venv/bin/python benchmarks/bench_solve.py [--repeats 20]
-        [--mode default|fast|centroid|pixel] [--efficiency-draws 20] [--snr 20]
+        [--mode default|fast|centroid] [--efficiency-draws 20] [--snr 20]
 
 Simulates a spread of poses of designs/neuro.yaml (Rician noise at ``--snr``,
 2 mm slices, 0.5 mm pixels), then times ``register([slice], geom)``
@@ -12,10 +12,8 @@ from ``timing_ms``) and the CPU time of the whole call
 load average before and after. Then, unless ``--efficiency-draws 0``, the
 RMS error over that many fresh noise draws per pose divided by the
 Cramér-Rao bound (:mod:`chic_register.efficiency`). ``--mode``: ``default``
-(section fit), ``fast`` (``section_fit=False``: pose from blob centroids),
-``centroid`` (the older template accuracy mode, ``centroid_model=True``) or
-``pixel`` (the section fit, then one Gauss-Newton step of the pose on the
-pixels: ``pixel_pose_steps=1``, :mod:`chic_register.pixel_pose`).
+(section fit), ``fast`` (``section_fit=False``: pose from blob centroids) or
+``centroid`` (the older template accuracy mode, ``centroid_model=True``).
 ``--verify off`` times the fit alone, without the pose verification
 (:mod:`chic_register.verify_pose`). Thread pools are pinned to one thread;
 pin the process too (``taskset -c 1``).
@@ -42,8 +40,7 @@ from chic_register.simulate import simulate_slice  # noqa: E402
 from chic_register.solve import register  # noqa: E402
 
 ROOT = Path(__file__).resolve().parents[1]
-MODES = {"default": {}, "fast": {"section_fit": False}, "centroid": {"centroid_model": True},
-         "pixel": {"pixel_pose_steps": 1}}
+MODES = {"default": {}, "fast": {"section_fit": False}, "centroid": {"centroid_model": True}}
 
 
 def load_note() -> str:

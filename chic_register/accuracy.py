@@ -334,22 +334,5 @@ def _section_refine(model: TubeModel, fit: _Fit, xys, Ss, slices, blob_sets, opt
         if exact and moved < opts.section_done_px * px:
             break
         exact = moved < opts.section_close_px * px
-    if opts.pixel_pose_steps > 0:
-        fit = _pixel_pose(model, fit, new_xys, Ls, Ss, slices, blob_sets, wins, assign, opts)
     return fit
 
-
-def _pixel_pose(model: TubeModel, fit: _Fit, xys, Ls, Ss, slices, blob_sets, wins, assign, opts) -> _Fit:
-    """``fit`` moved by :func:`~chic_register.pixel_pose.pixel_pose_refine` on the section fit's windows, its
-    residuals recomputed at the new pose (against the section-fitted positions); unchanged when no step is kept."""
-    from .pixel_pose import pixel_pose_refine
-
-    sigma = float(np.median([b.noise_sigma for b in blob_sets]))
-    out = pixel_pose_refine(model, fit.T_F_from_scanner, Ss, slices, wins, assign, steps=opts.pixel_pose_steps,
-                            max_step_sigma=opts.pixel_pose_max_sigma, noise_sigma=sigma,
-                            thickness_samples=opts.section_thickness_samples)
-    if not out.moved:
-        return fit
-    moved = refine(model, xys, Ss, out.T_F_from_scanner, gates_mm=(), final_iters=0, assign0=assign,
-                   strict_ends=False, weights=Ls)
-    return dataclasses.replace(moved, measurements=fit.measurements)

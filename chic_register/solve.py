@@ -201,11 +201,6 @@ class SolveOptions:
     ``section_iterations`` passes (see :func:`_section_refine`); tubes whose
     fit lands more than ``section_max_shift_px`` from the pose's prediction
     are left out. Off: the pose fitted to blob centroids (faster, biased).
-    ``pixel_pose_steps`` (0: off): after the section fit, that many
-    Gauss-Newton steps of the pose on the windows' pixels themselves
-    (:mod:`chic_register.pixel_pose`), a step longer than
-    ``pixel_pose_max_sigma`` of its own predicted SDs rejected; measured
-    within a few per cent of the section fit's precision, at ~5.5 ms CPU more.
     ``verify``: before ``ok``, prove the pose against the image
     (:mod:`chic_register.verify_pose`: envelope, every predicted section
     present with its shape, nothing unexplained on the tubes' circle, pixel
@@ -250,8 +245,6 @@ class SolveOptions:
     section_done_px: float = 0.05
     section_thickness_samples: int = 5
     section_max_shift_px: float = 1.0
-    pixel_pose_steps: int = 0
-    pixel_pose_max_sigma: float = 3.0
     verify: bool = True
     trust_tre_mm: float = TRE_TOL_MM  # (why these limits: chic_register.fit_checks)
     trust_rot_deg: float = ROT_TOL_DEG
