@@ -57,5 +57,14 @@ class AmbiguousFit(NoLock):
     """Two distinct poses explain the blobs nearly equally well (in one slice of a series, the others may decide)."""
 
 
+class SliceRefused(NoLock):
+    """Slices of a series fail the pose's verification (``refused``: their places in the series and reasons): a
+    volume's registration leaves them out and verifies the rest."""
+
+    def __init__(self, reason: str, detail: dict | None = None, refused: tuple = ()):
+        super().__init__(reason, detail)
+        self.refused = tuple(refused)
+
+
 class ImprecisePose(NoLock):
     """A pose that verifies but whose predicted error exceeds the trust limits (the solver may refine it first)."""

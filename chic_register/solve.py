@@ -49,7 +49,7 @@ from .accuracy import (  # noqa: F401
 from .blurred_fit import STRETCH_SIGMAS, WIDE_RATIO, blob_width_ratio, blurred_fit
 from .detect import Blobs, detect_blobs
 from .dropout import fill_dropouts
-from .errors import AmbiguousFit, ImprecisePose, NoLock
+from .errors import AmbiguousFit, ImprecisePose, NoLock, SliceRefused
 from .fit_checks import ROT_TOL_DEG, STRETCH_MIN, TRE_TOL_MM
 from .geometry import FiducialGeometry
 from .hypotheses import (  # noqa: F401  (the first-guess stage; its public names stay importable from here)
@@ -394,7 +394,23 @@ def register(slices: list[Slice], geom: FiducialGeometry, *, options: SolveOptio
         from .verify_pose import verify_fit
 
         try:
-            checks = verify_fit(geom, model, best, rivals, slices, Ss, blob_sets, opts, precision=precision)
+            while True:
+                try:
+                    checks = verify_fit(geom, model, best, rivals, slices, Ss, blob_sets, opts, precision=precision,
+                                        name_slice=skip_failed)
+                    break
+                except SliceRefused as exc:  # a volume: those slices are left out, the rest verified again
+                    out = {j for j, _ in exc.refused}
+                    for j, reason in exc.refused:
+                        prefix = f"{slices[j].source}: "
+                        skipped.append(SkippedSlice(slices[j].source, reason.removeprefix(prefix)))
+                    keep = [i for i in range(len(slices)) if i not in out]
+                    if len(keep) == 0:
+                        raise NoLock(_no_slice_locked(skipped), {"n_skipped": len(skipped)}) from None
+                    slices, xys, Ss, blob_sets, res_mm, per_slice, rivals = (
+                        [seq[i] for i in keep] for seq in (slices, xys, Ss, blob_sets, res_mm, per_slice, rivals))
+                    best = _only_slices(model, best, keep, xys, Ss)
+                    locked = _only_slices(model, locked, keep, xys, Ss) if locked is not best else best
         except ImprecisePose:
             if opts.centroid_model or not opts.refine_when_imprecise or precision is not None:
                 raise
@@ -460,6 +476,15 @@ def register(slices: list[Slice], geom: FiducialGeometry, *, options: SolveOptio
     timing = {"detect": (t1 - t0) * 1e3, "pose": (t2 - t1) * 1e3, "uncertainty": (t4 - t3) * 1e3,
               "total": (t4 - t0) * 1e3}
     return Registration("ok", T_sf, tuple(results), timing, geom.name, geom_sha, tuple(skipped), unc)
+
+
+def _only_slices(model: TubeModel, fit, keep: list[int], xys, Ss):
+    """``fit`` (at the same pose) on its slices ``keep`` only (``xys``, ``Ss``: theirs): assignments and residuals
+    recomputed."""
+    assign = [fit.assignments[i] for i in keep]
+    out = refine(model, xys, Ss, fit.T_F_from_scanner, gates_mm=(), final_iters=0, assign0=assign)
+    meas = None if fit.measurements is None else [fit.measurements[i] for i in keep]
+    return dataclasses.replace(out, T_F_from_scanner=fit.T_F_from_scanner, measurements=meas)
 
 
 def _fill_dropouts(slices: list[Slice]) -> tuple[list[Slice], dict]:

@@ -59,7 +59,7 @@ import numpy as np
 
 from .detect import Blobs, _dilate, median
 from .envelope import plane_status
-from .errors import ImprecisePose, NoLock
+from .errors import ImprecisePose, NoLock, SliceRefused
 from .fit_checks import (  # noqa: F401
     PRECISION_SIGMAS,
     ROT_TOL_DEG,
@@ -432,22 +432,31 @@ def _stray_rivals(model, xy: np.ndarray, S: np.ndarray, assignment: np.ndarray, 
     return out
 
 
-def verify_fit(geom, model, fit, rivals, slices, Ss, blob_sets, opts, precision=None) -> list[SliceCheck]:
+def verify_fit(geom, model, fit, rivals, slices, Ss, blob_sets, opts, precision=None,
+               name_slice: bool = False) -> list[SliceCheck]:
     """Verify a solved pose (a ``solve._Fit``) in every slice, and that no distinct rival verifies as well.
 
     ``rivals``: per slice, the other refined hypotheses of that slice alone
     (``solve._Fit`` in the slice's own scanner frame, as ``fit``);
     ``precision``: the pose's 1-sigma ``(TRE mm, rotation deg)`` when the
     pose was fitted to the pixels (:mod:`chic_register.blurred_fit`), else
-    from the positions' residuals (:func:`pose_precision`). Raises
+    from the positions' residuals (:func:`pose_precision`); ``name_slice``: a
+    series' slices that fail their own checks raise :class:`SliceRefused`
+    naming them all (a volume's registration leaves them out). Raises
     :class:`NoLock` with the first failure; returns one :class:`SliceCheck` per slice.
     """
     xys = [_to_xy_mm(b, sl) for sl, b in zip(slices, blob_sets)]
-    out, contenders = [], []
+    out, contenders, refused = [], [], []
     for j, (sl, S, b) in enumerate(zip(slices, Ss, blob_sets)):
         T_F_from_I = fit.T_F_from_scanner @ S
-        check = verify_slice(geom, model, T_F_from_I, np.asarray(sl.pixels), sl.pixel_spacing_mm,
-                             float(sl.slice_thickness_mm), b, fit.assignments[j], sl.source)
+        try:
+            check = verify_slice(geom, model, T_F_from_I, np.asarray(sl.pixels), sl.pixel_spacing_mm,
+                                 float(sl.slice_thickness_mm), b, fit.assignments[j], sl.source)
+        except NoLock as exc:
+            if not name_slice or len(slices) < 2:
+                raise
+            refused.append((j, exc.reason))
+            continue
         px = float(max(sl.pixel_spacing_mm))
         turned = _turned_rivals(model, fit.T_F_from_scanner, xys[j], S, px)
         if check.strays:
@@ -459,14 +468,25 @@ def verify_fit(geom, model, fit, rivals, slices, Ss, blob_sets, opts, precision=
                 continue
             contenders.append(other.T_F_from_scanner)
         out.append(check)
+    if refused:
+        raise SliceRefused(refused[0][1], {"n_refused": len(refused)}, refused)
     # a rival pose must explain every slice of the series nearly as well: the evidence of all slices adds up; a
     # rival one slice offered is first refined on the blobs of all of them (it may fall back onto the pose)
     if len(slices) > 1 and contenders:
         gate = max(float(model.diameter_mm.max()), 2 * max(float(max(sl.pixel_spacing_mm)) for sl in slices))
         refined = [refine(model, xys, Ss, T, gates_mm=(gate, 0.6 * gate)) for T in contenders]
+        # (on all slices' blobs a rival must still fit within the solver's own RMS limit, as a single slice's must)
+        px_min = min(float(max(sl.pixel_spacing_mm)) for sl in slices)
         contenders = [r.T_F_from_scanner for r in refined
-                      if r.n_matched >= opts.min_tubes and _distinct(r.T_F_from_scanner, fit.T_F_from_scanner, model)
+                      if r.n_matched >= opts.min_tubes and r.rms_mm <= opts.max_rms_px * px_min
+                      and _distinct(r.T_F_from_scanner, fit.T_F_from_scanner, model)
                       and _near_prior(r.T_F_from_scanner, opts)]
+    # one comparison per distinct rival (a volume's slices offer the same turned pose dozens of times)
+    unique = []
+    for T in contenders:
+        if all(_distinct(T, U, model) for U in unique):
+            unique.append(T)
+    contenders = unique
     for T_rival in contenders:
         scores = [_compare_rival(geom, model, check, T_rival @ S, sl) for check, S, sl in zip(out, Ss, slices)]
         gap, margin = sum(g for g, _ in scores), sum(m for _, m in scores)

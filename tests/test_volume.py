@@ -320,3 +320,19 @@ def test_cli_solve_volume_slices_jointly(tmp_path, neuro_geometry_file, sim_volu
     assert d_mm < 0.5 and ang < 0.5
     assert main(["solve", str(path), "--slices", "99", "--geometry", str(neuro_geometry_file)]) == 2
     assert "slice index 99 is outside 0..59" in capsys.readouterr().err
+
+
+def test_neuro_volume_registers_without_slices_leaving_out_the_slices_that_fail_verification(neuro_geometry):
+    """A 60-slice neuro volume reaching past both end faces: slices near an end, whose cut tubes the verification
+    cannot tell from a wrong pose, are skipped with that reason; the rest register jointly (this raised no_lock
+    for the whole volume before)."""
+    from chic_register.volume_register import register_volume
+
+    T = rigid(rot_z(20) @ rot_y(8), (1.0, -1.0, -25.0))
+    sv = simulate_volume(neuro_geometry, T, (128, 128, 60), (0.5, 0.5, 1.0), noise="rician", snr=20, rng=1,
+                         supersample=2, thickness_samples=2)
+    reg = register_volume(sv.volume, neuro_geometry)
+    centre = np.array([0.0, 0.0, neuro_geometry.body.length / 2])
+    assert np.linalg.norm(apply(reg.T_scanner_from_fiducial, centre) - apply(T, centre)) < 0.05
+    assert len(reg.slices) >= 40
+    assert any("end face" in s.reason for s in reg.skipped)  # skipped by the verification, not the solve
