@@ -46,7 +46,7 @@ from .accuracy import (  # noqa: F401
     centroid_offsets,
     template_shifts,
 )
-from .blurred_fit import STRETCH_SIGMAS, WIDE_RATIO, blob_width_ratio, blurred_fit
+from .blurred_fit import BLURRED_MAX_SLICES, STRETCH_SIGMAS, WIDE_RATIO, blob_width_ratio, blurred_fit
 from .detect import Blobs, detect_blobs
 from .dropout import fill_dropouts
 from .errors import AmbiguousFit, ImprecisePose, NoLock, SliceRefused
@@ -354,7 +354,7 @@ def register(slices: list[Slice], geom: FiducialGeometry, *, options: SolveOptio
                 [seq[j] for j in keep] for seq in (slices, xys, Ss, blob_sets, res_mm, per_slice, rivals))
     locked = best  # the pose fitted to the blob centres
     precision = None  # the pose's (TRE mm, rotation deg) 1-sigma when fitted to the pixels, not to positions
-    wide = (opts.blurred_fit and not opts.centroid_model
+    wide = (opts.blurred_fit and not opts.centroid_model and len(slices) <= BLURRED_MAX_SLICES
             and blob_width_ratio(model, slices, blob_sets, best.assignments) >= WIDE_RATIO)
     if wide:  # the sections are blurred: the sharp section model does not describe them, a blurred one does
         blurred = blurred_fit(model, best.T_F_from_scanner, slices, Ss, blob_sets, best.assignments)
