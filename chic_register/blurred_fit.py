@@ -25,13 +25,18 @@ so a model that does not fit widens it.
 
 from __future__ import annotations
 
+import dataclasses
 import math
 from dataclasses import dataclass
 
 import numpy as np
 
+from .errors import NoLock
+from .fit_checks import STRETCH_MIN
 from .psf import gaussian_blur
+from .refine import refine
 from .section import Windows, section_model
+from .trust import _distinct
 from .tube_model import TubeModel, _exp_se3, _section_extent, plane_crossings
 
 #: Point-spread sigmas tried (in tube radii; 0.35 r widens a 6 px blob to ~1.4x, 1.0 r to ~2.5x).
@@ -337,3 +342,33 @@ def blob_width_ratio(model: TubeModel, slices, blob_sets, assignments) -> float:
             if minor > 0:
                 ratios.append(4.0 * math.sqrt(minor) / float(model.diameter_mm[k]))
     return float(np.median(ratios)) if len(ratios) >= 3 else float("nan")
+
+
+def blobs_wide(model: TubeModel, slices, blob_sets, assignments) -> bool:
+    """Whether the blurred fit is for these slices: at most :data:`BLURRED_MAX_SLICES` of them, their matched blobs
+    :data:`WIDE_RATIO` times the channels' width or wider (:func:`blob_width_ratio`)."""
+    return len(slices) <= BLURRED_MAX_SLICES and blob_width_ratio(model, slices, blob_sets, assignments) >= WIDE_RATIO
+
+
+def blurred_stage(model: TubeModel, fit, xys, Ss, slices, blob_sets):
+    """``(fit, precision)``: the solver's pose (a ``refine._Fit``) refitted through the blurred model, with its
+    1-sigma ``(TRE mm, rotation deg)``; ``(fit, None)`` unchanged when no fit is possible or the pixel fit lands more
+    than 1 mm or 1 degree from the blob pose (something in the boxes the model does not have: tissue, another
+    object; the blobs' pose then stands, judged as it is). A significant stretch of the image (a wrong pixel
+    spacing) raises :class:`~chic_register.errors.NoLock`."""
+    blurred = blurred_fit(model, fit.T_F_from_scanner, slices, Ss, blob_sets, fit.assignments)
+    if blurred is None:
+        return fit, None
+    stretch, sd = np.array(blurred.stretch), np.array(blurred.stretch_sd)
+    worst = int(np.argmax(np.abs(stretch)))
+    if abs(stretch[worst]) > STRETCH_MIN and abs(stretch[worst]) > STRETCH_SIGMAS * sd[worst]:
+        axis = ("columns (x)", "rows (y)")[worst]
+        raise NoLock(f"the pixels fit best with the image stretched {100 * stretch[worst]:+.1f} % along its {axis} "
+                     f"({abs(stretch[worst]) / max(sd[worst], 1e-12):.1f} sigma): the pixel spacing looks wrong; "
+                     f"check --pixel-spacing or the file's PixelSpacing",
+                     {"stretch": [round(float(v), 4) for v in stretch]})
+    if _distinct(blurred.T_F_from_scanner, fit.T_F_from_scanner, model):
+        return fit, None
+    moved = refine(model, xys, Ss, blurred.T_F_from_scanner, gates_mm=(), final_iters=0,
+                   assign0=fit.assignments)  # the blob residuals at the pose, for the report
+    return dataclasses.replace(moved, T_F_from_scanner=blurred.T_F_from_scanner), blurred.precision(model.length_mm)

@@ -20,6 +20,8 @@ few valid pixels to fill from (the inside of a masked region).
 
 from __future__ import annotations
 
+import dataclasses
+
 import numpy as np
 from numpy.lib.stride_tricks import sliding_window_view
 
@@ -76,3 +78,15 @@ def fill_dropouts(pixels: np.ndarray) -> tuple[np.ndarray, int]:
     rows, cols = np.nonzero(candidates)
     out[rows[lost], cols[lost]] = fill[lost]
     return out, int(lost.sum())
+
+
+def fill_slice_dropouts(slices: list) -> tuple[list, dict]:
+    """The slices with their lost pixels filled (:mod:`chic_register.dropout`), and ``{source: n filled}``."""
+    out, filled = [], {}
+    for sl in slices:
+        pixels, n = fill_dropouts(sl.pixels)
+        if n:
+            sl = dataclasses.replace(sl, pixels=pixels)
+            filled[sl.source] = filled.get(sl.source, 0) + n
+        out.append(sl)
+    return out, filled

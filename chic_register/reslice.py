@@ -32,7 +32,6 @@ import SimpleITK as sitk
 from .errors import NoLock
 from .pose import invert, slice_angles, slice_frame, wrap_deg
 from .slices import Slice
-from .volume import Volume
 
 AXES = ("x_mm", "y_mm", "z_mm", "tilt_deg", "twist_deg")
 

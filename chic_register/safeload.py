@@ -237,7 +237,7 @@ def load_yaml_text(text: str, path="<yaml>"):
         problem = getattr(exc, "problem", None) or str(exc).strip().splitlines()[0]
         raise InputFileError(path, f"not valid YAML{where} ({problem})") from None
     except RecursionError:  # defensive: the depth limit comes first
-        raise InputFileError(path, f"not accepted as YAML: nested too deeply") from None
+        raise InputFileError(path, "not accepted as YAML: nested too deeply") from None
     finally:
         loader.dispose()
 

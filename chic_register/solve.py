@@ -46,11 +46,11 @@ from .accuracy import (  # noqa: F401
     centroid_offsets,
     template_shifts,
 )
-from .blurred_fit import BLURRED_MAX_SLICES, STRETCH_SIGMAS, WIDE_RATIO, blob_width_ratio, blurred_fit
+from .blurred_fit import blobs_wide, blurred_stage
 from .detect import Blobs, detect_blobs
-from .dropout import fill_dropouts
+from .dropout import fill_slice_dropouts
 from .errors import AmbiguousFit, ImprecisePose, NoLock, SliceRefused
-from .fit_checks import ROT_TOL_DEG, STRETCH_MIN, TRE_TOL_MM
+from .fit_checks import ROT_TOL_DEG, TRE_TOL_MM
 from .geometry import FiducialGeometry
 from .hypotheses import (  # noqa: F401  (the first-guess stage; its public names stay importable from here)
     Ellipse,
@@ -278,7 +278,7 @@ def register(slices: list[Slice], geom: FiducialGeometry, *, options: SolveOptio
     if not slices:
         raise NoLock("no slices given")
     t0 = time.perf_counter()
-    slices, filled = _fill_dropouts(slices)
+    slices, filled = fill_slice_dropouts(slices)
     model, geom_sha = prepare_geometry(geom)
     blob_sets, xys = [], []
     for sl in slices:
@@ -354,26 +354,9 @@ def register(slices: list[Slice], geom: FiducialGeometry, *, options: SolveOptio
                 [seq[j] for j in keep] for seq in (slices, xys, Ss, blob_sets, res_mm, per_slice, rivals))
     locked = best  # the pose fitted to the blob centres
     precision = None  # the pose's (TRE mm, rotation deg) 1-sigma when fitted to the pixels, not to positions
-    wide = (opts.blurred_fit and not opts.centroid_model and len(slices) <= BLURRED_MAX_SLICES
-            and blob_width_ratio(model, slices, blob_sets, best.assignments) >= WIDE_RATIO)
+    wide = opts.blurred_fit and not opts.centroid_model and blobs_wide(model, slices, blob_sets, best.assignments)
     if wide:  # the sections are blurred: the sharp section model does not describe them, a blurred one does
-        blurred = blurred_fit(model, best.T_F_from_scanner, slices, Ss, blob_sets, best.assignments)
-        if blurred is not None:
-            fine = refine(model, xys, Ss, blurred.T_F_from_scanner, gates_mm=(), final_iters=0,
-                          assign0=best.assignments)  # the blob residuals at the pose, for the report
-            # a pixel fit pulled more than 1 mm or 1 degree from the blobs' pose is not trusted (something in the
-            # boxes the model does not have: tissue, another object): the blobs' pose stands, judged as it is
-            stretch, sd = np.array(blurred.stretch), np.array(blurred.stretch_sd)
-            worst = int(np.argmax(np.abs(stretch)))
-            if abs(stretch[worst]) > STRETCH_MIN and abs(stretch[worst]) > STRETCH_SIGMAS * sd[worst]:
-                axis = ("columns (x)", "rows (y)")[worst]
-                raise NoLock(f"the pixels fit best with the image stretched {100 * stretch[worst]:+.1f} % along its "
-                             f"{axis} ({abs(stretch[worst]) / max(sd[worst], 1e-12):.1f} sigma): the pixel spacing "
-                             f"looks wrong; check --pixel-spacing or the file's PixelSpacing",
-                             {"stretch": [round(float(v), 4) for v in stretch]})
-            if not _distinct(blurred.T_F_from_scanner, best.T_F_from_scanner, model):
-                best = dataclasses.replace(fine, T_F_from_scanner=blurred.T_F_from_scanner)
-                precision = blurred.precision(model.length_mm)
+        best, precision = blurred_stage(model, best, xys, Ss, slices, blob_sets)
     elif opts.section_fit and not opts.centroid_model:
         fine = _section_refine(model, best, xys, Ss, slices, blob_sets, opts)
         if fine is not None:
@@ -485,18 +468,6 @@ def _only_slices(model: TubeModel, fit, keep: list[int], xys, Ss):
     out = refine(model, xys, Ss, fit.T_F_from_scanner, gates_mm=(), final_iters=0, assign0=assign)
     meas = None if fit.measurements is None else [fit.measurements[i] for i in keep]
     return dataclasses.replace(out, T_F_from_scanner=fit.T_F_from_scanner, measurements=meas)
-
-
-def _fill_dropouts(slices: list[Slice]) -> tuple[list[Slice], dict]:
-    """The slices with their lost pixels filled (:mod:`chic_register.dropout`), and ``{source: n filled}``."""
-    out, filled = [], {}
-    for sl in slices:
-        pixels, n = fill_dropouts(sl.pixels)
-        if n:
-            sl = dataclasses.replace(sl, pixels=pixels)
-            filled[sl.source] = filled.get(sl.source, 0) + n
-        out.append(sl)
-    return out, filled
 
 
 def _worth_flattening(blobs: Blobs, model: TubeModel) -> bool:

@@ -72,10 +72,10 @@ from .fit_checks import (  # noqa: F401
     stretch_test,
 )
 from .pose import slice_angles
-from .psf import blurred_windows, fit_psf, gaussian_blur
-from .refine import refine
+from .psf import blurred_windows, fit_psf
 from .render import render_tubes
-from .trust import _distinct, _near_prior, _to_xy_mm
+from .rivals import check_rivals, slice_contenders
+from .trust import _to_xy_mm
 from .tube_model import _section_extent, plane_crossings
 
 #: A present tube's fitted fluid level, as a share of the median of the tubes the solver matched. A correctly
@@ -101,9 +101,6 @@ END_CLEARANCE_SECTIONS = 1.0
 SECTION_LEVEL = 0.1
 #: ... and a detected blob is explained by the pose when this share of its footprint does.
 EXPLAINED_SHARE = 0.3
-#: A rival pose must explain the pixels worse by this many noise variances (a log-likelihood margin of half of
-#: it) plus the model's own error, else the slice is ambiguous.
-RIVAL_MARGIN = 50.0
 #: Blob widths the verification will model when the sections look wider than drawn (real images: point spread,
 #: partial volume, fluid spread in a printed channel make blobs 0.7-2.5x the tube): the Gaussian point spread
 #: sigmas tried, in tube radii (0.15 r barely widens a section; 2 r is a blob ~2.7x the tube's width).
@@ -114,9 +111,6 @@ PSF_MIN_PX = 0.5
 #: More detected blobs than this on the tubes' circle that the pose does not explain: the pattern is not the pose's
 #: (up to this many, each gets its rival poses, :func:`_stray_rivals`, and the pixels decide).
 MAX_STRAYS = 2
-#: Straight tubes this close in angle after a turn about the axis count as mapped onto each other (the turn is a
-#: near-symmetry whose pose is tried as a rival).
-SYMMETRY_TOL_DEG = 3.0
 #: Render settings: sub-samples per pixel side (the renderer's coverage ramp anti-aliases edges already) and at
 #: most this many sub-planes over the slab.
 SUPERSAMPLE = 1
@@ -411,27 +405,6 @@ def _unexplained(model, T_F_from_I, blobs: Blobs, assignment, canvas, spacing) -
     return out
 
 
-def _stray_rivals(model, xy: np.ndarray, S: np.ndarray, assignment: np.ndarray, opts, pixel_mm: float) -> list:
-    """Poses that put a tube on a stray blob: the slice solved again without each blob the pose matched.
-
-    A bright blob on the tubes' circle that the pose leaves unexplained may be
-    a tube of a different pose (one that leaves out a blob this pose uses).
-    The first-guess stage, seeing every blob, may not have offered it; with
-    each matched blob removed in turn, it does. Each such fit is a rival for
-    :func:`_compare_rival`.
-    """
-    from .single_slice import _solve_one  # the first-guess stage (imported here: it imports the trust checks)
-
-    out = []
-    for m in sorted({int(i) for i in assignment if i >= 0}):
-        try:
-            fits, _ = _solve_one(model, np.delete(xy, m, axis=0), S, opts, pixel_mm)
-        except NoLock:
-            continue
-        out.extend(fits)
-    return out
-
-
 def verify_fit(geom, model, fit, rivals, slices, Ss, blob_sets, opts, precision=None,
                name_slice: bool = False) -> list[SliceCheck]:
     """Verify a solved pose (a ``solve._Fit``) in every slice, and that no distinct rival verifies as well.
@@ -457,45 +430,12 @@ def verify_fit(geom, model, fit, rivals, slices, Ss, blob_sets, opts, precision=
                 raise
             refused.append((j, exc.reason))
             continue
-        px = float(max(sl.pixel_spacing_mm))
-        turned = _turned_rivals(model, fit.T_F_from_scanner, xys[j], S, px)
-        if check.strays:
-            turned += _stray_rivals(model, xys[j], S, fit.assignments[j], opts, px)
-        for other in list(rivals[j] if rivals is not None else ()) + turned:
-            if (other.n_matched < opts.min_tubes or other.rms_mm > opts.max_rms_px * px
-                    or not _distinct(other.T_F_from_scanner, fit.T_F_from_scanner, model)
-                    or not _near_prior(other.T_F_from_scanner, opts)):  # the user's prior orientation excludes it
-                continue
-            contenders.append(other.T_F_from_scanner)
+        contenders += slice_contenders(model, fit, rivals[j] if rivals is not None else (), check.strays,
+                                       xys[j], S, j, sl, opts)
         out.append(check)
     if refused:
         raise SliceRefused(refused[0][1], {"n_refused": len(refused)}, refused)
-    # a rival pose must explain every slice of the series nearly as well: the evidence of all slices adds up; a
-    # rival one slice offered is first refined on the blobs of all of them (it may fall back onto the pose)
-    if len(slices) > 1 and contenders:
-        gate = max(float(model.diameter_mm.max()), 2 * max(float(max(sl.pixel_spacing_mm)) for sl in slices))
-        refined = [refine(model, xys, Ss, T, gates_mm=(gate, 0.6 * gate)) for T in contenders]
-        # (on all slices' blobs a rival must still fit within the solver's own RMS limit, as a single slice's must)
-        px_min = min(float(max(sl.pixel_spacing_mm)) for sl in slices)
-        contenders = [r.T_F_from_scanner for r in refined
-                      if r.n_matched >= opts.min_tubes and r.rms_mm <= opts.max_rms_px * px_min
-                      and _distinct(r.T_F_from_scanner, fit.T_F_from_scanner, model)
-                      and _near_prior(r.T_F_from_scanner, opts)]
-    # one comparison per distinct rival (a volume's slices offer the same turned pose dozens of times)
-    unique = []
-    for T in contenders:
-        if all(_distinct(T, U, model) for U in unique):
-            unique.append(T)
-    contenders = unique
-    for T_rival in contenders:
-        scores = [_compare_rival(geom, model, check, T_rival @ S, sl) for check, S, sl in zip(out, Ss, slices)]
-        gap, margin = sum(g for g, _ in scores), sum(m for _, m in scores)
-        if gap < margin:
-            a = slice_angles(T_rival @ Ss[0])
-            where = slices[0].source if len(slices) == 1 else f"{len(slices)} slices"
-            raise NoLock(f"{where}: ambiguous: a distinct pose (depth {a.depth_mm:.1f} mm, tilt {a.tilt_deg:.1f} deg) "
-                         f"explains the image{'s' if len(slices) > 1 else ''} nearly as well (residual larger by "
-                         f"{gap:.3g}; margin needed {margin:.3g})", {"n_tubes": int(fit.n_matched)})
+    check_rivals(geom, model, fit, contenders, out, slices, xys, Ss, opts)
     if precision is not None:  # a pose fitted through a blurred model is weaker evidence: only inside the envelope
         for sl, c in zip(slices, out):
             if c.envelope != "ok":
@@ -520,55 +460,3 @@ def verify_fit(geom, model, fit, rivals, slices, Ss, blob_sets, opts, precision=
     return out
 
 
-def _turned_rivals(model, T_F_from_scanner: np.ndarray, xy: np.ndarray, S: np.ndarray, pixel_mm: float) -> list:
-    """The pose turned about the fiducial axis by each near-symmetry of its straight tubes, each refined.
-
-    A turn that maps three or more axial tubes onto axial tubes (within
-    :data:`SYMMETRY_TOL_DEG`) is a pose the first-guess stage may never have
-    offered (the 90 deg turns of four diametric tubes, say); refined against
-    the same blobs, it is a rival for :func:`_compare_rival`.
-    """
-    ang = model.angle_rad[model.axial]
-    tol = math.radians(SYMMETRY_TOL_DEG)
-    turns = []
-    for a in ang:
-        for b in ang:
-            d = float((b - a + math.pi) % (2 * math.pi) - math.pi)
-            if abs(d) < tol or any(abs(d - t) < tol for t in turns):
-                continue
-            moved = (ang[:, None] + d - ang[None, :] + math.pi) % (2 * math.pi) - math.pi
-            if int(np.sum(np.min(np.abs(moved), axis=1) < tol)) >= 3:
-                turns.append(d)
-    gate = max(float(model.diameter_mm.max()), 2 * pixel_mm)
-    out = []
-    for d in turns:
-        c, s_ = math.cos(d), math.sin(d)
-        Rz = np.array([[c, -s_, 0, 0], [s_, c, 0, 0], [0, 0, 1, 0], [0, 0, 0, 1.0]])
-        out.append(refine(model, [xy], [S], Rz @ T_F_from_scanner, gates_mm=(2 * gate, 0.6 * gate),
-                          iters_per_gate=3, final_iters=2))
-    return out
-
-
-def _compare_rival(geom, model, check: SliceCheck, T_F_from_I_rival: np.ndarray, sl) -> tuple[float, float]:
-    """How much worse a distinct rival pose explains a slice's pixels than the pose: ``(gap, margin)``.
-
-    Both model images (the rival's rendered as the pose's) are fitted to the
-    pixels over the union of their sections grown by a pixel (``b + a model``);
-    ``gap`` is the rival's residual sum of squares less the pose's, and
-    ``margin`` what it must exceed: :data:`RIVAL_MARGIN` noise variances plus
-    the model error (:data:`MODEL_FLOOR` of the signal energy).
-    """
-    pixels = np.asarray(sl.pixels, float)
-    _, rival = _windows(geom, model, T_F_from_I_rival, pixels.shape, tuple(float(v) for v in sl.pixel_spacing_mm),
-                        float(sl.slice_thickness_mm))
-    rival = gaussian_blur(rival, check.psf_px)  # drawn as the pose's model was
-    region = _dilate((check.canvas > 0.02) | (rival > 0.02), 1)
-    y = pixels[region]
-    sse = []
-    for img in (check.canvas, rival):
-        A = np.stack([np.ones(y.size), img[region]], axis=1)
-        coef = np.linalg.lstsq(A, y, rcond=None)[0]
-        r = y - A @ coef
-        sse.append(float(r @ r))
-    signal = check.level ** 2 * float(np.sum(check.canvas[region] ** 2))
-    return sse[1] - sse[0], RIVAL_MARGIN * check.noise_sigma ** 2 + MODEL_FLOOR * signal

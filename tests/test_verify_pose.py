@@ -107,11 +107,11 @@ def _circle_blob_slice(neuro_geometry, missing=()):
 def test_a_blob_on_the_tube_circle_that_no_pose_uses_is_left_alone(neuro_geometry, monkeypatch):
     """Tube-sized fluid on the circle of tube centres: the slice is solved again without each matched blob (the
     rivals that might use it); none explains the pixels, so the pose stands, right."""
-    import chic_register.verify_pose as vp
+    import chic_register.rivals as rv
 
     calls = []
-    real = vp._stray_rivals
-    monkeypatch.setattr(vp, "_stray_rivals", lambda *a: calls.append(1) or real(*a))
+    real = rv._stray_rivals
+    monkeypatch.setattr(rv, "_stray_rivals", lambda *a: calls.append(1) or real(*a))
     sim, img = _circle_blob_slice(neuro_geometry)
     tre, rot = _outcome(neuro_geometry, sim, img)
     assert calls  # the stray was seen and its rivals tried
