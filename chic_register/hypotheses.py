@@ -283,11 +283,14 @@ def _affine_candidates(fam: ParallelFamily, xy: np.ndarray, gate_mm: float, cos_
     dc = np.linalg.norm(fam.c[:, None] - fam.c[None], axis=-1)
     # a cut stretches the cross-section by 1 .. 1/cos(tilt): image distances lie in [dc, dc / cos_max]
     ok = (dp[:, :, None, None] >= dc[None, None] - gate_mm) & (dp[:, :, None, None] * cos_max <= dc[None, None] + gate_mm)
-    blob_t = np.array(list(itertools.combinations(range(N), 3)), int).reshape(-1, 3)
     tri = fam.triples
-    if blob_t.shape[0] * tri.shape[0] > max_pairs:
-        keep = max(1, max_pairs // tri.shape[0])
-        blob_t = blob_t[np.sort(rng.choice(blob_t.shape[0], keep, replace=False))]
+    keep = max(1, max_pairs // max(tri.shape[0], 1))
+    if math.comb(N, 3) <= keep:
+        blob_t = np.array(list(itertools.combinations(range(N), 3)), int).reshape(-1, 3)
+    else:  # too many blobs to try every triple (hundreds of bright specks): a random sample of distinct triples
+        draw = np.sort(rng.integers(0, N, size=(2 * keep, 3)), axis=1)
+        draw = draw[(draw[:, 0] < draw[:, 1]) & (draw[:, 1] < draw[:, 2])]
+        blob_t = np.unique(draw, axis=0)[:keep]
     i, j, n = blob_t.T
     a, b, c = tri.T
     compat = (ok[i[:, None], j[:, None], a[None], b[None]] & ok[i[:, None], n[:, None], a[None], c[None]]
@@ -337,7 +340,7 @@ def family_hypotheses(model: "TubeModel", xy_mm: np.ndarray, *, gate_mm: float, 
     # every family tube predicted in the image: how many land on a blob
     Ainv = np.linalg.inv(A)
     pred = np.einsum("nij,nkj->nki", Ainv, fam.c[None] - b[:, None, :])  # (n, F, 2)
-    dist = np.linalg.norm(pred[:, :, None, :] - xy[None, None], axis=-1).min(axis=2)  # (n, F)
+    dist = _nearest_blob_mm(pred, xy)  # (n, F)
     hit = dist < gate_mm
     n_hit = hit.sum(axis=1)
     err = np.where(hit, dist, 0.0).sum(axis=1)
@@ -362,6 +365,22 @@ def family_hypotheses(model: "TubeModel", xy_mm: np.ndarray, *, gate_mm: float, 
                 rows.append((n_fam + n_depth, n_depth, R, fam.E @ bo + lam * fam.u))
     rows.sort(key=lambda r: (-r[0], -r[1]))
     return [rigid(R, t) for _, _, R, t in rows[:max_hypotheses]]
+
+
+#: Points x blobs per chunk of the nearest-blob search (~50 MB of float64 differences at a time: an image strewn
+#: with hundreds of bright pixels must not make it allocate gigabytes).
+NEAREST_CHUNK = 3_000_000
+
+
+def _nearest_blob_mm(pred: np.ndarray, xy: np.ndarray) -> np.ndarray:
+    """Distance (mm) from each predicted point ``pred`` (n, F, 2) to its nearest blob of ``xy`` (N, 2): (n, F)."""
+    flat = pred.reshape(-1, 2)
+    out = np.empty(flat.shape[0])
+    step = max(1, NEAREST_CHUNK // max(xy.shape[0], 1))
+    for i in range(0, flat.shape[0], step):
+        d = flat[i:i + step, None, :] - xy[None]
+        out[i:i + step] = np.sqrt(np.min(np.einsum("pnk,pnk->pn", d, d), axis=1))
+    return out.reshape(pred.shape[:2])
 
 
 def _refit_affine(fam: ParallelFamily, xy: np.ndarray, A: np.ndarray, b: np.ndarray, gate_mm: float):
