@@ -265,3 +265,21 @@ def test_no_lock_without_the_depth_tubes_or_with_the_wrong_geometry(zf, neuro_ge
         chic, _ = _slice(neuro_geometry, (25, pose[1], pose[2], 0), seed=seed, distractors=3)
         with pytest.raises(NoLock):
             register([chic], zf, prior=rigid(np.eye(3), (0, 0, 0)), prior_max_deg=180)
+
+
+def test_first_guess_on_hundreds_of_specks_samples_its_triples(zf):
+    """300 candidate blobs (an image strewn with bright specks): C(300, 3) = 4.5 million triples are sampled to the
+    pair budget, not enumerated (that allocated gigabytes), and the nearest-blob search agrees with brute force."""
+    from chic_register.hypotheses import _affine_candidates, _nearest_blob_mm, parallel_family
+    from chic_register.solve import prepare_geometry
+
+    model, _ = prepare_geometry(zf)
+    fam = parallel_family(model)
+    rng = np.random.default_rng(0)
+    xy = rng.uniform(-40, 40, (300, 2))
+    blob_t, ti = _affine_candidates(fam, xy, 3.0, math.cos(math.radians(75)), 4000, rng)
+    assert blob_t.shape[0] == ti.shape[0] and blob_t.shape[0] <= 4000 * 2
+    assert np.all(blob_t[:, 0] < blob_t[:, 1]) and np.all(blob_t[:, 1] < blob_t[:, 2])
+    pred = rng.uniform(-40, 40, (50, 4, 2))
+    brute = np.linalg.norm(pred[:, :, None, :] - xy[None, None], axis=-1).min(axis=2)
+    assert np.allclose(_nearest_blob_mm(pred, xy), brute)
