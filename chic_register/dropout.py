@@ -1,4 +1,5 @@
-"""Pixels lost to dropout: zeros scattered through a noisy magnitude image, filled from their neighbours.
+"""Pixels lost to dropout: zeros scattered through a noisy magnitude image (and NaN or infinite pixels), filled
+from their neighbours.
 
 A magnitude MR image has no exact zeros where there is signal or noise: its
 values are Rician, positive almost surely. Scattered exact zeros inside a
@@ -50,8 +51,36 @@ def _neighbourhoods(img: np.ndarray, fill) -> np.ndarray:
 
 
 def fill_dropouts(pixels: np.ndarray) -> tuple[np.ndarray, int]:
-    """``(pixels, n_filled)``: each lost pixel (an exact zero amid signal, see the module's doc) replaced by the
-    median of the valid pixels of its ``WINDOW_PX`` neighbourhood; the input itself when there are none."""
+    """``(pixels, n_filled)``: each lost pixel (not a finite number, or an exact zero amid signal, see the module's
+    doc) replaced by the median of the valid pixels of its ``WINDOW_PX`` neighbourhood; the input itself when there
+    are none."""
+    pixels, n_bad = _fill_non_finite(pixels)
+    filled, n_zero = _fill_zeros(pixels)
+    return filled, n_bad + n_zero
+
+
+def _fill_non_finite(pixels: np.ndarray) -> tuple[np.ndarray, int]:
+    """NaN or infinite pixels (a processing step's holes) filled from their finite neighbours, or with the median of
+    the finite pixels where they have none."""
+    img = np.asarray(pixels)
+    if not np.issubdtype(img.dtype, np.floating):
+        return pixels, 0
+    bad = ~np.isfinite(img)
+    n = int(bad.sum())
+    if n == 0 or n == img.size:
+        return pixels, 0
+    out = img.astype(float)
+    hoods = _neighbourhoods(np.where(bad, np.nan, out), np.nan)[bad].reshape(n, -1)
+    has = np.isfinite(hoods).any(axis=1)
+    fill = np.full(n, float(np.median(out[~bad])))
+    if has.any():
+        fill[has] = np.nanmedian(hoods[has], axis=1)
+    out[bad] = fill
+    return out, n
+
+
+def _fill_zeros(pixels: np.ndarray) -> tuple[np.ndarray, int]:
+    """Exact zeros amid the signal of a noisy image filled (see the module's doc)."""
     img = np.asarray(pixels)
     zero = img == 0
     share = float(zero.mean()) if zero.size else 0.0
