@@ -40,6 +40,14 @@ SIGNAL_SIGMAS = 4.0
 #: Zeros are lost samples only if they are about as common next to signal as in the whole image (this share of it
 #: or more): dropouts fall anywhere, while a background clipped at zero has its zeros away from the signal.
 SCATTER_SHARE = 0.5
+#: A bright speck exceeds the median of its neighbours by this share of its height above the background ...
+SPECK_ALONE = 0.9
+#: ... and by this many noise sigmas (the median absolute deviation of the image)
+SPECK_SIGMAS = 5.0
+#: Specks are filled only when at least this share of the pixels are specks (an image strewn with impulse noise;
+#: a few isolated bright pixels in a normal image are left as they are, and a slice whose bright pixels are fewer,
+#: as a plain slice's tube sections are, costs one comparison).
+MIN_SPECK_SHARE = 0.01
 #: Fewer exact zeros than this share are not worth a pass (integer images may round a few background pixels to 0).
 MIN_ZERO_SHARE = 0.002
 
@@ -51,12 +59,13 @@ def _neighbourhoods(img: np.ndarray, fill) -> np.ndarray:
 
 
 def fill_dropouts(pixels: np.ndarray) -> tuple[np.ndarray, int]:
-    """``(pixels, n_filled)``: each lost pixel (not a finite number, or an exact zero amid signal, see the module's
-    doc) replaced by the median of the valid pixels of its ``WINDOW_PX`` neighbourhood; the input itself when there
+    """``(pixels, n_filled)``: each lost pixel (not a finite number, a bright speck, or an exact zero amid signal,
+    see the module's doc) replaced by the median of the valid pixels of its ``WINDOW_PX`` neighbourhood; the input itself when there
     are none."""
     pixels, n_bad = _fill_non_finite(pixels)
+    pixels, n_specks = _fill_specks(pixels)
     filled, n_zero = _fill_zeros(pixels)
-    return filled, n_bad + n_zero
+    return filled, n_bad + n_specks + n_zero
 
 
 def _fill_non_finite(pixels: np.ndarray) -> tuple[np.ndarray, int]:
@@ -76,6 +85,53 @@ def _fill_non_finite(pixels: np.ndarray) -> tuple[np.ndarray, int]:
     if has.any():
         fill[has] = np.nanmedian(hoods[has], axis=1)
     out[bad] = fill
+    return out, n
+
+
+def _fill_specks(pixels: np.ndarray) -> tuple[np.ndarray, int]:
+    """Bright specks (hot pixels, impulse noise) replaced by the median of their neighbours, when the image is strewn
+    with them (:data:`MIN_SPECK_SHARE`).
+
+    A speck stands alone: it exceeds the median of its eight neighbours by
+    nearly its whole height above the background (:data:`SPECK_ALONE`) and by
+    :data:`SPECK_SIGMAS` noise sigmas. A tube's section, even at 3 pixels
+    across, shares its level with half its neighbours at least.
+    """
+    img = np.asarray(pixels, float)
+    if img.ndim != 2 or min(img.shape) < 3:
+        return pixels, 0
+    sample = img[::4, ::4]  # the background and noise level from a sixteenth of the pixels: cheap and ample
+    sample = sample[sample != 0]  # (zeros: a clipped or masked background, not the noise's spread)
+    if sample.size < 16:
+        return pixels, 0
+    background = float(np.median(sample))
+    sigma = max(1.4826 * float(np.median(np.abs(sample - background))), 1e-12)
+    height = img - background
+    if np.count_nonzero(height > SPECK_SIGMAS * sigma) < MIN_SPECK_SHARE * img.size:
+        return pixels, 0  # too few bright pixels to hold that many specks (a plain slice: its tube sections)
+    # a quick look (pixels above every one of their eight neighbours by far), then the rule itself
+    padded = np.pad(img, 1, constant_values=-np.inf)
+    h, w = img.shape
+    top = np.full(img.shape, -np.inf)
+    for dr in (-1, 0, 1):
+        for dc in (-1, 0, 1):
+            if dr or dc:
+                np.maximum(top, padded[1 + dr:1 + dr + h, 1 + dc:1 + dc + w], out=top)
+    alone = (img - top > SPECK_ALONE * height) & (img - top > SPECK_SIGMAS * sigma)
+    if alone.sum() < 0.5 * MIN_SPECK_SHARE * img.size:
+        return pixels, 0
+    # then the rule itself, on the bright pixels only: far above the median of their neighbours
+    bright = np.flatnonzero(height > SPECK_SIGMAS * sigma)
+    rows, cols = np.unravel_index(bright, img.shape)
+    hoods = _neighbourhoods(img, np.nan)[rows, cols].reshape(bright.size, -1)
+    nb = np.nanmedian(np.delete(hoods, hoods.shape[1] // 2, axis=1), axis=1)
+    value = img[rows, cols]
+    speck = (value - nb > SPECK_ALONE * height[rows, cols]) & (value - nb > SPECK_SIGMAS * sigma)
+    n = int(speck.sum())
+    if n < MIN_SPECK_SHARE * img.size:
+        return pixels, 0
+    out = img.copy()
+    out[rows[speck], cols[speck]] = nb[speck]
     return out, n
 
 
