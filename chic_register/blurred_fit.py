@@ -32,12 +32,13 @@ from dataclasses import dataclass
 import numpy as np
 
 from .errors import NoLock
-from .fit_checks import STRETCH_MIN
+from .fit_checks import STRETCH_MIN, worst_errors
+from .pose import invert
 from .psf import gaussian_blur
 from .refine import refine
 from .section import Windows, section_model
 from .trust import _distinct
-from .tube_model import TubeModel, _exp_se3, _section_extent, plane_crossings
+from .tube_model import TubeModel, _exp_se3, _section_box, _section_extent, plane_crossings
 
 #: Point-spread sigmas tried (in tube radii; 0.35 r widens a 6 px blob to ~1.4x, 1.0 r to ~2.5x).
 SIGMAS_RADII = (0.2, 0.35, 0.5, 0.7, 1.0, 1.4)
@@ -81,13 +82,9 @@ class BlurredFit:
 
     def precision(self, length_mm: float) -> tuple[float, float]:
         """1-sigma bounds ``(TRE at the frame centre (0, 0, L/2) in mm, rotation in deg)``: the worst direction."""
-        T_sf = np.linalg.inv(self.T_F_from_scanner)
-        p = T_sf[:3, :3] @ np.array([0.0, 0.0, 0.5 * length_mm]) + T_sf[:3, 3] - self.centre_scanner
-        A = np.hstack([np.array([[0.0, p[2], -p[1]], [-p[2], 0.0, p[0]], [p[1], -p[0], 0.0]]), np.eye(3)])
-        C = self.covariance
-        tre = math.sqrt(max(float(np.linalg.eigvalsh(A @ C @ A.T).max()), 0.0))
-        rot = math.degrees(math.sqrt(max(float(np.linalg.eigvalsh(C[:3, :3]).max()), 0.0)))
-        return tre, rot
+        T_sf = invert(self.T_F_from_scanner)
+        centre = T_sf[:3, :3] @ np.array([0.0, 0.0, 0.5 * length_mm]) + T_sf[:3, 3]
+        return worst_errors(self.covariance, centre - self.centre_scanner)
 
 
 @dataclass(frozen=True)
@@ -108,8 +105,8 @@ def _boxes(model: TubeModel, T_F_from_I: np.ndarray, shape, spacing, thickness_m
     rs, cs = spacing
     q, tan, _, found = plane_crossings(model, T_F_from_I, margin_mm=1e-9)
     half_len, half_wid, u = _section_extent(model, tan, thickness_mm)
-    ex = np.abs(u[:, 0]) * half_len + np.abs(u[:, 1]) * half_wid + reach_px * cs
-    ey = np.abs(u[:, 1]) * half_len + np.abs(u[:, 0]) * half_wid + reach_px * rs
+    ex, ey = _section_box(half_len, half_wid, u)
+    ex, ey = ex + reach_px * cs, ey + reach_px * rs
     H, W = shape
     out = []
     for k in np.flatnonzero(found):
@@ -196,7 +193,7 @@ def _perturb(X: np.ndarray, xi: np.ndarray, centre: np.ndarray) -> np.ndarray:
     C[:3, 3] = centre
     Ci = np.eye(4)
     Ci[:3, 3] = -centre
-    return X @ C @ np.linalg.inv(_exp_se3(xi)) @ Ci
+    return X @ C @ invert(_exp_se3(xi)) @ Ci
 
 
 def _jacobian(prob: _Problem, X: np.ndarray, coef: np.ndarray, centre: np.ndarray, base: np.ndarray) -> np.ndarray:

@@ -15,7 +15,7 @@ import math
 import numpy as np
 
 from .roots import bracketed_root
-from .tube_model import _adjoint, _crossing_jacobian, plane_crossings
+from .tube_model import _adjoint, _crossing_jacobian, _skew, plane_crossings
 
 #: Default trust limits (SolveOptions.trust_tre_mm / trust_rot_deg): the predicted error (TRE at the frame centre,
 #: rotation) ...
@@ -78,8 +78,14 @@ def pose_precision(model, fit, Ss, pixel_mm: float, exclude=None):
     except np.linalg.LinAlgError:
         return math.inf, math.inf
     T_sf = invert(fit.T_F_from_scanner)
-    p = T_sf[:3, :3] @ np.array([0.0, 0.0, 0.5 * model.length_mm]) + T_sf[:3, 3]
-    A = np.hstack([np.array([[0.0, -p[2], p[1]], [p[2], 0.0, -p[0]], [-p[1], p[0], 0.0]]), -np.eye(3)])
+    return worst_errors(C, T_sf[:3, :3] @ np.array([0.0, 0.0, 0.5 * model.length_mm]) + T_sf[:3, 3])
+
+
+def worst_errors(C: np.ndarray, lever_mm: np.ndarray) -> tuple[float, float]:
+    """1-sigma ``(displacement (mm), rotation (deg))`` in the worst direction, from the covariance ``C`` (6, 6) of a
+    twist ``(omega (rad), v (mm))``: a point at ``lever_mm`` (3,) from the turns' centre moves by ``omega x lever + v``
+    (either sign convention of the twist gives the same covariance of it)."""
+    A = np.hstack([_skew(np.asarray(lever_mm, float)), -np.eye(3)])
     tre = math.sqrt(max(float(np.linalg.eigvalsh(A @ C @ A.T).max()), 0.0))
     rot = math.degrees(math.sqrt(max(float(np.linalg.eigvalsh(C[:3, :3]).max()), 0.0)))
     return tre, rot

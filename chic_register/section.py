@@ -44,7 +44,7 @@ from dataclasses import dataclass
 
 import numpy as np
 
-from .tube_model import _section_extent, plane_crossings
+from .tube_model import _section_box, _section_extent, plane_crossings
 
 
 @dataclass(frozen=True, eq=False)
@@ -141,8 +141,7 @@ def _window_pixels(model, q, tan, found, todo, shape, pixel_spacing_mm, slice_th
     half_wid = 0.5 * model.diameter_mm  # across its length a section is the tube's width
     u = np.where((np.abs(u).sum(axis=1) > 0)[:, None], u, [1.0, 0.0])  # a round section: any direction
     m_mm = margin_px * max(rs, cs)
-    ex = np.abs(u[:, 0]) * half_len + np.abs(u[:, 1]) * half_wid + m_mm
-    ey = np.abs(u[:, 1]) * half_len + np.abs(u[:, 0]) * half_wid + m_mm
+    ex, ey = (e + m_mm for e in _section_box(half_len, half_wid, u))
     i0 = np.maximum(0, np.ceil((q[todo, 1] - ey[todo]) / rs)).astype(int)
     i1 = np.minimum(H - 1, np.floor((q[todo, 1] + ey[todo]) / rs)).astype(int)
     j0 = np.maximum(0, np.ceil((q[todo, 0] - ex[todo]) / cs)).astype(int)

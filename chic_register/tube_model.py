@@ -222,6 +222,13 @@ def _section_extent(model, tan, slice_thickness_mm):
     return half_len, half_wid, u
 
 
+def _section_box(half_len: np.ndarray, half_wid: np.ndarray, u: np.ndarray):
+    """``(ex, ey)`` (K,): half-extents along the image's x and y of each section's box (``half_len`` along its
+    in-plane direction ``u`` (K, 2), ``half_wid`` across it)."""
+    ax, ay = np.abs(u[:, 0]), np.abs(u[:, 1])
+    return ax * half_len + ay * half_wid, ay * half_len + ax * half_wid
+
+
 def _skew(v: np.ndarray) -> np.ndarray:
     """Cross-product matrices of vectors (..., 3) -> (..., 3, 3)."""
     z = np.zeros(v.shape[:-1])

@@ -83,14 +83,20 @@ class PoseUncertainty:
         }
 
 
-def background_noise(pixels: np.ndarray, footprints, guard_px: int = 3) -> NoiseEstimate:
-    """Noise scale of an image from its pixels outside every blob footprint (grown by ``guard_px``)."""
-    img = np.asarray(pixels, dtype=float)
-    keep = np.ones(img.shape, bool)
-    H, W = img.shape
+def clear_of_blobs(shape, footprints, guard_px: int = 3) -> np.ndarray:
+    """Boolean ``shape``: the pixels outside every blob footprint's box grown by ``guard_px``."""
+    keep = np.ones(shape, bool)
+    H, W = shape
     for r0, c0, mask in footprints:
         h, w = mask.shape
         keep[max(0, r0 - guard_px):min(H, r0 + h + guard_px), max(0, c0 - guard_px):min(W, c0 + w + guard_px)] = False
+    return keep
+
+
+def background_noise(pixels: np.ndarray, footprints, guard_px: int = 3) -> NoiseEstimate:
+    """Noise scale of an image from its pixels outside every blob footprint (grown by ``guard_px``)."""
+    img = np.asarray(pixels, dtype=float)
+    keep = clear_of_blobs(img.shape, footprints, guard_px)
     bg = img[keep]
     if bg.size < 32:
         bg = img.ravel()
@@ -121,11 +127,8 @@ def noise_correlation(pixels: np.ndarray, footprints, guard_px: int = 3) -> floa
     less its mean; the median over the blocks.
     """
     img = np.asarray(pixels, dtype=float)
-    keep = np.isfinite(img)
+    keep = np.isfinite(img) & clear_of_blobs(img.shape, footprints, guard_px)
     H, W = img.shape
-    for r0, c0, mask in footprints:
-        h, w = mask.shape
-        keep[max(0, r0 - guard_px):min(H, r0 + h + guard_px), max(0, c0 - guard_px):min(W, c0 + w + guard_px)] = False
     n = CORRELATION_BLOCK_PX
     hb, wb = H // n, W // n
     if hb == 0 or wb == 0:

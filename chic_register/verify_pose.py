@@ -76,7 +76,7 @@ from .psf import blurred_windows, fit_psf
 from .render import render_tubes
 from .rivals import check_rivals, slice_contenders
 from .trust import _to_xy_mm
-from .tube_model import _section_extent, plane_crossings
+from .tube_model import _section_box, _section_extent, plane_crossings
 from .uncertainty import correlation_inflation, noise_correlation
 
 #: A present tube's fitted fluid level, as a share of the median of the tubes the solver matched. A correctly
@@ -168,8 +168,7 @@ def _windows(geom, model, T_F_from_I, shape, spacing, thickness_mm, margin_px: f
     px = max(rs, cs)
     q, tan, _, found = plane_crossings(model, T_F_from_I, margin_mm=0.5 * float(model.diameter_mm.max()) + thickness_mm)
     half_len, half_wid, u = _section_extent(model, tan, thickness_mm)
-    ex = np.abs(u[:, 0]) * half_len + np.abs(u[:, 1]) * half_wid + margin_px * px
-    ey = np.abs(u[:, 1]) * half_len + np.abs(u[:, 0]) * half_wid + margin_px * px
+    ex, ey = (e + margin_px * px for e in _section_box(half_len, half_wid, u))
     txy = np.hypot(tan[:, 0], tan[:, 1])
     smear_px = float(np.max(thickness_mm * txy / np.maximum(np.abs(tan[:, 2]), 1e-3))) / px if txy.size else 0.0
     ts = int(min(MAX_THICKNESS_SAMPLES, max(1, math.ceil(smear_px / SMEAR_PX_PER_SAMPLE) + 1)))
