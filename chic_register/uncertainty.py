@@ -157,10 +157,21 @@ INTERPOLATED_CORRELATION = 0.45
 
 def correlation_inflation(rho: float) -> float:
     """Factor on a standard deviation estimated as if pixels were independent, for noise with neighbour
-    correlation ``rho`` at or above :data:`INTERPOLATED_CORRELATION` (an AR(1) sequence: the variance of a mean
-    grows by ``(1 + rho) / (1 - rho)``); 1 below it."""
+    correlation ``rho`` at or above :data:`INTERPOLATED_CORRELATION`; 1 below it.
+
+    The variance of a sum over a region grows by the sum of the noise's
+    correlation over all lags; for the kernels that interpolate or smooth an
+    image it is about ``(1 + rho)^2`` along each axis (binomial [1 2 1]: 8/3
+    at ``rho`` 2/3, against 2.78), and the two axes multiply: the factor on a
+    standard deviation is ``(1 + rho)^2``. Measured over 16 x 16 sums of
+    white noise: 2x bilinear zoom 2.9 (this reads 2.85), binomial 2.5 (2.6),
+    1.5x zoom 2.2 (2.3), 2x cubic zoom 2.3 (2.8). A 1-D AR(1) model,
+    ``sqrt((1 + rho) / (1 - rho))``, reads 2.3 for the 2x zoom: a zoomed
+    slice then looked 1.2x more precise than its native one (hunt_unlisted
+    seed 7 case 425 locked 0.53 deg off).
+    """
     rho = min(max(float(rho), 0.0), MAX_NOISE_CORRELATION)
-    return math.sqrt((1.0 + rho) / (1.0 - rho)) if rho >= INTERPOLATED_CORRELATION else 1.0
+    return (1.0 + rho) ** 2 if rho >= INTERPOLATED_CORRELATION else 1.0
 
 
 @functools.lru_cache(maxsize=1)

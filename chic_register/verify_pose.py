@@ -18,7 +18,11 @@ slice (:func:`verify_fit`):
    whose gain is below :data:`PRESENT_FRACTION` of the matched tubes' or not
    :data:`PRESENT_SIGMA` noise sigmas above zero is missing; the residual
    energy left by the section must stay below what a :data:`POSITION_TOL_PX`
-   misplacement leaves (:func:`shape_tolerance`), plus noise.
+   misplacement leaves (:func:`shape_tolerance`), plus noise, and the shift
+   of the section that best explains its residual (:func:`section_shift`)
+   must stay within :data:`SHIFT_TOL_PX`: an elongated section predicted a
+   few pixels along its length from where it is leaves less residual energy
+   than the disc-based tolerance allows.
 3. **Missing tubes** are flagged (``missing_tubes`` of the slice result) when
    the section lies well inside the body (an unfilled channel or a bubble);
    a missing tube whose section the pose puts near an end face is a refusal:
@@ -88,6 +92,12 @@ PRESENT_SIGMA = 5.0
 #: How far (pixels) a section may sit from where the pose predicts it before its shape counts as wrong: the
 #: solver's own RMS limit (SolveOptions.max_rms_px) plus the fast mode's centroid bias at curved, clipped sections.
 POSITION_TOL_PX = 0.75
+#: A section seen further than this (pixels) from where the pose predicts it is not explained by the pose: the
+#: section fit's own limit (SolveOptions.section_max_shift_px). Correct locks read 0.05 px (median) to 0.9 px (worst
+#: of 139, hunt seed 3); a pose fitted to half-blobs of elongated sections read 1.5-2.1 px at four tubes.
+SHIFT_TOL_PX = 1.0
+#: ... beyond this many standard errors of the shift's estimate (a faint or small section locates itself poorly).
+SHIFT_SIGMAS = 4.0
 #: Relative error of the rendered model itself (supersampling 2 x 2, a few sub-planes): a residual energy this
 #: share of the section's energy is model error, not misfit.
 MODEL_FLOOR = 0.03
@@ -239,6 +249,25 @@ def _shape_excess(w: _TubeWindow, y: np.ndarray, fit: np.ndarray, sigma: float, 
     return excess, chi_tol, sup
 
 
+def section_shift(w: _TubeWindow, y: np.ndarray, coef: np.ndarray, sigma: float) -> tuple[float, float]:
+    """``(shift, standard error)`` in pixels: the in-plane shift of a tube's rendered section that best explains the
+    residual of its window's fit (:func:`_fit_window`'s ``coef``), to first order (the section's gradient times its
+    gain, with an offset), and the standard error of its length under pixel noise ``sigma``. ``(0, inf)`` when
+    degenerate."""
+    gr, gc = np.gradient(w.own)
+    cols = [np.ones(y.size), w.own.ravel()] + ([w.others.ravel()] if coef.size > 2 else [])
+    res = y - np.stack(cols, axis=1) @ coef
+    A = np.stack([np.ones(y.size), -coef[1] * gr.ravel(), -coef[1] * gc.ravel()], axis=1)
+    try:
+        G_inv = np.linalg.inv(A.T @ A)
+    except np.linalg.LinAlgError:
+        return 0.0, math.inf
+    d = (G_inv @ (A.T @ res))[1:]
+    n = float(np.hypot(d[0], d[1]))
+    u = d / n if n > 0 else np.array([1.0, 0.0])
+    return n, sigma * math.sqrt(max(float(u @ G_inv[1:, 1:] @ u), 0.0))
+
+
 def verify_slice(geom, model, T_F_from_I: np.ndarray, pixels: np.ndarray, spacing, thickness_mm: float,
                  blobs: Blobs, assignment: np.ndarray, source: str, *,
                  check_envelope: bool = True) -> SliceCheck:
@@ -296,6 +325,10 @@ def verify_slice(geom, model, T_F_from_I: np.ndarray, pixels: np.ndarray, spacin
                 raise NoLock(f"{source}: tube {tid}'s section does not have the shape and place the pose ({where}) "
                              f"predicts (residual {excess:.2f} of its energy; allowed {shape_tolerance(r_px) + chi_tol:.2f})",
                              {"tube": tid, "shape_residual": round(excess, 3)})
+            shift, shift_se = section_shift(w, y, coef, sigma)
+            if shift > SHIFT_TOL_PX + SHIFT_SIGMAS * shift_se:
+                raise NoLock(f"{source}: tube {tid}'s section lies {shift:.1f} px from where the pose ({where}) "
+                             f"predicts it", {"tube": tid, "shift_px": round(shift, 3)})
             present.append(tid)
             # second moments of the section seen vs predicted (pixels), tubes with no neighbour in the window
             if w.others.max() < 0.05:
@@ -337,7 +370,7 @@ def verify_slice(geom, model, T_F_from_I: np.ndarray, pixels: np.ndarray, spacin
     except NoLock as exc:
         # what a blur explains: a section's shape, the level of the sections, their second moments (a blur widens a
         # section more across its width than along its length: the aspect test misreads it as a spacing error)
-        if not ({"shape_residual", "n_tubes", "spacing_ratio"} & set(exc.detail)) or not PSF_SIGMAS_RADII:
+        if not ({"shape_residual", "shift_px", "n_tubes", "spacing_ratio"} & set(exc.detail)) or not PSF_SIGMAS_RADII:
             raise
         if envelope != "ok":  # a blurred model is weaker evidence: only where the design's envelope holds
             raise
