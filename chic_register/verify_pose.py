@@ -81,7 +81,7 @@ from .render import render_tubes
 from .rivals import check_rivals, slice_contenders
 from .trust import _to_xy_mm
 from .tube_model import _section_box, _section_extent, plane_crossings
-from .uncertainty import correlation_inflation, noise_correlation
+from .uncertainty import correlation_inflation, noise_correlation_axes
 
 #: A present tube's fitted fluid level, as a share of the median of the tubes the solver matched. A correctly
 #: placed section (partial volume and slab smear are in the model) gives ~1 at any SNR above a few; a section
@@ -485,8 +485,9 @@ def verify_fit(geom, model, fit, rivals, slices, Ss, blob_sets, opts, precision=
     tre, rot = precision or pose_precision(model, fit, Ss, px, exclude=[c.merged for c in out])
     # noise shared between neighbouring pixels (an interpolated or smoothed image) makes every estimate that takes
     # them as independent too optimistic: widened by the worst slice's correlation factor
-    rho = max(noise_correlation(np.asarray(sl.pixels), b.footprints) for sl, b in zip(slices, blob_sets))
-    tre, rot = tre * correlation_inflation(rho), rot * correlation_inflation(rho)
+    f = max(correlation_inflation(noise_correlation_axes(np.asarray(sl.pixels), b.footprints))
+            for sl, b in zip(slices, blob_sets))
+    tre, rot = tre * f, rot * f
     k = PRECISION_SIGMAS
     tre_tol, rot_tol = opts.trust_tre_mm, opts.trust_rot_deg
     if k * tre > tre_tol or k * rot > rot_tol:
