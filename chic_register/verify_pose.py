@@ -68,6 +68,7 @@ from .fit_checks import (  # noqa: F401
     PRECISION_SIGMAS,
     ROT_TOL_DEG,
     STRETCH_MIN,
+    STRETCH_MOVE_SHARE,
     STRETCH_P,
     TRE_TOL_MM,
     gamma_p,
@@ -474,13 +475,15 @@ def verify_fit(geom, model, fit, rivals, slices, Ss, blob_sets, opts, precision=
             if c.envelope != "ok":
                 raise NoLock(f"{sl.source}: the pose fitted to the blurred sections lies outside the design's usable "
                              f"envelope ({c.envelope}): wide blobs there cannot be told apart", {"envelope": c.envelope})
-    scale, _, p = stretch_test(model, fit, xys, Ss)
-    if p < STRETCH_P and float(np.max(np.abs(scale))) > STRETCH_MIN:
+    scale, _, p, (moved_mm, moved_deg) = stretch_test(model, fit, xys, Ss)
+    moves = moved_mm > STRETCH_MOVE_SHARE * opts.trust_tre_mm or moved_deg > STRETCH_MOVE_SHARE * opts.trust_rot_deg
+    if p < STRETCH_P and (float(np.max(np.abs(scale))) > STRETCH_MIN or moves):
         axis = "columns (x)" if abs(scale[0]) >= abs(scale[1]) else "rows (y)"
         worst = float(scale[0] if abs(scale[0]) >= abs(scale[1]) else scale[1])
         raise NoLock(f"the tube positions fit best with the image stretched {100 * worst:+.1f} % along its {axis} "
-                     f"(F test p = {p:.1g}): the pixel spacing looks wrong; check --pixel-spacing or the file's "
-                     f"PixelSpacing", {"stretch": [round(float(v), 4) for v in scale], "stretch_p": float(p)})
+                     f"(F test p = {p:.1g}; it moves the pose by {moved_mm:.2f} mm, {moved_deg:.2f} deg): the pixel "
+                     f"spacing looks wrong; check --pixel-spacing or the file's PixelSpacing",
+                     {"stretch": [round(float(v), 4) for v in scale], "stretch_p": float(p)})
     px = min(max(sl.pixel_spacing_mm) for sl in slices)
     tre, rot = precision or pose_precision(model, fit, Ss, px, exclude=[c.merged for c in out])
     # noise shared between neighbouring pixels (an interpolated or smoothed image) makes every estimate that takes
