@@ -255,18 +255,28 @@ def section_shift(w: _TubeWindow, y: np.ndarray, coef: np.ndarray, sigma: float)
     residual of its window's fit (:func:`_fit_window`'s ``coef``), to first order (the section's gradient times its
     gain, with an offset), and the standard error of its length under pixel noise ``sigma``. ``(0, inf)`` when
     degenerate."""
-    gr, gc = np.gradient(w.own)
-    cols = [np.ones(y.size), w.own.ravel()] + ([w.others.ravel()] if coef.size > 2 else [])
-    res = y - np.stack(cols, axis=1) @ coef
-    A = np.stack([np.ones(y.size), -coef[1] * gr.ravel(), -coef[1] * gc.ravel()], axis=1)
-    try:
-        G_inv = np.linalg.inv(A.T @ A)
-    except np.linalg.LinAlgError:
+    own = w.own
+    res = y - coef[0] - coef[1] * own.ravel()
+    if coef.size > 2:
+        res -= coef[2] * w.others.ravel()
+    g = np.empty((2,) + own.shape)  # central differences, one-sided at the window's edges (np.gradient's, cheaper)
+    g[0, 1:-1] = 0.5 * (own[2:] - own[:-2])
+    g[0, 0], g[0, -1] = own[1] - own[0], own[-1] - own[-2]
+    g[1, :, 1:-1] = 0.5 * (own[:, 2:] - own[:, :-2])
+    g[1, :, 0], g[1, :, -1] = own[:, 1] - own[:, 0], own[:, -1] - own[:, -2]
+    g = g.reshape(2, -1)
+    g -= g.mean(axis=1, keepdims=True)  # the offset's column projected out
+    a = float(coef[1])
+    (grr, grc), (_, gcc) = (g @ g.T).tolist()
+    det = grr * gcc - grc * grc
+    if not a * a * det > 0:
         return 0.0, math.inf
-    d = (G_inv @ (A.T @ res))[1:]
-    n = float(np.hypot(d[0], d[1]))
-    u = d / n if n > 0 else np.array([1.0, 0.0])
-    return n, sigma * math.sqrt(max(float(u @ G_inv[1:, 1:] @ u), 0.0))
+    br, bc = (g @ res).tolist()
+    dr, dc = -(gcc * br - grc * bc) / (a * det), -(grr * bc - grc * br) / (a * det)  # y ~ a own(x - d): -a grad . d
+    n = math.hypot(dr, dc)
+    ur, uc = (dr / n, dc / n) if n > 0 else (1.0, 0.0)
+    var = (gcc * ur * ur - 2 * grc * ur * uc + grr * uc * uc) / (a * a * det)  # u^T (a^2 G)^-1 u
+    return n, sigma * math.sqrt(max(var, 0.0))
 
 
 def verify_slice(geom, model, T_F_from_I: np.ndarray, pixels: np.ndarray, spacing, thickness_mm: float,
