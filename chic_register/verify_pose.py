@@ -40,7 +40,10 @@ slice (:func:`verify_fit`):
    (:data:`SPACING_TOL`, or three standard errors of its estimate over the
    tubes if larger). The section positions are asked the same question
    (:func:`stretch_test`): a pose tilted to absorb a stretch leaves a
-   residual pattern that a stretch explains and noise does not.
+   residual pattern that a stretch explains and noise does not; a
+   significant one is refused above 2 %, or when fitting it moves the pose
+   by more than a third of the trust limits (a small isotropic stretch turns
+   a tilted slice by about ``s cot(tilt)``).
 6. **Rivals**: a distinct rival pose (the solver's other hypotheses, and the
    pose turned about the axis by each near-symmetry of the straight tubes)
    that explains the pixels nearly as well makes the slice ambiguous.
@@ -83,6 +86,7 @@ from .rivals import check_rivals, slice_contenders
 from .trust import _to_xy_mm
 from .tube_model import _section_box, _section_extent, plane_crossings
 from .uncertainty import correlation_inflation, noise_correlation_axes
+from .window_stats import _spread, section_shift
 
 #: A present tube's fitted fluid level, as a share of the median of the tubes the solver matched. A correctly
 #: placed section (partial volume and slab smear are in the model) gives ~1 at any SNR above a few; a section
@@ -250,35 +254,6 @@ def _shape_excess(w: _TubeWindow, y: np.ndarray, fit: np.ndarray, sigma: float, 
     return excess, chi_tol, sup
 
 
-def section_shift(w: _TubeWindow, y: np.ndarray, coef: np.ndarray, sigma: float) -> tuple[float, float]:
-    """``(shift, standard error)`` in pixels: the in-plane shift of a tube's rendered section that best explains the
-    residual of its window's fit (:func:`_fit_window`'s ``coef``), to first order (the section's gradient times its
-    gain, with an offset), and the standard error of its length under pixel noise ``sigma``. ``(0, inf)`` when
-    degenerate."""
-    own = w.own
-    res = y - coef[0] - coef[1] * own.ravel()
-    if coef.size > 2:
-        res -= coef[2] * w.others.ravel()
-    g = np.empty((2,) + own.shape)  # central differences, one-sided at the window's edges (np.gradient's, cheaper)
-    g[0, 1:-1] = 0.5 * (own[2:] - own[:-2])
-    g[0, 0], g[0, -1] = own[1] - own[0], own[-1] - own[-2]
-    g[1, :, 1:-1] = 0.5 * (own[:, 2:] - own[:, :-2])
-    g[1, :, 0], g[1, :, -1] = own[:, 1] - own[:, 0], own[:, -1] - own[:, -2]
-    g = g.reshape(2, -1)
-    g -= g.mean(axis=1, keepdims=True)  # the offset's column projected out
-    a = float(coef[1])
-    (grr, grc), (_, gcc) = (g @ g.T).tolist()
-    det = grr * gcc - grc * grc
-    if not a * a * det > 0:
-        return 0.0, math.inf
-    br, bc = (g @ res).tolist()
-    dr, dc = -(gcc * br - grc * bc) / (a * det), -(grr * bc - grc * br) / (a * det)  # y ~ a own(x - d): -a grad . d
-    n = math.hypot(dr, dc)
-    ur, uc = (dr / n, dc / n) if n > 0 else (1.0, 0.0)
-    var = (gcc * ur * ur - 2 * grc * ur * uc + grr * uc * uc) / (a * a * det)  # u^T (a^2 G)^-1 u
-    return n, sigma * math.sqrt(max(var, 0.0))
-
-
 def verify_slice(geom, model, T_F_from_I: np.ndarray, pixels: np.ndarray, spacing, thickness_mm: float,
                  blobs: Blobs, assignment: np.ndarray, source: str, *,
                  check_envelope: bool = True) -> SliceCheck:
@@ -402,21 +377,6 @@ def verify_slice(geom, model, T_F_from_I: np.ndarray, pixels: np.ndarray, spacin
             return assess(*blurred_windows(wide, wide_canvas, psf), psf)
         except NoLock:
             raise exc from None
-
-
-def _spread(w: np.ndarray):
-    """Weighted variance along rows and columns (pixels^2) of weights ``w`` (h, w); None if empty."""
-    total = float(w.sum())
-    if not total > 0:
-        return None
-    r = np.arange(w.shape[0], dtype=float)
-    c = np.arange(w.shape[1], dtype=float)
-    wr, wc = w.sum(axis=1), w.sum(axis=0)
-    mr, mc = wr @ r / total, wc @ c / total
-    vr, vc = wr @ (r - mr) ** 2 / total, wc @ (c - mc) ** 2 / total
-    if not (vr > 0 and vc > 0):
-        return None
-    return np.array([vr, vc])
 
 
 def _unexplained(model, T_F_from_I, blobs: Blobs, assignment, canvas, spacing) -> list[int]:

@@ -88,7 +88,7 @@ def test_a_shifted_section_is_measured():
     rng = np.random.default_rng(0)
     for true_shift in (0.0, 1.5):
         y = (0.1 + disc(12.0, 12.0 + true_shift) + rng.normal(0, 0.02, (24, 24))).ravel()
-        coef, y, fit = vp._fit_window(y.reshape(24, 24), w)
+        coef, y, _ = vp._fit_window(y.reshape(24, 24), w)
         shift, se = vp.section_shift(w, y, coef, 0.02)
         assert abs(shift - true_shift) < 0.35 and 0 < se < 0.05
 
