@@ -409,6 +409,20 @@ def _unexplained(model, T_F_from_I, blobs: Blobs, assignment, canvas, spacing) -
     return out
 
 
+def _check_stretch(model, fit, xys, Ss, opts) -> None:
+    """:class:`NoLock` naming the axis when the tube positions fit a stretch of the image (a wrong pixel spacing,
+    :func:`stretch_test`) of over 2 % or one that moves the pose by more than a third of the trust limits."""
+    scale, _, p, (moved_mm, moved_deg) = stretch_test(model, fit, xys, Ss)
+    moves = moved_mm > STRETCH_MOVE_SHARE * opts.trust_tre_mm or moved_deg > STRETCH_MOVE_SHARE * opts.trust_rot_deg
+    if p < STRETCH_P and (float(np.max(np.abs(scale))) > STRETCH_MIN or moves):
+        axis = "columns (x)" if abs(scale[0]) >= abs(scale[1]) else "rows (y)"
+        worst = float(scale[0] if abs(scale[0]) >= abs(scale[1]) else scale[1])
+        raise NoLock(f"the tube positions fit best with the image stretched {100 * worst:+.1f} % along its {axis} "
+                     f"(F test p = {p:.1g}; it moves the pose by {moved_mm:.2f} mm, {moved_deg:.2f} deg): the pixel "
+                     f"spacing looks wrong; check --pixel-spacing or the file's PixelSpacing",
+                     {"stretch": [round(float(v), 4) for v in scale], "stretch_p": float(p)})
+
+
 def verify_fit(geom, model, fit, rivals, slices, Ss, blob_sets, opts, precision=None,
                name_slice: bool = False) -> list[SliceCheck]:
     """Verify a solved pose (a ``solve._Fit``) in every slice, and that no distinct rival verifies as well.
@@ -430,6 +444,8 @@ def verify_fit(geom, model, fit, rivals, slices, Ss, blob_sets, opts, precision=
             check = verify_slice(geom, model, T_F_from_I, np.asarray(sl.pixels), sl.pixel_spacing_mm,
                                  float(sl.slice_thickness_mm), b, fit.assignments[j], sl.source)
         except NoLock as exc:
+            if "shift_px" in exc.detail:  # sections off where the pose puts them: a wrong spacing says why, if it is one
+                _check_stretch(model, fit, xys, Ss, opts)
             if not name_slice or len(slices) < 2:
                 raise
             refused.append((j, exc.reason))
@@ -445,15 +461,7 @@ def verify_fit(geom, model, fit, rivals, slices, Ss, blob_sets, opts, precision=
             if c.envelope != "ok":
                 raise NoLock(f"{sl.source}: the pose fitted to the blurred sections lies outside the design's usable "
                              f"envelope ({c.envelope}): wide blobs there cannot be told apart", {"envelope": c.envelope})
-    scale, _, p, (moved_mm, moved_deg) = stretch_test(model, fit, xys, Ss)
-    moves = moved_mm > STRETCH_MOVE_SHARE * opts.trust_tre_mm or moved_deg > STRETCH_MOVE_SHARE * opts.trust_rot_deg
-    if p < STRETCH_P and (float(np.max(np.abs(scale))) > STRETCH_MIN or moves):
-        axis = "columns (x)" if abs(scale[0]) >= abs(scale[1]) else "rows (y)"
-        worst = float(scale[0] if abs(scale[0]) >= abs(scale[1]) else scale[1])
-        raise NoLock(f"the tube positions fit best with the image stretched {100 * worst:+.1f} % along its {axis} "
-                     f"(F test p = {p:.1g}; it moves the pose by {moved_mm:.2f} mm, {moved_deg:.2f} deg): the pixel "
-                     f"spacing looks wrong; check --pixel-spacing or the file's PixelSpacing",
-                     {"stretch": [round(float(v), 4) for v in scale], "stretch_p": float(p)})
+    _check_stretch(model, fit, xys, Ss, opts)
     px = min(max(sl.pixel_spacing_mm) for sl in slices)
     tre, rot = precision or pose_precision(model, fit, Ss, px, exclude=[c.merged for c in out])
     # noise shared between neighbouring pixels (an interpolated or smoothed image) makes every estimate that takes
