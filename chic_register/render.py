@@ -126,12 +126,14 @@ def _render_crossing(tube, u_c: float, T_F_from_S: np.ndarray, z_mm: float, grid
     with np.errstate(invalid="ignore", divide="ignore"):
         gx = np.abs(perp[..., 0]) / dist
         gy = np.abs(perp[..., 1]) / dist
-    w_r = np.nan_to_num(hs_x * gx + hs_y * gy, nan=0.0)
+    w_r = hs_x * gx + hs_y * gy
+    if not np.isfinite(w_r).all():  # a sample on the centreline (0 / 0)
+        w_r = np.nan_to_num(w_r, nan=0.0)
     cov = np.clip(0.5 + (r - dist) / np.maximum(w_r, 1e-12), 0.0, 1.0)
     inside_mm = np.minimum(u, 1.0 - u) * length
     w_e = hs_x * abs(t[0]) + hs_y * abs(t[1])
     cov *= np.clip(0.5 + inside_mm / max(w_e, 1e-12), 0.0, 1.0)
-    frac = cov.mean(axis=-1)
+    frac = cov[..., 0] if cov.shape[-1] == 1 else cov.mean(axis=-1)  # (one sample a pixel: its own value)
     region = layer[i0 : i1 + 1, j0 : j1 + 1]
     np.maximum(region, frac, out=region)
 
