@@ -378,9 +378,12 @@ def _joint_pass(model, T_F_from_I, q, tan, found, pixels, pixel_spacing_mm, slic
     starts = np.flatnonzero(np.r_[True, jw.owner[1:] != jw.owner[:-1]])
     S, Sx, Sy = section_model(model, T_F_from_I, q, tan, jw, pixel_spacing_mm, slice_thickness_mm,
                               thickness_samples, exact)
-    for _ in range(JOINT_PASSES):
-        Sn = section_model(model, T_F_from_I, fitted_at, tan, neighbours, pixel_spacing_mm, slice_thickness_mm,
-                           thickness_samples, exact)[0]
+    for n_pass in range(JOINT_PASSES):
+        if n_pass == 0 and not strong.any():
+            Sn = Sn0  # the same neighbours at the same fitted positions: the same model
+        else:
+            Sn = section_model(model, T_F_from_I, fitted_at, tan, neighbours, pixel_spacing_mm, slice_thickness_mm,
+                               thickness_samples, exact)[0]
         y_own = y.copy()
         np.subtract.at(y_own, nb_p, gain[nb_k] * Sn)
         sel_j, shift, info_j, a_j, n_pix_j = _linear_fit(S, Sx, Sy, y_own, jw.owner, starts, K, sel, noise_sigma)
