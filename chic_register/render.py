@@ -114,7 +114,8 @@ def _render_crossing(tube, u_c: float, T_F_from_S: np.ndarray, z_mm: float, grid
         return
     i0, i1, j0, j1 = box
     p = grid.samples(i0, i1, j0, j1, z_mm)
-    s0 = (p - c) @ t  # arc length along the tangent line
+    pc = p - c
+    s0 = pc @ t  # arc length along the tangent line
     u = u_c + s0 / length
     if tube.curved:
         # re-project on the exact centreline: the nearest point to second order
@@ -125,7 +126,7 @@ def _render_crossing(tube, u_c: float, T_F_from_S: np.ndarray, z_mm: float, grid
         perp = (d - along[:, None] * tq).reshape(p.shape)
         u = u + along.reshape(u.shape) / length
     else:
-        perp = (p - c) - s0[..., None] * t
+        perp = pc - s0[..., None] * t
     dist = np.sqrt(np.einsum("...i,...i->...", perp, perp))
     rs, cs = grid.spacing
     hs_x, hs_y = cs / grid.sub.size, rs / grid.sub.size

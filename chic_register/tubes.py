@@ -150,15 +150,23 @@ class LineTube(Tube):
     def z_range(self) -> tuple[float, float]:
         return (min(self.p0[2], self.p1[2]), max(self.p0[2], self.p1[2]))
 
+    @functools.cached_property
+    def _ends(self) -> tuple[np.ndarray, np.ndarray]:
+        """``(p0, p1 - p0)`` as arrays (computed once; read-only)."""
+        p0, d = np.asarray(self.p0, dtype=float), np.subtract(self.p1, self.p0)
+        p0.flags.writeable = d.flags.writeable = False
+        return p0, d
+
     def points(self, t) -> np.ndarray:
         """Centreline points at parameters ``t`` in [0, 1]; shape (N, 3)."""
         t = np.atleast_1d(np.asarray(t, dtype=float))[:, None]
-        return np.asarray(self.p0) + t * np.subtract(self.p1, self.p0)
+        p0, d = self._ends
+        return p0 + t * d
 
     def tangents(self, t) -> np.ndarray:
         """Unit tangents at parameters ``t``; shape (N, 3)."""
-        t = np.atleast_1d(np.asarray(t, dtype=float))
-        return np.tile(self.direction, (t.size, 1))
+        n = np.size(t)
+        return np.broadcast_to(self.direction, (n, 3)).copy()
 
     def point_at_z(self, z_mm) -> np.ndarray:
         """Centreline points at heights ``z_mm`` (the line must not be horizontal); shape (N, 3)."""
