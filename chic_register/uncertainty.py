@@ -134,9 +134,8 @@ def noise_correlation(pixels: np.ndarray, footprints, guard_px: int = 3) -> floa
     hb, wb = H // n, W // n
     if hb == 0 or wb == 0:
         return 0.0
-    blocks = img[:hb * n, :wb * n].reshape(hb, n, wb, n).swapaxes(1, 2).reshape(-1, n, n)
-    clear = keep[:hb * n, :wb * n].reshape(hb, n, wb, n).swapaxes(1, 2).reshape(-1, n, n).all(axis=(1, 2))
-    x = blocks[clear]
+    clear = keep[:hb * n, :wb * n].reshape(hb, n, wb, n).all(axis=(1, 3))  # (hb, wb): blocks wholly clear
+    x = img[:hb * n, :wb * n].reshape(hb, n, wb, n).swapaxes(1, 2)[clear]  # (m, n, n), only those copied
     if x.shape[0] < 8:
         return 0.0
     x = x - x.mean(axis=(1, 2), keepdims=True)
