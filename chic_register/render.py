@@ -130,9 +130,13 @@ def _render_crossing(tube, u_c: float, T_F_from_S: np.ndarray, z_mm: float, grid
     dist = np.sqrt(np.einsum("...i,...i->...", perp, perp))
     rs, cs = grid.spacing
     hs_x, hs_y = cs / grid.sub.size, rs / grid.sub.size
-    with np.errstate(invalid="ignore", divide="ignore"):
+    if dist.all():  # (no sample on the centreline: nothing to silence)
         gx = np.abs(perp[..., 0]) / dist
         gy = np.abs(perp[..., 1]) / dist
+    else:
+        with np.errstate(invalid="ignore", divide="ignore"):
+            gx = np.abs(perp[..., 0]) / dist
+            gy = np.abs(perp[..., 1]) / dist
     w_r = hs_x * gx + hs_y * gy
     if not np.isfinite(w_r).all():  # a sample on the centreline (0 / 0)
         w_r = np.nan_to_num(w_r, nan=0.0)
