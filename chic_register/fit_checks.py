@@ -163,7 +163,8 @@ def stretch_test(model, fit, xys, Ss):
     (2,): the fitted relative stretch along x (columns) and y (rows);
     ``moved``: ``(mm at the frame centre, deg)`` the pose moves by when the
     stretch is fitted with it (the error a stretch of the image this size
-    puts in the pose). Returns ``(scale, F, p, moved)``. The
+    puts in the pose; ``(0, 0)``, not computed, when ``p`` is not below
+    :data:`STRETCH_P`). Returns ``(scale, F, p, moved)``. The
     residuals are whitened as the fit weighed them (``fit.measurements``).
     """
     from .pose import invert
@@ -197,5 +198,7 @@ def stretch_test(model, fit, xys, Ss):
     rest = max(float(r_perp @ r_perp) - explained, 1e-30)
     F = (explained / 2.0) / (rest / dof)
     p = (1.0 + 2.0 * F / dof) ** (-0.5 * dof)
+    if p >= STRETCH_P:  # not significant: the move is not asked for (the common path)
+        return s, F, p, (0.0, 0.0)
     twist = np.linalg.lstsq(Jp, Js @ s, rcond=None)[0]  # the pose's move when the stretch is fitted with it
     return s, F, p, worst_errors(np.outer(twist, twist), _frame_centre_scanner(model, fit))
