@@ -10,10 +10,19 @@ and the residual of a slice that disagrees with the rest).
 
 from __future__ import annotations
 
-from .errors import ChicRegisterError
+import dataclasses
+import time
+
+import numpy as np
+
+from .errors import ChicRegisterError, NoLock, SliceRefused
 from .geometry import FiducialGeometry
-from .solve import Registration, register
+from .solve import Registration, SkippedSlice, SolveOptions, _registration, register
 from .volume import Volume
+
+#: A volume whose slices give no pose, with wide blobs: the pixels of this many slices, spread over those that
+#: cross the fiducial, are fitted through the blurred model (CPU grows with them; 6 slices carry ~60 sections).
+WIDE_SLICES = 6
 
 
 def parse_slice_indices(tokens, n_slices: int, source: str = "--slices") -> list[int]:
@@ -55,4 +64,124 @@ def register_volume(volume: Volume, geom: FiducialGeometry, indices=None, **opti
     nk = volume.shape[0]
     ks = range(nk) if indices is None else indices
     slices = [volume.native_slice(k) for k in ks]
-    return register(slices, geom, skip_failed=indices is None, **options)
+    try:
+        return register(slices, geom, skip_failed=indices is None, **options)
+    except NoLock as exc:
+        opts = dataclasses.replace(SolveOptions(), **{k: v for k, v in options.items() if k not in _NOT_OPTIONS})
+        if indices is not None or not (opts.blurred_fit and opts.verify) or opts.centroid_model:
+            raise
+        wide = _register_wide(volume, geom, opts, options.get("target_F_mm"))
+        if wide is None:
+            raise
+        return wide
+
+
+_NOT_OPTIONS = ("options", "detect_options", "target_F_mm")
+
+
+def _register_wide(volume: Volume, geom: FiducialGeometry, opts: SolveOptions, target_F_mm=None):
+    """A volume of wide blobs (merged neighbours in every slice, so no slice gives a pose): the pose from the
+    voxels (:mod:`chic_register.volume_search`), fitted to the pixels of :data:`WIDE_SLICES` spread slices through
+    the blurred model (:mod:`chic_register.blurred_fit`) and verified on them. None when the blobs are not wide or
+    no pose is found (the slices' own reason stands); :class:`NoLock` when the pose found fails its checks."""
+    from .blurred_fit import WIDE_RATIO, blob_width_ratio, blurred_stage
+    from .detect import detect_blobs
+    from .refine import _assign, refine
+    from .trust import _distinct, _near_prior, _to_xy_mm
+    from .tube_model import plane_crossings, prepare_geometry
+    from .verify_pose import verify_fit
+    from .volume_search import volume_first_guesses
+
+    t0 = time.perf_counter()
+    model, geom_sha = prepare_geometry(geom)
+    guesses = [g for g in volume_first_guesses(volume.voxels, volume.affine_lps, model) if _near_prior(g[1], opts)]
+    if not guesses:
+        return None
+    X = guesses[0][1]
+    nk = volume.shape[0]
+    all_slices = [volume.native_slice(k) for k in range(nk)]
+    Ss_all = [sl.T_scanner_from_image() for sl in all_slices]
+    crossing = [k for k in range(nk) if _mid_body(model, X @ Ss_all[k])]
+    if len(crossing) < 2:
+        return None
+    pick = sorted({crossing[int(round(i))] for i in np.linspace(0, len(crossing) - 1, min(WIDE_SLICES, len(crossing)))})
+    slices = [all_slices[k] for k in pick]
+    Ss = [Ss_all[k] for k in pick]
+    blob_sets = [detect_blobs(sl.pixels, sl.pixel_spacing_mm, model.diameter_mm) for sl in slices]
+    xys = [_to_xy_mm(b, sl) for sl, b in zip(slices, blob_sets)]
+    gate = 1.5 * float(model.diameter_mm.max())
+    assign = []
+    for xy, S in zip(xys, Ss):
+        q, _, _, inside = plane_crossings(model, X @ S)
+        assign.append(_assign(q, inside, xy, gate))
+    if blob_width_ratio(model, slices, blob_sets, assign) < WIDE_RATIO:
+        return None  # sharp sections: the slices' own refusal is the answer
+    t1 = time.perf_counter()
+    start = refine(model, xys, Ss, X, gates_mm=(), final_iters=0, assign0=assign)
+    start = dataclasses.replace(start, T_F_from_scanner=X)
+    best, precision, psf_px = blurred_stage(model, start, xys, Ss, slices, blob_sets)
+    if precision is None:
+        raise NoLock("the volume's wide blobs: the pose found from the voxels did not converge when fitted to the "
+                     "pixels of its slices through the blurred model")
+    if len(guesses) > 1:  # a distinct pose that the voxels liked as well: it must not fit the pixels as well
+        for score, Y in guesses[1:]:
+            if score > 0.97 * guesses[0][0] and _far(Y, best.T_F_from_scanner, model):
+                raise NoLock(f"the volume's wide blobs fit two distinct poses (centreline scores {guesses[0][0]:.3f} "
+                             f"and {score:.3f})")
+    skipped = []
+    rivals = [[] for _ in slices]
+    while True:
+        try:
+            checks = verify_fit(geom, model, best, rivals, slices, Ss, blob_sets, opts, precision=precision,
+                                name_slice=True, psf_px=psf_px)
+            break
+        except SliceRefused as exc:
+            out = {j for j, _ in exc.refused}
+            for j, reason in exc.refused:
+                skipped.append(SkippedSlice(slices[j].source, reason.removeprefix(f"{slices[j].source}: ")))
+            keep = [i for i in range(len(slices)) if i not in out]
+            if len(keep) < 2:
+                raise NoLock(f"the volume's wide blobs: the pose fitted to them fails in {len(out)} of its "
+                             f"{len(slices)} slices; e.g. {exc.refused[0][1]}") from None
+            slices, Ss, blob_sets, xys = ([seq[i] for i in keep] for seq in (slices, Ss, blob_sets, xys))
+            best = dataclasses.replace(refine(model, xys, Ss, best.T_F_from_scanner, gates_mm=(), final_iters=0,
+                                              assign0=[best.assignments[i] for i in keep]),
+                                       T_F_from_scanner=best.T_F_from_scanner)
+    t2 = time.perf_counter()
+    used = {sl.source for sl in slices}
+    skipped += [SkippedSlice(sl.source, "not fitted: the volume's wide blobs were fitted on "
+                                        f"{len(slices)} slices spread over the fiducial")
+                for sl in all_slices if sl.source not in used and sl.source not in {s.source for s in skipped}]
+    order = {sl.source: k for k, sl in enumerate(all_slices)}
+    skipped.sort(key=lambda s: order.get(s.source, 0))
+    return _registration(geom, model, geom_sha, best, slices, Ss, blob_sets, xys, [None] * len(slices), checks,
+                         {}, skipped, opts, target_F_mm, (t0, t1, t2))
+
+
+#: Slices used for a wide volume cross the axis this far (a share of the body's length) from both end faces: near
+#: them tubes end inside blurred sections, which the verification rightly cannot tell from a wrong pose.
+END_SHARE = 0.15
+
+
+def _mid_body(model, T_F_from_I: np.ndarray) -> bool:
+    """The slice crosses the fiducial's axis away from its end faces, with every tube's section in it."""
+    from .pose import slice_angles
+    from .tube_model import plane_crossings
+
+    depth = float(slice_angles(T_F_from_I).depth_mm)
+    L = model.length_mm
+    return END_SHARE * L <= depth <= (1 - END_SHARE) * L and bool(plane_crossings(model, T_F_from_I)[3].all())
+
+
+def _far(T1: np.ndarray, T2: np.ndarray, model) -> bool:
+    """Two poses another solution apart, not one pose found twice: more than a channel's width at a tube end, or
+    more than 5 degrees."""
+    from .trust import _rotation_deg
+
+    L = model.length_mm
+    rmax = float(np.max(model.axis_radius_mm)) if model.axis_radius_mm.size else 0.0
+    pts = np.array([[rmax, 0, 0], [-rmax, 0, L], [0, rmax, L / 2], [0, 0, 0], [0, 0, L]])
+    a = pts @ T1[:3, :3].T + T1[:3, 3]
+    b = pts @ T2[:3, :3].T + T2[:3, 3]
+    return (_rotation_deg(T1[:3, :3], T2[:3, :3]) > 5.0
+            or float(np.max(np.linalg.norm(a - b, axis=1))) > float(model.diameter_mm.max()))
