@@ -11,6 +11,7 @@ and the residual of a slice that disagrees with the rest).
 from __future__ import annotations
 
 import dataclasses
+import math
 import time
 
 import numpy as np
@@ -82,14 +83,12 @@ _NOT_OPTIONS = ("options", "detect_options", "target_F_mm")
 def _register_wide(volume: Volume, geom: FiducialGeometry, opts: SolveOptions, target_F_mm=None):
     """A volume of wide blobs (merged neighbours in every slice, so no slice gives a pose): the pose from the
     voxels (:mod:`chic_register.volume_search`), fitted to the pixels of :data:`WIDE_SLICES` spread slices through
-    the blurred model (:mod:`chic_register.blurred_fit`) and verified on them. None when the blobs are not wide or
-    no pose is found (the slices' own reason stands); :class:`NoLock` when the pose found fails its checks."""
-    from .blurred_fit import WIDE_RATIO, blob_width_ratio, blurred_stage
-    from .detect import detect_blobs
-    from .refine import _assign, refine
-    from .trust import _distinct, _near_prior, _to_xy_mm
-    from .tube_model import plane_crossings, prepare_geometry
-    from .verify_pose import verify_fit
+    the blurred model (:mod:`chic_register.blurred_fit`) and verified on them. Every pose the voxels rate nearly
+    as well (:data:`RIVAL_SHARE`) is fitted and verified too: two distinct poses that both verify are refused as
+    ambiguous. None when the blobs are not wide or no pose is found (the slices' own reason stands);
+    :class:`NoLock` when the poses found fail their checks."""
+    from .tube_model import prepare_geometry
+    from .trust import _near_prior
     from .volume_search import volume_first_guesses
 
     t0 = time.perf_counter()
@@ -97,11 +96,61 @@ def _register_wide(volume: Volume, geom: FiducialGeometry, opts: SolveOptions, t
     guesses = [g for g in volume_first_guesses(volume.voxels, volume.affine_lps, model) if _near_prior(g[1], opts)]
     if not guesses:
         return None
-    X = guesses[0][1]
-    nk = volume.shape[0]
-    all_slices = [volume.native_slice(k) for k in range(nk)]
+    all_slices = [volume.native_slice(k) for k in range(volume.shape[0])]
+    t1 = time.perf_counter()
+    passed, first_refusal = [], None
+    for score, X in guesses:
+        if score < RIVAL_SHARE * guesses[0][0] or any(not _far(X, p[0].T_F_from_scanner, model) for p in passed):
+            continue
+        try:
+            out = _fit_and_verify(geom, model, X, all_slices, opts)
+        except NoLock as exc:
+            first_refusal = first_refusal or exc
+            continue
+        if out is None:
+            if not passed and first_refusal is None:
+                return None  # sharp sections, or too few slices: not this path's case
+            continue
+        passed.append(out)
+    if len(passed) > 1:
+        raise NoLock("ambiguous fit: the volume's wide blobs fit two distinct poses, each verified on its slices")
+    if not passed:
+        raise first_refusal or NoLock("the volume's wide blobs: no pose found from the voxels fits the pixels")
+    best, slices, Ss, blob_sets, xys, checks, skipped = passed[0]
+    t2 = time.perf_counter()
+    used = {sl.source for sl in slices} | {s.source for s in skipped}
+    skipped += [SkippedSlice(sl.source, f"not fitted: the volume's wide blobs were fitted on {len(slices)} slices "
+                                        "spread over the fiducial") for sl in all_slices if sl.source not in used]
+    order = {sl.source: k for k, sl in enumerate(all_slices)}
+    skipped.sort(key=lambda s: order.get(s.source, 0))
+    # the covariance of the uncertainty module comes from the blob centres, which wide blobs bias and merge: it is
+    # left out unless a TRE limit asks for it (the blurred fit's own precision was verified above)
+    rep = opts if math.isfinite(opts.max_tre_mm) else dataclasses.replace(opts, uncertainty=False)
+    try:
+        return _registration(geom, model, geom_sha, best, slices, Ss, blob_sets, xys, [None] * len(slices), checks,
+                             {}, skipped, rep, target_F_mm, (t0, t1, t2))
+    except np.linalg.LinAlgError:
+        raise NoLock("imprecise: the wide blobs' centres do not give the pose's covariance for the TRE limit",
+                     {"code": "imprecise"}) from None
+
+
+#: Poses from the voxels scoring at least this share of the best are fitted and verified as well.
+RIVAL_SHARE = 0.95
+
+
+def _fit_and_verify(geom, model, X: np.ndarray, all_slices, opts: SolveOptions):
+    """The pose near ``X`` (T_F_from_scanner) fitted through the blurred model to spread slices and verified:
+    ``(fit, slices, Ss, blob_sets, xys, checks, skipped)``; None when the blobs are not wide or too few slices cross
+    the body; :class:`NoLock` when it does not converge or fails its verification."""
+    from .blurred_fit import WIDE_RATIO, blob_width_ratio, blurred_stage
+    from .detect import detect_blobs
+    from .refine import _assign, refine
+    from .trust import _to_xy_mm
+    from .tube_model import plane_crossings
+    from .verify_pose import verify_fit
+
     Ss_all = [sl.T_scanner_from_image() for sl in all_slices]
-    crossing = [k for k in range(nk) if _mid_body(model, X @ Ss_all[k])]
+    crossing = [k for k in range(len(all_slices)) if _mid_body(model, X @ Ss_all[k])]
     if len(crossing) < 2:
         return None
     pick = sorted({crossing[int(round(i))] for i in np.linspace(0, len(crossing) - 1, min(WIDE_SLICES, len(crossing)))})
@@ -116,25 +165,19 @@ def _register_wide(volume: Volume, geom: FiducialGeometry, opts: SolveOptions, t
         assign.append(_assign(q, inside, xy, gate))
     if blob_width_ratio(model, slices, blob_sets, assign) < WIDE_RATIO:
         return None  # sharp sections: the slices' own refusal is the answer
-    t1 = time.perf_counter()
     start = refine(model, xys, Ss, X, gates_mm=(), final_iters=0, assign0=assign)
     start = dataclasses.replace(start, T_F_from_scanner=X)
     best, precision, psf_px = blurred_stage(model, start, xys, Ss, slices, blob_sets)
     if precision is None:
         raise NoLock("the volume's wide blobs: the pose found from the voxels did not converge when fitted to the "
                      "pixels of its slices through the blurred model")
-    if len(guesses) > 1:  # a distinct pose that the voxels liked as well: it must not fit the pixels as well
-        for score, Y in guesses[1:]:
-            if score > 0.97 * guesses[0][0] and _far(Y, best.T_F_from_scanner, model):
-                raise NoLock(f"the volume's wide blobs fit two distinct poses (centreline scores {guesses[0][0]:.3f} "
-                             f"and {score:.3f})")
     skipped = []
     rivals = [[] for _ in slices]
     while True:
         try:
             checks = verify_fit(geom, model, best, rivals, slices, Ss, blob_sets, opts, precision=precision,
                                 name_slice=True, psf_px=psf_px)
-            break
+            return best, slices, Ss, blob_sets, xys, checks, skipped
         except SliceRefused as exc:
             out = {j for j, _ in exc.refused}
             for j, reason in exc.refused:
@@ -144,18 +187,10 @@ def _register_wide(volume: Volume, geom: FiducialGeometry, opts: SolveOptions, t
                 raise NoLock(f"the volume's wide blobs: the pose fitted to them fails in {len(out)} of its "
                              f"{len(slices)} slices; e.g. {exc.refused[0][1]}") from None
             slices, Ss, blob_sets, xys = ([seq[i] for i in keep] for seq in (slices, Ss, blob_sets, xys))
+            rivals = rivals[:len(keep)]
             best = dataclasses.replace(refine(model, xys, Ss, best.T_F_from_scanner, gates_mm=(), final_iters=0,
                                               assign0=[best.assignments[i] for i in keep]),
                                        T_F_from_scanner=best.T_F_from_scanner)
-    t2 = time.perf_counter()
-    used = {sl.source for sl in slices}
-    skipped += [SkippedSlice(sl.source, "not fitted: the volume's wide blobs were fitted on "
-                                        f"{len(slices)} slices spread over the fiducial")
-                for sl in all_slices if sl.source not in used and sl.source not in {s.source for s in skipped}]
-    order = {sl.source: k for k, sl in enumerate(all_slices)}
-    skipped.sort(key=lambda s: order.get(s.source, 0))
-    return _registration(geom, model, geom_sha, best, slices, Ss, blob_sets, xys, [None] * len(slices), checks,
-                         {}, skipped, opts, target_F_mm, (t0, t1, t2))
 
 
 #: Slices used for a wide volume cross the axis this far (a share of the body's length) from both end faces: near
