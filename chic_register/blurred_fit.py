@@ -349,8 +349,9 @@ def blobs_wide(model: TubeModel, slices, blob_sets, assignments) -> bool:
 
 
 def blurred_stage(model: TubeModel, fit, xys, Ss, slices, blob_sets):
-    """``(fit, precision, psf_px)``: the solver's pose (a ``refine._Fit``) refitted through the blurred model, with
-    its 1-sigma ``(TRE mm, rotation deg)`` and the point spread's sigma (pixels); ``(fit, None, None)`` unchanged when no fit is possible or the pixel fit lands more
+    """``(fit, precision, blurred)``: the solver's pose (a ``refine._Fit``) refitted through the blurred model, with
+    its 1-sigma ``(TRE mm, rotation deg)`` and the :class:`BlurredFit` (point spread, residual noise);
+    ``(fit, None, None)`` unchanged when no fit is possible or the pixel fit lands more
     than 1 mm or 1 degree from the blob pose (something in the boxes the model does not have: tissue, another
     object; the blobs' pose then stands, judged as it is). A significant stretch of the image (a wrong pixel
     spacing) raises :class:`~chic_register.errors.NoLock`."""
@@ -370,4 +371,4 @@ def blurred_stage(model: TubeModel, fit, xys, Ss, slices, blob_sets):
     moved = refine(model, xys, Ss, blurred.T_F_from_scanner, gates_mm=(), final_iters=0,
                    assign0=fit.assignments)  # the blob residuals at the pose, for the report
     return (dataclasses.replace(moved, T_F_from_scanner=blurred.T_F_from_scanner), blurred.precision(model.length_mm),
-            blurred.psf_px)
+            blurred)

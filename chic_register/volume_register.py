@@ -65,16 +65,49 @@ def register_volume(volume: Volume, geom: FiducialGeometry, indices=None, **opti
     nk = volume.shape[0]
     ks = range(nk) if indices is None else indices
     slices = [volume.native_slice(k) for k in ks]
+    opts = dataclasses.replace(SolveOptions(), **{k: v for k, v in options.items() if k not in _NOT_OPTIONS})
+    may_widen = indices is None and opts.blurred_fit and opts.verify and not opts.centroid_model
+    wide_refusal = None
+    if may_widen and _looks_wide(volume, geom):  # the slices' own solve would mostly fail, at a cost: this first
+        try:
+            wide = _register_wide(volume, geom, opts, options.get("target_F_mm"))
+        except NoLock as exc:
+            wide, wide_refusal = None, exc
+        if wide is not None:
+            return wide
+        may_widen = False
     try:
         return register(slices, geom, skip_failed=indices is None, **options)
-    except NoLock as exc:
-        opts = dataclasses.replace(SolveOptions(), **{k: v for k, v in options.items() if k not in _NOT_OPTIONS})
-        if indices is not None or not (opts.blurred_fit and opts.verify) or opts.centroid_model:
+    except NoLock:
+        if wide_refusal is not None:
+            raise wide_refusal from None  # a pose found from the voxels and refused says more than the slices
+        if not may_widen:
             raise
         wide = _register_wide(volume, geom, opts, options.get("target_F_mm"))
         if wide is None:
             raise
         return wide
+
+
+#: A volume whose sampled slices' blobs read this many times the channels' width (detect's ``width_mm``, median;
+#: merged neighbours widen it: 1.15x blobs read ~1.5, 1.6x ~2.0) or that show blobs too merged to measure goes to
+#: the wide-blob path first.
+LOOKS_WIDE_RATIO = 1.8
+
+
+def _looks_wide(volume: Volume, geom: FiducialGeometry) -> bool:
+    """Whether about eight slices spread over the volume show blobs much wider than the channels."""
+    from .detect import detect_blobs, median
+
+    d = float(np.median([t.diameter for t in geom.tubes]))
+    nk = volume.shape[0]
+    ratios = []
+    for k in range(nk // 16, nk, max(1, nk // 8)):
+        sl = volume.native_slice(k)
+        b = detect_blobs(sl.pixels, sl.pixel_spacing_mm, d)
+        if len(b):
+            ratios.append(b.width_mm / d if math.isfinite(b.width_mm) else math.inf)
+    return len(ratios) >= 2 and median(ratios) >= LOOKS_WIDE_RATIO
 
 
 _NOT_OPTIONS = ("options", "detect_options", "target_F_mm")
@@ -98,10 +131,11 @@ def _register_wide(volume: Volume, geom: FiducialGeometry, opts: SolveOptions, t
         return None
     all_slices = [volume.native_slice(k) for k in range(volume.shape[0])]
     t1 = time.perf_counter()
-    passed, first_refusal = [], None
+    passed, tried, first_refusal = [], [], None
     for score, X in guesses:
-        if score < RIVAL_SHARE * guesses[0][0] or any(not _far(X, p[0].T_F_from_scanner, model) for p in passed):
+        if score < RIVAL_SHARE * guesses[0][0] or any(not _far(X, Y, model) for Y in tried):
             continue
+        tried.append(X)
         try:
             out = _fit_and_verify(geom, model, X, all_slices, opts)
         except NoLock as exc:
@@ -112,11 +146,18 @@ def _register_wide(volume: Volume, geom: FiducialGeometry, opts: SolveOptions, t
                 return None  # sharp sections, or too few slices: not this path's case
             continue
         passed.append(out)
-    if len(passed) > 1:
-        raise NoLock("ambiguous fit: the volume's wide blobs fit two distinct poses, each verified on its slices")
+    # distinct poses that both verify: the one whose blurred model leaves the smaller residual wins if the other's
+    # residual variance is RIVAL_VARIANCE_RATIO times larger or more (a near-symmetric layout's turned pose: 1.16-2.05x
+    # measured at 1.6-2.5x blobs), else the volume cannot tell them apart
+    passed.sort(key=lambda o: o[-1])
+    passed = [o for i, o in enumerate(passed)  # two starts that converged to one pose are one pose
+              if all(_far(o[0].T_F_from_scanner, p[0].T_F_from_scanner, model) for p in passed[:i])]
+    if len(passed) > 1 and passed[1][-1] ** 2 < RIVAL_VARIANCE_RATIO * passed[0][-1] ** 2:
+        raise NoLock(f"ambiguous fit: the volume's wide blobs fit two distinct poses, each verified on its slices, with "
+                     f"residuals {passed[0][-1]:.3g} and {passed[1][-1]:.3g}")
     if not passed:
         raise first_refusal or NoLock("the volume's wide blobs: no pose found from the voxels fits the pixels")
-    best, slices, Ss, blob_sets, xys, checks, skipped = passed[0]
+    best, slices, Ss, blob_sets, xys, checks, skipped, _ = passed[0]
     t2 = time.perf_counter()
     used = {sl.source for sl in slices} | {s.source for s in skipped}
     skipped += [SkippedSlice(sl.source, f"not fitted: the volume's wide blobs were fitted on {len(slices)} slices "
@@ -136,11 +177,13 @@ def _register_wide(volume: Volume, geom: FiducialGeometry, opts: SolveOptions, t
 
 #: Poses from the voxels scoring at least this share of the best are fitted and verified as well.
 RIVAL_SHARE = 0.95
+#: Of two distinct verified poses, the other's residual variance must exceed the best's this many times.
+RIVAL_VARIANCE_RATIO = 1.1
 
 
 def _fit_and_verify(geom, model, X: np.ndarray, all_slices, opts: SolveOptions):
     """The pose near ``X`` (T_F_from_scanner) fitted through the blurred model to spread slices and verified:
-    ``(fit, slices, Ss, blob_sets, xys, checks, skipped)``; None when the blobs are not wide or too few slices cross
+    ``(fit, slices, Ss, blob_sets, xys, checks, skipped, residual noise sigma)``; None when the blobs are not wide or too few slices cross
     the body; :class:`NoLock` when it does not converge or fails its verification."""
     from .blurred_fit import WIDE_RATIO, blob_width_ratio, blurred_stage
     from .detect import detect_blobs
@@ -167,7 +210,7 @@ def _fit_and_verify(geom, model, X: np.ndarray, all_slices, opts: SolveOptions):
         return None  # sharp sections: the slices' own refusal is the answer
     start = refine(model, xys, Ss, X, gates_mm=(), final_iters=0, assign0=assign)
     start = dataclasses.replace(start, T_F_from_scanner=X)
-    best, precision, psf_px = blurred_stage(model, start, xys, Ss, slices, blob_sets)
+    best, precision, blurred = blurred_stage(model, start, xys, Ss, slices, blob_sets)
     if precision is None:
         raise NoLock("the volume's wide blobs: the pose found from the voxels did not converge when fitted to the "
                      "pixels of its slices through the blurred model")
@@ -176,8 +219,8 @@ def _fit_and_verify(geom, model, X: np.ndarray, all_slices, opts: SolveOptions):
     while True:
         try:
             checks = verify_fit(geom, model, best, rivals, slices, Ss, blob_sets, opts, precision=precision,
-                                name_slice=True, psf_px=psf_px)
-            return best, slices, Ss, blob_sets, xys, checks, skipped
+                                name_slice=True, psf_px=blurred.psf_px)
+            return best, slices, Ss, blob_sets, xys, checks, skipped, blurred.noise_sigma
         except SliceRefused as exc:
             out = {j for j, _ in exc.refused}
             for j, reason in exc.refused:
