@@ -351,7 +351,7 @@ def blobs_wide(model: TubeModel, slices, blob_sets, assignments) -> bool:
 def blurred_stage(model: TubeModel, fit, xys, Ss, slices, blob_sets):
     """``(fit, precision, blurred)``: the solver's pose (a ``refine._Fit``) refitted through the blurred model, with
     its 1-sigma ``(TRE mm, rotation deg)`` and the :class:`BlurredFit` (point spread, residual noise);
-    ``(fit, None, None)`` unchanged when no fit is possible or the pixel fit lands more
+    ``(fit, None, None)`` unchanged (``(fit, None, BlurredFit)`` when it moved too far) when no fit is possible or the pixel fit lands more
     than 1 mm or 1 degree from the blob pose (something in the boxes the model does not have: tissue, another
     object; the blobs' pose then stands, judged as it is). A significant stretch of the image (a wrong pixel
     spacing) raises :class:`~chic_register.errors.NoLock`."""
@@ -367,7 +367,7 @@ def blurred_stage(model: TubeModel, fit, xys, Ss, slices, blob_sets):
                      f"check --pixel-spacing or the file's PixelSpacing",
                      {"stretch": [round(float(v), 4) for v in stretch]})
     if _distinct(blurred.T_F_from_scanner, fit.T_F_from_scanner, model):
-        return fit, None, None
+        return fit, None, blurred
     moved = refine(model, xys, Ss, blurred.T_F_from_scanner, gates_mm=(), final_iters=0,
                    assign0=fit.assignments)  # the blob residuals at the pose, for the report
     return (dataclasses.replace(moved, T_F_from_scanner=blurred.T_F_from_scanner), blurred.precision(model.length_mm),

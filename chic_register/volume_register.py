@@ -131,7 +131,7 @@ def _register_wide(volume: Volume, geom: FiducialGeometry, opts: SolveOptions, t
         return None
     all_slices = [volume.native_slice(k) for k in range(volume.shape[0])]
     t1 = time.perf_counter()
-    passed, tried, first_refusal = [], [], None
+    passed, tried, first_refusal, unfitted, refused = [], [], None, [], []
     for score, X in guesses:
         if score < RIVAL_SHARE * guesses[0][0] or any(not _far(X, Y, model) for Y in tried):
             continue
@@ -140,6 +140,10 @@ def _register_wide(volume: Volume, geom: FiducialGeometry, opts: SolveOptions, t
             out = _fit_and_verify(geom, model, X, all_slices, opts)
         except NoLock as exc:
             first_refusal = first_refusal or exc
+            if exc.detail.get("code") == "unfitted":  # no evidence against the pose: it could not be judged
+                unfitted.append(score)
+            elif "residual_sigma" in exc.detail:  # fitted, then refused by the verification: its residual still counts
+                refused.append((exc.detail["residual_sigma"], X))
             continue
         if out is None:
             if not passed and first_refusal is None:
@@ -157,6 +161,14 @@ def _register_wide(volume: Volume, geom: FiducialGeometry, opts: SolveOptions, t
                      f"residuals {passed[0][-1]:.3g} and {passed[1][-1]:.3g}")
     if not passed:
         raise first_refusal or NoLock("the volume's wide blobs: no pose found from the voxels fits the pixels")
+    better = [n for n, Y in refused if n ** 2 < RIVAL_VARIANCE_RATIO * passed[0][-1] ** 2
+              and _far(Y, passed[0][0].T_F_from_scanner, model)]
+    if better:  # a distinct pose the verification refused fits the pixels about as well: the pixels cannot tell
+        raise NoLock(f"ambiguous fit: the volume's wide blobs fit two distinct poses with residuals "
+                     f"{passed[0][-1]:.3g} and {better[0]:.3g}; the verification refused the second")
+    if unfitted:  # a distinct pose the voxels rate nearly as well was neither fitted nor refused by the pixels
+        raise NoLock(f"ambiguous fit: the volume's wide blobs fit a pose, but a distinct one the voxels rate nearly as "
+                     f"well (centreline score {max(unfitted):.3f}) could not be fitted to the pixels to rule it out")
     best, slices, Ss, blob_sets, xys, checks, skipped, _ = passed[0]
     t2 = time.perf_counter()
     used = {sl.source for sl in slices} | {s.source for s in skipped}
@@ -176,7 +188,7 @@ def _register_wide(volume: Volume, geom: FiducialGeometry, opts: SolveOptions, t
 
 
 #: Poses from the voxels scoring at least this share of the best are fitted and verified as well.
-RIVAL_SHARE = 0.95
+RIVAL_SHARE = 0.9
 #: Of two distinct verified poses, the other's residual variance must exceed the best's this many times.
 RIVAL_VARIANCE_RATIO = 1.1
 
@@ -202,18 +214,23 @@ def _fit_and_verify(geom, model, X: np.ndarray, all_slices, opts: SolveOptions):
     blob_sets = [detect_blobs(sl.pixels, sl.pixel_spacing_mm, model.diameter_mm) for sl in slices]
     xys = [_to_xy_mm(b, sl) for sl, b in zip(slices, blob_sets)]
     gate = 1.5 * float(model.diameter_mm.max())
-    assign = []
-    for xy, S in zip(xys, Ss):
-        q, _, _, inside = plane_crossings(model, X @ S)
-        assign.append(_assign(q, inside, xy, gate))
+    assign = [_assign(*plane_crossings(model, X @ S)[0:4:3], xy, gate) for xy, S in zip(xys, Ss)]
     if blob_width_ratio(model, slices, blob_sets, assign) < WIDE_RATIO:
         return None  # sharp sections: the slices' own refusal is the answer
-    start = refine(model, xys, Ss, X, gates_mm=(), final_iters=0, assign0=assign)
-    start = dataclasses.replace(start, T_F_from_scanner=X)
-    best, precision, blurred = blurred_stage(model, start, xys, Ss, slices, blob_sets)
+    for _ in range(2):  # from the voxels' pose; once more from where the pixels took it, if that was over 1 mm / 1 deg
+        assign = [_assign(*plane_crossings(model, X @ S)[0:4:3], xy, gate) for xy, S in zip(xys, Ss)]
+        start = dataclasses.replace(refine(model, xys, Ss, X, gates_mm=(), final_iters=0, assign0=assign),
+                                    T_F_from_scanner=X)
+        try:
+            best, precision, blurred = blurred_stage(model, start, xys, Ss, slices, blob_sets)
+        except NoLock as exc:
+            raise NoLock(exc.reason, {**exc.detail, "code": "unfitted"}) from None
+        if precision is not None or blurred is None:
+            break
+        X = blurred.T_F_from_scanner
     if precision is None:
         raise NoLock("the volume's wide blobs: the pose found from the voxels did not converge when fitted to the "
-                     "pixels of its slices through the blurred model")
+                     "pixels of its slices through the blurred model", {"code": "unfitted"})
     skipped = []
     rivals = [[] for _ in slices]
     while True:
@@ -228,12 +245,15 @@ def _fit_and_verify(geom, model, X: np.ndarray, all_slices, opts: SolveOptions):
             keep = [i for i in range(len(slices)) if i not in out]
             if len(keep) < 2:
                 raise NoLock(f"the volume's wide blobs: the pose fitted to them fails in {len(out)} of its "
-                             f"{len(slices)} slices; e.g. {exc.refused[0][1]}") from None
+                             f"{len(slices)} slices; e.g. {exc.refused[0][1]}",
+                             {"residual_sigma": blurred.noise_sigma}) from None
             slices, Ss, blob_sets, xys = ([seq[i] for i in keep] for seq in (slices, Ss, blob_sets, xys))
             rivals = rivals[:len(keep)]
             best = dataclasses.replace(refine(model, xys, Ss, best.T_F_from_scanner, gates_mm=(), final_iters=0,
                                               assign0=[best.assignments[i] for i in keep]),
                                        T_F_from_scanner=best.T_F_from_scanner)
+        except NoLock as exc:  # the pose as a whole refused: its residual still ranks it against the others
+            raise NoLock(exc.reason, {**exc.detail, "residual_sigma": blurred.noise_sigma}) from None
 
 
 #: Slices used for a wide volume cross the axis this far (a share of the body's length) from both end faces: near

@@ -126,7 +126,7 @@ def volume_first_guesses(voxels: np.ndarray, affine_lps: np.ndarray, model: Tube
     L = model.length_mm
     twists = np.arange(0.0, 360.0, TWIST_STEP_DEG)
     Rz = _rot_z(twists)
-    grid = []
+    grid, groups = [], []
     for axis in (evecs[:, 2], evecs[:, 0]):  # a long fiducial: the largest spread; a short piece of one: the least
         for sign in (1.0, -1.0):
             a = sign * axis
@@ -144,14 +144,19 @@ def volume_first_guesses(voxels: np.ndarray, affine_lps: np.ndarray, model: Tube
                 X = np.eye(4)
                 X[:3, :3] = R0 @ Rz[t]
                 X[:3, 3] = c + a * z0s[z]
-                grid.append((float(score[t, z]), invert(X)))
+                grid.append((float(score[t, z]), invert(X), len(groups)))
+            groups.append(a)
     grid.sort(key=lambda sx: -sx[0])
     starts = []
-    for s, X in grid:
+    for s, X, _ in grid:
         if all(_distinct(X, Y, model) for _, Y in starts):
             starts.append((s, X))
         if len(starts) == N_REFINED:
             break
+    for g in range(len(groups)):  # and each axis direction's best (a turned twin of the pose is one of them)
+        s, X = next((s, X) for s, X, gi in grid if gi == g)
+        if all(_distinct(X, Y, model) for _, Y in starts):
+            starts.append((s, X))
     out = []
     for _, X in starts:
         s, Xr = _refine(vol, to_index, P, wts, X)
