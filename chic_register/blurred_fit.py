@@ -365,7 +365,7 @@ def blurred_stage(model: TubeModel, fit, xys, Ss, slices, blob_sets):
         raise NoLock(f"the pixels fit best with the image stretched {100 * stretch[worst]:+.1f} % along its {axis} "
                      f"({abs(stretch[worst]) / max(sd[worst], 1e-12):.1f} sigma): the pixel spacing looks wrong; "
                      f"check --pixel-spacing or the file's PixelSpacing",
-                     {"stretch": [round(float(v), 4) for v in stretch]})
+                     {"stretch": [round(float(v), 4) for v in stretch], "residual_sigma": round(blurred.noise_sigma, 6)})
     if _distinct(blurred.T_F_from_scanner, fit.T_F_from_scanner, model):
         return fit, None, blurred
     moved = refine(model, xys, Ss, blurred.T_F_from_scanner, gates_mm=(), final_iters=0,

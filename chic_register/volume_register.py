@@ -131,45 +131,41 @@ def _register_wide(volume: Volume, geom: FiducialGeometry, opts: SolveOptions, t
         return None
     all_slices = [volume.native_slice(k) for k in range(volume.shape[0])]
     t1 = time.perf_counter()
-    passed, tried, first_refusal, unfitted, refused = [], [], None, [], []
+    passed, tried, first_refusal, unfitted, rivals = None, [], None, [], []
     for score, X in guesses:
         if score < RIVAL_SHARE * guesses[0][0] or any(not _far(X, Y, model) for Y in tried):
             continue
         tried.append(X)
-        try:
-            out = _fit_and_verify(geom, model, X, all_slices, opts)
+        try:  # the first pose that verifies is the answer's candidate; later ones are only fitted, as its rivals
+            out = _fit_and_verify(geom, model, X, all_slices, opts, verify=passed is None)
         except NoLock as exc:
             first_refusal = first_refusal or exc
-            if exc.detail.get("code") == "unfitted":  # no evidence against the pose: it could not be judged
+            if "residual_sigma" in exc.detail:  # fitted, then refused (verification, stretch, not converged): ranked
+                rivals.append((exc.detail["residual_sigma"], X))
+            else:  # no evidence against the pose: it could not be judged
                 unfitted.append(score)
-            elif "residual_sigma" in exc.detail:  # fitted, then refused by the verification: its residual still counts
-                refused.append((exc.detail["residual_sigma"], X))
             continue
         if out is None:
-            if not passed and first_refusal is None:
+            if passed is None and first_refusal is None:
                 return None  # sharp sections, or too few slices: not this path's case
-            continue
-        passed.append(out)
-    # distinct poses that both verify: the one whose blurred model leaves the smaller residual wins if the other's
-    # residual variance is RIVAL_VARIANCE_RATIO times larger or more (a near-symmetric layout's turned pose: 1.16-2.05x
-    # measured at 1.6-2.5x blobs), else the volume cannot tell them apart
-    passed.sort(key=lambda o: o[-1])
-    passed = [o for i, o in enumerate(passed)  # two starts that converged to one pose are one pose
-              if all(_far(o[0].T_F_from_scanner, p[0].T_F_from_scanner, model) for p in passed[:i])]
-    if len(passed) > 1 and passed[1][-1] ** 2 < RIVAL_VARIANCE_RATIO * passed[0][-1] ** 2:
-        raise NoLock(f"ambiguous fit: the volume's wide blobs fit two distinct poses, each verified on its slices, with "
-                     f"residuals {passed[0][-1]:.3g} and {passed[1][-1]:.3g}")
-    if not passed:
+            unfitted.append(score)
+        elif passed is None:
+            passed = out
+        else:
+            rivals.append((out[-1], out[0].T_F_from_scanner))
+    if passed is None:
         raise first_refusal or NoLock("the volume's wide blobs: no pose found from the voxels fits the pixels")
-    better = [n for n, Y in refused if n ** 2 < RIVAL_VARIANCE_RATIO * passed[0][-1] ** 2
-              and _far(Y, passed[0][0].T_F_from_scanner, model)]
-    if better:  # a distinct pose the verification refused fits the pixels about as well: the pixels cannot tell
+    # a distinct pose whose blurred model leaves a residual variance under RIVAL_VARIANCE_RATIO times the answer's
+    # (verified or not) means the pixels cannot tell them apart (a near-symmetric layout's turned twin: 1.14-2.05x)
+    close = [n for n, Y in rivals if n ** 2 < RIVAL_VARIANCE_RATIO * passed[-1] ** 2
+             and _far(Y, passed[0].T_F_from_scanner, model)]
+    if close:
         raise NoLock(f"ambiguous fit: the volume's wide blobs fit two distinct poses with residuals "
-                     f"{passed[0][-1]:.3g} and {better[0]:.3g}; the verification refused the second")
+                     f"{passed[-1]:.3g} and {close[0]:.3g}", {"n_tubes": passed[0].n_matched})
     if unfitted:  # a distinct pose the voxels rate nearly as well was neither fitted nor refused by the pixels
         raise NoLock(f"ambiguous fit: the volume's wide blobs fit a pose, but a distinct one the voxels rate nearly as "
                      f"well (centreline score {max(unfitted):.3f}) could not be fitted to the pixels to rule it out")
-    best, slices, Ss, blob_sets, xys, checks, skipped, _ = passed[0]
+    best, slices, Ss, blob_sets, xys, checks, skipped, _ = passed
     t2 = time.perf_counter()
     used = {sl.source for sl in slices} | {s.source for s in skipped}
     skipped += [SkippedSlice(sl.source, f"not fitted: the volume's wide blobs were fitted on {len(slices)} slices "
@@ -188,15 +184,16 @@ def _register_wide(volume: Volume, geom: FiducialGeometry, opts: SolveOptions, t
 
 
 #: Poses from the voxels scoring at least this share of the best are fitted and verified as well.
-RIVAL_SHARE = 0.9
+RIVAL_SHARE = 0.93
 #: Of two distinct verified poses, the other's residual variance must exceed the best's this many times.
 RIVAL_VARIANCE_RATIO = 1.1
 
 
-def _fit_and_verify(geom, model, X: np.ndarray, all_slices, opts: SolveOptions):
+def _fit_and_verify(geom, model, X: np.ndarray, all_slices, opts: SolveOptions, verify: bool = True):
     """The pose near ``X`` (T_F_from_scanner) fitted through the blurred model to spread slices and verified:
     ``(fit, slices, Ss, blob_sets, xys, checks, skipped, residual noise sigma)``; None when the blobs are not wide or too few slices cross
-    the body; :class:`NoLock` when it does not converge or fails its verification."""
+    the body; :class:`NoLock` when it does not converge or fails its verification (its detail then holds the fit's
+    ``residual_sigma``). ``verify`` False: fitted only (``checks`` None)."""
     from .blurred_fit import WIDE_RATIO, blob_width_ratio, blurred_stage
     from .detect import detect_blobs
     from .refine import _assign, refine
@@ -221,17 +218,19 @@ def _fit_and_verify(geom, model, X: np.ndarray, all_slices, opts: SolveOptions):
         assign = [_assign(*plane_crossings(model, X @ S)[0:4:3], xy, gate) for xy, S in zip(xys, Ss)]
         start = dataclasses.replace(refine(model, xys, Ss, X, gates_mm=(), final_iters=0, assign0=assign),
                                     T_F_from_scanner=X)
-        try:
-            best, precision, blurred = blurred_stage(model, start, xys, Ss, slices, blob_sets)
-        except NoLock as exc:
-            raise NoLock(exc.reason, {**exc.detail, "code": "unfitted"}) from None
+        best, precision, blurred = blurred_stage(model, start, xys, Ss, slices, blob_sets)  # NoLock: a stretch
         if precision is not None or blurred is None:
             break
         X = blurred.T_F_from_scanner
-    if precision is None:
+    if blurred is None:
+        raise NoLock("the volume's wide blobs: fewer than six sections where the pose found from the voxels puts them")
+    if precision is None:  # still moving: not a pose, but its residual ranks it
         raise NoLock("the volume's wide blobs: the pose found from the voxels did not converge when fitted to the "
-                     "pixels of its slices through the blurred model", {"code": "unfitted"})
+                     "pixels of its slices through the blurred model",
+                     {"residual_sigma": round(blurred.noise_sigma, 6)})
     skipped = []
+    if not verify:
+        return best, slices, Ss, blob_sets, xys, None, skipped, blurred.noise_sigma
     rivals = [[] for _ in slices]
     while True:
         try:
@@ -246,14 +245,14 @@ def _fit_and_verify(geom, model, X: np.ndarray, all_slices, opts: SolveOptions):
             if len(keep) < 2:
                 raise NoLock(f"the volume's wide blobs: the pose fitted to them fails in {len(out)} of its "
                              f"{len(slices)} slices; e.g. {exc.refused[0][1]}",
-                             {"residual_sigma": blurred.noise_sigma}) from None
+                             {"residual_sigma": round(blurred.noise_sigma, 6)}) from None
             slices, Ss, blob_sets, xys = ([seq[i] for i in keep] for seq in (slices, Ss, blob_sets, xys))
             rivals = rivals[:len(keep)]
             best = dataclasses.replace(refine(model, xys, Ss, best.T_F_from_scanner, gates_mm=(), final_iters=0,
                                               assign0=[best.assignments[i] for i in keep]),
                                        T_F_from_scanner=best.T_F_from_scanner)
         except NoLock as exc:  # the pose as a whole refused: its residual still ranks it against the others
-            raise NoLock(exc.reason, {**exc.detail, "residual_sigma": blurred.noise_sigma}) from None
+            raise NoLock(exc.reason, {**exc.detail, "residual_sigma": round(blurred.noise_sigma, 6)}) from None
 
 
 #: Slices used for a wide volume cross the axis this far (a share of the body's length) from both end faces: near
