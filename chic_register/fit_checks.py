@@ -10,6 +10,7 @@ fit matched.
 
 from __future__ import annotations
 
+import functools
 import math
 
 import numpy as np
@@ -127,8 +128,10 @@ def gamma_p(a: float, x: float) -> float:
     return max(0.0, 1.0 - math.exp(log_front) * h)
 
 
+@functools.lru_cache(maxsize=256)
 def gamma_p_inverse(a: float, p: float) -> float:
-    """The x with ``gamma_p(a, x) = p`` (``scipy.special.gammaincinv``), for 0 < p < 1."""
+    """The x with ``gamma_p(a, x) = p`` (``scipy.special.gammaincinv``), for 0 < p < 1 (memoised: the pose checks
+    ask for the same few degrees of freedom on every pose)."""
     hi = a + 10.0 * math.sqrt(a) + 10.0
     while gamma_p(a, hi) < p:
         hi *= 2.0

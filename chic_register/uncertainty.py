@@ -34,6 +34,7 @@ from dataclasses import dataclass
 import numpy as np
 
 from .crlb import PARAMETER_FRAME, PARAMETER_ORDER, default_target, tre_rms_mm
+from .quantiles import percentiles
 
 RAYLEIGH_MEDIAN = math.sqrt(2.0 * math.log(2.0))  # median of a Rayleigh variable of scale 1
 RAYLEIGH_Q25_OVER_Q50 = math.sqrt(-2.0 * math.log(0.75)) / RAYLEIGH_MEDIAN  # 0.644
@@ -100,7 +101,7 @@ def background_noise(pixels: np.ndarray, footprints, guard_px: int = 3) -> Noise
     bg = img[keep]
     if bg.size < 32:
         bg = img.ravel()
-    q25, q50, q75 = (float(v) for v in np.percentile(bg, [25, 50, 75]))
+    q25, q50, q75 = (float(v) for v in percentiles(bg, [25, 50, 75]))  # np.percentile's, in less time
     if q50 > 0 and abs(q25 / q50 - RAYLEIGH_Q25_OVER_Q50) < 0.08 and min(bg.min(), 0.0) >= 0.0:
         return NoiseEstimate(q50 / RAYLEIGH_MEDIAN, "rayleigh", int(bg.size))
     return NoiseEstimate(max(q75 - q25, 0.0) / 1.349, "gaussian", int(bg.size))
@@ -133,9 +134,8 @@ def noise_correlation(pixels: np.ndarray, footprints, guard_px: int = 3) -> floa
     hb, wb = H // n, W // n
     if hb == 0 or wb == 0:
         return 0.0
-    blocks = img[:hb * n, :wb * n].reshape(hb, n, wb, n).swapaxes(1, 2).reshape(-1, n, n)
-    clear = keep[:hb * n, :wb * n].reshape(hb, n, wb, n).swapaxes(1, 2).reshape(-1, n, n).all(axis=(1, 2))
-    x = blocks[clear]
+    clear = keep[:hb * n, :wb * n].reshape(hb, n, wb, n).all(axis=(1, 3))  # (hb, wb): blocks wholly clear
+    x = img[:hb * n, :wb * n].reshape(hb, n, wb, n).swapaxes(1, 2)[clear]  # (m, n, n), only those copied
     if x.shape[0] < 8:
         return 0.0
     x = x - x.mean(axis=(1, 2), keepdims=True)

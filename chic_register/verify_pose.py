@@ -156,9 +156,11 @@ class _TubeWindow:
     others: np.ndarray  # other tubes' sections in the window
 
 
-def _windows(geom, model, T_F_from_I, shape, spacing, thickness_mm, margin_px: float = 2.0):
+def _windows(geom, model, T_F_from_I, shape, spacing, thickness_mm, margin_px: float = 2.0,
+             canvas_only: bool = False):
     """``(windows, canvas)``: per tube whose section lies wholly inside the image its window with its own and
-    its neighbours' renders, and the whole model image (shape of the image, every section pasted in).
+    its neighbours' renders, and the whole model image (shape of the image, every section pasted in);
+    ``canvas_only``: no windows (``[]``), the canvas alone (a rival pose's model image).
 
     Each tube is rendered once, in its own window (its section's extent,
     :func:`chic_register.solve._section_extent`, plus ``margin_px``); a window's
@@ -192,7 +194,7 @@ def _windows(geom, model, T_F_from_I, shape, spacing, thickness_mm, margin_px: f
     for k, (r0, c0, img, inside) in boxes.items():
         sub = canvas[r0:r0 + img.shape[0], c0:c0 + img.shape[1]]
         np.maximum(sub, img, out=sub)
-        if not inside:
+        if not inside or canvas_only:
             continue  # (partly) outside the image: nothing to check, but it is a neighbour of the others
         h, w = img.shape
         others = np.zeros_like(img)
