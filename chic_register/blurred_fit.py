@@ -349,14 +349,15 @@ def blobs_wide(model: TubeModel, slices, blob_sets, assignments) -> bool:
 
 
 def blurred_stage(model: TubeModel, fit, xys, Ss, slices, blob_sets):
-    """``(fit, precision)``: the solver's pose (a ``refine._Fit``) refitted through the blurred model, with its
-    1-sigma ``(TRE mm, rotation deg)``; ``(fit, None)`` unchanged when no fit is possible or the pixel fit lands more
+    """``(fit, precision, blurred)``: the solver's pose (a ``refine._Fit``) refitted through the blurred model, with
+    its 1-sigma ``(TRE mm, rotation deg)`` and the :class:`BlurredFit` (point spread, residual noise);
+    ``(fit, None, None)`` unchanged (``(fit, None, BlurredFit)`` when it moved too far) when no fit is possible or the pixel fit lands more
     than 1 mm or 1 degree from the blob pose (something in the boxes the model does not have: tissue, another
     object; the blobs' pose then stands, judged as it is). A significant stretch of the image (a wrong pixel
     spacing) raises :class:`~chic_register.errors.NoLock`."""
     blurred = blurred_fit(model, fit.T_F_from_scanner, slices, Ss, blob_sets, fit.assignments)
     if blurred is None:
-        return fit, None
+        return fit, None, None
     stretch, sd = np.array(blurred.stretch), np.array(blurred.stretch_sd)
     worst = int(np.argmax(np.abs(stretch)))
     if abs(stretch[worst]) > STRETCH_MIN and abs(stretch[worst]) > STRETCH_SIGMAS * sd[worst]:
@@ -364,9 +365,10 @@ def blurred_stage(model: TubeModel, fit, xys, Ss, slices, blob_sets):
         raise NoLock(f"the pixels fit best with the image stretched {100 * stretch[worst]:+.1f} % along its {axis} "
                      f"({abs(stretch[worst]) / max(sd[worst], 1e-12):.1f} sigma): the pixel spacing looks wrong; "
                      f"check --pixel-spacing or the file's PixelSpacing",
-                     {"stretch": [round(float(v), 4) for v in stretch]})
+                     {"stretch": [round(float(v), 4) for v in stretch], "residual_sigma": round(blurred.noise_sigma, 6)})
     if _distinct(blurred.T_F_from_scanner, fit.T_F_from_scanner, model):
-        return fit, None
+        return fit, None, blurred
     moved = refine(model, xys, Ss, blurred.T_F_from_scanner, gates_mm=(), final_iters=0,
                    assign0=fit.assignments)  # the blob residuals at the pose, for the report
-    return dataclasses.replace(moved, T_F_from_scanner=blurred.T_F_from_scanner), blurred.precision(model.length_mm)
+    return (dataclasses.replace(moved, T_F_from_scanner=blurred.T_F_from_scanner), blurred.precision(model.length_mm),
+            blurred)

@@ -356,7 +356,7 @@ def register(slices: list[Slice], geom: FiducialGeometry, *, options: SolveOptio
     precision = None  # the pose's (TRE mm, rotation deg) 1-sigma when fitted to the pixels, not to positions
     wide = opts.blurred_fit and not opts.centroid_model and blobs_wide(model, slices, blob_sets, best.assignments)
     if wide:  # the sections are blurred: the sharp section model does not describe them, a blurred one does
-        best, precision = blurred_stage(model, best, xys, Ss, slices, blob_sets)
+        best, precision, _ = blurred_stage(model, best, xys, Ss, slices, blob_sets)
     elif opts.section_fit and not opts.centroid_model:
         fine = _section_refine(model, best, xys, Ss, slices, blob_sets, opts)
         if fine is not None:
@@ -419,6 +419,16 @@ def register(slices: list[Slice], geom: FiducialGeometry, *, options: SolveOptio
             best = accurate
             checks = verify_fit(geom, model, best, rivals, slices, Ss, blob_sets, opts)
     t2 = time.perf_counter()
+    return _registration(geom, model, geom_sha, best, slices, Ss, blob_sets, xys,
+                         [e for _, e in per_slice], checks, filled, skipped, opts, target_F_mm,
+                         (t0, t1, t2))
+
+
+def _registration(geom: FiducialGeometry, model: TubeModel, geom_sha: str, best, slices, Ss, blob_sets, xys,
+                  ellipses, checks, filled, skipped, opts: SolveOptions, target_F_mm, times) -> Registration:
+    """The :class:`Registration` of a verified fit ``best`` (a ``refine._Fit``) on ``slices``: per-slice results,
+    the uncertainty (and the ``max_tre_mm`` test), timing from ``times`` (t0 start, t1 detected, t2 posed)."""
+    t0, t1, t2 = times
     T_sf = invert(best.T_F_from_scanner)
     results = []
     for j, (sl, S) in enumerate(zip(slices, Ss)):
@@ -439,7 +449,7 @@ def register(slices: list[Slice], geom: FiducialGeometry, *, options: SolveOptio
             blobs_rc=blob_sets[j].centres_rc,
             predicted_rc={model.ids[i]: (float(q[i, 1] / px[0]), float(q[i, 0] / px[1]))
                           for i in np.flatnonzero(inside)},
-            ellipse=per_slice[j][1],
+            ellipse=ellipses[j],
             missing_tubes=checks[j].missing if checks else (),
             filled_pixels=filled[sl.source] if sl.source in filled else 0,
         ))
@@ -459,6 +469,7 @@ def register(slices: list[Slice], geom: FiducialGeometry, *, options: SolveOptio
     timing = {"detect": (t1 - t0) * 1e3, "pose": (t2 - t1) * 1e3, "uncertainty": (t4 - t3) * 1e3,
               "total": (t4 - t0) * 1e3}
     return Registration("ok", T_sf, tuple(results), timing, geom.name, geom_sha, tuple(skipped), unc)
+
 
 
 def _only_slices(model: TubeModel, fit, keep: list[int], xys, Ss):

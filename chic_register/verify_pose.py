@@ -258,8 +258,12 @@ def _shape_excess(w: _TubeWindow, y: np.ndarray, fit: np.ndarray, sigma: float, 
 
 def verify_slice(geom, model, T_F_from_I: np.ndarray, pixels: np.ndarray, spacing, thickness_mm: float,
                  blobs: Blobs, assignment: np.ndarray, source: str, *,
-                 check_envelope: bool = True) -> SliceCheck:
-    """Prove one slice's pose against its pixels; :class:`NoLock` with the reason, else what was seen."""
+                 check_envelope: bool = True, psf_px: float | None = None) -> SliceCheck:
+    """Prove one slice's pose against its pixels; :class:`NoLock` with the reason, else what was seen.
+
+    ``psf_px``: the point spread's sigma (pixels) when a fit to the pixels found it
+    (:mod:`chic_register.blurred_fit`); else it is fitted here when the sharp model fails.
+    """
     rs, cs = (float(v) for v in spacing)
     px = max(rs, cs)
     ang = slice_angles(T_F_from_I)
@@ -371,8 +375,8 @@ def verify_slice(geom, model, T_F_from_I: np.ndarray, pixels: np.ndarray, spacin
             f = _fit_window(pixels, w)
             return math.inf if f is None else _shape_excess(w, f[1], f[2], sigma, 1.0)[0]
 
-        psf = fit_psf(wide, {int(k) for k in np.flatnonzero(assignment >= 0)},
-                      [f * r_px for f in PSF_SIGMAS_RADII], misfit)
+        psf = psf_px if psf_px is not None else fit_psf(wide, {int(k) for k in np.flatnonzero(assignment >= 0)},
+                                                        [f * r_px for f in PSF_SIGMAS_RADII], misfit)
         if psf is None or psf < PSF_MIN_PX:  # no blur the pixels can show: the sharp model's verdict stands
             raise
         try:
@@ -426,7 +430,7 @@ def _check_stretch(model, fit, xys, Ss, opts) -> None:
 
 
 def verify_fit(geom, model, fit, rivals, slices, Ss, blob_sets, opts, precision=None,
-               name_slice: bool = False) -> list[SliceCheck]:
+               name_slice: bool = False, psf_px: float | None = None) -> list[SliceCheck]:
     """Verify a solved pose (a ``solve._Fit``) in every slice, and that no distinct rival verifies as well.
 
     ``rivals``: per slice, the other refined hypotheses of that slice alone
@@ -444,7 +448,7 @@ def verify_fit(geom, model, fit, rivals, slices, Ss, blob_sets, opts, precision=
         T_F_from_I = fit.T_F_from_scanner @ S
         try:
             check = verify_slice(geom, model, T_F_from_I, np.asarray(sl.pixels), sl.pixel_spacing_mm,
-                                 float(sl.slice_thickness_mm), b, fit.assignments[j], sl.source)
+                                 float(sl.slice_thickness_mm), b, fit.assignments[j], sl.source, psf_px=psf_px)
         except NoLock as exc:
             if "shift_px" in exc.detail:  # sections off where the pose puts them: a wrong spacing says why, if it is one
                 _check_stretch(model, fit, xys, Ss, opts)
