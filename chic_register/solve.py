@@ -354,9 +354,10 @@ def register(slices: list[Slice], geom: FiducialGeometry, *, options: SolveOptio
                 [seq[j] for j in keep] for seq in (slices, xys, Ss, blob_sets, res_mm, per_slice, rivals))
     locked = best  # the pose fitted to the blob centres
     precision = None  # the pose's (TRE mm, rotation deg) 1-sigma when fitted to the pixels, not to positions
+    blurred = None  # that pixel fit (chic_register.blurred_fit.BlurredFit)
     wide = opts.blurred_fit and not opts.centroid_model and blobs_wide(model, slices, blob_sets, best.assignments)
     if wide:  # the sections are blurred: the sharp section model does not describe them, a blurred one does
-        best, precision, _ = blurred_stage(model, best, xys, Ss, slices, blob_sets)
+        best, precision, blurred = blurred_stage(model, best, xys, Ss, slices, blob_sets)
     elif opts.section_fit and not opts.centroid_model:
         fine = _section_refine(model, best, xys, Ss, slices, blob_sets, opts)
         if fine is not None:
@@ -421,13 +422,16 @@ def register(slices: list[Slice], geom: FiducialGeometry, *, options: SolveOptio
     t2 = time.perf_counter()
     return _registration(geom, model, geom_sha, best, slices, Ss, blob_sets, xys,
                          [e for _, e in per_slice], checks, filled, skipped, opts, target_F_mm,
-                         (t0, t1, t2))
+                         (t0, t1, t2), pixel_fit=blurred if precision is not None else None)
 
 
 def _registration(geom: FiducialGeometry, model: TubeModel, geom_sha: str, best, slices, Ss, blob_sets, xys,
-                  ellipses, checks, filled, skipped, opts: SolveOptions, target_F_mm, times) -> Registration:
+                  ellipses, checks, filled, skipped, opts: SolveOptions, target_F_mm, times,
+                  pixel_fit=None) -> Registration:
     """The :class:`Registration` of a verified fit ``best`` (a ``refine._Fit``) on ``slices``: per-slice results,
-    the uncertainty (and the ``max_tre_mm`` test), timing from ``times`` (t0 start, t1 detected, t2 posed)."""
+    the uncertainty (and the ``max_tre_mm`` test), timing from ``times`` (t0 start, t1 detected, t2 posed).
+    ``pixel_fit``: the :class:`~chic_register.blurred_fit.BlurredFit` the pose came from, whose covariance is then
+    the pose's (the blob centres of wide blobs are biased by merged neighbours)."""
     t0, t1, t2 = times
     T_sf = invert(best.T_F_from_scanner)
     results = []
@@ -456,10 +460,14 @@ def _registration(geom: FiducialGeometry, model: TubeModel, geom_sha: str, best,
     t3 = time.perf_counter()
     unc = None
     if opts.uncertainty or math.isfinite(opts.max_tre_mm):
-        from .uncertainty import registration_uncertainty, target_point
+        from .uncertainty import pixel_fit_uncertainty, registration_uncertainty, target_point
 
-        unc = registration_uncertainty(model, best, xys, Ss, slices, blob_sets, target_point(geom, target_F_mm),
-                                       "centroid" if not opts.centroid_model else "template (centroid covariance)")
+        target = target_point(geom, target_F_mm)
+        if pixel_fit is not None:
+            unc = pixel_fit_uncertainty(pixel_fit, slices, blob_sets, target)
+        else:
+            unc = registration_uncertainty(model, best, xys, Ss, slices, blob_sets, target,
+                                           "centroid" if not opts.centroid_model else "template (centroid covariance)")
         if unc.predicted_tre_mm > opts.max_tre_mm:
             raise NoLock(f"imprecise: predicted TRE {unc.predicted_tre_mm:.3f} mm at "
                          f"({', '.join(f'{v:g}' for v in unc.target_F_mm)}) exceeds {opts.max_tre_mm:g} mm",

@@ -395,6 +395,19 @@ def pose_uncertainty(J_F: np.ndarray, S: np.ndarray, residuals: np.ndarray, nois
     return PoseUncertainty(cov, tuple(noise), chi, dof, k, target, tre_rms_mm(cov, target), measurement)
 
 
+def pixel_fit_uncertainty(blurred, slices, blob_sets, target_F_mm) -> PoseUncertainty:
+    """The uncertainty of a pose fitted to the pixels through the blurred model (a
+    :class:`chic_register.blurred_fit.BlurredFit`): its sandwich covariance, in F's parameters. The residual
+    chi-square per degree of freedom is the fit's residual variance over the background's."""
+    noises = tuple(background_noise(sl.pixels, b.footprints) for sl, b in zip(slices, blob_sets))
+    bg = float(np.mean([n.sigma for n in noises]))
+    chi = (blurred.noise_sigma / bg) ** 2 if bg > 0 else float("nan")
+    cov = blurred.covariance_F()
+    target = tuple(float(v) for v in target_F_mm)
+    return PoseUncertainty(cov, noises, chi, max(int(blurred.n_pixels) - 7, 1), 1.0, target, tre_rms_mm(cov, target),
+                           "blurred fit (pixels)")
+
+
 def mahalanobis2(delta_deg_mm: np.ndarray, covariance: np.ndarray) -> float:
     """Squared Mahalanobis length of a pose error (order :data:`PARAMETER_ORDER`) under a covariance."""
     d = np.asarray(delta_deg_mm, dtype=float)

@@ -152,35 +152,28 @@ def _register_wide(volume: Volume, geom: FiducialGeometry, opts: SolveOptions, t
         elif passed is None:
             passed = out
         else:
-            rivals.append((out[-1], out[0].T_F_from_scanner))
+            rivals.append((out[-1].noise_sigma, out[0].T_F_from_scanner))
     if passed is None:
         raise first_refusal or NoLock("the volume's wide blobs: no pose found from the voxels fits the pixels")
     # a distinct pose whose blurred model leaves a residual variance under RIVAL_VARIANCE_RATIO times the answer's
     # (verified or not) means the pixels cannot tell them apart (a near-symmetric layout's turned twin: 1.14-2.05x)
-    close = [n for n, Y in rivals if n ** 2 < RIVAL_VARIANCE_RATIO * passed[-1] ** 2
+    close = [n for n, Y in rivals if n ** 2 < RIVAL_VARIANCE_RATIO * passed[-1].noise_sigma ** 2
              and _far(Y, passed[0].T_F_from_scanner, model)]
     if close:
         raise NoLock(f"ambiguous fit: the volume's wide blobs fit two distinct poses with residuals "
-                     f"{passed[-1]:.3g} and {close[0]:.3g}", {"n_tubes": passed[0].n_matched})
+                     f"{passed[-1].noise_sigma:.3g} and {close[0]:.3g}", {"n_tubes": passed[0].n_matched})
     if unfitted:  # a distinct pose the voxels rate nearly as well was neither fitted nor refused by the pixels
         raise NoLock(f"ambiguous fit: the volume's wide blobs fit a pose, but a distinct one the voxels rate nearly as "
                      f"well (centreline score {max(unfitted):.3f}) could not be fitted to the pixels to rule it out")
-    best, slices, Ss, blob_sets, xys, checks, skipped, _ = passed
+    best, slices, Ss, blob_sets, xys, checks, skipped, blurred = passed
     t2 = time.perf_counter()
     used = {sl.source for sl in slices} | {s.source for s in skipped}
     skipped += [SkippedSlice(sl.source, f"not fitted: the volume's wide blobs were fitted on {len(slices)} slices "
                                         "spread over the fiducial") for sl in all_slices if sl.source not in used]
     order = {sl.source: k for k, sl in enumerate(all_slices)}
     skipped.sort(key=lambda s: order.get(s.source, 0))
-    # the covariance of the uncertainty module comes from the blob centres, which wide blobs bias and merge: it is
-    # left out unless a TRE limit asks for it (the blurred fit's own precision was verified above)
-    rep = opts if math.isfinite(opts.max_tre_mm) else dataclasses.replace(opts, uncertainty=False)
-    try:
-        return _registration(geom, model, geom_sha, best, slices, Ss, blob_sets, xys, [None] * len(slices), checks,
-                             {}, skipped, rep, target_F_mm, (t0, t1, t2))
-    except np.linalg.LinAlgError:
-        raise NoLock("imprecise: the wide blobs' centres do not give the pose's covariance for the TRE limit",
-                     {"code": "imprecise"}) from None
+    return _registration(geom, model, geom_sha, best, slices, Ss, blob_sets, xys, [None] * len(slices), checks,
+                         {}, skipped, opts, target_F_mm, (t0, t1, t2), pixel_fit=blurred)
 
 
 #: Poses from the voxels scoring at least this share of the best are fitted and verified as well.
@@ -191,7 +184,7 @@ RIVAL_VARIANCE_RATIO = 1.1
 
 def _fit_and_verify(geom, model, X: np.ndarray, all_slices, opts: SolveOptions, verify: bool = True):
     """The pose near ``X`` (T_F_from_scanner) fitted through the blurred model to spread slices and verified:
-    ``(fit, slices, Ss, blob_sets, xys, checks, skipped, residual noise sigma)``; None when the blobs are not wide or too few slices cross
+    ``(fit, slices, Ss, blob_sets, xys, checks, skipped, BlurredFit)``; None when the blobs are not wide or too few slices cross
     the body; :class:`NoLock` when it does not converge or fails its verification (its detail then holds the fit's
     ``residual_sigma``). ``verify`` False: fitted only (``checks`` None)."""
     from .blurred_fit import WIDE_RATIO, blob_width_ratio, blurred_stage
@@ -218,7 +211,7 @@ def _fit_and_verify(geom, model, X: np.ndarray, all_slices, opts: SolveOptions, 
         assign = [_assign(*plane_crossings(model, X @ S)[0:4:3], xy, gate) for xy, S in zip(xys, Ss)]
         start = dataclasses.replace(refine(model, xys, Ss, X, gates_mm=(), final_iters=0, assign0=assign),
                                     T_F_from_scanner=X)
-        best, precision, blurred = blurred_stage(model, start, xys, Ss, slices, blob_sets)  # NoLock: a stretch
+        best, precision, blurred = blurred_stage(model, start, xys, Ss, slices, blob_sets, len(slices))  # NoLock: a stretch
         if precision is not None or blurred is None:
             break
         X = blurred.T_F_from_scanner
@@ -230,13 +223,13 @@ def _fit_and_verify(geom, model, X: np.ndarray, all_slices, opts: SolveOptions, 
                      {"residual_sigma": round(blurred.noise_sigma, 6)})
     skipped = []
     if not verify:
-        return best, slices, Ss, blob_sets, xys, None, skipped, blurred.noise_sigma
+        return best, slices, Ss, blob_sets, xys, None, skipped, blurred
     rivals = [[] for _ in slices]
     while True:
         try:
             checks = verify_fit(geom, model, best, rivals, slices, Ss, blob_sets, opts, precision=precision,
                                 name_slice=True, psf_px=blurred.psf_px)
-            return best, slices, Ss, blob_sets, xys, checks, skipped, blurred.noise_sigma
+            return best, slices, Ss, blob_sets, xys, checks, skipped, blurred
         except SliceRefused as exc:
             out = {j for j, _ in exc.refused}
             for j, reason in exc.refused:

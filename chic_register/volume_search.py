@@ -16,7 +16,6 @@ pixels (:mod:`chic_register.blurred_fit`) and verifies it.
 
 from __future__ import annotations
 
-import math
 
 import numpy as np
 
