@@ -20,8 +20,8 @@ what real scanner volumes do, each stress on or off at random (``STRESSES``):
 - ``phantom``: a bright 50-70 mm cylinder phantom beside the frame;
 - ``aniso``: in-plane voxels of different row and column size (0.5-1.2 mm);
 - ``oblique``: a volume stored with a random rotation as direction cosines
-  (NRRD ``space directions``, DICOM oblique ImageOrientationPatient), or
-  coronal / sagittal axes;
+  (NRRD ``space directions``, DICOM oblique ImageOrientationPatient), right- or
+  left-handed, or coronal / sagittal (left-handed) axes;
 - ``int16``: voxels stored as int16 with a large offset and scale (a DICOM
   series always stores int16 with rescale).
 
@@ -123,8 +123,8 @@ def draw_case(rng, p_stress: float = 0.35) -> dict:
     }
     if on["oblique"]:
         kind = int(rng.integers(3))
-        if kind == 0:
-            case["direction"] = _random_rotation(rng).tolist()
+        if kind == 0:  # any rotation, stored right- or left-handed (k reversed)
+            case["direction"] = (_random_rotation(rng) @ np.diag([1.0, 1.0, rng.choice([-1.0, 1.0])])).tolist()
         elif kind == 1:  # coronal: i = L, j = -S (rows go down to the feet), k = P
             case["direction"] = [[1, 0, 0], [0, 0, 1], [0, -1, 0]]
         else:  # sagittal: i = P, j = -S, k = L
@@ -180,7 +180,8 @@ def build_volume(geom, case: dict):
     D = np.eye(3) if case["direction"] is None else np.asarray(case["direction"], dtype=float)
     tilt_axis = _rotation([0, 0, 1], case["tilt_axis_deg"]) @ np.array([1.0, 0, 0])
     R_vol_from_F = _rotation(tilt_axis, case["tilt_deg"]) @ _rotation([0, 0, 1], case["twist_deg"])
-    R_sf = D @ R_vol_from_F
+    # the frame's pose is a rotation whatever the volume's handedness (a left-handed storage, det D = -1, is common)
+    R_sf = D @ np.diag([1.0, 1.0, np.sign(np.linalg.det(D))]) @ R_vol_from_F
     si, sj = case["pixel_ij_mm"]
     sk, thick = case["spacing_k_mm"], case["thickness_mm"]
     # extent: the frame's corners along the volume axes
@@ -256,7 +257,25 @@ def build_volume(geom, case: dict):
         vox = np.clip(np.rint(vox * 3.7 + 1024), -32768, 32767).astype(np.int16)
     else:
         vox = vox.astype(np.float32)
-    return Volume(vox, (si, sj, sk), origin, D, "<stress>"), T_sf
+    try:
+        return Volume(vox, (si, sj, sk), origin, D, "<stress>", slice_thickness_mm=thick), T_sf
+    except TypeError:  # a checkout from before volumes knew their slice thickness (the "before" figures)
+        return Volume(vox, (si, sj, sk), origin, D, "<stress>"), T_sf
+
+
+def usable_slices(geom, vol, T_sf, thickness_mm: float) -> int:
+    """How many k-planes the design's plane checks pass (all rods visible and apart at nominal width)."""
+    from chic_register.envelope import plane_status
+    from chic_register.pose import slice_angles
+    from chic_register.volume import plane_frame
+
+    T_fs = np.linalg.inv(T_sf)
+    n = 0
+    for k in range(vol.shape[0]):
+        a = slice_angles(T_fs @ plane_frame(vol, k))
+        n += bool(plane_status(geom, a.depth_mm, a.tilt_deg, a.azimuth_deg, max(vol.spacing_mm[:2]),
+                               thickness_mm).ok)
+    return n
 
 
 def _pose_error(T_est, T_true) -> tuple[float, float]:
@@ -315,6 +334,7 @@ def run_case(index: int, seed: int, geometry: Path, keep: Path | None = None) ->
     t0 = time.process_time()
     vol, T_true = build_volume(geom, case)
     build_s = time.process_time() - t0
+    usable = usable_slices(geom, vol, T_true, case["thickness_mm"])
     with tempfile.TemporaryDirectory(prefix="stress-") as tmp:
         folder = keep if keep is not None else Path(tmp)
         folder.mkdir(parents=True, exist_ok=True)
@@ -331,7 +351,7 @@ def run_case(index: int, seed: int, geometry: Path, keep: Path | None = None) ->
     o1, d1 = classify(with_prior, T_true)
     o2, d2 = classify(without, T_true)
     return {"index": index, "stresses": case["stresses"], "format": case["format"], "tilt": case["tilt_deg"],
-            "blob_width": case["blob_width"], "snr": case["snr"], "shape": list(vol.shape),
+            "blob_width": case["blob_width"], "snr": case["snr"], "shape": list(vol.shape), "usable": usable,
             "prior": o1, "prior_detail": d1, "prior_cpu_s": with_prior["cpu_s"],
             "noprior": o2, "noprior_detail": d2, "noprior_cpu_s": without["cpu_s"], "build_cpu_s": build_s,
             "traceback": "\n".join(r["stderr"] for r in (with_prior, without) if r["code"] is None)}
@@ -343,6 +363,7 @@ OUTCOMES = ("ok", "refused", "false", "error", "crash")
 def table(results: list[dict]) -> str:
     rows = [("all", results)] + [(s, [r for r in results if s in r["stresses"]]) for s in STRESSES]
     rows += [(f"tilt {a}-{b}", [r for r in results if a <= r["tilt"] < b]) for a, b in ((0, 10), (10, 20), (20, 30))]
+    rows += [("usable >= 3", [r for r in results if r["usable"] >= 3]), ("usable < 3", [r for r in results if r["usable"] < 3])]
     rows += [(f"fmt {f}", [r for r in results if r["format"] == f]) for f in ("nrrd", "nii.gz", "dicom")]
     head = f"{'condition':<14}{'n':>4} | with prior: " + " ".join(f"{o:>7}" for o in OUTCOMES)
     head += " | no prior: " + " ".join(f"{o:>7}" for o in OUTCOMES)
@@ -377,8 +398,10 @@ def main(argv=None) -> int:
     for i in range(args.cases):
         r = run_case(i, args.seed, args.geometry)
         results.append(r)
-        flag = "" if r["prior"] in ("ok",) and r["noprior"] in ("ok", "refused") else "  <--"
+        good = r["prior"] == "ok" or (r["prior"] == "refused" and r["usable"] < 3)
+        flag = "" if good and r["noprior"] in ("ok", "refused") else "  <--"
         print(f"case {i:4d} {','.join(r['stresses']) or '-':<40} tilt {r['tilt']:4.1f} {r['format']:<6} "
+              f"usable {r['usable']:2d}/{r['shape'][0]:<3d} "
               f"prior: {r['prior']:<7} {r['prior_detail'][:90]!r} | no prior: {r['noprior']:<7} "
               f"{r['noprior_detail'][:60]!r} cpu {r['prior_cpu_s']:.1f}+{r['noprior_cpu_s']:.1f} s{flag}", flush=True)
         if r["traceback"]:

@@ -10,7 +10,7 @@ import json
 import math
 import sys
 
-from .cli_inputs import check_spacing_flag, load_reference
+from .cli_inputs import check_spacing_flag, load_prior
 from .errors import ChicRegisterError, NoLock
 
 
@@ -30,7 +30,7 @@ def run_solve(args) -> int:
     if args.prior:
         if not (0 < args.prior_max_deg <= 180):
             raise ChicRegisterError(f"--prior-max-deg must be in (0, 180] deg, got {args.prior_max_deg:g}")
-        options = {"prior": load_reference(args.prior, "--prior"), "prior_max_deg": args.prior_max_deg}
+        options = {"prior": load_prior(args.prior), "prior_max_deg": args.prior_max_deg}
     slices, skip = _read_solve_inputs(args)
     extra = {}
     if args.target is not None:
