@@ -120,3 +120,18 @@ def test_no_prior_on_the_symmetric_frame_says_what_to_give_at_once(zf, tmp_path,
     vol2 = write_volume(sim2.volume, tmp_path / "v2.nrrd")
     assert main(["solve", str(vol2), "--geometry", str(geo), "--prior", "identity", "--json"]) == 3
     capsys.readouterr()
+
+
+def test_a_series_given_file_by_file_points_to_its_folder(zf, tmp_path, capsys):
+    """`solve series/*.dcm` makes every file a slice that must lock: an empty end slice refuses them all, and the
+    message says to give the folder (a volume: slices without the frame are skipped)."""
+    rng = np.random.default_rng(0)
+    vol = Volume(rng.rayleigh(20.0, (4, 32, 32)).astype(np.float32), (1.0, 1.0, 3.0), np.zeros(3), np.eye(3), "v")
+    folder = write_volume(vol, tmp_path / "series")
+    geo = write_geometry(zf, tmp_path / "g.yaml")
+    files = sorted(str(p) for p in folder.iterdir())
+    assert main(["solve", *files, "--geometry", str(geo), "--prior", "identity", "--json"]) == 3
+    reason = json.loads(capsys.readouterr().out)["reason"]
+    assert f"give the series' folder as one volume: chic-register solve {folder}" in reason
+    assert main(["solve", str(folder), "--geometry", str(geo), "--prior", "identity", "--json"]) == 3
+    assert "folder" not in json.loads(capsys.readouterr().out)["reason"]
