@@ -21,7 +21,6 @@ import math
 from dataclasses import dataclass
 
 import numpy as np
-from scipy.spatial.transform import Rotation
 
 from .geometry import FiducialGeometry
 
@@ -41,15 +40,21 @@ class FrameSymmetry:
                 "maps": {a: b for a, b in self.mapping}}
 
 
+def _turn(axis: np.ndarray, angle_rad: float) -> np.ndarray:
+    """Rotation by ``angle_rad`` about the unit ``axis`` (Rodrigues; numpy only: a one-slice solve imports no scipy)."""
+    K = np.array([[0.0, -axis[2], axis[1]], [axis[2], 0.0, -axis[0]], [-axis[1], axis[0], 0.0]])
+    return np.eye(3) + math.sin(angle_rad) * K + (1.0 - math.cos(angle_rad)) * (K @ K)
+
+
 def candidate_rotations(length_mm: float) -> list[tuple[str, np.ndarray]]:
     """(description, 3x3 rotation) of every non-identity proper symmetry of a square prism."""
-    out = [(f"rotation by {a} deg about the z axis", Rotation.from_euler("z", a, degrees=True).as_matrix())
+    out = [(f"rotation by {a} deg about the z axis", _turn(np.array([0.0, 0.0, 1.0]), math.radians(a)))
            for a in (90, 180, 270)]
     for a in (0, 45, 90, 135):
         axis = np.array([math.cos(math.radians(a)), math.sin(math.radians(a)), 0.0])
         name = {0: "x", 90: "y"}.get(a, f"horizontal {a} deg")
         out.append((f"half turn about the {name} axis through (0, 0, {length_mm / 2:g}) mm "
-                    "(the frame upside down)", Rotation.from_rotvec(math.pi * axis).as_matrix()))
+                    "(the frame upside down)", _turn(axis, math.pi)))
     return out
 
 

@@ -134,8 +134,9 @@ class SliceCheck:
     canvas: np.ndarray = None  # the model image at the pose (fluid fraction)
     level: float = 1.0  # fitted fluid level
     noise_sigma: float = 0.0
-    psf_px: object = 0.0  # Gaussian point spread (sigma, pixels; or (along rows, along columns)) the model was blurred by
+    psf_px: float = 0.0  # Gaussian point spread (sigma, pixels: the mean of rows' and columns') the model was blurred by
     strays: tuple[int, ...] = ()  # detected blobs on the tubes' circle inside the body that the pose leaves unexplained
+    psf_rc_px: tuple = (0.0, 0.0)  # the point spread's sigma along rows and along columns (pixels that are not square)
 
 
 def shape_tolerance(radius_px: float) -> float:
@@ -312,9 +313,9 @@ def verify_slice(geom, model, T_F_from_I: np.ndarray, pixels: np.ndarray, spacin
                 continue
             # shape: the residual over the section (own support grown by a pixel), beyond noise and model error
             hh, ww = w.own.shape
-            # judged against this tube's own fluid level (rods differ: fill, bubbles, coil), never a dimmer one
-            # than the presence test allows
-            excess, chi_tol, sup = _shape_excess(w, y, fit, sigma, max(a, PRESENT_FRACTION * level))
+            # judged against this tube's own fluid level when it is brighter than the median (rods differ: fill,
+            # bubbles, coil); a dimmer one as before, against the median (never a stricter test)
+            excess, chi_tol, sup = _shape_excess(w, y, fit, sigma, max(a, level))
             r_px = 0.5 * float(model.diameter_mm[k]) / px
             if excess > shape_tolerance(r_px) + chi_tol:
                 raise NoLock(f"{source}: tube {tid}'s section does not have the shape and place the pose ({where}) "
@@ -352,8 +353,9 @@ def verify_slice(geom, model, T_F_from_I: np.ndarray, pixels: np.ndarray, spacin
             raise NoLock(f"{source}: a bright blob at pixel ({r:.0f}, {c:.0f}) lies on the tubes' circle inside the "
                          f"body where the pose ({where}) predicts no tube",
                          {"blob_rc": [round(float(r), 1), round(float(c), 1)]})
-        return SliceCheck(tuple(present), tuple(missing), scale, envelope, merged, canvas, level, sigma, psf_px,
-                          tuple(strays))
+        psf_rc = (float(psf_px), float(psf_px)) if np.ndim(psf_px) == 0 else tuple(float(v) for v in psf_px)
+        return SliceCheck(tuple(present), tuple(missing), scale, envelope, merged, canvas, level, sigma,
+                          0.5 * (psf_rc[0] + psf_rc[1]), strays=tuple(strays), psf_rc_px=psf_rc)
 
     wins, canvas = _windows(geom, model, T_F_from_I, shape, (rs, cs), float(thickness_mm))
     try:
