@@ -135,7 +135,14 @@ def _maximum_filter(vals: np.ndarray, size: int) -> np.ndarray:
     """
     h = size // 2
     padded = np.pad(vals, h, constant_values=-np.inf)
-    return np.lib.stride_tricks.sliding_window_view(padded, (size, size)).max(axis=(2, 3))
+    H, W = vals.shape
+    rows = padded[:H].copy()  # separable: the maximum over the window's rows, then over its columns (exact)
+    for d in range(1, size):
+        np.maximum(rows, padded[d:d + H], out=rows)
+    out = rows[:, :W].copy()
+    for d in range(1, size):
+        np.maximum(out, rows[:, d:d + W], out=out)
+    return out
 
 
 def _smooth(img: np.ndarray, sigma_px: float) -> np.ndarray:

@@ -26,6 +26,8 @@ import dataclasses
 import numpy as np
 from numpy.lib.stride_tricks import sliding_window_view
 
+from .detect import median
+
 #: Largest share of exact zeros for which the image still counts as noisy: a noise-free render or a masked slice
 #: is mostly zero (the fiducial's sections cover a few per cent of a slice), a noisy image with dropouts is not.
 MAX_ZERO_SHARE = 0.5
@@ -74,9 +76,12 @@ def _fill_non_finite(pixels: np.ndarray) -> tuple[np.ndarray, int]:
     img = np.asarray(pixels)
     if not np.issubdtype(img.dtype, np.floating):
         return pixels, 0
-    bad = ~np.isfinite(img)
+    finite = np.isfinite(img)
+    if finite.all():
+        return pixels, 0
+    bad = ~finite
     n = int(bad.sum())
-    if n == 0 or n == img.size:
+    if n == img.size:
         return pixels, 0
     out = img.astype(float)
     hoods = _neighbourhoods(np.where(bad, np.nan, out), np.nan)[bad].reshape(n, -1)
@@ -104,8 +109,8 @@ def _fill_specks(pixels: np.ndarray) -> tuple[np.ndarray, int]:
     sample = sample[sample != 0]  # (zeros: a clipped or masked background, not the noise's spread)
     if sample.size < 16:
         return pixels, 0
-    background = float(np.median(sample))
-    sigma = max(1.4826 * float(np.median(np.abs(sample - background))), 1e-12)
+    background = median(sample)  # (np.median's value, without its overhead: finite pixels here)
+    sigma = max(1.4826 * median(np.abs(sample - background)), 1e-12)
     height = img - background
     if np.count_nonzero(height > SPECK_SIGMAS * sigma) < MIN_SPECK_SHARE * img.size:
         return pixels, 0  # too few bright pixels to hold that many specks (a plain slice: its tube sections)
@@ -139,7 +144,7 @@ def _fill_zeros(pixels: np.ndarray) -> tuple[np.ndarray, int]:
     """Exact zeros amid the signal of a noisy image filled (see the module's doc)."""
     img = np.asarray(pixels)
     zero = img == 0
-    share = float(zero.mean()) if zero.size else 0.0
+    share = np.count_nonzero(zero) / zero.size if zero.size else 0.0  # (zero.mean(), in one pass)
     if not (MIN_ZERO_SHARE <= share <= MAX_ZERO_SHARE) or not np.all(np.isfinite(img)):
         return pixels, 0
     img = img.astype(float)

@@ -13,6 +13,7 @@ thickness. See :mod:`chic_design.feasibility` for the section model.
 
 from __future__ import annotations
 
+import functools
 import math
 from dataclasses import dataclass
 
@@ -36,9 +37,27 @@ def plane_normals(tilt_deg, azimuth_deg) -> np.ndarray:
     return np.stack([np.sin(t) * np.cos(a), np.sin(t) * np.sin(a), np.cos(t)], axis=-1)
 
 
+def _brackets(tube) -> tuple[np.ndarray, np.ndarray]:
+    """``(params, points)``: a tube's bracketing samples and its centreline there (per tube, computed once;
+    read-only)."""
+    try:
+        return _brackets_memo(tube)
+    except TypeError:  # a tube object that is not hashable: no memo
+        ts = tube.bracket_params()
+        return ts, tube.points(ts)
+
+
+@functools.lru_cache(maxsize=256)
+def _brackets_memo(tube) -> tuple[np.ndarray, np.ndarray]:
+    ts = tube.bracket_params()
+    pts = tube.points(ts)
+    ts.flags.writeable = pts.flags.writeable = False
+    return ts, pts
+
+
 def crossing_counts(tube, origins, normals) -> np.ndarray:
     """How many times a tube centreline crosses each plane (origins, normals: (P, 3)); shape (P,)."""
-    pts = tube.points(tube.bracket_params())
+    pts = _brackets(tube)[1]
     g = np.asarray(normals, dtype=float) @ pts.T - np.einsum("pi,pi->p", origins, normals)[:, None]
     pos = g >= 0
     return (pos[:, 1:] != pos[:, :-1]).sum(axis=1)
@@ -56,8 +75,7 @@ def plane_crossings(tube, origins, normals, n_iter: int = 4):
     """
     o = np.asarray(origins, dtype=float)
     n = np.asarray(normals, dtype=float)
-    ts = tube.bracket_params()
-    pts = tube.points(ts)  # (K, 3)
+    ts, pts = _brackets(tube)  # (K,), (K, 3)
     off = np.einsum("pi,pi->p", o, n)
     g = n @ pts.T - off[:, None]  # (P, K)
     pos = g >= 0

@@ -10,6 +10,7 @@ fit matched.
 
 from __future__ import annotations
 
+import functools
 import math
 
 import numpy as np
@@ -37,8 +38,13 @@ POSITION_FLOOR_PX = 0.005
 #: the residuals at this tail probability (F test, 2 parameters) ...
 STRETCH_P = 1e-3
 #: ... and is at least this large: clinical scanners' gradient calibration is good to well under 1 %, and a 2 %
-#: error moves a tube 25 mm off-centre by 0.5 mm.
+#: error moves a tube 25 mm off-centre by 0.5 mm ...
 STRETCH_MIN = 0.02
+#: ... or moves the pose by more than this share of the trust limits when fitted with it: a smaller stretch turns the
+#: pose too, by about ``s cot(tilt)`` rad (the sections' ellipse read as a tilt); a 0.66 % one (a 77-pixel matrix
+#: zoomed 2x by mapping its first and last pixels, declared at half the spacing) turned a 36 deg slice 0.53 deg.
+#: The share is the trust limits' 1 sigma: such a move is a systematic error as large as the noise allowed.
+STRETCH_MOVE_SHARE = 1.0 / PRECISION_SIGMAS
 
 
 def pose_precision(model, fit, Ss, pixel_mm: float, exclude=None):
@@ -77,8 +83,14 @@ def pose_precision(model, fit, Ss, pixel_mm: float, exclude=None):
         C = sigma * sigma * np.linalg.inv(J.T @ J)
     except np.linalg.LinAlgError:
         return math.inf, math.inf
+    return worst_errors(C, _frame_centre_scanner(model, fit))
+
+
+def _frame_centre_scanner(model, fit) -> np.ndarray:
+    """(3,) the frame centre (0, 0, L/2) of F in the scanner frame at the fit's pose (mm)."""
+    from .pose import invert
     T_sf = invert(fit.T_F_from_scanner)
-    return worst_errors(C, T_sf[:3, :3] @ np.array([0.0, 0.0, 0.5 * model.length_mm]) + T_sf[:3, 3])
+    return T_sf[:3, :3] @ np.array([0.0, 0.0, 0.5 * model.length_mm]) + T_sf[:3, 3]
 
 
 def worst_errors(C: np.ndarray, lever_mm: np.ndarray) -> tuple[float, float]:
@@ -127,8 +139,10 @@ def gamma_p(a: float, x: float) -> float:
     return max(0.0, 1.0 - math.exp(log_front) * h)
 
 
+@functools.lru_cache(maxsize=256)
 def gamma_p_inverse(a: float, p: float) -> float:
-    """The x with ``gamma_p(a, x) = p`` (``scipy.special.gammaincinv``), for 0 < p < 1."""
+    """The x with ``gamma_p(a, x) = p`` (``scipy.special.gammaincinv``), for 0 < p < 1 (memoised: the pose checks
+    ask for the same few degrees of freedom on every pose)."""
     hi = a + 10.0 * math.sqrt(a) + 10.0
     while gamma_p(a, hi) < p:
         hi *= 2.0
@@ -146,7 +160,11 @@ def stretch_test(model, fit, xys, Ss):
     two extra parameters explain, over what is left, per degree of freedom
     (an F(2, m - 8) statistic, ``m`` the residual count) and ``p`` its tail
     probability (closed form for 2 numerator degrees of freedom). ``scale``
-    (2,): the fitted relative stretch along x (columns) and y (rows). The
+    (2,): the fitted relative stretch along x (columns) and y (rows);
+    ``moved``: ``(mm at the frame centre, deg)`` the pose moves by when the
+    stretch is fitted with it (the error a stretch of the image this size
+    puts in the pose; ``(0, 0)``, not computed, when ``p`` is not below
+    :data:`STRETCH_P`). Returns ``(scale, F, p, moved)``. The
     residuals are whitened as the fit weighed them (``fit.measurements``).
     """
     from .pose import invert
@@ -167,11 +185,11 @@ def stretch_test(model, fit, xys, Ss):
         Js.append(np.einsum("kij,kjl->kil", L, D).reshape(-1, 2))
         rs.append(np.einsum("kij,kj->ki", L, q[k] - xy).ravel())
     if not rs:
-        return np.zeros(2), 0.0, 1.0
+        return np.zeros(2), 0.0, 1.0, (0.0, 0.0)
     Jp, Js, r = np.concatenate(Jp), np.concatenate(Js), np.concatenate(rs)
     dof = r.size - 8
     if dof <= 0:
-        return np.zeros(2), 0.0, 1.0
+        return np.zeros(2), 0.0, 1.0, (0.0, 0.0)
     Q, _ = np.linalg.qr(Jp)
     Js_perp = Js - Q @ (Q.T @ Js)
     r_perp = r - Q @ (Q.T @ r)
@@ -180,4 +198,7 @@ def stretch_test(model, fit, xys, Ss):
     rest = max(float(r_perp @ r_perp) - explained, 1e-30)
     F = (explained / 2.0) / (rest / dof)
     p = (1.0 + 2.0 * F / dof) ** (-0.5 * dof)
-    return s, F, p
+    if p >= STRETCH_P:  # not significant: the move is not asked for (the common path)
+        return s, F, p, (0.0, 0.0)
+    twist = np.linalg.lstsq(Jp, Js @ s, rcond=None)[0]  # the pose's move when the stretch is fitted with it
+    return s, F, p, worst_errors(np.outer(twist, twist), _frame_centre_scanner(model, fit))

@@ -81,6 +81,12 @@ class _Grid:
         return pts.reshape(ni, nj, s * s, 3)
 
 
+def _unit_clip(x: np.ndarray) -> np.ndarray:
+    """``np.clip(x, 0, 1)`` in place (the same values for any x but -0.0; without np.clip's call overhead)."""
+    np.maximum(x, 0.0, out=x)
+    return np.minimum(x, 1.0, out=x)
+
+
 def _render_crossing(tube, u_c: float, T_F_from_S: np.ndarray, z_mm: float, grid: _Grid, layer: np.ndarray):
     """Fluid fraction of one tube crossing in the sub-plane ``z = z_mm`` of S, max-composited into ``layer``."""
     R = T_F_from_S[:3, :3]
@@ -108,7 +114,8 @@ def _render_crossing(tube, u_c: float, T_F_from_S: np.ndarray, z_mm: float, grid
         return
     i0, i1, j0, j1 = box
     p = grid.samples(i0, i1, j0, j1, z_mm)
-    s0 = (p - c) @ t  # arc length along the tangent line
+    pc = p - c
+    s0 = pc @ t  # arc length along the tangent line
     u = u_c + s0 / length
     if tube.curved:
         # re-project on the exact centreline: the nearest point to second order
@@ -119,19 +126,25 @@ def _render_crossing(tube, u_c: float, T_F_from_S: np.ndarray, z_mm: float, grid
         perp = (d - along[:, None] * tq).reshape(p.shape)
         u = u + along.reshape(u.shape) / length
     else:
-        perp = (p - c) - s0[..., None] * t
+        perp = pc - s0[..., None] * t
     dist = np.sqrt(np.einsum("...i,...i->...", perp, perp))
     rs, cs = grid.spacing
     hs_x, hs_y = cs / grid.sub.size, rs / grid.sub.size
-    with np.errstate(invalid="ignore", divide="ignore"):
+    if dist.all():  # (no sample on the centreline: nothing to silence)
         gx = np.abs(perp[..., 0]) / dist
         gy = np.abs(perp[..., 1]) / dist
-    w_r = np.nan_to_num(hs_x * gx + hs_y * gy, nan=0.0)
-    cov = np.clip(0.5 + (r - dist) / np.maximum(w_r, 1e-12), 0.0, 1.0)
+    else:
+        with np.errstate(invalid="ignore", divide="ignore"):
+            gx = np.abs(perp[..., 0]) / dist
+            gy = np.abs(perp[..., 1]) / dist
+    w_r = hs_x * gx + hs_y * gy
+    if not np.isfinite(w_r).all():  # a sample on the centreline (0 / 0)
+        w_r = np.nan_to_num(w_r, nan=0.0)
+    cov = _unit_clip(0.5 + (r - dist) / np.maximum(w_r, 1e-12))
     inside_mm = np.minimum(u, 1.0 - u) * length
     w_e = hs_x * abs(t[0]) + hs_y * abs(t[1])
-    cov *= np.clip(0.5 + inside_mm / max(w_e, 1e-12), 0.0, 1.0)
-    frac = cov.mean(axis=-1)
+    cov *= _unit_clip(0.5 + inside_mm / max(w_e, 1e-12))
+    frac = cov[..., 0] if cov.shape[-1] == 1 else cov.mean(axis=-1)  # (one sample a pixel: its own value)
     region = layer[i0 : i1 + 1, j0 : j1 + 1]
     np.maximum(region, frac, out=region)
 

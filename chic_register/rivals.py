@@ -13,6 +13,7 @@ evidence of all slices adds up (:func:`check_rivals`).
 
 from __future__ import annotations
 
+import functools
 import math
 
 import numpy as np
@@ -112,6 +113,20 @@ def _turned_rivals(model, T_F_from_scanner: np.ndarray, xy: np.ndarray, S: np.nd
     offered (the 90 deg turns of four diametric tubes, say); refined against
     the same blobs, it is a rival for :func:`_compare_rival`.
     """
+    gate = max(float(model.diameter_mm.max()), 2 * pixel_mm)
+    out = []
+    for d in _symmetry_turns(model):
+        c, s_ = math.cos(d), math.sin(d)
+        Rz = np.array([[c, -s_, 0, 0], [s_, c, 0, 0], [0, 0, 1, 0], [0, 0, 0, 1.0]])
+        out.append(refine(model, [xy], [S], Rz @ T_F_from_scanner, gates_mm=(2 * gate, 0.6 * gate),
+                          iters_per_gate=3, final_iters=2))
+    return out
+
+
+@functools.lru_cache(maxsize=16)
+def _symmetry_turns(model) -> tuple[float, ...]:
+    """The turns (rad) about the axis that map three or more axial tubes onto axial tubes (a geometry's own:
+    computed once per tube model, which is hashed by identity)."""
     ang = model.angle_rad[model.axial]
     tol = math.radians(SYMMETRY_TOL_DEG)
     turns = []
@@ -123,14 +138,7 @@ def _turned_rivals(model, T_F_from_scanner: np.ndarray, xy: np.ndarray, S: np.nd
             moved = (ang[:, None] + d - ang[None, :] + math.pi) % (2 * math.pi) - math.pi
             if int(np.sum(np.min(np.abs(moved), axis=1) < tol)) >= 3:
                 turns.append(d)
-    gate = max(float(model.diameter_mm.max()), 2 * pixel_mm)
-    out = []
-    for d in turns:
-        c, s_ = math.cos(d), math.sin(d)
-        Rz = np.array([[c, -s_, 0, 0], [s_, c, 0, 0], [0, 0, 1, 0], [0, 0, 0, 1.0]])
-        out.append(refine(model, [xy], [S], Rz @ T_F_from_scanner, gates_mm=(2 * gate, 0.6 * gate),
-                          iters_per_gate=3, final_iters=2))
-    return out
+    return tuple(turns)
 
 
 def _compare_rival(geom, model, check, T_F_from_I_rival: np.ndarray, sl) -> tuple[float, float]:
@@ -146,7 +154,7 @@ def _compare_rival(geom, model, check, T_F_from_I_rival: np.ndarray, sl) -> tupl
 
     pixels = np.asarray(sl.pixels, float)
     _, rival = _windows(geom, model, T_F_from_I_rival, pixels.shape, tuple(float(v) for v in sl.pixel_spacing_mm),
-                        float(sl.slice_thickness_mm))
+                        float(sl.slice_thickness_mm), canvas_only=True)
     rival = gaussian_blur(rival, check.psf_rc_px)  # drawn as the pose's model was
     region = _dilate((check.canvas > 0.02) | (rival > 0.02), 1)
     y = pixels[region]

@@ -114,16 +114,17 @@ class Windows:
 
 def section_windows(model, q: np.ndarray, tan: np.ndarray, found: np.ndarray, todo: np.ndarray, shape,
                     pixel_spacing_mm, slice_thickness_mm: float, assignment=None, footprints=(),
-                    margin_px: float = 1.5) -> Windows:
+                    margin_px: float = 1.5, reach=None) -> Windows:
     """Each tube in ``todo``'s section box grown by ``margin_px``, less what another tube or blob reaches.
 
     ``q``, ``tan``, ``found``: :func:`~chic_register.solve.plane_crossings`
     at the pose. Pixels within half a pixel of another tube's section box,
     or inside the footprint of a blob that is not the tube's own (nor
-    overlaps it), are left out.
+    overlaps it), are left out. ``reach``: :func:`_window_pixels` of these
+    arguments, when already computed.
     """
-    rr, cc, own, hit, far, _ = _window_pixels(model, q, tan, found, todo, shape, pixel_spacing_mm,
-                                              slice_thickness_mm, margin_px)
+    rr, cc, own, hit, far, _ = reach or _window_pixels(model, q, tan, found, todo, shape, pixel_spacing_mm,
+                                                       slice_thickness_mm, margin_px)
     keep = ~(hit | far).any(axis=1)
     shared = bool((hit.any(axis=1) & ~far.any(axis=1)).any())
     if len(footprints) and assignment is not None:
@@ -169,17 +170,17 @@ def _window_pixels(model, q, tan, found, todo, shape, pixel_spacing_mm, slice_th
 
 def joint_windows(model, q: np.ndarray, tan: np.ndarray, found: np.ndarray, todo: np.ndarray, shape,
                   pixel_spacing_mm, slice_thickness_mm: float, modelled: np.ndarray, assignment=None, footprints=(),
-                  margin_px: float = 1.5):
+                  margin_px: float = 1.5, reach=None):
     """:func:`section_windows` keeping the pixels that only ``modelled`` (K,) tubes' sections reach besides the
     tube's own, and those pairs: ``(windows, pixel (M,) index into the windows, tube (M,))``.
 
     A pixel two sections share carries information on both: with the
     neighbour's fitted section subtracted (the joint pass of
     :func:`fit_sections`) it is used instead of left out, which matters where
-    a helix runs close to a straight tube (near the body's ends).
+    a helix runs close to a straight tube (near the body's ends). ``reach``: as for :func:`section_windows`.
     """
-    rr, cc, own, hit, far, others = _window_pixels(model, q, tan, found, todo, shape, pixel_spacing_mm,
-                                                   slice_thickness_mm, margin_px)
+    rr, cc, own, hit, far, others = reach or _window_pixels(model, q, tan, found, todo, shape, pixel_spacing_mm,
+                                                            slice_thickness_mm, margin_px)
     keep = ~((hit & ~modelled[others][None]) | far).any(axis=1)
     if len(footprints) and assignment is not None:
         _drop_foreign_blobs(keep, rr, cc, own, assignment, footprints)
@@ -312,9 +313,12 @@ def fit_sections(model, T_F_from_I: np.ndarray, assignment: np.ndarray, pixels: 
     out_info, out_gain = np.zeros((K, 2, 2)), np.zeros(K)
     n_pix, fitted = np.zeros(K, int), np.zeros(K, bool)
     todo = np.flatnonzero((assignment >= 0) & found)
+    reach = None  # the windows' pixels and what reaches them: the joint pass's too while it fits the same tubes
     if windows is None:
+        reach = _window_pixels(model, q, tan, found, todo, pixels.shape, pixel_spacing_mm, slice_thickness_mm,
+                               margin_px)
         windows = section_windows(model, q, tan, found, todo, pixels.shape, pixel_spacing_mm, slice_thickness_mm,
-                                  assignment, footprints, margin_px)
+                                  assignment, footprints, margin_px, reach)
     own = windows.owner
     if todo.size == 0 or own.size == 0:
         return SectionFit(q, out_pos, out_info, out_gain, n_pix, fitted), windows
@@ -332,7 +336,8 @@ def fit_sections(model, T_F_from_I: np.ndarray, assignment: np.ndarray, pixels: 
     if joint and windows.shared and exact and sel.size >= 2 and int(shift_iterations) <= 1:
         sel, at, info, a, n_pix = _joint_pass(model, T_F_from_I, q, tan, found, pixels, pixel_spacing_mm,
                                               slice_thickness_mm, thickness_samples, exact, noise_sigma, assignment,
-                                              footprints, margin_px, sel, at, info, a, n_pix)
+                                              footprints, margin_px, sel, at, info, a, n_pix,
+                                              reach if reach is not None and np.array_equal(sel, todo) else None)
     out_pos[sel] = at[sel]
     out_info[sel] = info
     out_gain[sel] = a
@@ -342,7 +347,7 @@ def fit_sections(model, T_F_from_I: np.ndarray, assignment: np.ndarray, pixels: 
 
 def _joint_pass(model, T_F_from_I, q, tan, found, pixels, pixel_spacing_mm, slice_thickness_mm: float,
                 thickness_samples: int, exact: bool, noise_sigma: float, assignment, footprints, margin_px: float,
-                sel, at, info, a, n_pix):
+                sel, at, info, a, n_pix, reach=None):
     """Refit the tubes ``sel`` on the pixels they share with fitted neighbours, those neighbours' fitted
     sections (position ``at``, level ``a``) subtracted (:func:`joint_windows`); :data:`JOINT_PASSES` times.
     Returns ``(sel, at, info, a, n_pix)`` as :func:`_linear_fit` gives them, unchanged when no pixel is
@@ -351,7 +356,7 @@ def _joint_pass(model, T_F_from_I, q, tan, found, pixels, pixel_spacing_mm, slic
     modelled = np.zeros(K, bool)
     modelled[sel] = True
     jw, nb_p, nb_k = joint_windows(model, q, tan, found, sel, pixels.shape, pixel_spacing_mm, slice_thickness_mm,
-                                   modelled, assignment, footprints, margin_px)
+                                   modelled, assignment, footprints, margin_px, reach)
     if nb_p.size == 0:
         return sel, at, info, a, n_pix
     gain = np.zeros(K)
@@ -378,9 +383,12 @@ def _joint_pass(model, T_F_from_I, q, tan, found, pixels, pixel_spacing_mm, slic
     starts = np.flatnonzero(np.r_[True, jw.owner[1:] != jw.owner[:-1]])
     S, Sx, Sy = section_model(model, T_F_from_I, q, tan, jw, pixel_spacing_mm, slice_thickness_mm,
                               thickness_samples, exact)
-    for _ in range(JOINT_PASSES):
-        Sn = section_model(model, T_F_from_I, fitted_at, tan, neighbours, pixel_spacing_mm, slice_thickness_mm,
-                           thickness_samples, exact)[0]
+    for n_pass in range(JOINT_PASSES):
+        if n_pass == 0 and not strong.any():
+            Sn = Sn0  # the same neighbours at the same fitted positions: the same model
+        else:
+            Sn = section_model(model, T_F_from_I, fitted_at, tan, neighbours, pixel_spacing_mm, slice_thickness_mm,
+                               thickness_samples, exact)[0]
         y_own = y.copy()
         np.subtract.at(y_own, nb_p, gain[nb_k] * Sn)
         sel_j, shift, info_j, a_j, n_pix_j = _linear_fit(S, Sx, Sy, y_own, jw.owner, starts, K, sel, noise_sigma)

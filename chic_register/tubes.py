@@ -13,6 +13,7 @@ slab's section) instead of switching on the kind. Importable from
 from __future__ import annotations
 
 import abc
+import functools
 import math
 from dataclasses import dataclass, field, replace
 
@@ -133,13 +134,15 @@ class LineTube(Tube):
         object.__setattr__(self, "p0", _vec3(self.p0))
         object.__setattr__(self, "p1", _vec3(self.p1))
 
-    @property
+    @functools.cached_property
     def direction(self) -> np.ndarray:
-        """Unit vector from p0 to p1, shape (3,)."""
+        """Unit vector from p0 to p1, shape (3,) (computed once: the renderer asks for it per section; read-only)."""
         d = np.subtract(self.p1, self.p0)
-        return d / np.linalg.norm(d)
+        d = d / np.linalg.norm(d)
+        d.flags.writeable = False
+        return d
 
-    @property
+    @functools.cached_property
     def length_mm(self) -> float:
         return float(np.linalg.norm(np.subtract(self.p1, self.p0)))
 
@@ -147,15 +150,23 @@ class LineTube(Tube):
     def z_range(self) -> tuple[float, float]:
         return (min(self.p0[2], self.p1[2]), max(self.p0[2], self.p1[2]))
 
+    @functools.cached_property
+    def _ends(self) -> tuple[np.ndarray, np.ndarray]:
+        """``(p0, p1 - p0)`` as arrays (computed once; read-only)."""
+        p0, d = np.asarray(self.p0, dtype=float), np.subtract(self.p1, self.p0)
+        p0.flags.writeable = d.flags.writeable = False
+        return p0, d
+
     def points(self, t) -> np.ndarray:
         """Centreline points at parameters ``t`` in [0, 1]; shape (N, 3)."""
         t = np.atleast_1d(np.asarray(t, dtype=float))[:, None]
-        return np.asarray(self.p0) + t * np.subtract(self.p1, self.p0)
+        p0, d = self._ends
+        return p0 + t * d
 
     def tangents(self, t) -> np.ndarray:
         """Unit tangents at parameters ``t``; shape (N, 3)."""
-        t = np.atleast_1d(np.asarray(t, dtype=float))
-        return np.tile(self.direction, (t.size, 1))
+        n = np.size(t)
+        return np.broadcast_to(self.direction, (n, 3)).copy()
 
     def point_at_z(self, z_mm) -> np.ndarray:
         """Centreline points at heights ``z_mm`` (the line must not be horizontal); shape (N, 3)."""
@@ -280,7 +291,11 @@ class HelixTube(Tube):
         """Centreline points at heights ``z_mm``; shape (N, 3)."""
         z = np.atleast_1d(np.asarray(z_mm, dtype=float))
         th = np.radians(self.angle_deg_at(z))
-        return np.stack([self.radius * np.cos(th), self.radius * np.sin(th), z], axis=1)
+        out = np.empty((z.size, 3))
+        np.multiply(self.radius, np.cos(th), out=out[:, 0])
+        np.multiply(self.radius, np.sin(th), out=out[:, 1])
+        out[:, 2] = z
+        return out
 
     def points(self, t) -> np.ndarray:
         """Centreline points at parameters ``t`` in [0, 1] (z = z0 + t (z1 - z0)); shape (N, 3)."""
@@ -292,18 +307,30 @@ class HelixTube(Tube):
         t = np.atleast_1d(np.asarray(t, dtype=float))
         th = np.radians(self.angle_deg_at(self.z0 + t * (self.z1 - self.z0)))
         w = math.radians(self.pitch_deg_per_mm) * self.radius
-        v = np.stack([-w * np.sin(th), w * np.cos(th), np.ones_like(th)], axis=1)
-        return v / np.linalg.norm(v, axis=1, keepdims=True)
+        v = np.empty((th.size, 3))
+        np.multiply(-w, np.sin(th), out=v[:, 0])
+        np.multiply(w, np.cos(th), out=v[:, 1])
+        v[:, 2] = 1.0
+        return v / np.sqrt(np.add.reduce(v * v, axis=1, keepdims=True))  # (np.linalg.norm's own sum)
 
     def tangents_at_z(self, z_mm) -> np.ndarray:
         """Unit tangents at heights ``z_mm`` (toward increasing z); shape (N, 3)."""
         return self.tangents((np.atleast_1d(np.asarray(z_mm, dtype=float)) - self.z0) / (self.z1 - self.z0))
 
     def extended(self, ext_mm: float) -> "HelixTube":
-        """The same helix continued by ``ext_mm`` of arc length past both ends."""
-        dz = ext_mm * (self.z1 - self.z0) / self.length_mm
-        return HelixTube(self.id, self.role, self.radius, float(self.angle_deg_at(self.z0 - dz)),
-                         self.pitch_deg_per_mm, self.z0 - dz, self.z1 + dz, self.diameter)
+        """The same helix continued by ``ext_mm`` of arc length past both ends (memoised: the renderer asks
+        for the same extension of each tube per section drawn)."""
+        return _extended_helix(self, float(ext_mm))
+
+    @functools.cached_property
+    def _scan(self) -> tuple[np.ndarray, np.ndarray]:
+        """``(zs, points)``: the heights :meth:`intersect_plane` brackets its crossings on and the centreline
+        points there (the same for every plane: computed once; read-only)."""
+        turns = abs(self.pitch_deg_per_mm) * (self.z1 - self.z0) / 360.0
+        zs = np.linspace(self.z0, self.z1, int(64 * max(1.0, turns)) + 2)
+        pts = self.point_at_z(zs)
+        zs.flags.writeable = pts.flags.writeable = False
+        return zs, pts
 
     def intersect_plane(self, origin, normal) -> np.ndarray:
         """Every crossing of the centreline with the plane through ``origin`` with ``normal``.
@@ -313,20 +340,21 @@ class HelixTube(Tube):
         """
         n = np.asarray(normal, dtype=float)
         o = np.asarray(origin, dtype=float)
+        r, th0, pitch, z0 = self.radius, self.theta0_deg, self.pitch_deg_per_mm, self.z0
 
-        def f(z):
-            return float(n @ (self.point_at_z(z)[0] - o))
+        def f(z):  # n . (point_at_z(z) - o), as point_at_z computes it, on a scalar
+            th = np.radians(th0 + pitch * (np.float64(z) - z0))
+            return float(n @ (np.array([r * np.cos(th), r * np.sin(th), z]) - o))
 
-        turns = abs(self.pitch_deg_per_mm) * (self.z1 - self.z0) / 360.0
-        zs = np.linspace(self.z0, self.z1, int(64 * max(1.0, turns)) + 2)
-        vals = (self.point_at_z(zs) - o) @ n
+        zs, pts = self._scan
+        vals = (pts - o) @ n
         roots = []
-        for i in range(len(zs) - 1):
-            a, b = vals[i], vals[i + 1]
-            if a == 0.0:
+        a, b = vals[:-1], vals[1:]
+        for i in np.flatnonzero((a == 0.0) | (a * b < 0)).tolist():  # a sign change (or a zero) in [zs[i], zs[i+1])
+            if a[i] == 0.0:
                 roots.append(zs[i])
-            elif a * b < 0:
-                roots.append(bracketed_root(f, zs[i], zs[i + 1], a, b, xtol=1e-12))
+            else:
+                roots.append(bracketed_root(f, zs[i], zs[i + 1], a[i], b[i], xtol=1e-12))
         if vals[-1] == 0.0:
             roots.append(zs[-1])
         if not roots:
@@ -372,6 +400,14 @@ class HelixTube(Tube):
             "z1": float(self.z1),
             "diameter": float(self.diameter),
         }
+
+
+@functools.lru_cache(maxsize=256)
+def _extended_helix(tube: HelixTube, ext_mm: float) -> HelixTube:
+    """:meth:`HelixTube.extended`, memoised on the (frozen, hashable) tube and the extension."""
+    dz = ext_mm * (tube.z1 - tube.z0) / tube.length_mm
+    return HelixTube(tube.id, tube.role, tube.radius, float(tube.angle_deg_at(tube.z0 - dz)),
+                     tube.pitch_deg_per_mm, tube.z0 - dz, tube.z1 + dz, tube.diameter)
 
 
 def sample_centreline(tube: Tube, step_mm: float = 0.5) -> np.ndarray:

@@ -34,6 +34,7 @@ from dataclasses import dataclass
 import numpy as np
 
 from .crlb import PARAMETER_FRAME, PARAMETER_ORDER, default_target, tre_rms_mm
+from .quantiles import percentiles
 
 RAYLEIGH_MEDIAN = math.sqrt(2.0 * math.log(2.0))  # median of a Rayleigh variable of scale 1
 RAYLEIGH_Q25_OVER_Q50 = math.sqrt(-2.0 * math.log(0.75)) / RAYLEIGH_MEDIAN  # 0.644
@@ -100,7 +101,7 @@ def background_noise(pixels: np.ndarray, footprints, guard_px: int = 3) -> Noise
     bg = img[keep]
     if bg.size < 32:
         bg = img.ravel()
-    q25, q50, q75 = (float(v) for v in np.percentile(bg, [25, 50, 75]))
+    q25, q50, q75 = (float(v) for v in percentiles(bg, [25, 50, 75]))  # np.percentile's, in less time
     if q50 > 0 and abs(q25 / q50 - RAYLEIGH_Q25_OVER_Q50) < 0.08 and min(bg.min(), 0.0) >= 0.0:
         return NoiseEstimate(q50 / RAYLEIGH_MEDIAN, "rayleigh", int(bg.size))
     return NoiseEstimate(max(q75 - q25, 0.0) / 1.349, "gaussian", int(bg.size))
@@ -115,16 +116,18 @@ MAX_NOISE_CORRELATION = 0.8
 CORRELATION_BLOCK_PX = 8
 
 
-def noise_correlation(pixels: np.ndarray, footprints, guard_px: int = 3) -> float:
-    """Correlation of neighbouring pixels' noise (lag 1, rows and columns), outside every blob footprint.
+def noise_correlation_axes(pixels: np.ndarray, footprints, guard_px: int = 3) -> tuple[float, float]:
+    """Correlation of neighbouring pixels' noise (lag 1) between rows and between columns, outside every blob footprint.
 
     About 0 for a native magnitude image; an image interpolated to a finer
     matrix (zero-filled k-space, a 2x "ZIP" or a resampled reformat) or
-    smoothed has neighbours sharing their noise (0.4-0.5 for a bilinear 2x
-    zoom): its pixels are fewer independent samples than they look, and every
+    smoothed has neighbours sharing their noise (0.7 for a bilinear 2x zoom,
+    along one axis only for a motion blur or a k-space cut along one axis):
+    its pixels are fewer independent samples than they look, and every
     precision estimate made as if they were independent is too optimistic.
     Measured in :data:`CORRELATION_BLOCK_PX` blocks clear of the blobs, each
-    less its mean; the median over the blocks.
+    less its mean; the median over the blocks, each clipped to [0,
+    :data:`MAX_NOISE_CORRELATION`]. ``(0, 0)`` when there are too few blocks.
     """
     img = np.asarray(pixels, dtype=float)
     keep = np.isfinite(img) & clear_of_blobs(img.shape, footprints, guard_px)
@@ -132,20 +135,26 @@ def noise_correlation(pixels: np.ndarray, footprints, guard_px: int = 3) -> floa
     n = CORRELATION_BLOCK_PX
     hb, wb = H // n, W // n
     if hb == 0 or wb == 0:
-        return 0.0
-    blocks = img[:hb * n, :wb * n].reshape(hb, n, wb, n).swapaxes(1, 2).reshape(-1, n, n)
-    clear = keep[:hb * n, :wb * n].reshape(hb, n, wb, n).swapaxes(1, 2).reshape(-1, n, n).all(axis=(1, 2))
-    x = blocks[clear]
+        return 0.0, 0.0
+    clear = keep[:hb * n, :wb * n].reshape(hb, n, wb, n).all(axis=(1, 3))  # (hb, wb): blocks wholly clear
+    x = img[:hb * n, :wb * n].reshape(hb, n, wb, n).swapaxes(1, 2)[clear]  # (m, n, n), only those copied
     if x.shape[0] < 8:
-        return 0.0
+        return 0.0, 0.0
     x = x - x.mean(axis=(1, 2), keepdims=True)
     var = np.sum(x * x, axis=(1, 2))
     ok = var > 0
     if ok.sum() < 8:
-        return 0.0
+        return 0.0, 0.0
     x, var = x[ok], var[ok]
-    lag = (np.sum(x[:, :, 1:] * x[:, :, :-1], axis=(1, 2)) + np.sum(x[:, 1:] * x[:, :-1], axis=(1, 2))) / (2 * n - 2) * n
-    return float(np.clip(np.median(lag / var), 0.0, MAX_NOISE_CORRELATION))
+    pairs = n / (n - 1)  # n (n - 1) neighbour pairs per block against n^2 pixels
+    rows = np.sum(x[:, 1:] * x[:, :-1], axis=(1, 2)) * pairs / var
+    cols = np.sum(x[:, :, 1:] * x[:, :, :-1], axis=(1, 2)) * pairs / var
+    return tuple(float(np.clip(np.median(v), 0.0, MAX_NOISE_CORRELATION)) for v in (rows, cols))
+
+
+def noise_correlation(pixels: np.ndarray, footprints, guard_px: int = 3) -> float:
+    """The mean of :func:`noise_correlation_axes` over rows and columns."""
+    return float(np.mean(noise_correlation_axes(pixels, footprints, guard_px)))
 
 
 #: Neighbour correlation from which a slice counts as interpolated to a finer matrix than it was acquired on (a 2x
@@ -155,12 +164,29 @@ def noise_correlation(pixels: np.ndarray, footprints, guard_px: int = 3) -> floa
 INTERPOLATED_CORRELATION = 0.45
 
 
-def correlation_inflation(rho: float) -> float:
+def correlation_inflation(rho) -> float:
     """Factor on a standard deviation estimated as if pixels were independent, for noise with neighbour
-    correlation ``rho`` at or above :data:`INTERPOLATED_CORRELATION` (an AR(1) sequence: the variance of a mean
-    grows by ``(1 + rho) / (1 - rho)``); 1 below it."""
-    rho = min(max(float(rho), 0.0), MAX_NOISE_CORRELATION)
-    return math.sqrt((1.0 + rho) / (1.0 - rho)) if rho >= INTERPOLATED_CORRELATION else 1.0
+    correlation ``rho`` (one value, or one per axis: :func:`noise_correlation_axes`) at or above
+    :data:`INTERPOLATED_CORRELATION` along either axis; 1 below it.
+
+    The variance of a sum over a region grows by the sum of the noise's
+    correlation over all lags, and in two dimensions the axes multiply. Along
+    one axis, ``1 / (1 - rho)`` is that sum for a box filter of any width (a
+    motion blur) and above it for smoother kernels (binomial [1 2 1]: 3
+    against 8/3): the factor is ``1 / sqrt((1 - rho_rows) (1 - rho_cols))``.
+    Measured over 16 x 16 sums of white noise: 2x bilinear zoom 2.9 (this
+    reads 3.2), binomial 2.5 (2.6), 2x cubic zoom 2.3 (3.0), a 5-pixel motion
+    blur 2.1 (2.1), k-space cut to half along one axis 1.4 (1.6). A 1-D
+    AR(1) model of the mean correlation, ``sqrt((1 + rho) / (1 - rho))``, reads
+    2.3 for the zoom and 1.0 for the blur (its mean correlation is under the
+    threshold): such slices looked 1.2-2x more precise than they are (the
+    unlisted-damage hunt's zoomed, motion-blurred and k-space-cut slices
+    locked 0.50-0.66 deg off).
+    """
+    r = np.clip(np.broadcast_to(np.asarray(rho, dtype=float), (2,)), 0.0, MAX_NOISE_CORRELATION)
+    if float(r.max()) < INTERPOLATED_CORRELATION:
+        return 1.0
+    return float(1.0 / math.sqrt((1.0 - r[0]) * (1.0 - r[1])))
 
 
 @functools.lru_cache(maxsize=1)

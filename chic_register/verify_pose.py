@@ -18,7 +18,11 @@ slice (:func:`verify_fit`):
    whose gain is below :data:`PRESENT_FRACTION` of the matched tubes' or not
    :data:`PRESENT_SIGMA` noise sigmas above zero is missing; the residual
    energy left by the section must stay below what a :data:`POSITION_TOL_PX`
-   misplacement leaves (:func:`shape_tolerance`), plus noise.
+   misplacement leaves (:func:`shape_tolerance`), plus noise, and the shift
+   of the section that best explains its residual (:func:`section_shift`)
+   must stay within :data:`SHIFT_TOL_PX`: an elongated section predicted a
+   few pixels along its length from where it is leaves less residual energy
+   than the disc-based tolerance allows.
 3. **Missing tubes** are flagged (``missing_tubes`` of the slice result) when
    the section lies well inside the body (an unfilled channel or a bubble);
    a missing tube whose section the pose puts near an end face is a refusal:
@@ -36,7 +40,10 @@ slice (:func:`verify_fit`):
    (:data:`SPACING_TOL`, or three standard errors of its estimate over the
    tubes if larger). The section positions are asked the same question
    (:func:`stretch_test`): a pose tilted to absorb a stretch leaves a
-   residual pattern that a stretch explains and noise does not.
+   residual pattern that a stretch explains and noise does not; a
+   significant one is refused above 2 %, or when fitting it moves the pose
+   by more than a third of the trust limits (a small isotropic stretch turns
+   a tilted slice by about ``s cot(tilt)``).
 6. **Rivals**: a distinct rival pose (the solver's other hypotheses, and the
    pose turned about the axis by each near-symmetry of the straight tubes)
    that explains the pixels nearly as well makes the slice ambiguous.
@@ -64,6 +71,7 @@ from .fit_checks import (  # noqa: F401
     PRECISION_SIGMAS,
     ROT_TOL_DEG,
     STRETCH_MIN,
+    STRETCH_MOVE_SHARE,
     STRETCH_P,
     TRE_TOL_MM,
     gamma_p,
@@ -77,7 +85,8 @@ from .render import render_tubes
 from .rivals import check_rivals, slice_contenders
 from .trust import _to_xy_mm
 from .tube_model import _section_box, _section_extent, plane_crossings
-from .uncertainty import correlation_inflation, noise_correlation
+from .uncertainty import correlation_inflation, noise_correlation_axes
+from .window_stats import _spread, section_shift
 
 #: A present tube's fitted fluid level, as a share of the median of the tubes the solver matched. A correctly
 #: placed section (partial volume and slab smear are in the model) gives ~1 at any SNR above a few; a section
@@ -88,6 +97,12 @@ PRESENT_SIGMA = 5.0
 #: How far (pixels) a section may sit from where the pose predicts it before its shape counts as wrong: the
 #: solver's own RMS limit (SolveOptions.max_rms_px) plus the fast mode's centroid bias at curved, clipped sections.
 POSITION_TOL_PX = 0.75
+#: A section seen further than this (pixels) from where the pose predicts it is not explained by the pose: the
+#: section fit's own limit (SolveOptions.section_max_shift_px). Correct locks read 0.05 px (median) to 0.9 px (worst
+#: of 139, hunt seed 3); a pose fitted to half-blobs of elongated sections read 1.5-2.1 px at four tubes.
+SHIFT_TOL_PX = 1.0
+#: ... beyond this many standard errors of the shift's estimate (a faint or small section locates itself poorly).
+SHIFT_SIGMAS = 4.0
 #: Relative error of the rendered model itself (supersampling 2 x 2, a few sub-planes): a residual energy this
 #: share of the section's energy is model error, not misfit.
 MODEL_FLOOR = 0.03
@@ -158,9 +173,11 @@ class _TubeWindow:
     others: np.ndarray  # other tubes' sections in the window
 
 
-def _windows(geom, model, T_F_from_I, shape, spacing, thickness_mm, margin_px: float = 2.0):
+def _windows(geom, model, T_F_from_I, shape, spacing, thickness_mm, margin_px: float = 2.0,
+             canvas_only: bool = False):
     """``(windows, canvas)``: per tube whose section lies wholly inside the image its window with its own and
-    its neighbours' renders, and the whole model image (shape of the image, every section pasted in).
+    its neighbours' renders, and the whole model image (shape of the image, every section pasted in);
+    ``canvas_only``: no windows (``[]``), the canvas alone (a rival pose's model image).
 
     Each tube is rendered once, in its own window (its section's extent,
     :func:`chic_register.solve._section_extent`, plus ``margin_px``); a window's
@@ -194,7 +211,7 @@ def _windows(geom, model, T_F_from_I, shape, spacing, thickness_mm, margin_px: f
     for k, (r0, c0, img, inside) in boxes.items():
         sub = canvas[r0:r0 + img.shape[0], c0:c0 + img.shape[1]]
         np.maximum(sub, img, out=sub)
-        if not inside:
+        if not inside or canvas_only:
             continue  # (partly) outside the image: nothing to check, but it is a neighbour of the others
         h, w = img.shape
         others = np.zeros_like(img)
@@ -321,6 +338,10 @@ def verify_slice(geom, model, T_F_from_I: np.ndarray, pixels: np.ndarray, spacin
                 raise NoLock(f"{source}: tube {tid}'s section does not have the shape and place the pose ({where}) "
                              f"predicts (residual {excess:.2f} of its energy; allowed {shape_tolerance(r_px) + chi_tol:.2f})",
                              {"tube": tid, "shape_residual": round(excess, 3)})
+            shift, shift_se = section_shift(w, y, coef, sigma)
+            if shift > SHIFT_TOL_PX + SHIFT_SIGMAS * shift_se:
+                raise NoLock(f"{source}: tube {tid}'s section lies {shift:.1f} px from where the pose ({where}) "
+                             f"predicts it", {"tube": tid, "shift_px": round(shift, 3)})
             present.append(tid)
             # second moments of the section seen vs predicted (pixels), tubes with no neighbour in the window
             if w.others.max() < 0.05:
@@ -363,7 +384,7 @@ def verify_slice(geom, model, T_F_from_I: np.ndarray, pixels: np.ndarray, spacin
     except NoLock as exc:
         # what a blur explains: a section's shape, the level of the sections, their second moments (a blur widens a
         # section more across its width than along its length: the aspect test misreads it as a spacing error)
-        if not ({"shape_residual", "n_tubes", "spacing_ratio"} & set(exc.detail)) or not PSF_SIGMAS_RADII:
+        if not ({"shape_residual", "shift_px", "n_tubes", "spacing_ratio"} & set(exc.detail)) or not PSF_SIGMAS_RADII:
             raise
         if envelope != "ok":  # a blurred model is weaker evidence: only where the design's envelope holds
             raise
@@ -386,21 +407,6 @@ def verify_slice(geom, model, T_F_from_I: np.ndarray, pixels: np.ndarray, spacin
             return assess(*blurred_windows(wide, wide_canvas, psf), psf)
         except NoLock:
             raise exc from None
-
-
-def _spread(w: np.ndarray):
-    """Weighted variance along rows and columns (pixels^2) of weights ``w`` (h, w); None if empty."""
-    total = float(w.sum())
-    if not total > 0:
-        return None
-    r = np.arange(w.shape[0], dtype=float)
-    c = np.arange(w.shape[1], dtype=float)
-    wr, wc = w.sum(axis=1), w.sum(axis=0)
-    mr, mc = wr @ r / total, wc @ c / total
-    vr, vc = wr @ (r - mr) ** 2 / total, wc @ (c - mc) ** 2 / total
-    if not (vr > 0 and vc > 0):
-        return None
-    return np.array([vr, vc])
 
 
 def _unexplained(model, T_F_from_I, blobs: Blobs, assignment, canvas, spacing) -> list[int]:
@@ -433,6 +439,20 @@ def _unexplained(model, T_F_from_I, blobs: Blobs, assignment, canvas, spacing) -
     return out
 
 
+def _check_stretch(model, fit, xys, Ss, opts) -> None:
+    """:class:`NoLock` naming the axis when the tube positions fit a stretch of the image (a wrong pixel spacing,
+    :func:`stretch_test`) of over 2 % or one that moves the pose by more than a third of the trust limits."""
+    scale, _, p, (moved_mm, moved_deg) = stretch_test(model, fit, xys, Ss)
+    moves = moved_mm > STRETCH_MOVE_SHARE * opts.trust_tre_mm or moved_deg > STRETCH_MOVE_SHARE * opts.trust_rot_deg
+    if p < STRETCH_P and (float(np.max(np.abs(scale))) > STRETCH_MIN or moves):
+        axis = "columns (x)" if abs(scale[0]) >= abs(scale[1]) else "rows (y)"
+        worst = float(scale[0] if abs(scale[0]) >= abs(scale[1]) else scale[1])
+        raise NoLock(f"the tube positions fit best with the image stretched {100 * worst:+.1f} % along its {axis} "
+                     f"(F test p = {p:.1g}; it moves the pose by {moved_mm:.2f} mm, {moved_deg:.2f} deg): the pixel "
+                     f"spacing looks wrong; check --pixel-spacing or the file's PixelSpacing",
+                     {"stretch": [round(float(v), 4) for v in scale], "stretch_p": float(p)})
+
+
 def verify_fit(geom, model, fit, rivals, slices, Ss, blob_sets, opts, precision=None,
                name_slice: bool = False) -> list[SliceCheck]:
     """Verify a solved pose (a ``solve._Fit``) in every slice, and that no distinct rival verifies as well.
@@ -454,6 +474,8 @@ def verify_fit(geom, model, fit, rivals, slices, Ss, blob_sets, opts, precision=
             check = verify_slice(geom, model, T_F_from_I, np.asarray(sl.pixels), sl.pixel_spacing_mm,
                                  float(sl.slice_thickness_mm), b, fit.assignments[j], sl.source)
         except NoLock as exc:
+            if "shift_px" in exc.detail:  # sections off where the pose puts them: a wrong spacing says why, if it is one
+                _check_stretch(model, fit, xys, Ss, opts)
             if not name_slice or len(slices) < 2:
                 raise
             refused.append((j, exc.reason))
@@ -469,19 +491,14 @@ def verify_fit(geom, model, fit, rivals, slices, Ss, blob_sets, opts, precision=
             if c.envelope != "ok":
                 raise NoLock(f"{sl.source}: the pose fitted to the blurred sections lies outside the design's usable "
                              f"envelope ({c.envelope}): wide blobs there cannot be told apart", {"envelope": c.envelope})
-    scale, _, p = stretch_test(model, fit, xys, Ss)
-    if p < STRETCH_P and float(np.max(np.abs(scale))) > STRETCH_MIN:
-        axis = "columns (x)" if abs(scale[0]) >= abs(scale[1]) else "rows (y)"
-        worst = float(scale[0] if abs(scale[0]) >= abs(scale[1]) else scale[1])
-        raise NoLock(f"the tube positions fit best with the image stretched {100 * worst:+.1f} % along its {axis} "
-                     f"(F test p = {p:.1g}): the pixel spacing looks wrong; check --pixel-spacing or the file's "
-                     f"PixelSpacing", {"stretch": [round(float(v), 4) for v in scale], "stretch_p": float(p)})
+    _check_stretch(model, fit, xys, Ss, opts)
     px = min(max(sl.pixel_spacing_mm) for sl in slices)
     tre, rot = precision or pose_precision(model, fit, Ss, px, exclude=[c.merged for c in out])
     # noise shared between neighbouring pixels (an interpolated or smoothed image) makes every estimate that takes
     # them as independent too optimistic: widened by the worst slice's correlation factor
-    rho = max(noise_correlation(np.asarray(sl.pixels), b.footprints) for sl, b in zip(slices, blob_sets))
-    tre, rot = tre * correlation_inflation(rho), rot * correlation_inflation(rho)
+    f = max(correlation_inflation(noise_correlation_axes(np.asarray(sl.pixels), b.footprints))
+            for sl, b in zip(slices, blob_sets))
+    tre, rot = tre * f, rot * f
     k = PRECISION_SIGMAS
     tre_tol, rot_tol = opts.trust_tre_mm, opts.trust_rot_deg
     if k * tre > tre_tol or k * rot > rot_tol:

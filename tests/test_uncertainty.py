@@ -128,7 +128,7 @@ def test_noise_correlation_reads_an_interpolated_image_and_not_objects():
     0.7 once the image is zoomed 2x bilinearly (each new pixel half-shares its neighbour's noise)."""
     from scipy import ndimage as ndi
 
-    from chic_register.uncertainty import correlation_inflation, noise_correlation
+    from chic_register.uncertainty import correlation_inflation, noise_correlation, noise_correlation_axes
 
     rng = np.random.default_rng(4)
     img = np.hypot(1.0 + rng.normal(0, 0.3, (160, 160)), rng.normal(0, 0.3, (160, 160)))
@@ -137,7 +137,20 @@ def test_noise_correlation_reads_an_interpolated_image_and_not_objects():
     zoomed = ndi.zoom(img, 2, order=1)
     assert 0.6 < noise_correlation(zoomed, ()) <= 0.8
     assert correlation_inflation(0.0) == correlation_inflation(0.3) == 1.0  # a reformat at its own pitch: 0.25-0.3
-    assert correlation_inflation(0.7) == pytest.approx(math.sqrt(1.7 / 0.3))
+    assert correlation_inflation(0.7) == pytest.approx(1 / 0.3)
+
+    def block_sum_factor(z):  # the spread of 16 x 16 sums against independent pixels'
+        sums = z[:400, :400].reshape(25, 16, 25, 16).sum(axis=(1, 3))
+        return math.sqrt(sums.var() / (256 * z[:400, :400].var()))
+
+    white = rng.normal(0.0, 1.0, (400, 400))
+    z = ndi.zoom(white[:200, :200], 2, order=1)
+    assert correlation_inflation(noise_correlation_axes(z, ())) == pytest.approx(block_sum_factor(z), rel=0.15)
+    # a motion blur shares the noise along one axis only: the mean of the two reads under the threshold, the axes do not
+    blurred = ndi.convolve(white, np.ones((1, 5)) / 5)
+    rows, cols = noise_correlation_axes(blurred, ())
+    assert rows < 0.1 and 0.7 < cols and noise_correlation(blurred, ()) < 0.45
+    assert correlation_inflation((rows, cols)) == pytest.approx(block_sum_factor(blurred), rel=0.15)
 
 
 def test_an_interpolated_slice_is_not_trusted_as_if_its_pixels_were_independent(monkeypatch):

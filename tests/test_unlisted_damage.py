@@ -1,0 +1,120 @@
+"""False locks found by the unlisted-damage hunt (benchmarks/hunt_unlisted.py), one round trip per cause: the slice
+is refused (or locked right) with the fix and locks wrong without it."""
+
+from __future__ import annotations
+
+import dataclasses
+import functools
+import importlib.util
+import sys
+
+import numpy as np
+import pytest
+
+import chic_register.verify_pose as vp
+from chic_register.errors import NoLock
+from chic_register.pose import invert
+from chic_register.slices import Slice
+from chic_register.solve import register
+from tests.test_verify_pose import ROOT, hunt
+
+
+@functools.lru_cache(maxsize=1)
+def _unlisted():
+    spec = importlib.util.spec_from_file_location("hunt_unlisted", ROOT / "benchmarks" / "hunt_unlisted.py")
+    mod = importlib.util.module_from_spec(spec)
+    sys.modules["hunt_unlisted"] = mod
+    spec.loader.exec_module(mod)
+    return mod
+
+
+@functools.lru_cache(maxsize=1)
+def _geometries():
+    return hunt.load_geometries()
+
+
+def damaged_case(seed: int, index: int, kind: str):
+    """``(slice, true T_scanner_from_fiducial, geometry)`` of an unlisted-hunt case with damage ``kind``."""
+    hu = _unlisted()
+    geoms = _geometries()
+    case = dataclasses.replace(hunt.make_case(index, seed, geoms), mutation="noisy")
+    geom = geoms[case.geometry]
+    sl, T_true, _ = hunt.build_case(case, geom)
+    img, spacing, T_on = hu.damage(kind, sl.pixels, sl.pixel_spacing_mm, np.random.default_rng([seed, index, 99]),
+                                   hu.true_centres_rc(geom, T_true, sl.pixel_spacing_mm))
+    if T_on is not None:
+        T_true = invert(T_on) @ T_true
+    return Slice(img, spacing, slice_thickness_mm=sl.slice_thickness_mm, source=f"case{index}"), T_true, geom
+
+
+def outcome(seed: int, index: int, kind: str):
+    """``"no_lock"`` or the pose error ``(mm, deg)`` of a case."""
+    sl, T_true, geom = damaged_case(seed, index, kind)
+    try:
+        reg = register([sl], geom)
+    except NoLock:
+        return "no_lock"
+    return hunt.pose_error(reg.T_scanner_from_fiducial, T_true, geom.body.length)
+
+
+def refused_or_right(out) -> bool:
+    return out == "no_lock" or (out[0] <= hunt.FALSE_LOCK_MM and out[1] <= hunt.FALSE_LOCK_DEG)
+
+
+def false_lock(out) -> bool:
+    return out != "no_lock" and (out[0] > hunt.FALSE_LOCK_MM or out[1] > hunt.FALSE_LOCK_DEG)
+
+
+def test_a_pose_fitted_to_half_blobs_is_refused_by_the_sections_shift(monkeypatch):
+    """Seed 7 case 519: a k-space spike split two elongated sections (68 deg tilt) into halves; the pose fitted to the
+    halves put four sections ~2 px along their length from where they are, within the shape test's energy tolerance
+    (0.68 mm / 1.10 deg off). The sections' shift (verify_pose.section_shift) refuses it."""
+    assert refused_or_right(outcome(7, 519, "spike_kspace"))
+    monkeypatch.setattr(vp, "SHIFT_TOL_PX", np.inf)
+    assert false_lock(outcome(7, 519, "spike_kspace"))
+
+
+def test_a_shifted_section_is_measured():
+    """section_shift reads a section rendered 1.5 px off its window's prediction as ~1.5 px, and an unshifted one as
+    ~0, with a standard error that follows the noise."""
+    from chic_register.psf import gaussian_blur
+
+    yy, xx = np.mgrid[0:24, 0:24]
+
+    def disc(r0, c0):
+        return gaussian_blur((np.hypot(yy - r0, xx - c0) < 4.0).astype(float), 0.7)
+
+    w = vp._TubeWindow(0, 0, 0, disc(12.0, 12.0), np.zeros((24, 24)))
+    rng = np.random.default_rng(0)
+    for true_shift in (0.0, 1.5):
+        y = (0.1 + disc(12.0, 12.0 + true_shift) + rng.normal(0, 0.02, (24, 24))).ravel()
+        coef, y, _ = vp._fit_window(y.reshape(24, 24), w)
+        shift, se = vp.section_shift(w, y, coef, 0.02)
+        assert abs(shift - true_shift) < 0.35 and 0 < se < 0.05
+
+
+@pytest.mark.parametrize("seed, index, kind", [(7, 425, "zoom2"), (2, 1121, "motion_blur")])
+def test_correlated_noise_widens_the_precision_in_two_dimensions(monkeypatch, seed, index, kind):
+    """Seed 7 case 425 (2x bilinear zoom, 0.45 mm / 0.53 deg) and seed 2 case 1121 (a 5-pixel motion blur along the
+    rows, 0.06 mm / 0.66 deg): their pixels share noise, the zoom's along both axes (a 1-D AR(1) factor of the mean
+    correlation made them 1.2x too precise), the blur's along one (its mean correlation is under the threshold). With
+    the factor over both axes they are refused; with the old one they lock wrong."""
+    import math
+
+    assert refused_or_right(outcome(seed, index, kind))
+
+    def old_inflation(rho):
+        r = float(np.mean(rho))
+        return math.sqrt((1 + r) / (1 - r)) if r >= 0.45 else 1.0
+
+    monkeypatch.setattr(vp, "correlation_inflation", old_inflation)
+    assert false_lock(outcome(seed, index, kind))
+
+
+def test_a_small_stretch_that_turns_the_pose_is_refused(monkeypatch):
+    """Seed 1 case 1825: a 77-pixel slice zoomed 2x corner to corner (scipy's zoom) and declared at half the spacing
+    is 0.66 % larger than declared; at 36 deg tilt the pose absorbed that as a 0.53 deg turn. The stretch is
+    significant (p 1e-4) though under 2 %, and fitting it moves the pose by 0.52 deg: refused."""
+    assert refused_or_right(outcome(1, 1825, "zoom2"))
+    monkeypatch.setattr(vp, "STRETCH_MOVE_SHARE", np.inf)
+    assert false_lock(outcome(1, 1825, "zoom2"))
