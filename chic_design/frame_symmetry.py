@@ -1,89 +1,9 @@
-"""Symmetries of a fiducial in 3-D: rigid motions that map its tube set onto itself.
+"""Symmetries of a fiducial in 3-D: see :mod:`chic_register.frame_symmetry` (the solver refuses a self-symmetric
+frame without a prior by the same test; the code lives there, once)."""
 
-If a proper rotation R (about an axis through the body's centre) maps every tube
-centreline onto a tube centreline, then a fiducial at pose T and at pose T R give
-the same image in every slice: the image alone cannot tell them apart, and a
-solver needs a prior (an approximate orientation) to choose. This is the case of
-the standard Z-frame ``z001``: a half turn about the y axis through the frame's
-centre maps it onto itself (the +x and -x diagonals swap, the +y diagonal maps
-onto itself reversed, the axial rods swap in pairs).
-
-Candidates are the proper rotations of a square prism about its centre
-``(0, 0, length / 2)``: quarter turns about z and half turns about the horizontal
-axes at 0, 45, 90 and 135 deg. A rigid motion keeps arc length, so a tube i maps
-onto tube j exactly when its points at arc-length parameters t match j's at t or
-1 - t; the mismatch is the largest such point distance (mm).
-"""
-
-from __future__ import annotations
-
-import math
-from dataclasses import dataclass
-
-import numpy as np
-from scipy.spatial.transform import Rotation
-
-from chic_register.geometry import FiducialGeometry
-
-_N_SAMPLES = 65
-
-
-@dataclass(frozen=True)
-class FrameSymmetry:
-    """A rotation of the fiducial onto itself: ``what`` it is, worst tube ``mismatch_mm``, tube mapping."""
-
-    what: str
-    mismatch_mm: float
-    mapping: tuple[tuple[str, str], ...]
-
-    def to_dict(self) -> dict:
-        return {"what": self.what, "mismatch_mm": round(float(self.mismatch_mm), 4),
-                "maps": {a: b for a, b in self.mapping}}
-
-
-def candidate_rotations(length_mm: float) -> list[tuple[str, np.ndarray]]:
-    """(description, 3x3 rotation) of every non-identity proper symmetry of a square prism."""
-    out = [(f"rotation by {a} deg about the z axis", Rotation.from_euler("z", a, degrees=True).as_matrix())
-           for a in (90, 180, 270)]
-    for a in (0, 45, 90, 135):
-        axis = np.array([math.cos(math.radians(a)), math.sin(math.radians(a)), 0.0])
-        name = {0: "x", 90: "y"}.get(a, f"horizontal {a} deg")
-        out.append((f"half turn about the {name} axis through (0, 0, {length_mm / 2:g}) mm "
-                    "(the frame upside down)", Rotation.from_rotvec(math.pi * axis).as_matrix()))
-    return out
-
-
-def _tube_samples(geom: FiducialGeometry) -> np.ndarray:
-    """Points of every tube at equal arc-length steps; shape (T, N, 3)."""
-    t = np.linspace(0.0, 1.0, _N_SAMPLES)
-    return np.stack([tube.points(t) for tube in geom.tubes])
-
-
-def rotation_mismatch(geom: FiducialGeometry, R: np.ndarray) -> tuple[float, tuple[int, ...]]:
-    """Mismatch (mm) of the tube set rotated by R about the body centre, and the mapping.
-
-    The mismatch is the Hausdorff distance between the rotated and the original
-    tube sets, each tube a whole curve (0 for an exact symmetry); the mapping
-    sends tube i to the tube nearest its image.
-    """
-    c = np.array([0.0, 0.0, geom.body.length / 2])
-    P = _tube_samples(geom)
-    Q = (P - c) @ R.T + c  # (T, N, 3)
-    fwd = np.linalg.norm(Q[:, None] - P[None], axis=-1).max(axis=-1)  # (T, T)
-    rev = np.linalg.norm(Q[:, None] - P[None, :, ::-1], axis=-1).max(axis=-1)
-    same_diam = np.array([[a.diameter == b.diameter for b in geom.tubes] for a in geom.tubes])
-    d = np.where(same_diam, np.minimum(fwd, rev), np.inf)
-    j = np.argmin(d, axis=1)
-    return float(max(d.min(axis=1).max(), d.min(axis=0).max())), tuple(int(k) for k in j)
-
-
-def frame_symmetries(geom: FiducialGeometry, tolerance_mm: float) -> tuple[tuple[FrameSymmetry, ...], float | None]:
-    """Symmetries within ``tolerance_mm``, and the smallest mismatch of any candidate (None if none maps)."""
-    found, best = [], None
-    for what, R in candidate_rotations(geom.body.length):
-        mism, mapping = rotation_mismatch(geom, R)
-        best = mism if best is None else min(best, mism)
-        if mism <= tolerance_mm:
-            ids = geom.ids
-            found.append(FrameSymmetry(what, mism, tuple((ids[i], ids[k]) for i, k in enumerate(mapping))))
-    return tuple(found), best
+from chic_register.frame_symmetry import (  # noqa: F401
+    FrameSymmetry,
+    candidate_rotations,
+    frame_symmetries,
+    rotation_mismatch,
+)

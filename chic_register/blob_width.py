@@ -10,6 +10,7 @@ volumes (:func:`chic_register.volume.simulate_volume`); see :class:`BlobWidth`.
 from __future__ import annotations
 
 from dataclasses import dataclass
+from functools import lru_cache
 
 import numpy as np
 
@@ -56,6 +57,7 @@ class BlobWidth:
     gain: float = 1.0
 
     @classmethod
+    @lru_cache(maxsize=64)  # a root search per call: a volume asks the same per plane
     def for_tube(cls, diameter_mm: float, factor: float) -> "BlobWidth":
         lo, hi = BLOB_WIDTH_RANGE
         if not (lo <= factor <= hi):

@@ -42,9 +42,10 @@ def _parser() -> argparse.ArgumentParser:
                         "indices (5) or ranges (5-11) of its slices to register jointly; each must lock. "
                         "Default: every slice that shows the fiducial (the others are listed as skipped)")
     s.add_argument("--prior", metavar="FILE",
-                   help="an approximate pose of the fiducial (JSON with T_scanner_from_fiducial, or .tfm): "
-                        "only poses turned less than --prior-max-deg from it are considered. Needed for a "
-                        "geometry that maps onto itself under a rotation (the classic Z-frame)")
+                   help="an approximate pose of the fiducial (JSON with T_scanner_from_fiducial, or .tfm), or "
+                        "'identity' (the frame's x, y, z roughly along the scanner's LPS axes): only poses turned "
+                        "less than --prior-max-deg from it are considered. Needed for a geometry that maps onto "
+                        "itself under a rotation (the classic Z-frame)")
     s.add_argument("--prior-max-deg", type=float, default=60.0, metavar="DEG",
                    help="largest rotation from --prior (default 60)")
     s.add_argument("--tfm", metavar="FILE", help="also write the pose as an ITK transform file for 3D Slicer "

@@ -49,3 +49,19 @@ def load_reference(path, flag: str = "--reference") -> "np.ndarray":
     if T.shape != (4, 4) or not np.all(np.isfinite(T)) or not np.allclose(T[:3, :3].T @ T[:3, :3], np.eye(3), atol=1e-5):
         raise ChicRegisterError(f"{flag} {p}: needs key 'T_scanner_from_fiducial' holding a rigid 4x4 matrix")
     return T
+
+
+#: ``--prior`` words that stand for a pose: the frame's axes along the scanner's LPS axes.
+PRIOR_WORDS = ("identity",)
+
+
+def load_prior(value) -> "np.ndarray":
+    """The pose of ``solve --prior``: a JSON or .tfm file (:func:`load_reference`), or the word ``identity``
+    (F's x, y, z along the scanner's LPS x, y, z; only a prior's rotation is used) when no file has that name."""
+    from pathlib import Path
+
+    import numpy as np
+
+    if str(value).strip().lower() in PRIOR_WORDS and not Path(value).exists():
+        return np.eye(4)
+    return load_reference(value, "--prior")

@@ -10,7 +10,7 @@ import json
 import math
 import sys
 
-from .cli_inputs import check_spacing_flag, load_reference
+from .cli_inputs import check_spacing_flag, load_prior
 from .errors import ChicRegisterError, NoLock
 
 
@@ -30,7 +30,7 @@ def run_solve(args) -> int:
     if args.prior:
         if not (0 < args.prior_max_deg <= 180):
             raise ChicRegisterError(f"--prior-max-deg must be in (0, 180] deg, got {args.prior_max_deg:g}")
-        options = {"prior": load_reference(args.prior, "--prior"), "prior_max_deg": args.prior_max_deg}
+        options = {"prior": load_prior(args.prior), "prior_max_deg": args.prior_max_deg}
     slices, skip = _read_solve_inputs(args)
     extra = {}
     if args.target is not None:
@@ -59,6 +59,10 @@ def run_solve(args) -> int:
         try:
             reg = register(slices, geom, skip_failed=skip, **options, **extra)
         except NoLock as exc:
+            hint = _series_hint(args, slices, skip)
+            if hint and hint not in exc.reason:
+                exc.reason += hint
+                exc.args = (exc.reason,)
             _report_failures(early)
             _report_failures(deliver_no_lock(plan, exc.reason, geom, slices, link))
             raise
@@ -108,6 +112,21 @@ def _print_pose(args, reg, geom) -> None:
               f"SD rotation {max(sd[:3]):.3f} deg, translation {max(sd[3:]):.3f} mm (largest axis); "
               f"image noise sigma {', '.join(f'{n.sigma:.4g}' for n in u.noise)}")
     sys.stdout.flush()
+
+
+def _series_hint(args, slices, skip: bool) -> str:
+    """What to do when the files of one series were given one by one and one of them does not show the frame:
+    every slice given as a file must lock; a volume's slices that do not are skipped."""
+    from pathlib import Path
+
+    files = [p for p in args.images if Path(p).is_file()]
+    if skip or len(slices) < 3 or len(files) < 3:
+        return ""
+    folders = {str(Path(p).resolve().parent) for p in files}
+    if len(folders) != 1:
+        return ""
+    return (f" (every one of the {len(slices)} slices given must lock; to register only those that show the frame, "
+            f"give the series' folder as one volume: chic-register solve {Path(files[0]).parent} ...)")
 
 
 def _read_solve_inputs(args) -> tuple[list, bool]:

@@ -155,7 +155,7 @@ def _compare_rival(geom, model, check, T_F_from_I_rival: np.ndarray, sl) -> tupl
     pixels = np.asarray(sl.pixels, float)
     _, rival = _windows(geom, model, T_F_from_I_rival, pixels.shape, tuple(float(v) for v in sl.pixel_spacing_mm),
                         float(sl.slice_thickness_mm), canvas_only=True)
-    rival = gaussian_blur(rival, check.psf_px)  # drawn as the pose's model was
+    rival = gaussian_blur(rival, check.psf_rc_px)  # drawn as the pose's model was
     region = _dilate((check.canvas > 0.02) | (rival > 0.02), 1)
     y = pixels[region]
     sse = []

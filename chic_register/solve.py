@@ -277,6 +277,13 @@ def register(slices: list[Slice], geom: FiducialGeometry, *, options: SolveOptio
     opts = dataclasses.replace(options or SolveOptions(), **overrides)
     if not slices:
         raise NoLock("no slices given")
+    if opts.prior is None:  # a self-symmetric frame (z001): no image can choose; say so before any work
+        from .frame_symmetry import prior_needed
+
+        why = prior_needed(geom, max(min(min(sl.pixel_spacing_mm) for sl in slices), 0.05 * min(
+            t.diameter for t in geom.tubes)))
+        if why:
+            raise AmbiguousFit(why, {"needs_prior": True})
     t0 = time.perf_counter()
     slices, filled = fill_slice_dropouts(slices)
     model, geom_sha = prepare_geometry(geom)

@@ -119,8 +119,9 @@ SECTION_LEVEL = 0.1
 EXPLAINED_SHARE = 0.3
 #: Blob widths the verification will model when the sections look wider than drawn (real images: point spread,
 #: partial volume, fluid spread in a printed channel make blobs 0.7-2.5x the tube): the Gaussian point spread
-#: sigmas tried, in tube radii (0.15 r barely widens a section; 2 r is a blob ~2.7x the tube's width).
-PSF_SIGMAS_RADII = (0.15, 0.25, 0.35, 0.5, 0.7, 1.0, 1.4, 2.0)
+#: sigmas tried, in tube radii (0.15 r barely widens a section; 2 r is a blob ~2.7x the tube's width), the best
+#: refined between its neighbours (:func:`chic_register.psf.fit_psf`).
+PSF_SIGMAS_RADII = (0.15, 0.25, 0.35, 0.5, 0.7, 1.0, 1.4, 2.0, 2.8)
 #: A fitted point spread below this (sigma, pixels) is no blur the image can show: the sharp model's refusal stands
 #: (in the wide-blob hunt a 0.3 px "blur" turned a marginal shape refusal into a pose 0.52 deg off).
 PSF_MIN_PX = 0.5
@@ -148,8 +149,9 @@ class SliceCheck:
     canvas: np.ndarray = None  # the model image at the pose (fluid fraction)
     level: float = 1.0  # fitted fluid level
     noise_sigma: float = 0.0
-    psf_px: float = 0.0  # Gaussian point spread (sigma, pixels) the model was blurred by to match the blobs
+    psf_px: float = 0.0  # Gaussian point spread (sigma, pixels: the mean of rows' and columns') the model was blurred by
     strays: tuple[int, ...] = ()  # detected blobs on the tubes' circle inside the body that the pose leaves unexplained
+    psf_rc_px: tuple = (0.0, 0.0)  # the point spread's sigma along rows and along columns (pixels that are not square)
 
 
 def shape_tolerance(radius_px: float) -> float:
@@ -240,7 +242,28 @@ def _fit_window(pixels, w: _TubeWindow):
         return None
     A1 = np.stack([np.ones_like(m), np.maximum(m, o)], axis=1)
     coef1 = np.linalg.lstsq(A1, y, rcond=None)[0]
-    return coef, y, A1 @ coef1
+    fit1 = A1 @ coef1
+    if len(cols) == 3:  # a neighbour in the window: real rods differ in fluid level (fill, bubbles, coil)
+        fit2 = _composite_two_levels(y, m, o, coef)
+        if fit2 is not None and float((y - fit2) @ (y - fit2)) < float((y - fit1) @ (y - fit1)):
+            fit1 = fit2
+    return coef, y, fit1
+
+
+def _composite_two_levels(y, m, o, coef, rounds: int = 3):
+    """``b + max(a m, a' o)`` fitted to ``y``: the section and its neighbours each at their own fluid level,
+    composited as the image is (each pixel belongs to the brighter term; a few alternating least squares)."""
+    b, a, a2 = (float(v) for v in coef)
+    fit = None
+    for _ in range(rounds):
+        mine = a * m >= a2 * o
+        A = np.stack([np.ones_like(m), np.where(mine, m, 0.0), np.where(mine, 0.0, o)], axis=1)
+        c, _, rank, _ = np.linalg.lstsq(A, y, rcond=None)
+        if rank < 3 or not (c[1] > 0 and c[2] > 0):
+            return fit
+        b, a, a2 = (float(v) for v in c)
+        fit = A @ c
+    return fit
 
 
 def _shape_excess(w: _TubeWindow, y: np.ndarray, fit: np.ndarray, sigma: float, level: float):
@@ -311,7 +334,9 @@ def verify_slice(geom, model, T_F_from_I: np.ndarray, pixels: np.ndarray, spacin
                 continue
             # shape: the residual over the section (own support grown by a pixel), beyond noise and model error
             hh, ww = w.own.shape
-            excess, chi_tol, sup = _shape_excess(w, y, fit, sigma, level)
+            # judged against this tube's own fluid level when it is brighter than the median (rods differ: fill,
+            # bubbles, coil); a dimmer one as before, against the median (never a stricter test)
+            excess, chi_tol, sup = _shape_excess(w, y, fit, sigma, max(a, level))
             r_px = 0.5 * float(model.diameter_mm[k]) / px
             if excess > shape_tolerance(r_px) + chi_tol:
                 raise NoLock(f"{source}: tube {tid}'s section does not have the shape and place the pose ({where}) "
@@ -353,8 +378,9 @@ def verify_slice(geom, model, T_F_from_I: np.ndarray, pixels: np.ndarray, spacin
             raise NoLock(f"{source}: a bright blob at pixel ({r:.0f}, {c:.0f}) lies on the tubes' circle inside the "
                          f"body where the pose ({where}) predicts no tube",
                          {"blob_rc": [round(float(r), 1), round(float(c), 1)]})
-        return SliceCheck(tuple(present), tuple(missing), scale, envelope, merged, canvas, level, sigma, psf_px,
-                          tuple(strays))
+        psf_rc = (float(psf_px), float(psf_px)) if np.ndim(psf_px) == 0 else tuple(float(v) for v in psf_px)
+        return SliceCheck(tuple(present), tuple(missing), scale, envelope, merged, canvas, level, sigma,
+                          0.5 * (psf_rc[0] + psf_rc[1]), strays=tuple(strays), psf_rc_px=psf_rc)
 
     wins, canvas = _windows(geom, model, T_F_from_I, shape, (rs, cs), float(thickness_mm))
     try:
@@ -371,13 +397,18 @@ def verify_slice(geom, model, T_F_from_I: np.ndarray, pixels: np.ndarray, spacin
         r_px = 0.5 * float(np.median(model.diameter_mm)) / px
         wide, wide_canvas = _windows(geom, model, T_F_from_I, shape, (rs, cs), float(thickness_mm),
                                      margin_px=2.0 + math.ceil(3.0 * PSF_SIGMAS_RADII[-1] * r_px))
-        def misfit(w):
+        def misfit(w):  # the squared residual over the whole window: the same pixels for every blur tried
             f = _fit_window(pixels, w)
-            return math.inf if f is None else _shape_excess(w, f[1], f[2], sigma, 1.0)[0]
+            return math.inf if f is None else float(np.sum((f[1] - f[2]) ** 2))
 
-        psf = psf_px if psf_px is not None else fit_psf(wide, {int(k) for k in np.flatnonzero(assignment >= 0)},
-                                                        [f * r_px for f in PSF_SIGMAS_RADII], misfit)
-        if psf is None or psf < PSF_MIN_PX:  # no blur the pixels can show: the sharp model's verdict stands
+        # the point spread is round in millimetres: in pixels that are not square it is not (sigma along rows, columns)
+        r_mm = r_px * px
+        if psf_px is not None:  # found by a fit to the pixels (chic_register.blurred_fit)
+            psf = (float(psf_px), float(psf_px)) if np.ndim(psf_px) == 0 else tuple(float(v) for v in psf_px)
+        else:
+            psf = fit_psf(wide, {int(k) for k in np.flatnonzero(assignment >= 0)},
+                          [(f * r_mm / rs, f * r_mm / cs) for f in PSF_SIGMAS_RADII], misfit)
+        if psf is None or max(psf) < PSF_MIN_PX:  # no blur the pixels can show: the sharp model's verdict stands
             raise
         try:
             return assess(*blurred_windows(wide, wide_canvas, psf), psf)

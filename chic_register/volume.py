@@ -14,6 +14,7 @@ Index convention: ``voxels[k, j, i]`` (SimpleITK's array order, z slowest);
 from __future__ import annotations
 
 import datetime
+import math
 import os
 import shutil
 import tempfile
@@ -62,6 +63,7 @@ class Volume:
     origin_mm: np.ndarray = field(default_factory=lambda: np.zeros(3))
     direction: np.ndarray = field(default_factory=lambda: np.eye(3))
     source: str = "<array>"
+    slice_thickness_mm: float | None = None  # when the file says (DICOM SliceThickness); else the k spacing
 
     def __post_init__(self):
         if np.ndim(self.voxels) != 3:
@@ -108,9 +110,16 @@ class Volume:
             origin_mm=self.origin_mm + k * sk * self.direction[:, 2],
             col_dir=self.direction[:, 0].copy(),
             row_dir=self.direction[:, 1].copy(),
-            slice_thickness_mm=sk,
+            slice_thickness_mm=self.thickness_mm,
             source=f"{self.source}[k={k}]",
         )
+
+    @property
+    def thickness_mm(self) -> float:
+        """Each k-slice's thickness: the file's own (DICOM SliceThickness: slices with gaps, or overlapping),
+        else the k spacing."""
+        t = self.slice_thickness_mm
+        return float(t) if t is not None and math.isfinite(t) and t > 0 else float(self.spacing_mm[2])
 
     def to_sitk(self) -> sitk.Image:
         import SimpleITK as sitk  # (imported where used: a one-slice DICOM solve never needs it)
@@ -122,7 +131,7 @@ class Volume:
         return img
 
 
-def volume_from_sitk(img: sitk.Image, source: str = "<sitk>") -> Volume:
+def volume_from_sitk(img: sitk.Image, source: str = "<sitk>", slice_thickness_mm: float | None = None) -> Volume:
     """A :class:`Volume` from a 3-D scalar SimpleITK image."""
     import SimpleITK as sitk
 
@@ -145,7 +154,22 @@ def volume_from_sitk(img: sitk.Image, source: str = "<sitk>") -> Volume:
         origin_mm=np.array(img.GetOrigin()),
         direction=np.array(img.GetDirection()).reshape(3, 3),
         source=source,
+        slice_thickness_mm=slice_thickness_mm,
     )
+
+
+def _dicom_thickness_mm(reader, spacing_k_mm: float) -> float | None:
+    """SliceThickness (0018,0050) of a series' first file when it differs from the slice spacing (gaps between
+    slices, or overlapping slices) and is a plausible thickness; else None (the spacing serves)."""
+    from .imageio import MAX_SPACING_MM, MIN_SPACING_MM
+
+    try:
+        t = float(str(reader.GetMetaData("0018|0050")).strip()) if reader.HasMetaDataKey("0018|0050") else None
+    except (ValueError, RuntimeError):
+        return None
+    if t is None or not (math.isfinite(t) and MIN_SPACING_MM <= t <= MAX_SPACING_MM):
+        return None
+    return None if abs(t - spacing_k_mm) <= 1e-3 * spacing_k_mm else t
 
 
 def _last_line(exc: Exception) -> str:
@@ -198,6 +222,9 @@ def read_volume(path, series_id: str | None = None) -> Volume:
             img = reader.Execute()
         except RuntimeError as exc:
             raise ImageReadError(path, f"cannot read DICOM series: {_last_line(exc)}") from None
+        if img.GetDimension() == 3:
+            return volume_from_sitk(img, source=str(path),
+                                    slice_thickness_mm=_dicom_thickness_mm(first, float(img.GetSpacing()[2])))
     else:
         if _suffix(path) not in FILE_SUFFIXES:
             raise ImageReadError(path, f"not a volume file; allowed: {', '.join(FILE_SUFFIXES)} or a DICOM series folder")
@@ -288,7 +315,7 @@ def _write_dicom_series(volume: Volume, folder: Path) -> None:
         ds.ImagePositionPatient = [_ds(x) for x in volume.origin_mm + k * sk * d[:, 2]]
         ds.ImageOrientationPatient = [_ds(x) for x in (*d[:, 0], *d[:, 1])]
         ds.PixelSpacing = [_ds(sj), _ds(si)]
-        ds.SliceThickness = ds.SpacingBetweenSlices = _ds(sk)
+        ds.SliceThickness, ds.SpacingBetweenSlices = _ds(volume.thickness_mm), _ds(sk)
         ds.SamplesPerPixel = 1
         ds.PhotometricInterpretation = "MONOCHROME2"
         ds.Rows, ds.Columns = stored.shape[1], stored.shape[2]

@@ -97,14 +97,16 @@ def test_wide_blobs_register_by_default_and_refuse_without_the_blurred_fit(neuro
 
 def test_a_blurred_fit_outside_the_envelope_is_refused():
     """The wide-blob hunt's case 1467 (neuro at 54 deg tilt, a tube leaving the body in the slice, blobs 1.3x,
-    zeroed pixels): its blurred-model pose is 0.57 deg off; outside the envelope such a pose is refused."""
+    zeroed pixels): its blurred-model pose is 0.57 deg off; outside the envelope such a pose is refused. Since the
+    verification judges each section at its own fluid level, the dim, half-zeroed H0 is refused one step earlier, by
+    its shape."""
     from tests.test_verify_pose import hunt
 
     geoms = hunt.load_geometries()
     case = hunt.make_case(1467, 0, geoms, (1.0, 2.5))
     assert case.geometry == "neuro"
     sl, _, _ = hunt.build_case(case, geoms["neuro"])
-    with pytest.raises(NoLock, match="usable envelope"):
+    with pytest.raises(NoLock, match="usable envelope|tube H0.s section does not have the shape"):
         register([sl], geoms["neuro"])
 
 

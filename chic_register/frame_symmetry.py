@@ -1,0 +1,113 @@
+"""Symmetries of a fiducial in 3-D: rigid motions that map its tube set onto itself.
+
+If a proper rotation R (about an axis through the body's centre) maps every tube
+centreline onto a tube centreline, then a fiducial at pose T and at pose T R give
+the same image in every slice: the image alone cannot tell them apart, and a
+solver needs a prior (an approximate orientation) to choose. This is the case of
+the standard Z-frame ``z001``: a half turn about the y axis through the frame's
+centre maps it onto itself (the +x and -x diagonals swap, the +y diagonal maps
+onto itself reversed, the axial rods swap in pairs).
+
+Candidates are the proper rotations of a square prism about its centre
+``(0, 0, length / 2)``: quarter turns about z and half turns about the horizontal
+axes at 0, 45, 90 and 135 deg. A rigid motion keeps arc length, so a tube i maps
+onto tube j exactly when its points at arc-length parameters t match j's at t or
+1 - t; the mismatch is the largest such point distance (mm).
+"""
+
+from __future__ import annotations
+
+import math
+from dataclasses import dataclass
+
+import numpy as np
+
+from .geometry import FiducialGeometry
+
+_N_SAMPLES = 65
+
+
+@dataclass(frozen=True)
+class FrameSymmetry:
+    """A rotation of the fiducial onto itself: ``what`` it is, worst tube ``mismatch_mm``, tube mapping."""
+
+    what: str
+    mismatch_mm: float
+    mapping: tuple[tuple[str, str], ...]
+
+    def to_dict(self) -> dict:
+        return {"what": self.what, "mismatch_mm": round(float(self.mismatch_mm), 4),
+                "maps": {a: b for a, b in self.mapping}}
+
+
+def _turn(axis: np.ndarray, angle_rad: float) -> np.ndarray:
+    """Rotation by ``angle_rad`` about the unit ``axis`` (Rodrigues; numpy only: a one-slice solve imports no scipy)."""
+    K = np.array([[0.0, -axis[2], axis[1]], [axis[2], 0.0, -axis[0]], [-axis[1], axis[0], 0.0]])
+    return np.eye(3) + math.sin(angle_rad) * K + (1.0 - math.cos(angle_rad)) * (K @ K)
+
+
+def candidate_rotations(length_mm: float) -> list[tuple[str, np.ndarray]]:
+    """(description, 3x3 rotation) of every non-identity proper symmetry of a square prism."""
+    out = [(f"rotation by {a} deg about the z axis", _turn(np.array([0.0, 0.0, 1.0]), math.radians(a)))
+           for a in (90, 180, 270)]
+    for a in (0, 45, 90, 135):
+        axis = np.array([math.cos(math.radians(a)), math.sin(math.radians(a)), 0.0])
+        name = {0: "x", 90: "y"}.get(a, f"horizontal {a} deg")
+        out.append((f"half turn about the {name} axis through (0, 0, {length_mm / 2:g}) mm "
+                    "(the frame upside down)", _turn(axis, math.pi)))
+    return out
+
+
+def _tube_samples(geom: FiducialGeometry) -> np.ndarray:
+    """Points of every tube at equal arc-length steps; shape (T, N, 3)."""
+    t = np.linspace(0.0, 1.0, _N_SAMPLES)
+    return np.stack([tube.points(t) for tube in geom.tubes])
+
+
+def rotation_mismatch(geom: FiducialGeometry, R: np.ndarray) -> tuple[float, tuple[int, ...]]:
+    """Mismatch (mm) of the tube set rotated by R about the body centre, and the mapping.
+
+    The mismatch is the Hausdorff distance between the rotated and the original
+    tube sets, each tube a whole curve (0 for an exact symmetry); the mapping
+    sends tube i to the tube nearest its image.
+    """
+    c = np.array([0.0, 0.0, geom.body.length / 2])
+    P = _tube_samples(geom)
+    Q = (P - c) @ R.T + c  # (T, N, 3)
+    fwd = np.linalg.norm(Q[:, None] - P[None], axis=-1).max(axis=-1)  # (T, T)
+    rev = np.linalg.norm(Q[:, None] - P[None, :, ::-1], axis=-1).max(axis=-1)
+    same_diam = np.array([[a.diameter == b.diameter for b in geom.tubes] for a in geom.tubes])
+    d = np.where(same_diam, np.minimum(fwd, rev), np.inf)
+    j = np.argmin(d, axis=1)
+    return float(max(d.min(axis=1).max(), d.min(axis=0).max())), tuple(int(k) for k in j)
+
+
+def frame_symmetries(geom: FiducialGeometry, tolerance_mm: float) -> tuple[tuple[FrameSymmetry, ...], float | None]:
+    """Symmetries within ``tolerance_mm``, and the smallest mismatch of any candidate (None if none maps)."""
+    found, best = [], None
+    for what, R in candidate_rotations(geom.body.length):
+        mism, mapping = rotation_mismatch(geom, R)
+        best = mism if best is None else min(best, mism)
+        if mism <= tolerance_mm:
+            ids = geom.ids
+            found.append(FrameSymmetry(what, mism, tuple((ids[i], ids[k]) for i, k in enumerate(mapping))))
+    return tuple(found), best
+
+
+def prior_needed(geom: FiducialGeometry, tolerance_mm: float) -> str | None:
+    """Why no image alone can register ``geom`` (a rotation maps its tubes onto themselves within
+    ``tolerance_mm``), with what to give instead; None when it has no such symmetry.
+
+    The solver says this before it reads a pixel when no prior is given: the
+    twin pose explains every slice exactly as well, so a search could only
+    end in an ambiguous fit (or, worse, a coin toss).
+    """
+    found, _ = frame_symmetries(geom, tolerance_mm)
+    if not found:
+        return None
+    what = found[0].what + (f" (and {len(found) - 1} more)" if len(found) > 1 else "")
+    return (f"ambiguous fit: '{geom.name}' maps onto itself under a {what}, so every image fits two poses and "
+            "only the frame's approximate orientation can pick one; give it with --prior: '--prior identity' when "
+            "the frame's x, y, z axes point roughly along the scanner's (LPS: x to the patient's left, y posterior, "
+            "z superior, within --prior-max-deg, default 60 deg), else '--prior FILE', a JSON file holding "
+            "{\"T_scanner_from_fiducial\": 4x4 matrix} (only its rotation is used) or a 3D Slicer .tfm")
