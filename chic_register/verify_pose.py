@@ -395,8 +395,10 @@ def verify_slice(geom, model, T_F_from_I: np.ndarray, pixels: np.ndarray, spacin
         # the blobs may be wider than the tubes drawn (point spread, partial volume, fluid in a printed channel):
         # fit a Gaussian point spread to the matched sections and judge the blurred model by the same rules
         r_px = 0.5 * float(np.median(model.diameter_mm)) / px
+        # the windows reach three sigmas of the widest blur tried (of the blur given, when a pixel fit found it)
+        reach_px = 3.0 * (PSF_SIGMAS_RADII[-1] * r_px if psf_px is None else float(np.max(psf_px)))
         wide, wide_canvas = _windows(geom, model, T_F_from_I, shape, (rs, cs), float(thickness_mm),
-                                     margin_px=2.0 + math.ceil(3.0 * PSF_SIGMAS_RADII[-1] * r_px))
+                                     margin_px=2.0 + math.ceil(reach_px))
         def misfit(w):  # the squared residual over the whole window: the same pixels for every blur tried
             f = _fit_window(pixels, w)
             return math.inf if f is None else float(np.sum((f[1] - f[2]) ** 2))
@@ -494,10 +496,13 @@ def verify_fit(geom, model, fit, rivals, slices, Ss, blob_sets, opts, precision=
         raise SliceRefused(refused[0][1], {"n_refused": len(refused)}, refused)
     check_rivals(geom, model, fit, contenders, out, slices, xys, Ss, opts)
     if precision is not None:  # a pose fitted through a blurred model is weaker evidence: only inside the envelope
-        for sl, c in zip(slices, out):
-            if c.envelope != "ok":
-                raise NoLock(f"{sl.source}: the pose fitted to the blurred sections lies outside the design's usable "
-                             f"envelope ({c.envelope}): wide blobs there cannot be told apart", {"envelope": c.envelope})
+        outside = [(j, f"{sl.source}: the pose fitted to the blurred sections lies outside the design's usable "
+                       f"envelope ({c.envelope}): wide blobs there cannot be told apart")
+                   for j, (sl, c) in enumerate(zip(slices, out)) if c.envelope != "ok"]
+        if outside and name_slice and len(outside) < len(slices):  # a volume: those slices are left out
+            raise SliceRefused(outside[0][1], {"n_refused": len(outside)}, outside)
+        if outside:
+            raise NoLock(outside[0][1], {"envelope": out[outside[0][0]].envelope})
     _check_stretch(model, fit, xys, Ss, opts)
     px = min(max(sl.pixel_spacing_mm) for sl in slices)
     tre, rot = precision or pose_precision(model, fit, Ss, px, exclude=[c.merged for c in out])
