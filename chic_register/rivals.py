@@ -150,7 +150,8 @@ def _compare_rival(geom, model, check, T_F_from_I_rival: np.ndarray, sl) -> tupl
     ``margin`` what it must exceed: :data:`RIVAL_MARGIN` noise variances plus
     the model error (:data:`MODEL_FLOOR` of the signal energy).
     """
-    from .verify_pose import MODEL_FLOOR, _windows  # (the verification's renders; it imports this module)
+    from .verify_pose import MODEL_FLOOR  # (the verification imports this module)
+    from .window_stats import _windows
 
     pixels = np.asarray(sl.pixels, float)
     _, rival = _windows(geom, model, T_F_from_I_rival, pixels.shape, tuple(float(v) for v in sl.pixel_spacing_mm),

@@ -64,7 +64,7 @@ from dataclasses import dataclass
 
 import numpy as np
 
-from .detect import Blobs, _dilate, median
+from .detect import Blobs, median
 from .envelope import plane_status
 from .errors import ImprecisePose, NoLock, SliceRefused
 from .fit_checks import (  # noqa: F401
@@ -81,12 +81,12 @@ from .fit_checks import (  # noqa: F401
 )
 from .pose import slice_angles
 from .psf import blurred_windows, fit_psf
-from .render import render_tubes
 from .rivals import check_rivals, slice_contenders
 from .trust import _to_xy_mm
-from .tube_model import _section_box, _section_extent, plane_crossings
+from .tube_model import _section_extent, plane_crossings
 from .uncertainty import correlation_inflation, noise_correlation_axes
-from .window_stats import _spread, section_shift
+from .window_stats import (  # noqa: F401  (_TubeWindow: the windows' type, for tests)
+    _TubeWindow, _fit_window, _shape_excess, _spread, _windows, section_shift)
 
 #: A present tube's fitted fluid level, as a share of the median of the tubes the solver matched. A correctly
 #: placed section (partial volume and slab smear are in the model) gives ~1 at any SNR above a few; a section
@@ -128,15 +128,6 @@ PSF_MIN_PX = 0.5
 #: More detected blobs than this on the tubes' circle that the pose does not explain: the pattern is not the pose's
 #: (up to this many, each gets its rival poses, :func:`_stray_rivals`, and the pixels decide).
 MAX_STRAYS = 2
-#: Render settings: sub-samples per pixel side (the renderer's coverage ramp anti-aliases edges already) and at
-#: most this many sub-planes over the slab.
-SUPERSAMPLE = 1
-MAX_THICKNESS_SAMPLES = 3
-#: One more sub-plane for every this many pixels of slab smear along a section (the renderer averages the
-#: sub-planes; between them the section's end is a ramp, within the shape tolerance at 4 px).
-SMEAR_PX_PER_SAMPLE = 4.0
-
-
 @dataclass(frozen=True)
 class SliceCheck:
     """What the verification saw in one slice: tubes found present, missing (flagged) and the spacing scale."""
@@ -162,121 +153,6 @@ def shape_tolerance(radius_px: float) -> float:
     against the disc's ``pi r^2``, i.e. ``2 d^2 / r``.
     """
     return 2.0 * POSITION_TOL_PX ** 2 / max(radius_px, 1.0) + MODEL_FLOOR
-
-
-@dataclass
-class _TubeWindow:
-    k: int
-    r0: int
-    c0: int
-    own: np.ndarray  # rendered section of this tube in the window
-    others: np.ndarray  # other tubes' sections in the window
-
-
-def _windows(geom, model, T_F_from_I, shape, spacing, thickness_mm, margin_px: float = 2.0,
-             canvas_only: bool = False):
-    """``(windows, canvas)``: per tube whose section lies wholly inside the image its window with its own and
-    its neighbours' renders, and the whole model image (shape of the image, every section pasted in);
-    ``canvas_only``: no windows (``[]``), the canvas alone (a rival pose's model image).
-
-    Each tube is rendered once, in its own window (its section's extent,
-    :func:`chic_register.solve._section_extent`, plus ``margin_px``); a window's
-    neighbours are the other tubes' renders pasted where they overlap it.
-    """
-    rs, cs = spacing
-    px = max(rs, cs)
-    q, tan, _, found = plane_crossings(model, T_F_from_I, margin_mm=0.5 * float(model.diameter_mm.max()) + thickness_mm)
-    half_len, half_wid, u = _section_extent(model, tan, thickness_mm)
-    ex, ey = (e + margin_px * px for e in _section_box(half_len, half_wid, u))
-    txy = np.hypot(tan[:, 0], tan[:, 1])
-    smear_px = float(np.max(thickness_mm * txy / np.maximum(np.abs(tan[:, 2]), 1e-3))) / px if txy.size else 0.0
-    ts = int(min(MAX_THICKNESS_SAMPLES, max(1, math.ceil(smear_px / SMEAR_PX_PER_SAMPLE) + 1)))
-    render = {"pixel_spacing_mm": (rs, cs), "slice_thickness_mm": thickness_mm, "supersample": SUPERSAMPLE,
-              "thickness_samples": ts}
-    H, W = shape
-    boxes = {}
-    for k in np.flatnonzero(found):
-        r0, r1 = int(math.floor((q[k, 1] - ey[k]) / rs)), int(math.ceil((q[k, 1] + ey[k]) / rs)) + 1
-        c0, c1 = int(math.floor((q[k, 0] - ex[k]) / cs)), int(math.ceil((q[k, 0] + ex[k]) / cs)) + 1
-        inside = r0 >= 0 and c0 >= 0 and r1 <= H and c1 <= W and r1 - r0 <= H // 2 and c1 - c0 <= W // 2
-        r0, r1, c0, c1 = max(r0, 0), min(r1, H), max(c0, 0), min(c1, W)
-        if r1 - r0 < 2 or c1 - c0 < 2 or (r1 - r0) * (c1 - c0) > H * W // 4:
-            continue
-        img = render_tubes([geom.tubes[k]], T_F_from_I, (r1 - r0, c1 - c0), center_px=(-float(r0), -float(c0)),
-                           **render)
-        if img.max() > 0:
-            boxes[int(k)] = (r0, c0, img, inside)
-    out = []
-    canvas = np.zeros(shape)
-    for k, (r0, c0, img, inside) in boxes.items():
-        sub = canvas[r0:r0 + img.shape[0], c0:c0 + img.shape[1]]
-        np.maximum(sub, img, out=sub)
-        if not inside or canvas_only:
-            continue  # (partly) outside the image: nothing to check, but it is a neighbour of the others
-        h, w = img.shape
-        others = np.zeros_like(img)
-        for i, (R0, C0, oimg, _) in boxes.items():
-            if i == k:
-                continue
-            a0, b0 = max(r0, R0), max(c0, C0)
-            a1, b1 = min(r0 + h, R0 + oimg.shape[0]), min(c0 + w, C0 + oimg.shape[1])
-            if a0 < a1 and b0 < b1:
-                sub = others[a0 - r0:a1 - r0, b0 - c0:b1 - c0]
-                np.maximum(sub, oimg[a0 - R0:a1 - R0, b0 - C0:b1 - C0], out=sub)
-        out.append(_TubeWindow(k, r0, c0, img, others))
-    return out, canvas
-
-
-def _fit_window(pixels, w: _TubeWindow):
-    """Least squares over the window: ``(coef, y, fit)`` of ``pixels = b + a section + a' neighbours``
-    (the gains apart: presence) and ``fit1`` of ``pixels = b + a max(section, neighbours)`` (one fluid level,
-    composited as the image is: the shape test). None when degenerate."""
-    h, wd = w.own.shape
-    y = np.asarray(pixels[w.r0:w.r0 + h, w.c0:w.c0 + wd], float).ravel()
-    m = w.own.ravel()
-    o = w.others.ravel()
-    cols = [np.ones_like(m), m] + ([o] if o.max() > 0.05 else [])
-    A = np.stack(cols, axis=1)
-    coef, _, rank, _ = np.linalg.lstsq(A, y, rcond=None)
-    if rank < A.shape[1]:
-        return None
-    A1 = np.stack([np.ones_like(m), np.maximum(m, o)], axis=1)
-    coef1 = np.linalg.lstsq(A1, y, rcond=None)[0]
-    fit1 = A1 @ coef1
-    if len(cols) == 3:  # a neighbour in the window: real rods differ in fluid level (fill, bubbles, coil)
-        fit2 = _composite_two_levels(y, m, o, coef)
-        if fit2 is not None and float((y - fit2) @ (y - fit2)) < float((y - fit1) @ (y - fit1)):
-            fit1 = fit2
-    return coef, y, fit1
-
-
-def _composite_two_levels(y, m, o, coef, rounds: int = 3):
-    """``b + max(a m, a' o)`` fitted to ``y``: the section and its neighbours each at their own fluid level,
-    composited as the image is (each pixel belongs to the brighter term; a few alternating least squares)."""
-    b, a, a2 = (float(v) for v in coef)
-    fit = None
-    for _ in range(rounds):
-        mine = a * m >= a2 * o
-        A = np.stack([np.ones_like(m), np.where(mine, m, 0.0), np.where(mine, 0.0, o)], axis=1)
-        c, _, rank, _ = np.linalg.lstsq(A, y, rcond=None)
-        if rank < 3 or not (c[1] > 0 and c[2] > 0):
-            return fit
-        b, a, a2 = (float(v) for v in c)
-        fit = A @ c
-    return fit
-
-
-def _shape_excess(w: _TubeWindow, y: np.ndarray, fit: np.ndarray, sigma: float, level: float):
-    """``(excess, allowed_noise, support)`` of a fitted window (:func:`_fit_window`): the residual energy over
-    the section (its support grown by a pixel) beyond the noise, as a share of the section's energy, and four
-    noise sigmas of that term."""
-    own = w.own.ravel()
-    energy = max(float(own @ own), 1e-12)
-    sup = _dilate(w.own > 0.02, 1).ravel()
-    res = (y - fit)[sup]
-    excess = max(float(res @ res) - sup.sum() * sigma * sigma, 0.0) / (level * level * energy)
-    chi_tol = 4.0 * math.sqrt(2.0 * sup.sum()) * sigma * sigma / (level * level * energy)
-    return excess, chi_tol, sup
 
 
 def verify_slice(geom, model, T_F_from_I: np.ndarray, pixels: np.ndarray, spacing, thickness_mm: float,
