@@ -17,6 +17,7 @@ onto tube j exactly when its points at arc-length parameters t match j's at t or
 
 from __future__ import annotations
 
+import functools
 import math
 from dataclasses import dataclass
 
@@ -82,11 +83,31 @@ def rotation_mismatch(geom: FiducialGeometry, R: np.ndarray) -> tuple[float, tup
     return float(max(d.min(axis=1).max(), d.min(axis=0).max())), tuple(int(k) for k in j)
 
 
-def frame_symmetries(geom: FiducialGeometry, tolerance_mm: float) -> tuple[tuple[FrameSymmetry, ...], float | None]:
-    """Symmetries within ``tolerance_mm``, and the smallest mismatch of any candidate (None if none maps)."""
-    found, best = [], None
+def _candidates(geom: FiducialGeometry) -> tuple[tuple[str, float, tuple[int, ...]], ...]:
+    """``(what, mismatch mm, mapping)`` of every candidate rotation of ``geom``."""
+    out = []
     for what, R in candidate_rotations(geom.body.length):
         mism, mapping = rotation_mismatch(geom, R)
+        out.append((what, mism, mapping))
+    return tuple(out)
+
+
+@functools.lru_cache(maxsize=8)
+def _memo_candidates(key) -> tuple[tuple[str, float, tuple[int, ...]], ...]:
+    """:func:`_candidates` once per distinct geometry (the solver asks on every call without a prior)."""
+    return _candidates(key.geom)
+
+
+def frame_symmetries(geom: FiducialGeometry, tolerance_mm: float) -> tuple[tuple[FrameSymmetry, ...], float | None]:
+    """Symmetries within ``tolerance_mm``, and the smallest mismatch of any candidate (None if none maps)."""
+    from .tube_model import _GeometryKey
+
+    try:
+        candidates = _memo_candidates(_GeometryKey(geom))
+    except TypeError:  # an unhashable value somewhere: no memo
+        candidates = _candidates(geom)
+    found, best = [], None
+    for what, mism, mapping in candidates:
         best = mism if best is None else min(best, mism)
         if mism <= tolerance_mm:
             ids = geom.ids
