@@ -31,6 +31,7 @@ from dataclasses import dataclass
 
 import numpy as np
 
+from .detect import median
 from .errors import NoLock
 from .fit_checks import STRETCH_MIN, worst_errors
 from .pose import invert
@@ -249,7 +250,7 @@ def blurred_fit(model: TubeModel, T_F_from_scanner: np.ndarray, slices, Ss, blob
     None when fewer than six sections are in the images.
     """
     px = float(max(slices[0].pixel_spacing_mm))
-    r_px = 0.5 * float(np.median(model.diameter_mm)) / px
+    r_px = 0.5 * median(model.diameter_mm) / px
     sigmas = [psf_px] if psf_px is not None else [f * r_px for f in SIGMAS_RADII]
     X = np.array(T_F_from_scanner, float)
 
@@ -360,7 +361,7 @@ def blob_width_ratio(model: TubeModel, slices, blob_sets, assignments) -> float:
             minor = 0.5 * (cxx + cyy) - math.sqrt(0.25 * (cxx - cyy) ** 2 + cxy * cxy)
             if minor > 0:
                 ratios.append(4.0 * math.sqrt(minor) / float(model.diameter_mm[k]))
-    return float(np.median(ratios)) if len(ratios) >= 3 else float("nan")
+    return median(ratios) if len(ratios) >= 3 else float("nan")
 
 
 def blobs_wide(model: TubeModel, slices, blob_sets, assignments) -> bool:

@@ -86,7 +86,7 @@ def _fill_non_finite(pixels: np.ndarray) -> tuple[np.ndarray, int]:
     out = img.astype(float)
     hoods = _neighbourhoods(np.where(bad, np.nan, out), np.nan)[bad].reshape(n, -1)
     has = np.isfinite(hoods).any(axis=1)
-    fill = np.full(n, float(np.median(out[~bad])))
+    fill = np.full(n, median(out[~bad]))
     if has.any():
         fill[has] = np.nanmedian(hoods[has], axis=1)
     out[bad] = fill
@@ -149,8 +149,8 @@ def _fill_zeros(pixels: np.ndarray) -> tuple[np.ndarray, int]:
         return pixels, 0
     img = img.astype(float)
     valid = img[~zero]
-    background = float(np.median(valid))
-    level = background + SIGNAL_SIGMAS * 1.4826 * float(np.median(np.abs(valid - background)))
+    background = median(valid)
+    level = background + SIGNAL_SIGMAS * 1.4826 * median(np.abs(valid - background))
     # lost samples fall anywhere, signal or not; zeros that are clipped noise avoid the signal
     near_signal = _neighbourhoods(img > level, False).any(axis=(2, 3))
     if not near_signal.any() or zero[near_signal].mean() < SCATTER_SHARE * share:

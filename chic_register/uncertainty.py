@@ -34,6 +34,7 @@ from dataclasses import dataclass
 import numpy as np
 
 from .crlb import PARAMETER_FRAME, PARAMETER_ORDER, default_target, tre_rms_mm
+from .detect import median
 from .quantiles import percentiles
 
 RAYLEIGH_MEDIAN = math.sqrt(2.0 * math.log(2.0))  # median of a Rayleigh variable of scale 1
@@ -149,7 +150,7 @@ def noise_correlation_axes(pixels: np.ndarray, footprints, guard_px: int = 3) ->
     pairs = n / (n - 1)  # n (n - 1) neighbour pairs per block against n^2 pixels
     rows = np.sum(x[:, 1:] * x[:, :-1], axis=(1, 2)) * pairs / var
     cols = np.sum(x[:, :, 1:] * x[:, :, :-1], axis=(1, 2)) * pairs / var
-    return tuple(float(np.clip(np.median(v), 0.0, MAX_NOISE_CORRELATION)) for v in (rows, cols))
+    return tuple(float(np.clip(median(v), 0.0, MAX_NOISE_CORRELATION)) for v in (rows, cols))
 
 
 def noise_correlation(pixels: np.ndarray, footprints, guard_px: int = 3) -> float:
@@ -418,7 +419,7 @@ def detection_diameter_mm(blobs, model) -> float:
     """The tube diameter the detector smoothed for: the geometry's median, or the width it measured in the
     image when that differs by more than a quarter (:func:`chic_register.detect.detect_blobs` redoes the
     detection at that size)."""
-    d_mid = float(np.median(model.diameter_mm))
+    d_mid = median(model.diameter_mm)
     width = float(getattr(blobs, "width_mm", float("nan")))
     if math.isfinite(width) and not 0.8 <= width / d_mid <= 1.25:
         return width

@@ -270,7 +270,7 @@ def verify_slice(geom, model, T_F_from_I: np.ndarray, pixels: np.ndarray, spacin
             raise
         # the blobs may be wider than the tubes drawn (point spread, partial volume, fluid in a printed channel):
         # fit a Gaussian point spread to the matched sections and judge the blurred model by the same rules
-        r_px = 0.5 * float(np.median(model.diameter_mm)) / px
+        r_px = 0.5 * median(model.diameter_mm) / px
         # the windows reach three sigmas of the widest blur tried (of the blur given, when a pixel fit found it)
         reach_px = 3.0 * (PSF_SIGMAS_RADII[-1] * r_px if psf_px is None else float(np.max(psf_px)))
         wide, wide_canvas = _windows(geom, model, T_F_from_I, shape, (rs, cs), float(thickness_mm),

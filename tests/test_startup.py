@@ -40,7 +40,8 @@ def test_one_shot_dicom_solve_imports_only_what_a_slice_needs(tmp_path, neuro_ge
     mods = _modules_after(code)
     assert "chic_register.solve" in mods and "pydicom" in mods  # it did solve, from the DICOM
     assert not [m for m in mods if m.split(".")[0] in ("SimpleITK", "matplotlib", "pyigtl")
-                or m.startswith(("scipy.optimize", "scipy.ndimage", "scipy.special"))]
+                or m.startswith(("scipy.optimize", "scipy.ndimage", "scipy.special"))
+                or m == "numpy.ma" or m.startswith("numpy.ma.")]  # np.median / np.unique import it: ~40 ms
 
 
 def test_bracketed_root_matches_known_roots_and_keeps_to_the_bracket():
