@@ -171,6 +171,8 @@ class _Problem:
         self.keep = np.ones(self.y.size, bool)
         for j, (b, a) in enumerate(zip(blob_sets, assignments)):
             used = {int(i) for i in a if i >= 0}
+            if pix[j].size == 0:  # no section's box in this slice: nothing to leave out
+                continue
             width = np.shape(slices[j].pixels)[1]
             for i, (r0, c0, mask) in enumerate(b.footprints):
                 if i in used:
