@@ -83,6 +83,12 @@ def rotation_mismatch(geom: FiducialGeometry, R: np.ndarray) -> tuple[float, tup
     return float(max(d.min(axis=1).max(), d.min(axis=0).max())), tuple(int(k) for k in j)
 
 
+#: A rotation mapping every tube within this share of the thinnest tube's diameter onto another is a symmetry no
+#: image can break (the printed channel's own shape tolerance; ``chic_design.unambiguity.symmetry_tolerance``'s floor):
+#: the solver then asks for a prior before it reads a pixel.
+EXACT_SHARE = 0.05
+
+
 def _candidates(geom: FiducialGeometry) -> tuple[tuple[str, float, tuple[int, ...]], ...]:
     """``(what, mismatch mm, mapping)`` of every candidate rotation of ``geom``."""
     out = []

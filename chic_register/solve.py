@@ -278,10 +278,11 @@ def register(slices: list[Slice], geom: FiducialGeometry, *, options: SolveOptio
     if not slices:
         raise NoLock("no slices given")
     if opts.prior is None:  # a self-symmetric frame (z001): no image can choose; say so before any work
-        from .frame_symmetry import prior_needed
+        from .frame_symmetry import EXACT_SHARE, prior_needed
 
-        why = prior_needed(geom, max(min(min(sl.pixel_spacing_mm) for sl in slices), 0.05 * min(
-            t.diameter for t in geom.tubes)))
+        # only a symmetry within the channels' own print tolerance: a near-twin a pixel or so away (the needle
+        # guide's half turn, 0.63 mm) is for the pixels and the rival poses to decide, as every other ambiguity
+        why = prior_needed(geom, EXACT_SHARE * min(t.diameter for t in geom.tubes))
         if why:
             raise AmbiguousFit(why, {"needs_prior": True})
     t0 = time.perf_counter()
