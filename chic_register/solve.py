@@ -487,7 +487,6 @@ def _registration(geom: FiducialGeometry, model: TubeModel, geom_sha: str, best,
     return Registration("ok", T_sf, tuple(results), timing, geom.name, geom_sha, tuple(skipped), unc)
 
 
-
 def _only_slices(model: TubeModel, fit, keep: list[int], xys, Ss):
     """``fit`` (at the same pose) on its slices ``keep`` only (``xys``, ``Ss``: theirs): assignments and residuals
     recomputed."""
