@@ -326,9 +326,11 @@ def fit_sections(model, T_F_from_I: np.ndarray, assignment: np.ndarray, pixels: 
     starts = np.flatnonzero(np.r_[True, own[1:] != own[:-1]])  # windows are contiguous, one per tube
     at = q.copy()  # where each section model is drawn: the crossing, then the fitted position
     sel = todo
+    at_crossing = None  # the model drawn at the crossings (the first fit's): the joint pass reuses it
     for _ in range(max(1, int(shift_iterations))):
         S, Sx, Sy = section_model(model, T_F_from_I, at, tan, windows, pixel_spacing_mm, slice_thickness_mm,
                                   thickness_samples, exact)
+        at_crossing = at_crossing or (windows, (S, Sx, Sy))
         sel, shift, info, a, n_pix = _linear_fit(S, Sx, Sy, y, own, starts, K, sel, noise_sigma)
         if sel.size == 0:
             return SectionFit(q, out_pos, out_info, out_gain, n_pix, fitted), windows
@@ -337,7 +339,8 @@ def fit_sections(model, T_F_from_I: np.ndarray, assignment: np.ndarray, pixels: 
         sel, at, info, a, n_pix = _joint_pass(model, T_F_from_I, q, tan, found, pixels, pixel_spacing_mm,
                                               slice_thickness_mm, thickness_samples, exact, noise_sigma, assignment,
                                               footprints, margin_px, sel, at, info, a, n_pix,
-                                              reach if reach is not None and np.array_equal(sel, todo) else None)
+                                              reach if reach is not None and np.array_equal(sel, todo) else None,
+                                              at_crossing)
     out_pos[sel] = at[sel]
     out_info[sel] = info
     out_gain[sel] = a
@@ -347,11 +350,12 @@ def fit_sections(model, T_F_from_I: np.ndarray, assignment: np.ndarray, pixels: 
 
 def _joint_pass(model, T_F_from_I, q, tan, found, pixels, pixel_spacing_mm, slice_thickness_mm: float,
                 thickness_samples: int, exact: bool, noise_sigma: float, assignment, footprints, margin_px: float,
-                sel, at, info, a, n_pix, reach=None):
+                sel, at, info, a, n_pix, reach=None, at_crossing=None):
     """Refit the tubes ``sel`` on the pixels they share with fitted neighbours, those neighbours' fitted
     sections (position ``at``, level ``a``) subtracted (:func:`joint_windows`); :data:`JOINT_PASSES` times.
     Returns ``(sel, at, info, a, n_pix)`` as :func:`_linear_fit` gives them, unchanged when no pixel is
-    shared or a tube would be lost."""
+    shared or a tube would be lost. ``at_crossing``: ``(windows, (S, Sx, Sy))``, :func:`section_model` at the
+    crossings ``q`` on some windows, whose pixels are then not drawn again (the model is pixel by pixel)."""
     K = q.shape[0]
     modelled = np.zeros(K, bool)
     modelled[sel] = True
@@ -381,11 +385,12 @@ def _joint_pass(model, T_F_from_I, q, tan, found, pixels, pixel_spacing_mm, slic
         neighbours = Windows(jw.rows[nb_p], jw.cols[nb_p], nb_k)
     y = np.asarray(pixels, dtype=float)[jw.rows, jw.cols]
     starts = np.flatnonzero(np.r_[True, jw.owner[1:] != jw.owner[:-1]])
-    S, Sx, Sy = section_model(model, T_F_from_I, q, tan, jw, pixel_spacing_mm, slice_thickness_mm,
-                              thickness_samples, exact)
+    S, Sx, Sy = _model_reusing(model, T_F_from_I, q, tan, jw, pixels.shape, pixel_spacing_mm, slice_thickness_mm,
+                               thickness_samples, exact, at_crossing)
     for n_pass in range(JOINT_PASSES):
-        if n_pass == 0 and not strong.any():
-            Sn = Sn0  # the same neighbours at the same fitted positions: the same model
+        if n_pass == 0:
+            # the same neighbours' pixels (less the strong ones) at the same fitted positions: the same model
+            Sn = Sn0[pair_ok] if strong.any() else Sn0
         else:
             Sn = section_model(model, T_F_from_I, fitted_at, tan, neighbours, pixel_spacing_mm, slice_thickness_mm,
                                thickness_samples, exact)[0]
@@ -398,6 +403,34 @@ def _joint_pass(model, T_F_from_I, q, tan, found, pixels, pixel_spacing_mm, slic
         gain[sel_j] = a_j
         sel, at, info, a, n_pix = sel_j, fitted_at.copy(), info_j, a_j, n_pix_j
     return sel, at, info, a, n_pix
+
+
+def _model_reusing(model, T_F_from_I, q, tan, win: Windows, shape, pixel_spacing_mm, slice_thickness_mm: float,
+                   thickness_samples: int, exact: bool, drawn=None):
+    """:func:`section_model` at ``q`` on ``win``, taking the pixels ``drawn`` = ``(windows, (S, Sx, Sy))`` already
+    has (drawn at the same ``q``, pose and settings) from it: each pixel's value depends on that pixel alone."""
+    if drawn is None:
+        return section_model(model, T_F_from_I, q, tan, win, pixel_spacing_mm, slice_thickness_mm,
+                             thickness_samples, exact)
+    old, old_S = drawn
+    H, W = shape
+    key_old = (old.owner * H + old.rows) * W + old.cols  # ascending as built: owners ascending, boxes row-major
+    key = (win.owner * H + win.rows) * W + win.cols
+    order = None if np.all(key_old[1:] > key_old[:-1]) else np.argsort(key_old, kind="stable")
+    sorted_old = key_old if order is None else key_old[order]
+    at = np.minimum(np.searchsorted(sorted_old, key), max(key_old.size - 1, 0))
+    have = sorted_old[at] == key if key_old.size else np.zeros(key.size, bool)
+    src = at[have] if order is None else order[at[have]]
+    out = tuple(np.empty(key.size) for _ in range(3))
+    for o, v in zip(out, old_S):
+        o[have] = v[src]
+    new = np.flatnonzero(~have)
+    if new.size:
+        fresh = section_model(model, T_F_from_I, q, tan, Windows(win.rows[new], win.cols[new], win.owner[new]),
+                              pixel_spacing_mm, slice_thickness_mm, thickness_samples, exact)
+        for o, v in zip(out, fresh):
+            o[new] = v
+    return out
 
 
 def _linear_fit(S, Sx, Sy, y, own, starts, K: int, todo, noise_sigma: float):
