@@ -13,6 +13,7 @@ from __future__ import annotations
 
 import functools
 import math
+import weakref
 from dataclasses import dataclass
 
 import numpy as np
@@ -156,6 +157,36 @@ def plane_crossings(model: TubeModel, T_F_from_I: np.ndarray, margin_mm: float =
     helices: Newton on z started from the axis crossing (scalar code: the
     arrays are tiny and numpy's per-call overhead would dominate).
     """
+    T_F_from_I = np.asarray(T_F_from_I, dtype=float)
+    key = T_F_from_I.tobytes()
+    memo = _CROSSINGS.get(model)
+    hit = memo.get(key) if memo is not None else None
+    if hit is None:  # the solver asks for the same pose's crossings several times (a fit, then its checks)
+        hit = _crossings(model, T_F_from_I)
+        if memo is None:
+            memo = _CROSSINGS[model] = {}
+        if len(memo) >= 16:
+            memo.clear()
+        memo[key] = hit
+    q, tan_I, zF, ok, tan_z = hit
+    if margin_mm > 0:
+        lo, hi = model.z_lo - margin_mm, model.z_hi + margin_mm
+    else:
+        # strict: the whole cross-section must lie within the tube, else the blob is cut short by the
+        # tube's end and its centre is biased: half the cut's length along the tube, in z of F
+        cos_a = np.maximum(np.abs(tan_I[:, 2]), 1e-6)
+        clear = 0.5 * model.diameter_mm * np.sqrt(np.maximum(1 - cos_a * cos_a, 0.0)) / cos_a * np.abs(tan_z)
+        lo, hi = model.z_lo + clear, model.z_hi - clear
+    inside = ok & (zF >= lo - 1e-6) & (zF <= hi + 1e-6)
+    return q[:, :2].copy(), tan_I.copy(), zF.copy(), inside
+
+
+#: plane_crossings' memo per model (weakly held): pose bytes -> (q, tan_I, z_F, found, tangent z in F)
+_CROSSINGS: "weakref.WeakKeyDictionary" = weakref.WeakKeyDictionary()
+
+
+def _crossings(model: TubeModel, T_F_from_I: np.ndarray):
+    """:func:`plane_crossings` before the extent test: ``(q (K, 3), tan_I, z_F, found, tangent z in F)``."""
     R = T_F_from_I[:3, :3]
     o = T_F_from_I[:3, 3]
     (_, _, nx, ox), (_, _, ny, oy), (_, _, nz, oz) = T_F_from_I[:3].tolist()
@@ -199,17 +230,8 @@ def plane_crossings(model: TubeModel, T_F_from_I: np.ndarray, margin_mm: float =
     X, tan, ok = A[:, :3], A[:, 3:6], A[:, 6] > 0
     zF = X[:, 2]
     tan_I = tan @ R
-    if margin_mm > 0:
-        lo, hi = model.z_lo - margin_mm, model.z_hi + margin_mm
-    else:
-        # strict: the whole cross-section must lie within the tube, else the blob is cut short by the
-        # tube's end and its centre is biased: half the cut's length along the tube, in z of F
-        cos_a = np.maximum(np.abs(tan_I[:, 2]), 1e-6)
-        clear = 0.5 * model.diameter_mm * np.sqrt(np.maximum(1 - cos_a * cos_a, 0.0)) / cos_a * np.abs(tan[:, 2])
-        lo, hi = model.z_lo + clear, model.z_hi - clear
-    inside = ok & (zF >= lo - 1e-6) & (zF <= hi + 1e-6)
     q = (X - o) @ R  # rows: R^T (X - o)
-    return q[:, :2], tan_I, zF, inside
+    return q, tan_I, zF, ok, tan[:, 2]
 
 
 def _section_extent(model, tan, slice_thickness_mm):
