@@ -69,10 +69,10 @@ def tube_frames(model, T_F_from_I: np.ndarray, q: np.ndarray, tan_I: np.ndarray)
     of the centreline (zero for lines) and the arc length from the crossing
     back to the tube's start and on to its end (mm).
     """
-    key = (T_F_from_I.tobytes(), q.tobytes())
-    last = _FRAMES_LAST[0]  # one tuple: consistent even if another thread replaces it
-    if last is not None and last[0] is model and last[1] == key:
-        return last[2]  # (read-only arrays)
+    key = (id(model), T_F_from_I.tobytes(), q.tobytes())
+    hit = _FRAMES.get(key)
+    if hit is not None and hit[0] is model:
+        return hit[1]  # (read-only arrays)
     K = q.shape[0]
     R, o = T_F_from_I[:3, :3], T_F_from_I[:3, 3]
     X = np.column_stack([q, np.zeros(K)]) @ R.T + o  # crossings in F
@@ -94,11 +94,13 @@ def tube_frames(model, T_F_from_I: np.ndarray, q: np.ndarray, tan_I: np.ndarray)
     out = (kappa_F @ R, s_lo, s_hi)
     for v in out:
         v.flags.writeable = False
-    _FRAMES_LAST[0] = (model, key, out)  # a fit draws the model at the same crossings several times
+    if len(_FRAMES) >= 4:
+        _FRAMES.clear()
+    _FRAMES[key] = (model, out)  # a fit draws the model at the same crossings several times
     return out
 
 
-_FRAMES_LAST: list = [None]  # tube_frames' last (model, (pose, crossings) bytes, result)
+_FRAMES: dict = {}  # tube_frames' last few results: (model id, pose bytes, crossings bytes) -> (model, result)
 
 
 @functools.lru_cache(maxsize=8)
