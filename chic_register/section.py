@@ -459,8 +459,18 @@ def _linear_fit(S, Sx, Sy, y, own, starts, K: int, todo, noise_sigma: float):
 
     Returns ``(tubes fitted, shift (n, 2) mm, information (n, 2, 2), gain (n,), pixels per tube (K,))``.
     """
-    F = np.column_stack([np.ones_like(S), S, Sx, Sy, y])
-    prods = F[:, _PAIR_I] * F[:, _PAIR_J]  # (P, 14): the normal matrix's 10 entries, then the right-hand side
+    # (P, 14): the normal matrix's 10 entries, then the right-hand side; F[:, _PAIR_I] * F[:, _PAIR_J] for
+    # F = [1, S, Sx, Sy, y], column by column (several times faster than the fancy-indexed product; the same values)
+    prods = np.empty((S.size, _PAIR_I.size))
+    prods[:, 0] = 1.0
+    F = (None, S, Sx, Sy, y)
+    for c, (i, j) in enumerate(zip(_PAIR_I.tolist(), _PAIR_J.tolist())):
+        if c == 0:
+            continue
+        if i == 0:
+            prods[:, c] = F[j]
+        else:
+            np.multiply(F[i], F[j], out=prods[:, c])
     sums = np.zeros((K, _PAIR_I.size))
     sums[own[starts]] = np.add.reduceat(prods, starts, axis=0)
     N = sums[:, _SYM]  # (K, 4, 4)
