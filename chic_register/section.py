@@ -206,7 +206,7 @@ def joint_windows(model, q: np.ndarray, tan: np.ndarray, found: np.ndarray, todo
     if len(footprints) and assignment is not None:
         _drop_foreign_blobs(keep, rr, cc, own, assignment, footprints)
     kept = np.flatnonzero(keep)
-    p, o = np.nonzero(hit[kept])
+    p, o = np.divmod(np.flatnonzero(hit[kept]), max(hit.shape[1], 1))  # (np.nonzero's row-major pairs, faster)
     return Windows(rr[kept], cc[kept], own[kept]), p, others[o]
 
 
