@@ -118,8 +118,8 @@ def _bounding_boxes(labels: np.ndarray, mask: np.ndarray, n: int) -> list:
     lab = labels.ravel()[flat]
     order = np.argsort(lab, kind="stable")  # stable: rows stay ascending within a label
     lab, rr, cc = lab[order], rr[order], cc[order]
-    starts = np.flatnonzero(np.r_[True, lab[1:] != lab[:-1]])
-    ends = np.r_[starts[1:], lab.size] - 1
+    starts = np.flatnonzero(np.concatenate(([True], lab[1:] != lab[:-1])))
+    ends = np.append(starts[1:], lab.size) - 1
     r0, r1 = rr[starts].tolist(), (rr[ends] + 1).tolist()
     c0, c1 = np.minimum.reduceat(cc, starts).tolist(), (np.maximum.reduceat(cc, starts) + 1).tolist()
     out = [None] * n

@@ -344,7 +344,7 @@ def fit_sections(model, T_F_from_I: np.ndarray, assignment: np.ndarray, pixels: 
     if todo.size == 0 or own.size == 0:
         return SectionFit(q, out_pos, out_info, out_gain, n_pix, fitted), windows
     y = np.asarray(pixels, dtype=float)[windows.rows, windows.cols]
-    starts = np.flatnonzero(np.r_[True, own[1:] != own[:-1]])  # windows are contiguous, one per tube
+    starts = np.flatnonzero(np.concatenate(([True], own[1:] != own[:-1])))  # windows are contiguous, one per tube
     at = q.copy()  # where each section model is drawn: the crossing, then the fitted position
     sel = todo
     at_crossing = None  # the model drawn at the crossings (the first fit's): the joint pass reuses it
@@ -405,7 +405,7 @@ def _joint_pass(model, T_F_from_I, q, tan, found, pixels, pixel_spacing_mm, slic
             return sel, at, info, a, n_pix
         neighbours = Windows(jw.rows[nb_p], jw.cols[nb_p], nb_k)
     y = np.asarray(pixels, dtype=float)[jw.rows, jw.cols]
-    starts = np.flatnonzero(np.r_[True, jw.owner[1:] != jw.owner[:-1]])
+    starts = np.flatnonzero(np.concatenate(([True], jw.owner[1:] != jw.owner[:-1])))
     S, Sx, Sy = _model_reusing(model, T_F_from_I, q, tan, jw, pixels.shape, pixel_spacing_mm, slice_thickness_mm,
                                thickness_samples, exact, at_crossing)
     for n_pass in range(JOINT_PASSES):
