@@ -170,18 +170,22 @@ def plane_crossings(model: TubeModel, T_F_from_I: np.ndarray, margin_mm: float =
         memo[key] = hit
     q, tan_I, zF, ok, tan_z = hit
     if margin_mm > 0:
-        lo, hi = model.z_lo - margin_mm, model.z_hi + margin_mm
+        bounds = memo.get(("margin", margin_mm))  # the extent widened by margin_mm: per model, not per pose
+        if bounds is None:
+            bounds = memo[("margin", margin_mm)] = (model.z_lo - margin_mm - 1e-6, model.z_hi + margin_mm + 1e-6)
+        inside = ok & (zF >= bounds[0]) & (zF <= bounds[1])
     else:
         # strict: the whole cross-section must lie within the tube, else the blob is cut short by the
         # tube's end and its centre is biased: half the cut's length along the tube, in z of F
         cos_a = np.maximum(np.abs(tan_I[:, 2]), 1e-6)
         clear = 0.5 * model.diameter_mm * np.sqrt(np.maximum(1 - cos_a * cos_a, 0.0)) / cos_a * np.abs(tan_z)
         lo, hi = model.z_lo + clear, model.z_hi - clear
-    inside = ok & (zF >= lo - 1e-6) & (zF <= hi + 1e-6)
+        inside = ok & (zF >= lo - 1e-6) & (zF <= hi + 1e-6)
     return q[:, :2].copy(), tan_I.copy(), zF.copy(), inside
 
 
-#: plane_crossings' memo per model (weakly held): pose bytes -> (q, tan_I, z_F, found, tangent z in F)
+#: plane_crossings' memo per model (weakly held): pose bytes -> (q, tan_I, z_F, found, tangent z in F), and
+#: ("margin", mm) -> the widened extent's bounds
 _CROSSINGS: "weakref.WeakKeyDictionary" = weakref.WeakKeyDictionary()
 
 
