@@ -271,13 +271,15 @@ def _crossing_jacobian(xy: np.ndarray, tan_I: np.ndarray) -> np.ndarray:
     ``delta = P x omega - v`` in the image frame and the crossing slides
     along the tangent back to z = 0: ``dq = delta_xy - (t_xy / t_z) delta_z``.
     """
-    x, y = xy[:, 0], xy[:, 1]
-    tz = tan_I[:, 2]
-    tz = np.where(np.abs(tz) < 1e-6, 1e-6, tz)
-    a, b = tan_I[:, 0] / tz, tan_I[:, 1] / tz
+    x, y = xy[:, 0:1], xy[:, 1]
+    tz = tan_I[:, 2:3]
+    ab = tan_I[:, :2] / np.where(np.abs(tz) < 1e-6, 1e-6, tz)  # (M, 2): a, b
     J = np.zeros((xy.shape[0], 2, 6))
-    J[:, 0, 0], J[:, 0, 1], J[:, 0, 2], J[:, 0, 3], J[:, 0, 5] = a * y, -a * x, y, -1.0, a
-    J[:, 1, 0], J[:, 1, 1], J[:, 1, 2], J[:, 1, 4], J[:, 1, 5] = b * y, -b * x, -x, -1.0, b
+    np.multiply(ab, y[:, None], out=J[:, :, 0])  # a y, b y
+    np.multiply(-ab, x, out=J[:, :, 1])  # -a x, -b x
+    J[:, 0, 2], J[:, 1, 2] = y, -x[:, 0]
+    J[:, 0, 3] = J[:, 1, 4] = -1.0
+    J[:, :, 5] = ab
     return J
 
 
