@@ -132,8 +132,24 @@ def prior_needed(geom: FiducialGeometry, tolerance_mm: float) -> str | None:
 
     The solver says this before it reads a pixel when no prior is given: the
     twin pose explains every slice exactly as well, so a search could only
-    end in an ambiguous fit (or, worse, a coin toss).
+    end in an ambiguous fit (or, worse, a coin toss). Memoised per distinct
+    geometry and tolerance (the solver asks on every call without a prior).
     """
+    from .tube_model import _GeometryKey
+
+    try:
+        return _memo_prior_needed(_GeometryKey(geom), float(tolerance_mm))
+    except TypeError:  # an unhashable value somewhere: no memo
+        return _prior_needed(geom, tolerance_mm)
+
+
+@functools.lru_cache(maxsize=16)
+def _memo_prior_needed(key, tolerance_mm: float) -> str | None:
+    return _prior_needed(key.geom, tolerance_mm)
+
+
+def _prior_needed(geom: FiducialGeometry, tolerance_mm: float) -> str | None:
+    """:func:`prior_needed` without the memo."""
     named = candidate_rotations(geom.body.length)
     coarse = _mismatches(geom, np.stack([R for _, R in named]), _COARSE_SAMPLES)
     if min(m for m, _ in coarse) > tolerance_mm:  # a lower bound of every mismatch: no symmetry (the common case)

@@ -187,6 +187,18 @@ def test_the_solvers_coarse_symmetry_test_bounds_the_full_one_from_below(zgeom, 
     assert prior_needed(neuro_geometry, 0.1) is None and prior_needed(needle_geometry, 0.1) is None
     assert prior_needed(needle_geometry, 0.7) is not None  # its half turn leaves the tubes 0.63 mm apart
 
+
+def test_prior_needed_memo_gives_what_the_test_itself_gives(zgeom, neuro_geometry, needle_geometry):
+    """prior_needed is memoised per geometry and tolerance: every answer equals the unmemoised test's, on repeat
+    calls too, and a different tolerance is not served another's answer."""
+    from chic_register.frame_symmetry import _prior_needed, prior_needed
+
+    for g in (zgeom, neuro_geometry, needle_geometry):
+        for tol in (0.05, 0.1, 0.7):
+            want = _prior_needed(g, tol)
+            assert prior_needed(g, tol) == want and prior_needed(g, tol) == want
+    assert prior_needed(needle_geometry, 0.1) is None and prior_needed(needle_geometry, 0.7) is not None
+
 @pytest.fixture(scope="module")
 def zcheck():
     return check_design(load_spec(ZFRAME))
