@@ -107,8 +107,10 @@ def initial_hypotheses(model: TubeModel, xy_mm: np.ndarray, ell: Ellipse, *,
         keep = n_lines >= (top if top >= 3 else max(top - 1, 1))
         b, nl = b[keep], n_lines[keep]
         key = np.round(np.degrees(_wrap(b))).astype(int)
-        _, first = np.unique(key, return_index=True)
-        for k in first:
+        first = {}  # each key's first index, keys ascending: np.unique(key, return_index=True)[1] without its sorts
+        for i, v in enumerate(key.tolist()):
+            first.setdefault(v, i)
+        for _, k in sorted(first.items()):
             for depth, n_hel in _helix_depths(model, hel, th + b[k], zr, tol):
                 rows.append((int(nl[k]) + n_hel, n_hel, s, h, float(b[k]), depth))
     rows.sort(key=lambda t: (-t[0], -t[1]))
