@@ -77,3 +77,24 @@ def test_crossing_jacobian_is_the_crossings_derivative(neuro_geometry):
         up = plane_crossings(model, T @ _exp_se3(xi), margin_mm=1e-9)[0][found]
         down = plane_crossings(model, T @ _exp_se3(-xi), margin_mm=1e-9)[0][found]
         assert np.allclose((up - down) / (2 * h), J[:, :, i], atol=1e-4)
+
+
+def test_geometry_key_memo_of_the_tubes_repr_is_the_repr(neuro_geometry):
+    """The geometry key's memo of ``repr(tubes)`` serves a tuple of immutable tubes its own repr, another tuple (a
+    changed tube) its own, and never memoises tubes holding a value a caller could change in place."""
+    import dataclasses
+
+    from chic_register.tube_model import _TUBES_REPR, _GeometryKey, _immutable_tubes, _tubes_repr
+
+    tubes = neuro_geometry.tubes
+    assert _immutable_tubes(tubes)
+    assert _GeometryKey(neuro_geometry).key[3] == repr(tubes) and _tubes_repr(tubes) == repr(tubes)
+    moved = tuple(dataclasses.replace(t, diameter=t.diameter + 0.5) if k == 4 else t for k, t in enumerate(tubes))
+    other = dataclasses.replace(neuro_geometry, tubes=moved)
+    assert _GeometryKey(other).key[3] == repr(moved) != repr(tubes)
+    assert _GeometryKey(other) != _GeometryKey(neuro_geometry)
+    assert prepare_geometry(other)[1] != prepare_geometry(neuro_geometry)[1]
+    held = tuple(dataclasses.replace(t, diameter=np.float64(t.diameter)) if k == 4 else t for k, t in enumerate(tubes))
+    assert not _immutable_tubes(held) and not _immutable_tubes(list(tubes))
+    _tubes_repr(held)
+    assert id(held) not in _TUBES_REPR
