@@ -38,7 +38,13 @@ class Slice:
 
     @property
     def normal(self) -> np.ndarray:
-        n = np.cross(self.col_dir, self.row_dir)
+        a, b = np.asarray(self.col_dir), np.asarray(self.row_dir)
+        if a.shape == b.shape == (3,) and a.dtype == b.dtype == np.float64:
+            # np.cross's own products and differences on floats (its array wrapper costs ~20 us a call)
+            (a0, a1, a2), (b0, b1, b2) = a.tolist(), b.tolist()
+            n = np.array([a1 * b2 - a2 * b1, a2 * b0 - a0 * b2, a0 * b1 - a1 * b0])
+        else:
+            n = np.cross(self.col_dir, self.row_dir)
         return n / np.linalg.norm(n)
 
     def T_scanner_from_image(self) -> np.ndarray:
