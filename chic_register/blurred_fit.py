@@ -349,7 +349,8 @@ def blob_width_ratio(model: TubeModel, slices, blob_sets, assignments) -> float:
             if i >= len(b.footprints):
                 continue
             r0, c0, mask = b.footprints[i]
-            w = np.clip(img[r0:r0 + mask.shape[0], c0:c0 + mask.shape[1]] - b.background, 0.0, None) * mask
+            # (np.clip(v, 0.0, None) is np.maximum(v, 0.0), less its wrapper)
+            w = np.maximum(img[r0:r0 + mask.shape[0], c0:c0 + mask.shape[1]] - b.background, 0.0) * mask
             total = float(w.sum())
             if not total > 0:
                 continue
@@ -357,9 +358,10 @@ def blob_width_ratio(model: TubeModel, slices, blob_sets, assignments) -> float:
             x = np.arange(mask.shape[1]) * cs
             wy, wx = w.sum(axis=1), w.sum(axis=0)  # the marginals give the means and variances
             my, mx = float(wy @ y) / total, float(wx @ x) / total
-            cyy = float(wy @ (y - my) ** 2) / total - rs * rs / 12
-            cxx = float(wx @ (x - mx) ** 2) / total - cs * cs / 12
-            cxy = float((y - my) @ w @ (x - mx)) / total
+            dy, dx = y - my, x - mx
+            cyy = float(wy @ (dy * dy)) / total - rs * rs / 12
+            cxx = float(wx @ (dx * dx)) / total - cs * cs / 12
+            cxy = float(dy @ w @ dx) / total
             minor = 0.5 * (cxx + cyy) - math.sqrt(0.25 * (cxx - cyy) ** 2 + cxy * cxy)
             if minor > 0:
                 ratios.append(4.0 * math.sqrt(minor) / float(model.diameter_mm[k]))
