@@ -80,18 +80,35 @@ def slice_frame(depth_mm: float, tilt_deg: float, azimuth_deg: float = 0.0, twis
     return rigid(R, (0.0, 0.0, depth_mm))
 
 
+def _upward(T_F_from_S: np.ndarray):
+    """``(R, n, p)``: the frame's rotation, turned half about its x axis when its normal points down (n_z < 0),
+    that normal (R's third column) and the frame's origin, all in F."""
+    R = np.asarray(T_F_from_S[:3, :3], dtype=float)
+    p = np.asarray(T_F_from_S[:3, 3], dtype=float)
+    if R[2, 2] < 0:
+        R = R @ np.diag([1.0, -1.0, -1.0])
+    return R, R[:, 2], p
+
+
+def _depth(n: np.ndarray, p: np.ndarray) -> float:
+    """Where the plane through ``p`` with normal ``n`` crosses the z axis (mm); NaN when parallel to it."""
+    return float(n @ p / n[2]) if abs(n[2]) > 1e-9 else float("nan")
+
+
+def slice_depth_mm(T_F_from_S: np.ndarray) -> float:
+    """``slice_angles(T_F_from_S).depth_mm`` alone (the trust check's question, without the angles' work)."""
+    _, n, p = _upward(T_F_from_S)
+    return _depth(n, p)
+
+
 def slice_angles(T_F_from_S: np.ndarray) -> SliceAngles:
     """Inverse of :func:`slice_frame` for any frame S of the image plane (any origin in it).
 
     ``depth_mm`` is NaN when the plane is parallel to the axis.
     """
-    R = np.asarray(T_F_from_S[:3, :3], dtype=float)
-    p = np.asarray(T_F_from_S[:3, 3], dtype=float)
-    if R[2, 2] < 0:
-        R = R @ np.diag([1.0, -1.0, -1.0])
-    n = R[:, 2]
+    R, n, p = _upward(T_F_from_S)
     tilt = math.degrees(math.acos(min(1.0, max(-1.0, n[2]))))
-    depth = float(n @ p / n[2]) if abs(n[2]) > 1e-9 else float("nan")
+    depth = _depth(n, p)
     azimuth = math.degrees(math.atan2(n[1], n[0])) if math.hypot(n[0], n[1]) > 1e-12 else 0.0
     M = rot_y(-tilt) @ rot_z(-azimuth) @ R
     gamma = math.degrees(math.atan2(M[1, 0], M[0, 0]))

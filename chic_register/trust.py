@@ -16,7 +16,7 @@ import numpy as np
 
 from .detect import Blobs
 from .errors import AmbiguousFit, NoLock
-from .pose import slice_angles
+from .pose import slice_depth_mm
 from .refine import _Fit
 from .slices import Slice
 from .tube_model import TubeModel
@@ -118,11 +118,11 @@ def _check_trust(fit: _Fit, others: list[_Fit], model: TubeModel, slices: list[S
             raise NoLock(f"{sl.source}: a tube residual of {res.max():.3f} mm exceeds "
                          f"{opts.max_residual_px:g} px", {"max_residual_mm": round(float(res.max()), 4)})
         T_F_from_I = fit.T_F_from_scanner @ (Ss[j] if Ss is not None else sl.T_scanner_from_image())
-        ang = slice_angles(T_F_from_I)
-        if not (0.0 <= ang.depth_mm <= model.length_mm):
-            raise NoLock(f"{sl.source}: the slice crosses the fiducial axis at depth {ang.depth_mm:.1f} mm, "
+        depth_mm = slice_depth_mm(T_F_from_I)
+        if not (0.0 <= depth_mm <= model.length_mm):
+            raise NoLock(f"{sl.source}: the slice crosses the fiducial axis at depth {depth_mm:.1f} mm, "
                          f"outside the body [0, {model.length_mm:g}] mm",
-                         {"depth_mm": round(float(ang.depth_mm), 3)})
+                         {"depth_mm": round(float(depth_mm), 3)})
     need_depth = min(opts.min_depth_tubes, int(model.depth_coding.sum()))
     if fit.n_matched < opts.min_tubes or n_depth < need_depth:
         name = _depth_tube_name(model)
