@@ -23,6 +23,7 @@ from __future__ import annotations
 import functools
 import itertools
 import math
+import weakref
 from dataclasses import dataclass
 from typing import TYPE_CHECKING
 
@@ -136,24 +137,20 @@ def _helix_depths(model: TubeModel, hel: np.ndarray, theta_F: np.ndarray, zr: np
     L = model.length_mm
     if hel.size == 0:
         return [(L / 2, 0)]
-    th0, om, z0 = model.theta0_rad[hel], model.omega_rad_per_mm[hel], model.z0[hel]
-    zlo, zhi = model.z_lo[hel], model.z_hi[hel]
+    th0, om, z0, period, zmid, z_above, z_below, dtol, ids = _helix_terms(model, hel, tol)
     # z = z0 + (theta - th0 + 2 pi m) / om, pick m nearest to the middle of the tube
-    raw = (theta_F[:, None] - th0[None, :]) / om[None, :]  # (N,H)
-    period = 2 * np.pi / np.abs(om)
-    zmid = (zlo + zhi) / 2 - z0
-    m = np.round((zmid[None, :] - raw) / period[None, :])
-    z = z0[None, :] + raw + m * period[None, :]
+    raw = (theta_F[:, None] - th0) / om  # (N,H)
+    m = np.round((zmid - raw) / period)
+    z = z0 + raw + m * period
     d = z - zr[:, None]
-    inside = (z > zlo - 3) & (z < zhi + 3)
-    dtol = tol / np.abs(om)  # depth tolerance of the angle tolerance
+    inside = (z > z_above) & (z < z_below)
     dv = d[inside]
-    hv = np.broadcast_to(np.arange(hel.size), d.shape)[inside]
+    hv = np.nonzero(inside)[1]  # the helix of each (the column indices, in the mask's order)
     if dv.size == 0:
         return [(L / 2, 0)]
     diff = np.abs(dv[:, None] - dv[None, :])
     close = diff < dtol[hv][None, :]
-    onehot = hv[:, None] == np.arange(hel.size)[None, :]  # (M, H)
+    onehot = hv[:, None] == ids  # (M, H)
     n = ((close.astype(float) @ onehot) > 0).sum(axis=1)  # helices agreeing with each depth
     spread = np.where(close, diff, 0).sum(axis=1) / np.maximum(close.sum(axis=1), 1)
     means = (close @ dv) / close.sum(axis=1)  # each row holds its own depth: never empty
@@ -166,6 +163,31 @@ def _helix_depths(model: TubeModel, hel: np.ndarray, theta_F: np.ndarray, zr: np
         if len(out) >= n_best:
             break
     return out
+
+
+def _helix_terms(model: TubeModel, hel: np.ndarray, tol: float) -> tuple:
+    """:func:`_helix_depths`' per-geometry terms, each (1, H) (memoised per model, helices and tolerance):
+    ``(theta0, omega, z0, period, middle - z0, z_lo - 3, z_hi + 3, depth tolerance, helix numbers)``."""
+    memo = _HELIX_TERMS.setdefault(model, {})
+    key = (hel.tobytes(), tol)
+    terms = memo.get(key)
+    if terms is None:
+        th0, om, z0 = model.theta0_rad[hel], model.omega_rad_per_mm[hel], model.z0[hel]
+        zlo, zhi = model.z_lo[hel], model.z_hi[hel]
+        period = 2 * np.pi / np.abs(om)
+        zmid = (zlo + zhi) / 2 - z0
+        dtol = tol / np.abs(om)  # depth tolerance of the angle tolerance
+        terms = (th0[None, :], om[None, :], z0[None, :], period[None, :], zmid[None, :], (zlo - 3)[None, :],
+                 (zhi + 3)[None, :], dtol, np.arange(hel.size)[None, :])
+        for a in terms:
+            a.flags.writeable = False
+        if len(memo) >= 16:
+            memo.clear()
+        memo[key] = terms
+    return terms
+
+
+_HELIX_TERMS: weakref.WeakKeyDictionary = weakref.WeakKeyDictionary()
 
 
 def _pose_from_hypothesis(ell: Ellipse, cos_t, sin_t, s, h, beta, depth) -> np.ndarray:
