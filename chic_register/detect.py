@@ -107,6 +107,17 @@ def median(values) -> float:
     return 0.5 * (float(p[h - 1]) + float(p[h]))
 
 
+def _mean_std(values: np.ndarray) -> tuple[float, float]:
+    """``(values.mean(), values.std())`` of a 1-D float64 array, by numpy's own sums and steps (the same numbers
+    bit for bit) without its wrappers; NaNs when empty."""
+    n = values.size
+    if n == 0:
+        return math.nan, math.nan
+    mean = float(np.add.reduce(values) / n)
+    dev = values - mean
+    return mean, math.sqrt(float(np.add.reduce(dev * dev)) / n)
+
+
 def _bounding_boxes(labels: np.ndarray, mask: np.ndarray, n: int) -> list:
     """Per label 1..n, ``(row slice, col slice)`` of its bounding box (``scipy.ndimage.find_objects``'s result).
 
@@ -323,8 +334,7 @@ def _detect(pixels, pixel_spacing_mm, tube_diameter_mm: float, min_area_factor: 
     bg_pixels = sub_img[sub_smooth < base + 0.25 * (thr - base)]
     if bg_pixels.size < 16:
         bg_pixels = sub_img[sub_smooth <= base]
-    bg = float(bg_pixels.mean())
-    sigma_n = float(bg_pixels.std())
+    bg, sigma_n = _mean_std(bg_pixels)
     if n == 0:
         return Blobs.empty(bg, sigma_n, thr)
     area = np.bincount(labels[mask], minlength=n + 1)[1:]  # only the labelled pixels: far fewer

@@ -91,12 +91,13 @@ def initial_hypotheses(model: TubeModel, xy_mm: np.ndarray, ell: Ellipse, *,
     for h in sorted({h for _, h in signs}, reverse=True):  # the line match does not depend on s
         th = np.arctan2(h * w, u * cos_t)  # (N,)
         beta = (line_ang[None, :] - th[:, None]).ravel()  # (B,)
+        rows_b, cols_l = np.arange(beta.size)[:, None], np.arange(Kl)[None, :]
         # th[n] - th[i] + ang[l] - ang[m], each difference wrapped first: one add and two compares to wrap
         e = (_wrap(th[None, :] - th[:, None])[:, None, :, None]
              + _wrap(line_ang[:, None] - line_ang[None, :])[None, :, None, :]).reshape(beta.size, th.size, Kl)
         e = np.where(e >= np.pi, e - 2 * np.pi, np.where(e < -np.pi, e + 2 * np.pi, e))  # (B,N,Kl)
         jmin = np.argmin(np.abs(e), axis=1)  # (B,Kl)
-        emin = np.take_along_axis(e, jmin[:, None, :], axis=1)[:, 0, :]
+        emin = e[rows_b, jmin, cols_l]  # np.take_along_axis(e, jmin[:, None, :], axis=1)[:, 0, :], less its wrapper
         hit = np.abs(emin) < tol
         n_lines = hit.sum(axis=1)
         b = beta - np.where(hit, emin, 0).sum(axis=1) / np.maximum(n_lines, 1)
