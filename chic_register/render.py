@@ -87,14 +87,10 @@ def _unit_clip(x: np.ndarray) -> np.ndarray:
     return np.minimum(x, 1.0, out=x)
 
 
-def _render_crossing(tube, u_c: float, T_F_from_S: np.ndarray, z_mm: float, grid: _Grid, layer: np.ndarray):
-    """Fluid fraction of one tube crossing in the sub-plane ``z = z_mm`` of S, max-composited into ``layer``."""
-    R = T_F_from_S[:3, :3]
-    tF = T_F_from_S[:3, 3]
-    c = (tube.points(u_c)[0] - tF) @ R
-    t = tube.tangents(u_c)[0] @ R
-    r = 0.5 * tube.diameter
-    length = tube.length_mm
+def _crossing_box(c: np.ndarray, t: np.ndarray, r: float, length: float, z_mm: float, pixel_mm: float):
+    """``(x, y, hx, hy)`` (mm): the centre in the sub-plane ``z = z_mm`` of S of one crossing's section (a tube of
+    radius ``r``, ``length``, its centreline point ``c`` and unit tangent ``t`` in S) and the half-extents of the
+    box that holds it, two pixels (``pixel_mm``) wider."""
     # in-plane section: inside the ellipse (semi-axes a along the tangent's projection,
     # and r) about the tangent line's crossing; c itself is off the plane when a line
     # crossing was clipped to the tube's end
@@ -106,10 +102,44 @@ def _render_crossing(tube, u_c: float, T_F_from_S: np.ndarray, z_mm: float, grid
         centre, a = c, length + r
     txy = math.hypot(t[0], t[1])
     ux, uy = (t[0] / txy, t[1] / txy) if txy > 1e-12 else (1.0, 0.0)
-    margin = 2.0 * max(grid.spacing)
+    margin = 2.0 * pixel_mm
     hx = math.sqrt((a * ux) ** 2 + (r * uy) ** 2) + margin
     hy = math.sqrt((a * uy) ** 2 + (r * ux) ** 2) + margin
-    box = grid.box(centre[0], centre[1], hx, hy)
+    return centre[0], centre[1], hx, hy
+
+
+def _coverage(perp_x, perp_y, dist, u, r, length, t_x, t_y, hs_x: float, hs_y: float) -> np.ndarray:
+    """Fluid fraction of samples (arrays of one shape): ``perp_*`` the in-plane components of each sample's offset
+    from the centreline (its length ``dist`` in 3-D), ``u`` its centreline parameter; ``r``, ``length`` the tube's
+    radius and length and ``t_*`` its tangent's in-plane components in S (numbers, or arrays of the samples'
+    shape); ``hs_*`` the half-footprint of a sample. A linear ramp across the sample's footprint at the wall and
+    at the tube's ends."""
+    if dist.all():  # (no sample on the centreline: nothing to silence)
+        gx = np.abs(perp_x) / dist
+        gy = np.abs(perp_y) / dist
+    else:
+        with np.errstate(invalid="ignore", divide="ignore"):
+            gx = np.abs(perp_x) / dist
+            gy = np.abs(perp_y) / dist
+    w_r = hs_x * gx + hs_y * gy
+    if not np.isfinite(w_r).all():  # a sample on the centreline (0 / 0)
+        w_r = np.nan_to_num(w_r, nan=0.0)
+    cov = _unit_clip(0.5 + (r - dist) / np.maximum(w_r, 1e-12))
+    inside_mm = np.minimum(u, 1.0 - u) * length
+    w_e = hs_x * np.abs(t_x) + hs_y * np.abs(t_y)
+    cov *= _unit_clip(0.5 + inside_mm / np.maximum(w_e, 1e-12))
+    return cov
+
+
+def _render_crossing(tube, u_c: float, T_F_from_S: np.ndarray, z_mm: float, grid: _Grid, layer: np.ndarray):
+    """Fluid fraction of one tube crossing in the sub-plane ``z = z_mm`` of S, max-composited into ``layer``."""
+    R = T_F_from_S[:3, :3]
+    tF = T_F_from_S[:3, 3]
+    c = (tube.points(u_c)[0] - tF) @ R
+    t = tube.tangents(u_c)[0] @ R
+    r = 0.5 * tube.diameter
+    length = tube.length_mm
+    box = grid.box(*_crossing_box(c, t, r, length, z_mm, max(grid.spacing)))
     if box is None:
         return
     i0, i1, j0, j1 = box
@@ -129,21 +159,7 @@ def _render_crossing(tube, u_c: float, T_F_from_S: np.ndarray, z_mm: float, grid
         perp = pc - s0[..., None] * t
     dist = np.sqrt(np.einsum("...i,...i->...", perp, perp))
     rs, cs = grid.spacing
-    hs_x, hs_y = cs / grid.sub.size, rs / grid.sub.size
-    if dist.all():  # (no sample on the centreline: nothing to silence)
-        gx = np.abs(perp[..., 0]) / dist
-        gy = np.abs(perp[..., 1]) / dist
-    else:
-        with np.errstate(invalid="ignore", divide="ignore"):
-            gx = np.abs(perp[..., 0]) / dist
-            gy = np.abs(perp[..., 1]) / dist
-    w_r = hs_x * gx + hs_y * gy
-    if not np.isfinite(w_r).all():  # a sample on the centreline (0 / 0)
-        w_r = np.nan_to_num(w_r, nan=0.0)
-    cov = _unit_clip(0.5 + (r - dist) / np.maximum(w_r, 1e-12))
-    inside_mm = np.minimum(u, 1.0 - u) * length
-    w_e = hs_x * abs(t[0]) + hs_y * abs(t[1])
-    cov *= _unit_clip(0.5 + inside_mm / max(w_e, 1e-12))
+    cov = _coverage(perp[..., 0], perp[..., 1], dist, u, r, length, t[0], t[1], cs / grid.sub.size, rs / grid.sub.size)
     frac = cov[..., 0] if cov.shape[-1] == 1 else cov.mean(axis=-1)  # (one sample a pixel: its own value)
     region = layer[i0 : i1 + 1, j0 : j1 + 1]
     np.maximum(region, frac, out=region)
@@ -220,3 +236,121 @@ def render_slice(
         geom.tubes, T_F_from_S, shape, pixel_spacing_mm, slice_thickness_mm,
         center_px, supersample, thickness_samples,
     )
+
+
+def render_windows(windows, T_F_from_S: np.ndarray, pixel_spacing_mm, slice_thickness_mm: float,
+                   thickness_samples: int) -> list[np.ndarray]:
+    """Each tube drawn alone in its own window, all at once: ``windows`` ``[(tube, r0, c0, h, w)]``, one image
+    (h, w) each, as ``render_tubes([tube], T_F_from_S, (h, w), pixel_spacing_mm, slice_thickness_mm,
+    center_px=(-r0, -c0), supersample=1, thickness_samples=thickness_samples)`` draws it (to rounding).
+
+    The verification (:mod:`chic_register.window_stats`) draws a dozen small windows per pose: one pass of array
+    arithmetic over every section's pixels replaces one per section and sub-plane, whose cost was numpy's per-call
+    overhead. The same crossings, boxes and coverage (:func:`_crossing_box`, :func:`_coverage`).
+    """
+    rs, cs = (float(v) for v in pixel_spacing_mm)
+    T = np.asarray(T_F_from_S, dtype=float)
+    R, tF, normal = T[:3, :3], T[:3, 3], T[:3, 2]
+    offsets = _plane_offsets_mm(float(slice_thickness_mm), int(thickness_samples))
+    L = offsets.size
+    sizes = [h * w for _, _, _, h, w in windows]
+    starts = np.concatenate([[0], np.cumsum(sizes)]).astype(int)
+    total = int(starts[-1])
+    # the crossings, window by window (a window's samples are then contiguous), each sub-plane's in turn
+    cross = []  # (window, sub-plane, u_c)
+    origins = [tF + dz * normal for dz in offsets]
+    for n, (tube, *_) in enumerate(windows):
+        margin = 4.0 * tube.diameter + 0.5 * float(slice_thickness_mm)
+        for l, o in enumerate(origins):
+            cross.extend((n, l, float(u)) for u in tube.section_params(o, normal, margin))
+    buf = np.zeros((L, total))
+    if cross and total:
+        _draw_crossings(windows, cross, T, offsets, (rs, cs), starts, buf)
+    image = buf[0].copy()
+    for layer in buf[1:]:
+        image += layer
+    image /= L
+    np.clip(image, 0.0, 1.0, out=image)
+    return [image[starts[n]:starts[n + 1]].reshape(h, w) for n, (_, _, _, h, w) in enumerate(windows)]
+
+
+def _draw_crossings(windows, cross, T, offsets, spacing, starts, buf) -> None:
+    """:func:`render_windows`' crossings ``[(window, sub-plane, u_c)]`` max-composited into ``buf`` (sub-planes,
+    all windows' pixels)."""
+    rs, cs = spacing
+    R, tF = T[:3, :3], T[:3, 3]
+    px = max(rs, cs)
+    idx = np.array([c[0] for c in cross])
+    lay = np.array([c[1] for c in cross])
+    uc = np.array([c[2] for c in cross])
+    C = np.empty((len(cross), 3))
+    Tg = np.empty((len(cross), 3))
+    for n in np.unique(idx).tolist():  # a tube's points and tangents in one call each
+        sel = idx == n
+        tube = windows[n][0]
+        C[sel] = tube.points(uc[sel])
+        Tg[sel] = tube.tangents(uc[sel])
+    C = (C - tF) @ R
+    Tg = Tg @ R
+    keep, boxes = [], []
+    for m, (n, l, _) in enumerate(cross):
+        tube, r0, c0, h, w = windows[n]
+        x, y, hx, hy = _crossing_box(C[m], Tg[m], 0.5 * tube.diameter, tube.length_mm, offsets[l], px)
+        box = _Grid((h, w), (rs, cs), (-float(r0), -float(c0)), None).box(x, y, hx, hy)
+        if box is not None:
+            keep.append(m)
+            boxes.append(box)
+    if not keep:
+        return
+    keep = np.array(keep)
+    i0, i1, j0, j1 = np.array(boxes).T
+    ni, nj = i1 - i0 + 1, j1 - j0 + 1
+    count = ni * nj
+    first = np.concatenate([[0], np.cumsum(count)[:-1]])
+    which = np.repeat(np.arange(keep.size), count)  # each sample's crossing (among those kept)
+    local = np.arange(int(count.sum())) - first[which]
+    nj_s = nj[which]
+    row = local // nj_s + i0[which]
+    col = local % nj_s + j0[which]
+    m = keep[which]
+    win = idx[m]
+    r0s = np.array([w[1] for w in windows], dtype=float)[win]
+    c0s = np.array([w[2] for w in windows], dtype=float)[win]
+    # sample points in S (one sample a pixel, at its centre), as _Grid.samples
+    px_x = (col + c0s) * cs
+    px_y = (row + r0s) * rs
+    px_z = offsets[lay[m]]
+    c, t = C[m], Tg[m]
+    lengths = np.array([w[0].length_mm for w in windows])[win]
+    pcx, pcy, pcz = px_x - c[:, 0], px_y - c[:, 1], px_z - c[:, 2]
+    s0 = pcx * t[:, 0] + pcy * t[:, 1] + pcz * t[:, 2]  # arc length along the tangent line
+    u = uc[m] + s0 / lengths
+    perp_x, perp_y, perp_z = pcx - s0 * t[:, 0], pcy - s0 * t[:, 1], pcz - s0 * t[:, 2]
+    bounds = np.concatenate([[0], np.flatnonzero(np.diff(win)) + 1, [win.size]])
+    for a, b in zip(bounds[:-1], bounds[1:]):  # curved tubes: re-project on the exact centreline (second order)
+        tube = windows[int(win[a])][0]
+        if not tube.curved:
+            continue
+        q = (tube.points(u[a:b]) - tF) @ R
+        tq = tube.tangents(u[a:b]) @ R
+        dx, dy, dz = px_x[a:b] - q[:, 0], px_y[a:b] - q[:, 1], px_z[a:b] - q[:, 2]
+        along = dx * tq[:, 0] + dy * tq[:, 1] + dz * tq[:, 2]
+        perp_x[a:b], perp_y[a:b], perp_z[a:b] = dx - along * tq[:, 0], dy - along * tq[:, 1], dz - along * tq[:, 2]
+        u[a:b] += along / lengths[a:b]
+    dist = np.sqrt(perp_x * perp_x + perp_y * perp_y + perp_z * perp_z)
+    radii = np.array([0.5 * w[0].diameter for w in windows])[win]
+    frac = _coverage(perp_x, perp_y, dist, u, radii, lengths, t[:, 0], t[:, 1], cs, rs)
+    widths = np.array([w[4] for w in windows])[win]
+    dest = lay[m] * buf.shape[1] + starts[win] + row * widths + col
+    flat = buf.reshape(-1)
+    # sections of one window and sub-plane may overlap (a helix crossing a plane twice): composited in turns
+    key = idx[keep] * len(offsets) + lay[keep]
+    order = np.zeros(keep.size, dtype=int)
+    seen: dict = {}
+    for k, v in enumerate(key.tolist()):
+        order[k] = seen.get(v, 0)
+        seen[v] = order[k] + 1
+    turn = order[which]
+    for p in range(int(order.max()) + 1):
+        sel = slice(None) if not order.any() else turn == p
+        flat[dest[sel]] = np.maximum(flat[dest[sel]], frac[sel])

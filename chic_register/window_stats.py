@@ -11,12 +11,11 @@ from dataclasses import dataclass
 import numpy as np
 
 from .detect import _dilate
-from .render import render_tubes
+from .render import render_windows
 from .tube_model import _section_box, _section_extent, plane_crossings
 
-#: Render settings: sub-samples per pixel side (the renderer's coverage ramp anti-aliases edges already) and at
-#: most this many sub-planes over the slab.
-SUPERSAMPLE = 1
+#: Render settings: one sample a pixel (:func:`chic_register.render.render_windows`; the renderer's coverage ramp
+#: anti-aliases edges already) and at most this many sub-planes over the slab.
 MAX_THICKNESS_SAMPLES = 3
 #: One more sub-plane for every this many pixels of slab smear along a section (the renderer averages the
 #: sub-planes; between them the section's end is a ramp, within the shape tolerance at 4 px).
@@ -50,10 +49,8 @@ def _windows(geom, model, T_F_from_I, shape, spacing, thickness_mm, margin_px: f
     txy = np.hypot(tan[:, 0], tan[:, 1])
     smear_px = float(np.max(thickness_mm * txy / np.maximum(np.abs(tan[:, 2]), 1e-3))) / px if txy.size else 0.0
     ts = int(min(MAX_THICKNESS_SAMPLES, max(1, math.ceil(smear_px / SMEAR_PX_PER_SAMPLE) + 1)))
-    render = {"pixel_spacing_mm": (rs, cs), "slice_thickness_mm": thickness_mm, "supersample": SUPERSAMPLE,
-              "thickness_samples": ts}
     H, W = shape
-    boxes = {}
+    todo = []
     for k in np.flatnonzero(found):
         r0, r1 = int(math.floor((q[k, 1] - ey[k]) / rs)), int(math.ceil((q[k, 1] + ey[k]) / rs)) + 1
         c0, c1 = int(math.floor((q[k, 0] - ex[k]) / cs)), int(math.ceil((q[k, 0] + ex[k]) / cs)) + 1
@@ -61,10 +58,10 @@ def _windows(geom, model, T_F_from_I, shape, spacing, thickness_mm, margin_px: f
         r0, r1, c0, c1 = max(r0, 0), min(r1, H), max(c0, 0), min(c1, W)
         if r1 - r0 < 2 or c1 - c0 < 2 or (r1 - r0) * (c1 - c0) > H * W // 4:
             continue
-        img = render_tubes([geom.tubes[k]], T_F_from_I, (r1 - r0, c1 - c0), center_px=(-float(r0), -float(c0)),
-                           **render)
-        if img.max() > 0:
-            boxes[int(k)] = (r0, c0, img, inside)
+        todo.append((int(k), r0, c0, r1 - r0, c1 - c0, inside))
+    imgs = render_windows([(geom.tubes[k], r0, c0, h, w) for k, r0, c0, h, w, _ in todo], T_F_from_I, (rs, cs),
+                          thickness_mm, ts) if todo else []
+    boxes = {k: (r0, c0, img, inside) for (k, r0, c0, _, _, inside), img in zip(todo, imgs) if img.max() > 0}
     out = []
     canvas = np.zeros(shape)
     for k, (r0, c0, img, inside) in boxes.items():
