@@ -31,6 +31,7 @@ from dataclasses import dataclass
 import numpy as np
 
 from .geometry import FiducialGeometry
+from .tubes import helix_points, helix_tangents
 
 
 def sample_offsets(n: int) -> np.ndarray:
@@ -89,23 +90,23 @@ def _unit_clip(x: np.ndarray) -> np.ndarray:
 
 def _crossing_box(c: np.ndarray, t: np.ndarray, r: float, length: float, z_mm: float, pixel_mm: float):
     """``(x, y, hx, hy)`` (mm): the centre in the sub-plane ``z = z_mm`` of S of one crossing's section (a tube of
-    radius ``r``, ``length``, its centreline point ``c`` and unit tangent ``t`` in S) and the half-extents of the
-    box that holds it, two pixels (``pixel_mm``) wider."""
+    radius ``r``, ``length``, its centreline point ``c`` and unit tangent ``t`` in S: three numbers each) and the
+    half-extents of the box that holds it, two pixels (``pixel_mm``) wider."""
     # in-plane section: inside the ellipse (semi-axes a along the tangent's projection,
     # and r) about the tangent line's crossing; c itself is off the plane when a line
     # crossing was clipped to the tube's end
     shift = (c[2] - z_mm) / t[2] if abs(t[2]) > 1e-9 else math.inf
     if abs(shift) <= length:
-        centre = c - shift * t
+        x, y = c[0] - shift * t[0], c[1] - shift * t[1]
         a = min(r / max(abs(t[2]), 1e-6), length + r)
     else:  # (nearly) parallel to the plane: a band along the segment
-        centre, a = c, length + r
+        x, y, a = c[0], c[1], length + r
     txy = math.hypot(t[0], t[1])
     ux, uy = (t[0] / txy, t[1] / txy) if txy > 1e-12 else (1.0, 0.0)
     margin = 2.0 * pixel_mm
     hx = math.sqrt((a * ux) ** 2 + (r * uy) ** 2) + margin
     hy = math.sqrt((a * uy) ** 2 + (r * ux) ** 2) + margin
-    return centre[0], centre[1], hx, hy
+    return x, y, hx, hy
 
 
 def _coverage(perp_x, perp_y, dist, u, r, length, t_x, t_y, hs_x: float, hs_y: float) -> np.ndarray:
@@ -275,82 +276,84 @@ def render_windows(windows, T_F_from_S: np.ndarray, pixel_spacing_mm, slice_thic
 
 
 def _draw_crossings(windows, cross, T, offsets, spacing, starts, buf) -> None:
-    """:func:`render_windows`' crossings ``[(window, sub-plane, u_c)]`` max-composited into ``buf`` (sub-planes,
-    all windows' pixels)."""
+    """:func:`render_windows`' crossings ``[(window, sub-plane, u_c)]`` (window by window) max-composited into
+    ``buf`` (sub-planes, all windows' pixels)."""
     rs, cs = spacing
     R, tF = T[:3, :3], T[:3, 3]
     px = max(rs, cs)
-    idx = np.array([c[0] for c in cross])
-    lay = np.array([c[1] for c in cross])
     uc = np.array([c[2] for c in cross])
     C = np.empty((len(cross), 3))
     Tg = np.empty((len(cross), 3))
-    for n in np.unique(idx).tolist():  # a tube's points and tangents in one call each
-        sel = idx == n
-        tube = windows[n][0]
-        C[sel] = tube.points(uc[sel])
-        Tg[sel] = tube.tangents(uc[sel])
+    a = 0
+    while a < len(cross):  # a tube's points and tangents in one call each (its crossings are contiguous)
+        n = cross[a][0]
+        b = a + 1
+        while b < len(cross) and cross[b][0] == n:
+            b += 1
+        C[a:b] = windows[n][0].points(uc[a:b])
+        Tg[a:b] = windows[n][0].tangents(uc[a:b])
+        a = b
     C = (C - tF) @ R
     Tg = Tg @ R
-    keep, boxes = [], []
-    for m, (n, l, _) in enumerate(cross):
+    rows = []  # per crossing drawn: its box and what its samples need
+    total = buf.shape[1]
+    grids = {}
+    for m, ((n, l, u), c, t) in enumerate(zip(cross, C.tolist(), Tg.tolist())):
         tube, r0, c0, h, w = windows[n]
-        x, y, hx, hy = _crossing_box(C[m], Tg[m], 0.5 * tube.diameter, tube.length_mm, offsets[l], px)
-        box = _Grid((h, w), (rs, cs), (-float(r0), -float(c0)), None).box(x, y, hx, hy)
-        if box is not None:
-            keep.append(m)
-            boxes.append(box)
-    if not keep:
+        if n not in grids:
+            grids[n] = _Grid((h, w), (rs, cs), (-float(r0), -float(c0)), None)
+        r, length, z = 0.5 * tube.diameter, tube.length_mm, float(offsets[l])
+        box = grids[n].box(*_crossing_box(c, t, r, length, z, px))
+        if box is not None:  # (helices: the Tube protocol's only curved kind)
+            i0, i1, j0, j1 = box
+            helix = (tube.radius, tube.theta0_deg, tube.pitch_deg_per_mm, tube.z0, tube.z1) if tube.curved else ()
+            rows.append((n, l, i1 - i0 + 1, j1 - j0 + 1, *c, *t, u, length, r, z, i0 + r0, j0 + c0,
+                         l * total + int(starts[n]) + i0 * w + j0, w, *(helix or (0.0,) * 5), bool(helix)))
+    if not rows:
         return
-    keep = np.array(keep)
-    i0, i1, j0, j1 = np.array(boxes).T
-    ni, nj = i1 - i0 + 1, j1 - j0 + 1
+    rows.sort(key=lambda row: row[-1])  # the helices' crossings last: their samples are the arrays' tail
+    P = np.array(rows, dtype=float).T  # (fields, crossings drawn)
+    win, lay = P[0].astype(int), P[1].astype(int)
+    ni, nj = P[2].astype(int), P[3].astype(int)
     count = ni * nj
-    first = np.concatenate([[0], np.cumsum(count)[:-1]])
-    which = np.repeat(np.arange(keep.size), count)  # each sample's crossing (among those kept)
-    local = np.arange(int(count.sum())) - first[which]
-    nj_s = nj[which]
-    row = local // nj_s + i0[which]
-    col = local % nj_s + j0[which]
-    m = keep[which]
-    win = idx[m]
-    r0s = np.array([w[1] for w in windows], dtype=float)[win]
-    c0s = np.array([w[2] for w in windows], dtype=float)[win]
+    Q = np.repeat(P[4:], count, axis=1)  # each sample's crossing's fields
+    cvec, tvec, u_c, length, radius, z_mm, row0, col0, base, width = (
+        Q[0:3], Q[3:6], Q[6], Q[7], Q[8], Q[9], Q[10], Q[11], Q[12], Q[13])
+    local = np.arange(Q.shape[1]) - np.repeat(np.cumsum(count) - count, count)
+    nj_s = np.repeat(nj, count)
+    row = local // nj_s
+    col = local - row * nj_s
     # sample points in S (one sample a pixel, at its centre), as _Grid.samples
-    px_x = (col + c0s) * cs
-    px_y = (row + r0s) * rs
-    px_z = offsets[lay[m]]
-    c, t = C[m], Tg[m]
-    lengths = np.array([w[0].length_mm for w in windows])[win]
-    pcx, pcy, pcz = px_x - c[:, 0], px_y - c[:, 1], px_z - c[:, 2]
-    s0 = pcx * t[:, 0] + pcy * t[:, 1] + pcz * t[:, 2]  # arc length along the tangent line
-    u = uc[m] + s0 / lengths
-    perp_x, perp_y, perp_z = pcx - s0 * t[:, 0], pcy - s0 * t[:, 1], pcz - s0 * t[:, 2]
-    bounds = np.concatenate([[0], np.flatnonzero(np.diff(win)) + 1, [win.size]])
-    for a, b in zip(bounds[:-1], bounds[1:]):  # curved tubes: re-project on the exact centreline (second order)
-        tube = windows[int(win[a])][0]
-        if not tube.curved:
-            continue
-        q = (tube.points(u[a:b]) - tF) @ R
-        tq = tube.tangents(u[a:b]) @ R
-        dx, dy, dz = px_x[a:b] - q[:, 0], px_y[a:b] - q[:, 1], px_z[a:b] - q[:, 2]
-        along = dx * tq[:, 0] + dy * tq[:, 1] + dz * tq[:, 2]
-        perp_x[a:b], perp_y[a:b], perp_z[a:b] = dx - along * tq[:, 0], dy - along * tq[:, 1], dz - along * tq[:, 2]
-        u[a:b] += along / lengths[a:b]
-    dist = np.sqrt(perp_x * perp_x + perp_y * perp_y + perp_z * perp_z)
-    radii = np.array([0.5 * w[0].diameter for w in windows])[win]
-    frac = _coverage(perp_x, perp_y, dist, u, radii, lengths, t[:, 0], t[:, 1], cs, rs)
-    widths = np.array([w[4] for w in windows])[win]
-    dest = lay[m] * buf.shape[1] + starts[win] + row * widths + col
+    p = np.stack([(col + col0) * cs, (row + row0) * rs, z_mm])
+    pc = p - cvec
+    s0 = (pc * tvec).sum(axis=0)  # arc length along the tangent line
+    u = u_c + s0 / length
+    perp = pc - s0 * tvec
+    n_lines = int(count[P[-1] == 0].sum())
+    if n_lines < Q.shape[1]:  # helices: re-project on the exact centreline (the nearest point to second order)
+        k = slice(n_lines, None)
+        rad, th0, pitch, z0, z1 = Q[14:19, k]
+        uk = u[k]
+        q = (helix_points(rad, th0, pitch, z0, z0 + uk * (z1 - z0)) - tF) @ R
+        tq = (helix_tangents(rad, th0, pitch, z0, z1, uk) @ R).T
+        d = p[:, k] - q.T
+        along = (d * tq).sum(axis=0)
+        perp[:, k] = d - along * tq
+        u[k] = uk + along / length[k]
+    dist = np.sqrt((perp * perp).sum(axis=0))
+    frac = _coverage(perp[0], perp[1], dist, u, radius, length, tvec[0], tvec[1], cs, rs)
+    dest = (base + row * width + col).astype(np.intp)
     flat = buf.reshape(-1)
+    key = (win * len(offsets) + lay).tolist()
+    if len(set(key)) == len(key):
+        flat[dest] = frac  # (the buffer is zero there: one section per window and sub-plane)
+        return
     # sections of one window and sub-plane may overlap (a helix crossing a plane twice): composited in turns
-    key = idx[keep] * len(offsets) + lay[keep]
-    order = np.zeros(keep.size, dtype=int)
-    seen: dict = {}
-    for k, v in enumerate(key.tolist()):
-        order[k] = seen.get(v, 0)
-        seen[v] = order[k] + 1
-    turn = order[which]
-    for p in range(int(order.max()) + 1):
-        sel = slice(None) if not order.any() else turn == p
+    turn, seen = [], {}
+    for v in key:
+        turn.append(seen.get(v, 0))
+        seen[v] = turn[-1] + 1
+    turn = np.repeat(turn, count)
+    for t in range(max(seen.values())):
+        sel = turn == t
         flat[dest[sel]] = np.maximum(flat[dest[sel]], frac[sel])

@@ -290,12 +290,7 @@ class HelixTube(Tube):
     def point_at_z(self, z_mm) -> np.ndarray:
         """Centreline points at heights ``z_mm``; shape (N, 3)."""
         z = np.atleast_1d(np.asarray(z_mm, dtype=float))
-        th = np.radians(self.angle_deg_at(z))
-        out = np.empty((z.size, 3))
-        np.multiply(self.radius, np.cos(th), out=out[:, 0])
-        np.multiply(self.radius, np.sin(th), out=out[:, 1])
-        out[:, 2] = z
-        return out
+        return helix_points(self.radius, self.theta0_deg, self.pitch_deg_per_mm, self.z0, z)
 
     def points(self, t) -> np.ndarray:
         """Centreline points at parameters ``t`` in [0, 1] (z = z0 + t (z1 - z0)); shape (N, 3)."""
@@ -305,13 +300,7 @@ class HelixTube(Tube):
     def tangents(self, t) -> np.ndarray:
         """Unit tangents (pointing toward increasing z) at parameters ``t``; shape (N, 3)."""
         t = np.atleast_1d(np.asarray(t, dtype=float))
-        th = np.radians(self.angle_deg_at(self.z0 + t * (self.z1 - self.z0)))
-        w = math.radians(self.pitch_deg_per_mm) * self.radius
-        v = np.empty((th.size, 3))
-        np.multiply(-w, np.sin(th), out=v[:, 0])
-        np.multiply(w, np.cos(th), out=v[:, 1])
-        v[:, 2] = 1.0
-        return v / np.sqrt(np.add.reduce(v * v, axis=1, keepdims=True))  # (np.linalg.norm's own sum)
+        return helix_tangents(self.radius, self.theta0_deg, self.pitch_deg_per_mm, self.z0, self.z1, t)
 
     def tangents_at_z(self, z_mm) -> np.ndarray:
         """Unit tangents at heights ``z_mm`` (toward increasing z); shape (N, 3)."""
@@ -400,6 +389,29 @@ class HelixTube(Tube):
             "z1": float(self.z1),
             "diameter": float(self.diameter),
         }
+
+
+def helix_points(radius, theta0_deg, pitch_deg_per_mm, z0, z: np.ndarray) -> np.ndarray:
+    """Centreline points (N, 3) at heights ``z`` (N,) of helices about the z axis (:class:`HelixTube`'s formula;
+    the parameters numbers, or arrays (N,): one helix per point)."""
+    th = np.radians(theta0_deg + pitch_deg_per_mm * (z - z0))
+    out = np.empty((z.size, 3))
+    np.multiply(radius, np.cos(th), out=out[:, 0])
+    np.multiply(radius, np.sin(th), out=out[:, 1])
+    out[:, 2] = z
+    return out
+
+
+def helix_tangents(radius, theta0_deg, pitch_deg_per_mm, z0, z1, t: np.ndarray) -> np.ndarray:
+    """Unit tangents (N, 3) toward increasing z at parameters ``t`` (N,) (``z = z0 + t (z1 - z0)``) of helices
+    about the z axis (:class:`HelixTube`'s formula; the parameters numbers, or arrays (N,))."""
+    th = np.radians(theta0_deg + pitch_deg_per_mm * ((z0 + t * (z1 - z0)) - z0))
+    w = np.radians(pitch_deg_per_mm) * radius
+    v = np.empty((th.size, 3))
+    np.multiply(-w, np.sin(th), out=v[:, 0])
+    np.multiply(w, np.cos(th), out=v[:, 1])
+    v[:, 2] = 1.0
+    return v / np.sqrt(np.add.reduce(v * v, axis=1, keepdims=True))  # (np.linalg.norm's own sum)
 
 
 @functools.lru_cache(maxsize=256)
