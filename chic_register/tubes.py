@@ -159,9 +159,8 @@ class LineTube(Tube):
 
     def points(self, t) -> np.ndarray:
         """Centreline points at parameters ``t`` in [0, 1]; shape (N, 3)."""
-        t = np.atleast_1d(np.asarray(t, dtype=float))[:, None]
         p0, d = self._ends
-        return p0 + t * d
+        return line_points(p0, d, np.atleast_1d(np.asarray(t, dtype=float)))
 
     def tangents(self, t) -> np.ndarray:
         """Unit tangents at parameters ``t``; shape (N, 3)."""
@@ -389,6 +388,12 @@ class HelixTube(Tube):
             "z1": float(self.z1),
             "diameter": float(self.diameter),
         }
+
+
+def line_points(p0, d, t: np.ndarray) -> np.ndarray:
+    """Points (N, 3) ``p0 + t d`` of straight centrelines at parameters ``t`` (N,) (:class:`LineTube`'s formula;
+    ``p0``, ``d`` (3,), or (N, 3): one line per point)."""
+    return p0 + t[:, None] * d
 
 
 def helix_points(radius, theta0_deg, pitch_deg_per_mm, z0, z: np.ndarray) -> np.ndarray:
