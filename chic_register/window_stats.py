@@ -110,9 +110,12 @@ def _composite_two_levels(y, m, o, coef, rounds: int = 3):
     """``b + max(a m, a' o)`` fitted to ``y``: the section and its neighbours each at their own fluid level,
     composited as the image is (each pixel belongs to the brighter term; a few alternating least squares)."""
     b, a, a2 = (float(v) for v in coef)
-    fit = None
+    fit = prev = None
     for _ in range(rounds):
         mine = a * m >= a2 * o
+        if prev is not None and np.array_equal(mine, prev):
+            return fit  # the same split of the pixels: the same least squares, the same fit, every round from here on
+        prev = mine
         A = np.stack([np.ones_like(m), np.where(mine, m, 0.0), np.where(mine, 0.0, o)], axis=1)
         c, _, rank, _ = np.linalg.lstsq(A, y, rcond=None)
         if rank < 3 or not (c[1] > 0 and c[2] > 0):
