@@ -22,6 +22,30 @@ MAX_THICKNESS_SAMPLES = 3
 SMEAR_PX_PER_SAMPLE = 4.0
 
 
+try:  # numpy's own least squares (LAPACK gelsd) without np.linalg.lstsq's wrapper: a third of a window fit's cost
+    from numpy.linalg import _umath_linalg
+except ImportError:  # pragma: no cover - another numpy: the wrapper
+    _umath_linalg = None
+_EPS = float(np.finfo(float).eps)
+
+
+def _lstsq(A: np.ndarray, y: np.ndarray):
+    """``(coef, rank)`` of ``np.linalg.lstsq(A, y, rcond=None)`` (A (m, n), y (m,) float): the same LAPACK call
+    without the wrapper's checks, the windows' fits being a few dozen small ones per pose; the wrapper itself (its
+    answer, its error) when that call is not there or gives no finite answer."""
+    m, n = A.shape
+    if _umath_linalg is not None and m > 0 and A.dtype == np.float64 and y.dtype == np.float64:
+        try:
+            with np.errstate(all="ignore"):
+                x, _, rank, _ = _umath_linalg.lstsq(A, y[:, None], _EPS * max(m, n), signature="ddd->ddid")
+        except Exception:  # noqa: BLE001 - a numpy whose private call differs: the wrapper below
+            x = None
+        if x is not None and np.isfinite(x).all():
+            return x[:, 0], int(rank)
+    coef, _, rank, _ = np.linalg.lstsq(A, y, rcond=None)
+    return coef, int(rank)
+
+
 @dataclass
 class _TubeWindow:
     k: int
@@ -93,11 +117,11 @@ def _fit_window(pixels, w: _TubeWindow):
     o = w.others.ravel()
     cols = [np.ones_like(m), m] + ([o] if o.max() > 0.05 else [])
     A = np.stack(cols, axis=1)
-    coef, _, rank, _ = np.linalg.lstsq(A, y, rcond=None)
+    coef, rank = _lstsq(A, y)
     if rank < A.shape[1]:
         return None
     A1 = np.stack([np.ones_like(m), np.maximum(m, o)], axis=1)
-    coef1 = np.linalg.lstsq(A1, y, rcond=None)[0]
+    coef1 = _lstsq(A1, y)[0]
     fit1 = A1 @ coef1
     if len(cols) == 3:  # a neighbour in the window: real rods differ in fluid level (fill, bubbles, coil)
         fit2 = _composite_two_levels(y, m, o, coef)
@@ -117,7 +141,7 @@ def _composite_two_levels(y, m, o, coef, rounds: int = 3):
             return fit  # the same split of the pixels: the same least squares, the same fit, every round from here on
         prev = mine
         A = np.stack([np.ones_like(m), np.where(mine, m, 0.0), np.where(mine, 0.0, o)], axis=1)
-        c, _, rank, _ = np.linalg.lstsq(A, y, rcond=None)
+        c, rank = _lstsq(A, y)
         if rank < 3 or not (c[1] > 0 and c[2] > 0):
             return fit
         b, a, a2 = (float(v) for v in c)
