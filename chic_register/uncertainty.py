@@ -158,12 +158,13 @@ def noise_correlation_axes(pixels: np.ndarray, footprints, guard_px: int = 3) ->
     x = img[:hb * n, :wb * n].reshape(hb, n, wb, n).swapaxes(1, 2)[clear]  # (m, n, n), only those copied
     if x.shape[0] < 8:
         return 0.0, 0.0
-    x = x - x.mean(axis=(1, 2), keepdims=True)
+    x -= x.mean(axis=(1, 2), keepdims=True)  # (x: a copy of the blocks)
     var = np.sum(x * x, axis=(1, 2))
     ok = var > 0
     if ok.sum() < 8:
         return 0.0, 0.0
-    x, var = x[ok], var[ok]
+    if not ok.all():  # (a copy only when a block is flat)
+        x, var = x[ok], var[ok]
     pairs = n / (n - 1)  # n (n - 1) neighbour pairs per block against n^2 pixels
     rows = np.sum(x[:, 1:] * x[:, :-1], axis=(1, 2)) * pairs / var
     cols = np.sum(x[:, :, 1:] * x[:, :, :-1], axis=(1, 2)) * pairs / var
