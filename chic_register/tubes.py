@@ -330,9 +330,10 @@ class HelixTube(Tube):
         o = np.asarray(origin, dtype=float)
         r, th0, pitch, z0 = self.radius, self.theta0_deg, self.pitch_deg_per_mm, self.z0
 
-        def f(z):  # n . (point_at_z(z) - o), as point_at_z computes it, on a scalar
-            th = np.radians(th0 + pitch * (np.float64(z) - z0))
-            return float(n @ (np.array([r * np.cos(th), r * np.sin(th), z]) - o))
+        def f(z):  # n . (point_at_z(z) - o), as point_at_z computes it, on a scalar (math's radians, cos and sin:
+            # numpy's, without the per-call cost of a ufunc on one number)
+            th = math.radians(th0 + pitch * (z - z0))
+            return float(n @ (np.array([r * math.cos(th), r * math.sin(th), z]) - o))
 
         zs, pts = self._scan
         vals = (pts - o) @ n
