@@ -251,7 +251,7 @@ def render_windows(windows, T_F_from_S: np.ndarray, pixel_spacing_mm, slice_thic
     """
     rs, cs = (float(v) for v in pixel_spacing_mm)
     T = np.asarray(T_F_from_S, dtype=float)
-    R, tF, normal = T[:3, :3], T[:3, 3], T[:3, 2]
+    tF, normal = T[:3, 3], T[:3, 2]
     offsets = _plane_offsets_mm(float(slice_thickness_mm), int(thickness_samples))
     L = offsets.size
     sizes = [h * w for _, _, _, h, w in windows]
@@ -304,8 +304,8 @@ def _draw_crossings(windows, cross, T, offsets, spacing, starts, buf) -> None:
             grids[n] = _Grid((h, w), (rs, cs), (-float(r0), -float(c0)), None)
         r, length, z = 0.5 * tube.diameter, tube.length_mm, float(offsets[l])
         box = grids[n].box(*_crossing_box(c, t, r, length, z, px))
-        if box is not None:  # (helices: the Tube protocol's only curved kind)
-            i0, i1, j0, j1 = box
+        if box is not None:
+            i0, i1, j0, j1 = box  # (a curved tube is a helix: the Tube protocol's only curved kind)
             helix = (tube.radius, tube.theta0_deg, tube.pitch_deg_per_mm, tube.z0, tube.z1) if tube.curved else ()
             rows.append((n, l, i1 - i0 + 1, j1 - j0 + 1, *c, *t, u, length, r, z, i0 + r0, j0 + c0,
                          l * total + int(starts[n]) + i0 * w + j0, w, *(helix or (0.0,) * 5), bool(helix)))
