@@ -292,7 +292,8 @@ def _section_band(tan, kappa, s_lo, s_hi, r_tube, own, dx0, dy0, cs: float, rs: 
 def fit_sections(model, T_F_from_I: np.ndarray, assignment: np.ndarray, pixels: np.ndarray, pixel_spacing_mm,
                  slice_thickness_mm: float, noise_sigma: float, *, footprints=(), thickness_samples: int = 5,
                  margin_px: float = 1.5, windows: Windows | None = None,
-                 shift_iterations: int = 1, exact: bool = True, joint: bool = True) -> tuple[SectionFit, Windows]:
+                 shift_iterations: int = 1, exact: bool = True, joint: bool = True,
+                 rician_sigma: float = 0.0) -> tuple[SectionFit, Windows]:
     """Fit each matched tube's section model to ``pixels`` (rows, cols) at the pose ``T_F_from_I`` (4x4).
 
     ``assignment`` (K,): blob index per tube, -1 for unmatched (not fitted);
@@ -304,8 +305,10 @@ def fit_sections(model, T_F_from_I: np.ndarray, assignment: np.ndarray, pixels: 
     previous one put the section (the first-order fit is then refined to
     second order); ``exact``: see :func:`section_model`; ``joint``: refit
     the tubes on the pixels they share with their neighbours, whose fitted
-    sections are subtracted (:func:`_joint_pass`). Returns the fit and the
-    windows. See the module docstring.
+    sections are subtracted (:func:`_joint_pass`); ``rician_sigma`` > 0: the
+    pixels are magnitudes with Rician noise of that scale, and the fit is
+    of their mean (:func:`_rician_model`). Returns the fit and the windows.
+    See the module docstring.
     """
     q, tan, _, found = plane_crossings(model, T_F_from_I, margin_mm=1e-9)
     K = q.shape[0]
@@ -330,13 +333,18 @@ def fit_sections(model, T_F_from_I: np.ndarray, assignment: np.ndarray, pixels: 
         S, Sx, Sy = section_model(model, T_F_from_I, at, tan, windows, pixel_spacing_mm, slice_thickness_mm,
                                   thickness_samples, exact)
         sel, shift, info, a, n_pix = _linear_fit(S, Sx, Sy, y, own, starts, K, sel, noise_sigma)
+        if sel.size and rician_sigma > 0:  # refit the Rician mean at the gains just fitted
+            gain = np.zeros(K)
+            gain[sel] = a
+            M, Mx, My, _ = _rician_model(S, Sx, Sy, gain[own], np.zeros(own.size), rician_sigma)
+            sel, shift, info, a, n_pix = _linear_fit(M, Mx, My, y, own, starts, K, sel, noise_sigma)
         if sel.size == 0:
             return SectionFit(q, out_pos, out_info, out_gain, n_pix, fitted), windows
         at[sel] += shift
     if joint and windows.shared and exact and sel.size >= 2 and int(shift_iterations) <= 1:
         sel, at, info, a, n_pix = _joint_pass(model, T_F_from_I, q, tan, found, pixels, pixel_spacing_mm,
                                               slice_thickness_mm, thickness_samples, exact, noise_sigma, assignment,
-                                              footprints, margin_px, sel, at, info, a, n_pix,
+                                              footprints, margin_px, sel, at, info, a, n_pix, rician_sigma,
                                               reach if reach is not None and np.array_equal(sel, todo) else None)
     out_pos[sel] = at[sel]
     out_info[sel] = info
@@ -347,7 +355,7 @@ def fit_sections(model, T_F_from_I: np.ndarray, assignment: np.ndarray, pixels: 
 
 def _joint_pass(model, T_F_from_I, q, tan, found, pixels, pixel_spacing_mm, slice_thickness_mm: float,
                 thickness_samples: int, exact: bool, noise_sigma: float, assignment, footprints, margin_px: float,
-                sel, at, info, a, n_pix, reach=None):
+                sel, at, info, a, n_pix, rician_sigma: float = 0.0, reach=None):
     """Refit the tubes ``sel`` on the pixels they share with fitted neighbours, those neighbours' fitted
     sections (position ``at``, level ``a``) subtracted (:func:`joint_windows`); :data:`JOINT_PASSES` times.
     Returns ``(sel, at, info, a, n_pix)`` as :func:`_linear_fit` gives them, unchanged when no pixel is
@@ -389,15 +397,44 @@ def _joint_pass(model, T_F_from_I, q, tan, found, pixels, pixel_spacing_mm, slic
         else:
             Sn = section_model(model, T_F_from_I, fitted_at, tan, neighbours, pixel_spacing_mm, slice_thickness_mm,
                                thickness_samples, exact)[0]
-        y_own = y.copy()
-        np.subtract.at(y_own, nb_p, gain[nb_k] * Sn)
-        sel_j, shift, info_j, a_j, n_pix_j = _linear_fit(S, Sx, Sy, y_own, jw.owner, starts, K, sel, noise_sigma)
+        nb_level = np.zeros(y.size)
+        np.add.at(nb_level, nb_p, gain[nb_k] * Sn)  # the neighbours' signal in each pixel
+        if rician_sigma > 0:  # E[y] = R(a S + n): fit (R(a0 S + n) - R(n)) / a0 to y - (R(n) - R(0))
+            M, Mx, My, lift = _rician_model(S, Sx, Sy, gain[jw.owner], nb_level, rician_sigma)
+            sel_j, shift, info_j, a_j, n_pix_j = _linear_fit(M, Mx, My, y - lift, jw.owner, starts, K, sel,
+                                                             noise_sigma)
+        else:
+            sel_j, shift, info_j, a_j, n_pix_j = _linear_fit(S, Sx, Sy, y - nb_level, jw.owner, starts, K, sel,
+                                                             noise_sigma)
         if sel_j.size < sel.size:
             break  # a tube the separate fit located would be lost: keep what is there
         fitted_at[sel_j] = q[sel_j] + shift
         gain[sel_j] = a_j
         sel, at, info, a, n_pix = sel_j, fitted_at.copy(), info_j, a_j, n_pix_j
     return sel, at, info, a, n_pix
+
+
+def _rician_model(S, Sx, Sy, gain, other, sigma: float):
+    """The section model as a Rician magnitude image shows it on average, per window pixel (P,).
+
+    At the fluid gain ``gain`` and the neighbours' signal ``other``
+    (:func:`~chic_register.rician.rician_mean`, ``R(v) = sigma g(v / sigma)``):
+    ``M = (R(gain S + other) - R(other)) / gain`` and its derivatives
+    ``R'(gain S + other) (Sx, Sy)``, and ``lift = R(other) - R(0)``, to be taken
+    from the pixels. ``y - lift = b + gain M`` then holds on average with
+    ``b = R(0)``, as ``y = b + a S`` does without noise: the linear fit of
+    :func:`_linear_fit` applies unchanged, and at the true section its fit is
+    unbiased at any noise level.
+    """
+    from .rician import rician_mean
+
+    inv = 1.0 / sigma
+    g, slope = rician_mean((gain * S + other) * inv)
+    g0, _ = rician_mean(other * inv)
+    safe = np.where(gain > 0, gain, 1.0)
+    M = np.where(gain > 0, (g - g0) * (sigma / safe), S)
+    slope = np.where(gain > 0, slope, 1.0)
+    return M, slope * Sx, slope * Sy, (g0 - math.sqrt(math.pi / 2)) * sigma
 
 
 def _linear_fit(S, Sx, Sy, y, own, starts, K: int, todo, noise_sigma: float):

@@ -1,0 +1,82 @@
+"""The mean of a Rician magnitude: what a magnitude image shows, on average, of a signal in noise.
+
+A magnitude pixel of signal ``nu`` in complex Gaussian noise of scale
+``sigma`` has the mean ``sigma g(nu / sigma)`` with
+
+    g(u) = sqrt(pi / 2) [(1 + u^2 / 2) I0e(u^2 / 4) + (u^2 / 2) I1e(u^2 / 4)]
+
+(``I0e``, ``I1e``: exponentially scaled Bessel functions): ``g(0) = 1.2533``
+(the background's floor) and ``g(u) = u + 1 / (2 u) + ...`` for large ``u``.
+So the mean is not ``b + a nu``: a section's faint edge pixels read brighter
+than a linear model of the fluid fraction says, and where that lifts one side
+of a section more than the other (the pixel grid's phase) a fit of the linear
+model moves the section by a bias proportional to ``sigma``
+(:mod:`chic_register.section` fits this mean instead).
+
+Tabulated once with numpy alone (the Bessel functions by their integral over
+``[0, pi]``, spectrally accurate); above ``u = 12`` the asymptotic series.
+"""
+
+from __future__ import annotations
+
+import functools
+import math
+
+import numpy as np
+
+_U_MAX = 12.0
+_STEP = 0.01
+
+
+@functools.lru_cache(maxsize=1)
+def _table():
+    """``(g, g')`` of :func:`rician_mean` on ``u = 0, _STEP, ..., _U_MAX``."""
+    u = np.arange(0.0, _U_MAX + 0.5 * _STEP, _STEP)
+    x = 0.25 * u * u
+    th = np.linspace(0.0, math.pi, 801)
+    e = np.exp(x[:, None] * (np.cos(th)[None] - 1.0))  # I_n(x) e^-x = (1 / pi) int_0^pi e^{x (cos t - 1)} cos(n t)
+    wts = np.full(th.size, 1.0)
+    wts[[0, -1]] = 0.5
+    wts *= (th[1] - th[0]) / math.pi
+    i0e = e @ wts
+    i1e = (e * np.cos(th)[None]) @ wts
+    g = math.sqrt(math.pi / 2) * ((1 + 2 * x) * i0e + 2 * x * i1e)
+    return g, np.gradient(g, _STEP, edge_order=2)
+
+
+def rician_mean(u: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+    """``(g(u), g'(u))``: the mean magnitude over sigma at signal over sigma ``u >= 0``, and its slope."""
+    u = np.abs(np.asarray(u, dtype=float))
+    g_tab, d_tab = _table()
+    pos = np.minimum(u * (1.0 / _STEP), g_tab.size - 1.0)
+    i = np.minimum(pos.astype(int), g_tab.size - 2)
+    f = pos - i
+    g = g_tab[i] * (1 - f) + g_tab[i + 1] * f
+    d = d_tab[i] * (1 - f) + d_tab[i + 1] * f
+    far = u > _U_MAX
+    if far.any():
+        v = u[far]
+        inv2 = 1.0 / (v * v)
+        g[far] = v + 0.5 / v + 0.125 * inv2 / v
+        d[far] = 1.0 - 0.5 * inv2 - 0.375 * inv2 * inv2
+    return g, d
+
+
+#: The Rayleigh distribution (a Rician magnitude without signal): mean / sigma and standard deviation / sigma.
+RAYLEIGH_MEAN = math.sqrt(math.pi / 2)
+RAYLEIGH_SD = math.sqrt(2 - math.pi / 2)
+
+
+def rayleigh_sigma(background: float, background_sd: float, tolerance: float = 0.08) -> float:
+    """The Rician noise scale of a magnitude image from its background's mean and SD; 0 if it is not Rayleigh.
+
+    A magnitude image's empty background is Rayleigh: its mean is 1.913
+    times its SD. A background with another ratio (a filtered or offset
+    image, the paper's uniform noise, tissue) gets 0: no Rician model.
+    """
+    if not (background_sd > 0 and math.isfinite(background)):
+        return 0.0
+    ratio = background / background_sd
+    if abs(ratio / (RAYLEIGH_MEAN / RAYLEIGH_SD) - 1.0) > tolerance:
+        return 0.0
+    return background_sd / RAYLEIGH_SD
