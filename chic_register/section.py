@@ -96,6 +96,9 @@ JOINT_PASSES = 1
 #: ... using a shared pixel only where the neighbour's model (fluid fraction) is at most this.
 JOINT_NEIGHBOUR_LEVEL = 0.05
 
+#: Fits of the Rician mean per call (each at the gains of the previous fit; the first from the linear model).
+RICIAN_REFITS = 2
+
 # the products summed per window: (i, j) of [1, S, Sx, Sy] for i <= j, then each with the pixel value y
 _PAIR_I = np.array([0, 0, 0, 0, 1, 1, 1, 2, 2, 3, 0, 1, 2, 3])
 _PAIR_J = np.array([0, 1, 2, 3, 1, 2, 3, 2, 3, 3, 4, 4, 4, 4])
@@ -333,7 +336,9 @@ def fit_sections(model, T_F_from_I: np.ndarray, assignment: np.ndarray, pixels: 
         S, Sx, Sy = section_model(model, T_F_from_I, at, tan, windows, pixel_spacing_mm, slice_thickness_mm,
                                   thickness_samples, exact)
         sel, shift, info, a, n_pix = _linear_fit(S, Sx, Sy, y, own, starts, K, sel, noise_sigma)
-        if sel.size and rician_sigma > 0:  # refit the Rician mean at the gains just fitted
+        for _ in range(RICIAN_REFITS if rician_sigma > 0 else 0):  # refit the Rician mean at the gains just fitted
+            if sel.size == 0:
+                break
             gain = np.zeros(K)
             gain[sel] = a
             M, Mx, My, _ = _rician_model(S, Sx, Sy, gain[own], np.zeros(own.size), rician_sigma)
