@@ -25,15 +25,15 @@ import math
 import numpy as np
 
 _U_MAX = 12.0
-_STEP = 0.01
+_STEP = 0.02
 
 
 @functools.lru_cache(maxsize=1)
 def _table():
-    """``(g, g')`` of :func:`rician_mean` on ``u = 0, _STEP, ..., _U_MAX``."""
+    """``(u, g, g')`` of :func:`rician_mean` on ``u = 0, _STEP, ..., _U_MAX``."""
     u = np.arange(0.0, _U_MAX + 0.5 * _STEP, _STEP)
     x = 0.25 * u * u
-    th = np.linspace(0.0, math.pi, 801)
+    th = np.linspace(0.0, math.pi, 241)
     e = np.exp(x[:, None] * (np.cos(th)[None] - 1.0))  # I_n(x) e^-x = (1 / pi) int_0^pi e^{x (cos t - 1)} cos(n t)
     wts = np.full(th.size, 1.0)
     wts[[0, -1]] = 0.5
@@ -41,25 +41,31 @@ def _table():
     i0e = e @ wts
     i1e = (e * np.cos(th)[None]) @ wts
     g = math.sqrt(math.pi / 2) * ((1 + 2 * x) * i0e + 2 * x * i1e)
-    return g, np.gradient(g, _STEP, edge_order=2)
+    return u, g, np.gradient(g, _STEP, edge_order=2)
 
 
 def rician_mean(u: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
     """``(g(u), g'(u))``: the mean magnitude over sigma at signal over sigma ``u >= 0``, and its slope."""
     u = np.abs(np.asarray(u, dtype=float))
-    g_tab, d_tab = _table()
-    pos = np.minimum(u * (1.0 / _STEP), g_tab.size - 1.0)
-    i = np.minimum(pos.astype(int), g_tab.size - 2)
-    f = pos - i
-    g = g_tab[i] * (1 - f) + g_tab[i + 1] * f
-    d = d_tab[i] * (1 - f) + d_tab[i + 1] * f
-    far = u > _U_MAX
-    if far.any():
-        v = u[far]
-        inv2 = 1.0 / (v * v)
-        g[far] = v + 0.5 / v + 0.125 * inv2 / v
-        d[far] = 1.0 - 0.5 * inv2 - 0.375 * inv2 * inv2
+    u_tab, g_tab, d_tab = _table()
+    uc = np.minimum(u, _U_MAX)
+    w = np.maximum(u, _U_MAX)  # above the table: g(U) + (u - U) + 1 / (2 u) - 1 / (2 U), to 1 / (8 U^3)
+    g = np.interp(uc, u_tab, g_tab) + (u - uc) + 0.5 / w - 0.5 / _U_MAX
+    d = np.interp(uc, u_tab, d_tab) + 0.5 / _U_MAX**2 - 0.5 / (w * w)
     return g, d
+
+
+def rician_signal(mean: np.ndarray) -> np.ndarray:
+    """The inverse of :func:`rician_mean`'s ``g``: signal over sigma from mean magnitude over sigma (0 below the
+    floor ``g(0)``)."""
+    m = np.asarray(mean, dtype=float)
+    u_tab, g_tab, _ = _table()
+    u = np.interp(m, g_tab, u_tab, left=0.0)
+    far = m > g_tab[-1]
+    if far.any():
+        v = m[far]
+        u[far] = v - 0.5 / v  # (to 1 / v^3)
+    return u
 
 
 #: The Rayleigh distribution (a Rician magnitude without signal): mean / sigma and standard deviation / sigma.

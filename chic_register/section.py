@@ -96,8 +96,8 @@ JOINT_PASSES = 1
 #: ... using a shared pixel only where the neighbour's model (fluid fraction) is at most this.
 JOINT_NEIGHBOUR_LEVEL = 0.05
 
-#: Fits of the Rician mean per call (each at the gains of the previous fit; the first from the linear model).
-RICIAN_REFITS = 2
+#: A window's pixels this deep inside the section model (fluid fraction) give the tube's gain for the Rician mean.
+RICIAN_INNER_LEVEL = 0.95
 
 # the products summed per window: (i, j) of [1, S, Sx, Sy] for i <= j, then each with the pixel value y
 _PAIR_I = np.array([0, 0, 0, 0, 1, 1, 1, 2, 2, 3, 0, 1, 2, 3])
@@ -335,14 +335,18 @@ def fit_sections(model, T_F_from_I: np.ndarray, assignment: np.ndarray, pixels: 
     for _ in range(max(1, int(shift_iterations))):
         S, Sx, Sy = section_model(model, T_F_from_I, at, tan, windows, pixel_spacing_mm, slice_thickness_mm,
                                   thickness_samples, exact)
-        sel, shift, info, a, n_pix = _linear_fit(S, Sx, Sy, y, own, starts, K, sel, noise_sigma)
-        for _ in range(RICIAN_REFITS if rician_sigma > 0 else 0):  # refit the Rician mean at the gains just fitted
-            if sel.size == 0:
-                break
-            gain = np.zeros(K)
-            gain[sel] = a
-            M, Mx, My, _ = _rician_model(S, Sx, Sy, gain[own], np.zeros(own.size), rician_sigma)
+        if rician_sigma > 0:  # the Rician mean at each tube's gain (from its inner pixels, else a linear fit)
+            gain = _inner_gain(S, y, own, K, rician_sigma)
+            if not gain[sel].all():
+                sel_l, _, _, a_l, _ = _linear_fit(S, Sx, Sy, y, own, starts, K, sel, noise_sigma)
+                lin = np.zeros(K)
+                lin[sel_l] = a_l
+                gain = np.where(gain > 0, gain, lin)
+            gain[gain <= 0] = 1.0  # (a tube no fit locates: any gain)
+            M, Mx, My, _ = _rician_model(S, Sx, Sy, gain[own], None, rician_sigma)
             sel, shift, info, a, n_pix = _linear_fit(M, Mx, My, y, own, starts, K, sel, noise_sigma)
+        else:
+            sel, shift, info, a, n_pix = _linear_fit(S, Sx, Sy, y, own, starts, K, sel, noise_sigma)
         if sel.size == 0:
             return SectionFit(q, out_pos, out_info, out_gain, n_pix, fitted), windows
         at[sel] += shift
@@ -422,9 +426,9 @@ def _joint_pass(model, T_F_from_I, q, tan, found, pixels, pixel_spacing_mm, slic
 def _rician_model(S, Sx, Sy, gain, other, sigma: float):
     """The section model as a Rician magnitude image shows it on average, per window pixel (P,).
 
-    At the fluid gain ``gain`` and the neighbours' signal ``other``
+    At the fluid gain ``gain`` and the neighbours' signal ``other`` (None: none)
     (:func:`~chic_register.rician.rician_mean`, ``R(v) = sigma g(v / sigma)``):
-    ``M = (R(gain S + other) - R(other)) / gain`` and its derivatives
+    ``M = (R(gain S + other) - R(other)) / gain`` (``gain`` > 0) and its derivatives
     ``R'(gain S + other) (Sx, Sy)``, and ``lift = R(other) - R(0)``, to be taken
     from the pixels. ``y - lift = b + gain M`` then holds on average with
     ``b = R(0)``, as ``y = b + a S`` does without noise: the linear fit of
@@ -434,12 +438,27 @@ def _rician_model(S, Sx, Sy, gain, other, sigma: float):
     from .rician import rician_mean
 
     inv = 1.0 / sigma
-    g, slope = rician_mean((gain * S + other) * inv)
-    g0, _ = rician_mean(other * inv)
-    safe = np.where(gain > 0, gain, 1.0)
-    M = np.where(gain > 0, (g - g0) * (sigma / safe), S)
-    slope = np.where(gain > 0, slope, 1.0)
-    return M, slope * Sx, slope * Sy, (g0 - math.sqrt(math.pi / 2)) * sigma
+    if other is None:  # no neighbour: R(0), the floor
+        g, slope = rician_mean((gain * S) * inv)
+        g0 = np.full(S.size, math.sqrt(math.pi / 2))
+    else:
+        g, slope = rician_mean((gain * S + other) * inv)
+        g0, _ = rician_mean(other * inv)
+    return (g - g0) * (sigma / gain), slope * Sx, slope * Sy, (g0 - math.sqrt(math.pi / 2)) * sigma
+
+
+def _inner_gain(S, y, own, K: int, sigma: float) -> np.ndarray:
+    """Each tube's fluid gain (K,) from the mean of its window's inner pixels (model at least
+    :data:`RICIAN_INNER_LEVEL`), through the inverse Rician mean, over the model's mean there; 0 for a tube
+    with fewer than 3 such pixels."""
+    from .rician import rician_signal
+
+    inner = S >= RICIAN_INNER_LEVEL
+    n = np.bincount(own[inner], minlength=K)
+    total = np.bincount(own[inner], weights=y[inner], minlength=K)
+    level = np.bincount(own[inner], weights=S[inner], minlength=K)  # (the model's mean there, about 1)
+    mean = total / np.maximum(n, 1)
+    return np.where(n >= 3, sigma * rician_signal(mean / sigma) * n / np.maximum(level, 1e-12), 0.0)
 
 
 def _linear_fit(S, Sx, Sy, y, own, starts, K: int, todo, noise_sigma: float):
