@@ -4,7 +4,10 @@ For each pose, one noise-free slice is simulated (the simulator's renderer,
 2 mm slab by default) and the solver runs on ``draws`` fresh Rician noise
 draws of it; the RMS errors of the image normal (deg), twist (deg), depth
 (mm) and of the target point (TRE, mm) are divided by the bound's
-(:func:`chic_register.crlb.pose_crlb`, same protocol, fluid gain unknown).
+(:func:`chic_register.crlb.pose_crlb`, same protocol, fluid gain unknown,
+the sections of the tubes the slice plane crosses; where the slab also grazes
+a tube beyond its end, the bound counting that sliver too is kept beside it,
+``crlb_all``: see :func:`chic_register.crlb.counted_tubes`).
 An efficient, unbiased solver has ratios near 1. Draws that do not lock are
 counted, not hidden; the solver's refusal of poses predicted imprecise
 (``trust_rot_deg``, ``trust_tre_mm``) is off unless the options set it, since
@@ -29,7 +32,7 @@ from dataclasses import dataclass
 
 import numpy as np
 
-from .crlb import Protocol, default_target, pose_crlb
+from .crlb import Protocol, _slice_frames, counted_tubes, default_target, pose_crlb
 from .errors import NoLock
 from .geometry import FiducialGeometry
 from .pose import apply, invert, wrap_deg
@@ -59,6 +62,7 @@ class PoseEfficiency:
     cpu_ms: np.ndarray  # CPU time of the register() call per locked draw
     bias: np.ndarray  # noise-free errors (4,), NaN if the noise-free slice did not lock
     errors: np.ndarray = dataclasses.field(default_factory=lambda: np.zeros((0, 4)))  # (locked draws, 4)
+    crlb_all: np.ndarray | None = None  # the bound counting every tube the slab reaches (crlb.counted_tubes)
 
     @property
     def ratio(self) -> np.ndarray:
@@ -77,6 +81,8 @@ class PoseEfficiency:
                 **{f"ratio_{m}": float(v) for m, v in zip(METRICS, self.ratio)},
                 **{f"bias_{m}": float(v) for m, v in zip(METRICS, self.bias)},
                 **{f"ratio_ci95_{m}": [float(v) for v in ci] for m, ci in zip(METRICS, self.ratio_ci)},
+                **({f"crlb_all_{m}": float(v) for m, v in zip(METRICS, self.crlb_all)}
+                   if self.crlb_all is not None else {}),
                 "median_ms": float(np.median(self.ms)) if self.ms.size else None,
                 "median_cpu_ms": float(np.median(self.cpu_ms)) if self.cpu_ms.size else None}
 
@@ -135,6 +141,12 @@ def pose_efficiency(geom: FiducialGeometry, depth_mm: float, tilt_deg: float, az
     protocol = Protocol(pixel_size_mm=pixel_size_mm, slice_thickness_mm=slice_thickness_mm, snr=snr)
     bound = pose_crlb(geom, depth_mm, tilt_deg, azimuth_deg, twist_deg, protocol, target, quality=crlb_quality)
     crlb = np.array([bound.sd_normal_deg, bound.sd_twist_deg, bound.sd_depth_mm, bound.tre_mm])
+    crlb_all = None
+    if any(len(counted_tubes(geom, T, "crossing")) < len(geom.tubes)
+           for T in _slice_frames(depth_mm, tilt_deg, azimuth_deg, twist_deg, protocol)):
+        b = pose_crlb(geom, depth_mm, tilt_deg, azimuth_deg, twist_deg, protocol, target, quality=crlb_quality,
+                      sections="all")
+        crlb_all = np.array([b.sd_normal_deg, b.sd_twist_deg, b.sd_depth_mm, b.tre_mm])
     sim = simulate_slice(geom, depth_mm, tilt_deg, azimuth_deg, twist_deg, slice_thickness_mm=slice_thickness_mm,
                          pixel_spacing_mm=(pixel_size_mm, pixel_size_mm), supersample=sim_supersample)
     S = sim.slice.T_scanner_from_image()
@@ -166,4 +178,4 @@ def pose_efficiency(geom: FiducialGeometry, depth_mm: float, tilt_deg: float, az
     e = np.array(errs).reshape(-1, 4)
     rms = np.sqrt(np.mean(e**2, axis=0)) if e.size else np.full(4, np.nan)
     return PoseEfficiency(float(depth_mm), float(tilt_deg), float(azimuth_deg), float(twist_deg), rms, crlb,
-                          done, no_lock, np.asarray(ms), np.asarray(cpu), bias, e)
+                          done, no_lock, np.asarray(ms), np.asarray(cpu), bias, e, crlb_all)
