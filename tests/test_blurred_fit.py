@@ -50,6 +50,7 @@ def test_noise_free_fit_recovers_the_pose_and_the_blur(neuro_geometry):
     assert fit.psf_px == pytest.approx(sigma_px, rel=0.01)
 
 
+@pytest.mark.slow
 def test_the_fit_is_more_accurate_than_the_blob_centres_and_knows_its_precision(neuro_geometry):
     """Blobs twice as wide, SNR 20, 8 seeded draws: the blurred fit's position error is well below the centroid
     pose's (merged neighbours pull centroids), its rotation no worse, and each error within 3.5 of its own
@@ -138,6 +139,7 @@ def test_covariance_in_f_by_hand():
     assert np.abs(C[[1, 2, 3, 5]][:, [1, 2, 3, 5]]).max() < 1e-12
 
 
+@pytest.mark.slow
 def test_wide_volume_pose_carries_the_pixel_fits_covariance(needle_geometry):
     """A 1.3x needle-guide volume: 18 slices' blob centres alone put the pose 0.29 mm off while predicting 0.04 mm
     (merged neighbours pull every slice the same way); the pose fitted to the pixels of spread slices through the
@@ -161,6 +163,7 @@ def test_wide_volume_pose_carries_the_pixel_fits_covariance(needle_geometry):
     assert mahalanobis2(delta, unc.covariance) < 22.5  # chi-square, 6 dof: p = 0.001
 
 
+@pytest.mark.slow
 def test_a_tight_field_of_view_never_crashes_the_blurred_fit(needle_geometry):
     """A 1.3x needle-guide volume in a 24 mm field of view (sections near the edges): some spread slice holds no
     section box; the fit was an IndexError there. Now a pose within 0.3 mm, or a refusal."""

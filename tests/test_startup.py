@@ -14,6 +14,7 @@ import pytest
 from chic_register.geometry import HelixTube, bracketed_root
 from chic_register.matching import gated_matching, hungarian
 from chic_register.simulate import simulate_slice, write_simulated
+from chic_register.uncertainty import normal_quantile
 
 SLOW_IMPORTS = ("scipy.optimize", "SimpleITK", "matplotlib")
 
@@ -41,7 +42,19 @@ def test_one_shot_dicom_solve_imports_only_what_a_slice_needs(tmp_path, neuro_ge
     assert "chic_register.solve" in mods and "pydicom" in mods  # it did solve, from the DICOM
     assert not [m for m in mods if m.split(".")[0] in ("SimpleITK", "matplotlib", "pyigtl")
                 or m.startswith(("scipy.optimize", "scipy.ndimage", "scipy.special"))
-                or m == "numpy.ma" or m.startswith("numpy.ma.")]  # np.median / np.unique import it: ~40 ms
+                or m == "numpy.ma" or m.startswith("numpy.ma.")  # np.median / np.unique import it: ~40 ms
+                or m in ("statistics", "fractions")]  # NormalDist: ~4 ms (uncertainty.normal_quantile instead)
+
+
+def test_normal_quantile_matches_the_standard_library():
+    from statistics import NormalDist
+
+    for p in (1e-6, 0.01, 0.2, 0.5, 0.8, 0.95, 0.99, 0.999, 1 - 1e-6):
+        assert normal_quantile(p) == pytest.approx(NormalDist().inv_cdf(p), abs=1e-9)
+    assert normal_quantile(0.975) == pytest.approx(1.959964, abs=1e-6)  # the textbook two-sided 95 %
+    for bad in (0.0, 1.0, -0.1, float("nan")):
+        with pytest.raises(ValueError):
+            normal_quantile(bad)
 
 
 def test_bracketed_root_matches_known_roots_and_keeps_to_the_bracket():

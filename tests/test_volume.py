@@ -322,6 +322,7 @@ def test_cli_solve_volume_slices_jointly(tmp_path, neuro_geometry_file, sim_volu
     assert "slice index 99 is outside 0..59" in capsys.readouterr().err
 
 
+@pytest.mark.slow
 def test_neuro_volume_registers_without_slices_leaving_out_the_slices_that_fail_verification(neuro_geometry):
     """A 60-slice neuro volume reaching past both end faces: slices near an end, whose cut tubes the verification
     cannot tell from a wrong pose, are skipped with that reason; the rest register jointly (this raised no_lock
