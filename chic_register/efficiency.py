@@ -159,11 +159,10 @@ def pose_efficiency(geom: FiducialGeometry, depth_mm: float, tilt_deg: float, az
     errs, ms, cpu, no_lock, done = [], [], [], 0, 0
     limit = max(int(draws), int(draws_max or 0))
     while done < limit:
-        if done >= draws:
-            if done % draws == 0:  # a batch ended: go on only while the target is inside some interval
-                ci = ratio_interval(np.array(errs).reshape(-1, 4), crlb)
-                if not np.any((ci[:, 0] <= target_ratio) & (ci[:, 1] >= target_ratio)):
-                    break
+        if done >= draws and done % draws == 0:  # a batch ended: go on only while the target is inside an interval
+            ci = ratio_interval(np.array(errs).reshape(-1, 4), crlb)
+            if not np.any((ci[:, 0] <= target_ratio) & (ci[:, 1] >= target_ratio)):
+                break
         done += 1
         noisy = dataclasses.replace(sim.slice, pixels=add_rician_noise(sim.slice.pixels, snr, rng))
         c0 = time.process_time()

@@ -14,7 +14,10 @@ model moves the section by a bias proportional to ``sigma``
 (:mod:`chic_register.section` fits this mean instead).
 
 Tabulated once with numpy alone (the Bessel functions by their integral over
-``[0, pi]``, spectrally accurate); above ``u = 12`` the asymptotic series.
+``[0, pi]``, spectrally accurate; ~3 ms); above ``u = 12`` the asymptotic series.
+:func:`rician_model` turns a section model into the image's mean at a gain,
+:func:`inner_gain` estimates that gain, :func:`rayleigh_sigma` tells a
+magnitude image (and its noise scale) from its background.
 """
 
 from __future__ import annotations
@@ -24,6 +27,8 @@ import math
 
 import numpy as np
 
+#: Pixels this deep inside a section model (fluid fraction) give the tube's gain (:func:`inner_gain`).
+INNER_LEVEL = 0.95
 _U_MAX = 12.0
 _STEP = 0.02
 
@@ -86,3 +91,37 @@ def rayleigh_sigma(background: float, background_sd: float, tolerance: float = 0
     if abs(ratio / (RAYLEIGH_MEAN / RAYLEIGH_SD) - 1.0) > tolerance:
         return 0.0
     return background_sd / RAYLEIGH_SD
+
+
+def rician_model(S, Sx, Sy, gain, other, sigma: float):
+    """A section model ``S`` (P,) and its derivatives as a Rician magnitude image shows them on average.
+
+    At the fluid gain ``gain`` and the neighbours' signal ``other`` (None: none)
+    (:func:`~chic_register.rician.rician_mean`, ``R(v) = sigma g(v / sigma)``):
+    ``M = (R(gain S + other) - R(other)) / gain`` (``gain`` > 0) and its derivatives
+    ``R'(gain S + other) (Sx, Sy)``, and ``lift = R(other) - R(0)``, to be taken
+    from the pixels. ``y - lift = b + gain M`` then holds on average with
+    ``b = R(0)``, as ``y = b + a S`` does without noise: the linear fit of
+    :func:`chic_register.section._linear_fit` applies unchanged, and at the true section its fit is
+    unbiased at any noise level.
+    """
+    inv = 1.0 / sigma
+    if other is None:  # no neighbour: R(0), the floor
+        g, slope = rician_mean((gain * S) * inv)
+        g0 = np.full(S.size, RAYLEIGH_MEAN)
+    else:
+        g, slope = rician_mean((gain * S + other) * inv)
+        g0, _ = rician_mean(other * inv)
+    return (g - g0) * (sigma / gain), slope * Sx, slope * Sy, (g0 - RAYLEIGH_MEAN) * sigma
+
+
+def inner_gain(S, y, own, K: int, sigma: float) -> np.ndarray:
+    """Each tube's fluid gain (K,) from the mean of its window's inner pixels (model at least
+    :data:`INNER_LEVEL`), through the inverse Rician mean, over the model's mean there; 0 for a tube
+    with fewer than 3 such pixels."""
+    inner = S >= INNER_LEVEL
+    n = np.bincount(own[inner], minlength=K)
+    total = np.bincount(own[inner], weights=y[inner], minlength=K)
+    level = np.bincount(own[inner], weights=S[inner], minlength=K)  # (the model's mean there, about 1)
+    mean = total / np.maximum(n, 1)
+    return np.where(n >= 3, sigma * rician_signal(mean / sigma) * n / np.maximum(level, 1e-12), 0.0)

@@ -35,6 +35,11 @@ a window, so each fit sees one tube; a joint pass then gives each tube back the
 pixels it shares with a fitted neighbour, that neighbour's fitted section
 subtracted (near the body's ends a helix runs close to its straight tube: the
 fit was 1.2-1.6x the Cramér-Rao bound there without it).
+
+In a magnitude image (Rician noise) a section's faint edge pixels read
+brighter than ``b + a S``; the fit then takes the model's Rician mean instead
+(:mod:`chic_register.rician`), or that lift moves the sections by a bias that
+grows with the noise.
 """
 
 from __future__ import annotations
@@ -44,6 +49,7 @@ from dataclasses import dataclass
 
 import numpy as np
 
+from .rician import inner_gain, rician_model
 from .tube_model import _section_box, _section_extent, plane_crossings
 
 
@@ -95,9 +101,6 @@ def tube_frames(model, T_F_from_I: np.ndarray, q: np.ndarray, tan_I: np.ndarray)
 JOINT_PASSES = 1
 #: ... using a shared pixel only where the neighbour's model (fluid fraction) is at most this.
 JOINT_NEIGHBOUR_LEVEL = 0.05
-
-#: A window's pixels this deep inside the section model (fluid fraction) give the tube's gain for the Rician mean.
-RICIAN_INNER_LEVEL = 0.95
 
 # the products summed per window: (i, j) of [1, S, Sx, Sy] for i <= j, then each with the pixel value y
 _PAIR_I = np.array([0, 0, 0, 0, 1, 1, 1, 2, 2, 3, 0, 1, 2, 3])
@@ -310,7 +313,7 @@ def fit_sections(model, T_F_from_I: np.ndarray, assignment: np.ndarray, pixels: 
     the tubes on the pixels they share with their neighbours, whose fitted
     sections are subtracted (:func:`_joint_pass`); ``rician_sigma`` > 0: the
     pixels are magnitudes with Rician noise of that scale, and the fit is
-    of their mean (:func:`_rician_model`). Returns the fit and the windows.
+    of their mean (:func:`~chic_register.rician.rician_model`). Returns the fit and the windows.
     See the module docstring.
     """
     q, tan, _, found = plane_crossings(model, T_F_from_I, margin_mm=1e-9)
@@ -336,14 +339,14 @@ def fit_sections(model, T_F_from_I: np.ndarray, assignment: np.ndarray, pixels: 
         S, Sx, Sy = section_model(model, T_F_from_I, at, tan, windows, pixel_spacing_mm, slice_thickness_mm,
                                   thickness_samples, exact)
         if rician_sigma > 0:  # the Rician mean at each tube's gain (from its inner pixels, else a linear fit)
-            gain = _inner_gain(S, y, own, K, rician_sigma)
+            gain = inner_gain(S, y, own, K, rician_sigma)
             if not gain[sel].all():
                 sel_l, _, _, a_l, _ = _linear_fit(S, Sx, Sy, y, own, starts, K, sel, noise_sigma)
                 lin = np.zeros(K)
                 lin[sel_l] = a_l
                 gain = np.where(gain > 0, gain, lin)
             gain[gain <= 0] = 1.0  # (a tube no fit locates: any gain)
-            M, Mx, My, _ = _rician_model(S, Sx, Sy, gain[own], None, rician_sigma)
+            M, Mx, My, _ = rician_model(S, Sx, Sy, gain[own], None, rician_sigma)
             sel, shift, info, a, n_pix = _linear_fit(M, Mx, My, y, own, starts, K, sel, noise_sigma)
         else:
             sel, shift, info, a, n_pix = _linear_fit(S, Sx, Sy, y, own, starts, K, sel, noise_sigma)
@@ -409,7 +412,7 @@ def _joint_pass(model, T_F_from_I, q, tan, found, pixels, pixel_spacing_mm, slic
         nb_level = np.zeros(y.size)
         np.add.at(nb_level, nb_p, gain[nb_k] * Sn)  # the neighbours' signal in each pixel
         if rician_sigma > 0:  # E[y] = R(a S + n): fit (R(a0 S + n) - R(n)) / a0 to y - (R(n) - R(0))
-            M, Mx, My, lift = _rician_model(S, Sx, Sy, gain[jw.owner], nb_level, rician_sigma)
+            M, Mx, My, lift = rician_model(S, Sx, Sy, gain[jw.owner], nb_level, rician_sigma)
             sel_j, shift, info_j, a_j, n_pix_j = _linear_fit(M, Mx, My, y - lift, jw.owner, starts, K, sel,
                                                              noise_sigma)
         else:
@@ -421,44 +424,6 @@ def _joint_pass(model, T_F_from_I, q, tan, found, pixels, pixel_spacing_mm, slic
         gain[sel_j] = a_j
         sel, at, info, a, n_pix = sel_j, fitted_at.copy(), info_j, a_j, n_pix_j
     return sel, at, info, a, n_pix
-
-
-def _rician_model(S, Sx, Sy, gain, other, sigma: float):
-    """The section model as a Rician magnitude image shows it on average, per window pixel (P,).
-
-    At the fluid gain ``gain`` and the neighbours' signal ``other`` (None: none)
-    (:func:`~chic_register.rician.rician_mean`, ``R(v) = sigma g(v / sigma)``):
-    ``M = (R(gain S + other) - R(other)) / gain`` (``gain`` > 0) and its derivatives
-    ``R'(gain S + other) (Sx, Sy)``, and ``lift = R(other) - R(0)``, to be taken
-    from the pixels. ``y - lift = b + gain M`` then holds on average with
-    ``b = R(0)``, as ``y = b + a S`` does without noise: the linear fit of
-    :func:`_linear_fit` applies unchanged, and at the true section its fit is
-    unbiased at any noise level.
-    """
-    from .rician import rician_mean
-
-    inv = 1.0 / sigma
-    if other is None:  # no neighbour: R(0), the floor
-        g, slope = rician_mean((gain * S) * inv)
-        g0 = np.full(S.size, math.sqrt(math.pi / 2))
-    else:
-        g, slope = rician_mean((gain * S + other) * inv)
-        g0, _ = rician_mean(other * inv)
-    return (g - g0) * (sigma / gain), slope * Sx, slope * Sy, (g0 - math.sqrt(math.pi / 2)) * sigma
-
-
-def _inner_gain(S, y, own, K: int, sigma: float) -> np.ndarray:
-    """Each tube's fluid gain (K,) from the mean of its window's inner pixels (model at least
-    :data:`RICIAN_INNER_LEVEL`), through the inverse Rician mean, over the model's mean there; 0 for a tube
-    with fewer than 3 such pixels."""
-    from .rician import rician_signal
-
-    inner = S >= RICIAN_INNER_LEVEL
-    n = np.bincount(own[inner], minlength=K)
-    total = np.bincount(own[inner], weights=y[inner], minlength=K)
-    level = np.bincount(own[inner], weights=S[inner], minlength=K)  # (the model's mean there, about 1)
-    mean = total / np.maximum(n, 1)
-    return np.where(n >= 3, sigma * rician_signal(mean / sigma) * n / np.maximum(level, 1e-12), 0.0)
 
 
 def _linear_fit(S, Sx, Sy, y, own, starts, K: int, todo, noise_sigma: float):
