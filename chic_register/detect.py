@@ -113,12 +113,13 @@ def _bounding_boxes(labels: np.ndarray, mask: np.ndarray, n: int) -> list:
     From the labelled pixels only (``mask``): sorted by label, the first and
     last rows and the least and greatest columns of each run.
     """
-    rr, cc = np.nonzero(mask)
-    lab = labels[rr, cc]
+    flat = np.flatnonzero(mask)  # (np.nonzero of a 2-D mask is several times slower)
+    rr, cc = np.divmod(flat, mask.shape[1])
+    lab = labels.ravel()[flat]
     order = np.argsort(lab, kind="stable")  # stable: rows stay ascending within a label
     lab, rr, cc = lab[order], rr[order], cc[order]
-    starts = np.flatnonzero(np.r_[True, lab[1:] != lab[:-1]])
-    ends = np.r_[starts[1:], lab.size] - 1
+    starts = np.flatnonzero(np.concatenate(([True], lab[1:] != lab[:-1])))
+    ends = np.append(starts[1:], lab.size) - 1
     r0, r1 = rr[starts].tolist(), (rr[ends] + 1).tolist()
     c0, c1 = np.minimum.reduceat(cc, starts).tolist(), (np.maximum.reduceat(cc, starts) + 1).tolist()
     out = [None] * n
@@ -311,13 +312,14 @@ def _detect(pixels, pixel_spacing_mm, tube_diameter_mm: float, min_area_factor: 
     a0 = math.pi * r_px * r_px
     sig = smooth_sigma_px if smooth_sigma_px is not None else max(0.5, 0.3 * r_px)
     smooth = _smooth(img, sig)
-    thr = otsu_threshold(smooth[::2, ::2])
+    sub_smooth = np.ascontiguousarray(smooth[::2, ::2])  # (Otsu's histogram is faster from a contiguous copy)
+    thr = otsu_threshold(sub_smooth)
     base = median(smooth[::4, ::4])
     thr = base + threshold_fraction * (thr - base)
     mask = smooth > thr
     labels, n = cc3d.connected_components(mask, connectivity=4, return_N=True)  # 4-connected, raster order
     # background and noise: the pixels well below the threshold (mean and spread)
-    sub_img, sub_smooth = img[::2, ::2], smooth[::2, ::2]
+    sub_img = img[::2, ::2]
     bg_pixels = sub_img[sub_smooth < base + 0.25 * (thr - base)]
     if bg_pixels.size < 16:
         bg_pixels = sub_img[sub_smooth <= base]

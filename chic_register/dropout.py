@@ -22,6 +22,7 @@ few valid pixels to fill from (the inside of a masked region).
 from __future__ import annotations
 
 import dataclasses
+import math
 
 import numpy as np
 from numpy.lib.stride_tricks import sliding_window_view
@@ -76,9 +77,10 @@ def _fill_non_finite(pixels: np.ndarray) -> tuple[np.ndarray, int]:
     img = np.asarray(pixels)
     if not np.issubdtype(img.dtype, np.floating):
         return pixels, 0
-    finite = np.isfinite(img)
-    if finite.all():
+    lo, hi = img.min(initial=0.0), img.max(initial=0.0)  # NaN or an infinity anywhere shows in one of them
+    if math.isfinite(lo) and math.isfinite(hi):
         return pixels, 0
+    finite = np.isfinite(img)
     bad = ~finite
     n = int(bad.sum())
     if n == img.size:
@@ -111,9 +113,15 @@ def _fill_specks(pixels: np.ndarray) -> tuple[np.ndarray, int]:
         return pixels, 0
     background = median(sample)  # (np.median's value, without its overhead: finite pixels here)
     sigma = max(1.4826 * median(np.abs(sample - background)), 1e-12)
+    level = SPECK_SIGMAS * sigma
+    # too few bright pixels to hold that many specks (a plain slice: its tube sections): counted first on a
+    # superset, the pixels above background + level less a slack far beyond the subtraction's rounding, then
+    # exactly (img - background > level) on those only, before the whole image is worked on
+    maybe = img > (background + level) - 1e-9 * (abs(background) + level)
+    need = MIN_SPECK_SHARE * img.size
+    if np.count_nonzero(maybe) < need or np.count_nonzero(img[maybe] - background > level) < need:
+        return pixels, 0
     height = img - background
-    if np.count_nonzero(height > SPECK_SIGMAS * sigma) < MIN_SPECK_SHARE * img.size:
-        return pixels, 0  # too few bright pixels to hold that many specks (a plain slice: its tube sections)
     # a quick look (pixels above every one of their eight neighbours by far), then the rule itself
     padded = np.pad(img, 1, constant_values=-np.inf)
     h, w = img.shape

@@ -9,6 +9,7 @@ slices; :func:`_reject_outliers` drops tubes that spoil a fit;
 
 from __future__ import annotations
 
+import functools
 import math
 from dataclasses import dataclass
 from typing import TYPE_CHECKING
@@ -57,6 +58,22 @@ def _assign(pred: np.ndarray, ok: np.ndarray, blobs_xy: np.ndarray, gate_mm: flo
     return out
 
 
+def _image_adjoint(S: np.ndarray) -> np.ndarray:
+    """``_adjoint(invert(S))`` of a slice's ``T_scanner_from_image`` (read-only; memoised: every refinement of
+    a slice needs it)."""
+    S = np.asarray(S)
+    if S.shape != (4, 4) or S.dtype != np.float64:
+        return _adjoint(invert(S))
+    return _adjoint_of_inverse(S.tobytes())
+
+
+@functools.lru_cache(maxsize=64)
+def _adjoint_of_inverse(S_bytes: bytes) -> np.ndarray:
+    A = _adjoint(invert(np.frombuffer(S_bytes).reshape(4, 4)))
+    A.flags.writeable = False
+    return A
+
+
 def refine(model: TubeModel, blobs_xy: list[np.ndarray], T_scanner_from_image: list[np.ndarray],
            T_F_from_scanner: np.ndarray, *, gates_mm=(3.0, 1.5, 1.0, 1.0), iters_per_gate: int = 3,
            final_iters: int = 4, damping: float = 1e-6, exclude: list | None = None,
@@ -81,7 +98,7 @@ def refine(model: TubeModel, blobs_xy: list[np.ndarray], T_scanner_from_image: l
     """
     end_margin = 0.0 if strict_ends else 1e-9
     X = T_F_from_scanner.copy()
-    ads = [_adjoint(invert(S)) for S in T_scanner_from_image]
+    ads = [_image_adjoint(S) for S in T_scanner_from_image]
     assign = list(assign0) if assign0 is not None else [None] * len(blobs_xy)
     offs = offsets_mm if offsets_mm is not None else [None] * len(blobs_xy)
     schedule = [(g, iters_per_gate) for g in gates_mm] + [(None, final_iters)]

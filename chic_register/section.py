@@ -44,6 +44,7 @@ grows with the noise.
 
 from __future__ import annotations
 
+import functools
 import math
 from dataclasses import dataclass
 
@@ -74,6 +75,10 @@ def tube_frames(model, T_F_from_I: np.ndarray, q: np.ndarray, tan_I: np.ndarray)
     of the centreline (zero for lines) and the arc length from the crossing
     back to the tube's start and on to its end (mm).
     """
+    key = (id(model), T_F_from_I.tobytes(), q.tobytes())
+    hit = _FRAMES.get(key)
+    if hit is not None and hit[0] is model:
+        return hit[1]  # (read-only arrays)
     K = q.shape[0]
     R, o = T_F_from_I[:3, :3], T_F_from_I[:3, 3]
     X = np.column_stack([q, np.zeros(K)]) @ R.T + o  # crossings in F
@@ -81,9 +86,8 @@ def tube_frames(model, T_F_from_I: np.ndarray, q: np.ndarray, tan_I: np.ndarray)
     s_lo, s_hi = np.zeros(K), np.zeros(K)
     li, hi = model.line_idx, model.helix_idx
     if li.size:
-        d = model.d[li]
-        t = np.einsum("ij,ij->i", X[li] - model.p0[li], d) / np.einsum("ij,ij->i", d, d)
-        length = np.linalg.norm(d, axis=1)
+        d, p0, dd, length = _line_constants(model)
+        t = np.einsum("ij,ij->i", X[li] - p0, d) / dd
         s_lo[li], s_hi[li] = t * length, (1 - t) * length
     if hi.size:
         r, om = model.radius[hi], model.omega_rad_per_mm[hi]
@@ -93,7 +97,24 @@ def tube_frames(model, T_F_from_I: np.ndarray, q: np.ndarray, tan_I: np.ndarray)
         kappa_F[hi, 1] = -r * om * om * np.sin(th) / g2
         g = np.sqrt(g2)
         s_lo[hi], s_hi[hi] = (X[hi, 2] - model.z_lo[hi]) * g, (model.z_hi[hi] - X[hi, 2]) * g
-    return kappa_F @ R, s_lo, s_hi
+    out = (kappa_F @ R, s_lo, s_hi)
+    for v in out:
+        v.flags.writeable = False
+    if len(_FRAMES) >= 4:
+        _FRAMES.clear()
+    _FRAMES[key] = (model, out)  # a fit draws the model at the same crossings several times
+    return out
+
+
+_FRAMES: dict = {}  # tube_frames' last few results: (model id, pose bytes, crossings bytes) -> (model, result)
+
+
+@functools.lru_cache(maxsize=8)
+def _line_constants(model):
+    """The line tubes' ``(d, p0, d . d, |d|)``: per model, not per pose."""
+    li = model.line_idx
+    d = model.d[li]
+    return d, model.p0[li], np.einsum("ij,ij->i", d, d), np.linalg.norm(d, axis=1)
 
 
 #: Passes of the joint fit (each tube refitted on the pixels it shares with fitted neighbours, their sections
@@ -191,7 +212,7 @@ def joint_windows(model, q: np.ndarray, tan: np.ndarray, found: np.ndarray, todo
     if len(footprints) and assignment is not None:
         _drop_foreign_blobs(keep, rr, cc, own, assignment, footprints)
     kept = np.flatnonzero(keep)
-    p, o = np.nonzero(hit[kept])
+    p, o = np.divmod(np.flatnonzero(hit[kept]), max(hit.shape[1], 1))  # (np.nonzero's row-major pairs, faster)
     return Windows(rr[kept], cc[kept], own[kept]), p, others[o]
 
 
@@ -239,22 +260,26 @@ def section_model(model, T_F_from_I: np.ndarray, q: np.ndarray, tan: np.ndarray,
     s00 = dx0 * tan[own, 0] + dy0 * tan[own, 1]
     dist0 = np.sqrt(np.maximum(dx0 * dx0 + dy0 * dy0 - s00 * s00, 0.0))
     reach = np.hypot(dx0, dy0) + 0.5 * thick + 0.5 * math.hypot(cs, rs)
-    slack = ((txy * 0.5 * thick)[own] + 0.5 * np.linalg.norm(kappa[own], axis=1) * reach * reach
+    # (per tube, then per pixel: the same values as per pixel throughout, fewer operations)
+    slack = ((txy * 0.5 * thick)[own] + (0.5 * np.linalg.norm(kappa, axis=1))[own] * reach * reach
              + 0.5 * math.hypot(cs, rs) + 1e-6)
     clear_end = np.minimum(s_lo[own] + s00, s_hi[own] - s00) - reach
     S = np.zeros(own.size)
     Sx, Sy = np.zeros(own.size), np.zeros(own.size)
-    S[(r_tube[own] - dist0 > slack) & (clear_end > 0)] = 1.0
-    band = np.flatnonzero((np.abs(r_tube[own] - dist0) <= slack) | ((r_tube[own] - dist0 > slack) & (clear_end <= 0)))
+    inner = r_tube[own] - dist0
+    deep = inner > slack
+    S[deep & (clear_end > 0)] = 1.0
+    band = np.flatnonzero((np.abs(inner) <= slack) | (deep & (clear_end <= 0)))
     if band.size:
         S[band], Sx[band], Sy[band] = _section_band(tan, kappa, s_lo, s_hi, r_tube, own[band], dx0[band], dy0[band],
                                                     cs, rs, thick, thickness_samples,
-                                                    ends=bool((clear_end[band] <= 0).any()), curved=exact)
+                                                    ends=bool((clear_end[band] <= 0).any()), curved=exact,
+                                                    s00=s00[band])
     return S, Sx, Sy
 
 
 def _section_band(tan, kappa, s_lo, s_hi, r_tube, own, dx0, dy0, cs: float, rs: float, thick: float,
-                  thickness_samples: int, ends: bool = True, curved: bool = True):
+                  thickness_samples: int, ends: bool = True, curved: bool = True, s00=None):
     """:func:`section_model` at pixels an edge may cross: every plane across the slice, the exact pixel coverage.
 
     The distance of a point to the centreline is measured from the curve
@@ -268,7 +293,9 @@ def _section_band(tan, kappa, s_lo, s_hi, r_tube, own, dx0, dy0, cs: float, rs: 
     t, kap = tan[own], kappa[own]
     tx, ty, tz = t[:, 0:1], t[:, 1:2], t[:, 2:3]
     dxs, dys = dx0[:, None], dy0[:, None]
-    s0 = (dx0 * tan[own, 0] + dy0 * tan[own, 1])[:, None] + sz * tz  # arc length along the tangent
+    if s00 is None:  # (section_model has it: dx0 t_x + dy0 t_y)
+        s00 = dx0 * tan[own, 0] + dy0 * tan[own, 1]
+    s0 = s00[:, None] + sz * tz  # arc length along the tangent
     h = 0.5 * s0 * s0
     ex_ = dxs - s0 * tx - h * kap[:, 0:1]
     ey_ = dys - s0 * ty - h * kap[:, 1:2]
@@ -332,12 +359,14 @@ def fit_sections(model, T_F_from_I: np.ndarray, assignment: np.ndarray, pixels: 
     if todo.size == 0 or own.size == 0:
         return SectionFit(q, out_pos, out_info, out_gain, n_pix, fitted), windows
     y = np.asarray(pixels, dtype=float)[windows.rows, windows.cols]
-    starts = np.flatnonzero(np.r_[True, own[1:] != own[:-1]])  # windows are contiguous, one per tube
+    starts = np.flatnonzero(np.concatenate(([True], own[1:] != own[:-1])))  # windows are contiguous, one per tube
     at = q.copy()  # where each section model is drawn: the crossing, then the fitted position
     sel = todo
+    at_crossing = None  # the model drawn at the crossings (the first fit's): the joint pass reuses it
     for _ in range(max(1, int(shift_iterations))):
         S, Sx, Sy = section_model(model, T_F_from_I, at, tan, windows, pixel_spacing_mm, slice_thickness_mm,
                                   thickness_samples, exact)
+        at_crossing = at_crossing or (windows, (S, Sx, Sy))
         if rician_sigma > 0:  # the Rician mean at each tube's gain (from its inner pixels, else a linear fit)
             gain = inner_gain(S, y, own, K, rician_sigma)
             if not gain[sel].all():
@@ -356,8 +385,9 @@ def fit_sections(model, T_F_from_I: np.ndarray, assignment: np.ndarray, pixels: 
     if joint and windows.shared and exact and sel.size >= 2 and int(shift_iterations) <= 1:
         sel, at, info, a, n_pix = _joint_pass(model, T_F_from_I, q, tan, found, pixels, pixel_spacing_mm,
                                               slice_thickness_mm, thickness_samples, exact, noise_sigma, assignment,
-                                              footprints, margin_px, sel, at, info, a, n_pix, rician_sigma,
-                                              reach if reach is not None and np.array_equal(sel, todo) else None)
+                                              footprints, margin_px, sel, at, info, a, n_pix,
+                                              reach if reach is not None and np.array_equal(sel, todo) else None,
+                                              at_crossing, rician_sigma)
     out_pos[sel] = at[sel]
     out_info[sel] = info
     out_gain[sel] = a
@@ -367,11 +397,12 @@ def fit_sections(model, T_F_from_I: np.ndarray, assignment: np.ndarray, pixels: 
 
 def _joint_pass(model, T_F_from_I, q, tan, found, pixels, pixel_spacing_mm, slice_thickness_mm: float,
                 thickness_samples: int, exact: bool, noise_sigma: float, assignment, footprints, margin_px: float,
-                sel, at, info, a, n_pix, rician_sigma: float = 0.0, reach=None):
+                sel, at, info, a, n_pix, reach=None, at_crossing=None, rician_sigma: float = 0.0):
     """Refit the tubes ``sel`` on the pixels they share with fitted neighbours, those neighbours' fitted
     sections (position ``at``, level ``a``) subtracted (:func:`joint_windows`); :data:`JOINT_PASSES` times.
     Returns ``(sel, at, info, a, n_pix)`` as :func:`_linear_fit` gives them, unchanged when no pixel is
-    shared or a tube would be lost."""
+    shared or a tube would be lost. ``at_crossing``: ``(windows, (S, Sx, Sy))``, :func:`section_model` at the
+    crossings ``q`` on some windows, whose pixels are then not drawn again (the model is pixel by pixel)."""
     K = q.shape[0]
     modelled = np.zeros(K, bool)
     modelled[sel] = True
@@ -400,12 +431,13 @@ def _joint_pass(model, T_F_from_I, q, tan, found, pixels, pixel_spacing_mm, slic
             return sel, at, info, a, n_pix
         neighbours = Windows(jw.rows[nb_p], jw.cols[nb_p], nb_k)
     y = np.asarray(pixels, dtype=float)[jw.rows, jw.cols]
-    starts = np.flatnonzero(np.r_[True, jw.owner[1:] != jw.owner[:-1]])
-    S, Sx, Sy = section_model(model, T_F_from_I, q, tan, jw, pixel_spacing_mm, slice_thickness_mm,
-                              thickness_samples, exact)
+    starts = np.flatnonzero(np.concatenate(([True], jw.owner[1:] != jw.owner[:-1])))
+    S, Sx, Sy = _model_reusing(model, T_F_from_I, q, tan, jw, pixels.shape, pixel_spacing_mm, slice_thickness_mm,
+                               thickness_samples, exact, at_crossing)
     for n_pass in range(JOINT_PASSES):
-        if n_pass == 0 and not strong.any():
-            Sn = Sn0  # the same neighbours at the same fitted positions: the same model
+        if n_pass == 0:
+            # the same neighbours' pixels (less the strong ones) at the same fitted positions: the same model
+            Sn = Sn0[pair_ok] if strong.any() else Sn0
         else:
             Sn = section_model(model, T_F_from_I, fitted_at, tan, neighbours, pixel_spacing_mm, slice_thickness_mm,
                                thickness_samples, exact)[0]
@@ -426,13 +458,51 @@ def _joint_pass(model, T_F_from_I, q, tan, found, pixels, pixel_spacing_mm, slic
     return sel, at, info, a, n_pix
 
 
+def _model_reusing(model, T_F_from_I, q, tan, win: Windows, shape, pixel_spacing_mm, slice_thickness_mm: float,
+                   thickness_samples: int, exact: bool, drawn=None):
+    """:func:`section_model` at ``q`` on ``win``, taking the pixels ``drawn`` = ``(windows, (S, Sx, Sy))`` already
+    has (drawn at the same ``q``, pose and settings) from it: each pixel's value depends on that pixel alone."""
+    if drawn is None:
+        return section_model(model, T_F_from_I, q, tan, win, pixel_spacing_mm, slice_thickness_mm,
+                             thickness_samples, exact)
+    old, old_S = drawn
+    H, W = shape
+    key_old = (old.owner * H + old.rows) * W + old.cols  # ascending as built: owners ascending, boxes row-major
+    key = (win.owner * H + win.rows) * W + win.cols
+    order = None if np.all(key_old[1:] > key_old[:-1]) else np.argsort(key_old, kind="stable")
+    sorted_old = key_old if order is None else key_old[order]
+    at = np.minimum(np.searchsorted(sorted_old, key), max(key_old.size - 1, 0))
+    have = sorted_old[at] == key if key_old.size else np.zeros(key.size, bool)
+    src = at[have] if order is None else order[at[have]]
+    out = tuple(np.empty(key.size) for _ in range(3))
+    for o, v in zip(out, old_S):
+        o[have] = v[src]
+    new = np.flatnonzero(~have)
+    if new.size:
+        fresh = section_model(model, T_F_from_I, q, tan, Windows(win.rows[new], win.cols[new], win.owner[new]),
+                              pixel_spacing_mm, slice_thickness_mm, thickness_samples, exact)
+        for o, v in zip(out, fresh):
+            o[new] = v
+    return out
+
+
 def _linear_fit(S, Sx, Sy, y, own, starts, K: int, todo, noise_sigma: float):
     """Per tube least squares ``y = b + a S + (a dx) Sx + (a dy) Sy`` from sums over each window.
 
     Returns ``(tubes fitted, shift (n, 2) mm, information (n, 2, 2), gain (n,), pixels per tube (K,))``.
     """
-    F = np.column_stack([np.ones_like(S), S, Sx, Sy, y])
-    prods = F[:, _PAIR_I] * F[:, _PAIR_J]  # (P, 14): the normal matrix's 10 entries, then the right-hand side
+    # (P, 14): the normal matrix's 10 entries, then the right-hand side; F[:, _PAIR_I] * F[:, _PAIR_J] for
+    # F = [1, S, Sx, Sy, y], column by column (several times faster than the fancy-indexed product; the same values)
+    prods = np.empty((S.size, _PAIR_I.size))
+    prods[:, 0] = 1.0
+    F = (None, S, Sx, Sy, y)
+    for c, (i, j) in enumerate(zip(_PAIR_I.tolist(), _PAIR_J.tolist())):
+        if c == 0:
+            continue
+        if i == 0:
+            prods[:, c] = F[j]
+        else:
+            np.multiply(F[i], F[j], out=prods[:, c])
     sums = np.zeros((K, _PAIR_I.size))
     sums[own[starts]] = np.add.reduceat(prods, starts, axis=0)
     N = sums[:, _SYM]  # (K, 4, 4)

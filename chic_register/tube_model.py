@@ -13,6 +13,7 @@ from __future__ import annotations
 
 import functools
 import math
+import weakref
 from dataclasses import dataclass
 
 import numpy as np
@@ -156,6 +157,40 @@ def plane_crossings(model: TubeModel, T_F_from_I: np.ndarray, margin_mm: float =
     helices: Newton on z started from the axis crossing (scalar code: the
     arrays are tiny and numpy's per-call overhead would dominate).
     """
+    T_F_from_I = np.asarray(T_F_from_I, dtype=float)
+    key = T_F_from_I.tobytes()
+    memo = _CROSSINGS.get(model)
+    hit = memo.get(key) if memo is not None else None
+    if hit is None:  # the solver asks for the same pose's crossings several times (a fit, then its checks)
+        hit = _crossings(model, T_F_from_I)
+        if memo is None:
+            memo = _CROSSINGS[model] = {}
+        if len(memo) >= 16:
+            memo.clear()
+        memo[key] = hit
+    q, tan_I, zF, ok, tan_z = hit
+    if margin_mm > 0:
+        bounds = memo.get(("margin", margin_mm))  # the extent widened by margin_mm: per model, not per pose
+        if bounds is None:
+            bounds = memo[("margin", margin_mm)] = (model.z_lo - margin_mm - 1e-6, model.z_hi + margin_mm + 1e-6)
+        inside = ok & (zF >= bounds[0]) & (zF <= bounds[1])
+    else:
+        # strict: the whole cross-section must lie within the tube, else the blob is cut short by the
+        # tube's end and its centre is biased: half the cut's length along the tube, in z of F
+        cos_a = np.maximum(np.abs(tan_I[:, 2]), 1e-6)
+        clear = 0.5 * model.diameter_mm * np.sqrt(np.maximum(1 - cos_a * cos_a, 0.0)) / cos_a * np.abs(tan_z)
+        lo, hi = model.z_lo + clear, model.z_hi - clear
+        inside = ok & (zF >= lo - 1e-6) & (zF <= hi + 1e-6)
+    return q[:, :2].copy(), tan_I.copy(), zF.copy(), inside
+
+
+#: plane_crossings' memo per model (weakly held): pose bytes -> (q, tan_I, z_F, found, tangent z in F), and
+#: ("margin", mm) -> the widened extent's bounds
+_CROSSINGS: "weakref.WeakKeyDictionary" = weakref.WeakKeyDictionary()
+
+
+def _crossings(model: TubeModel, T_F_from_I: np.ndarray):
+    """:func:`plane_crossings` before the extent test: ``(q (K, 3), tan_I, z_F, found, tangent z in F)``."""
     R = T_F_from_I[:3, :3]
     o = T_F_from_I[:3, 3]
     (_, _, nx, ox), (_, _, ny, oy), (_, _, nz, oz) = T_F_from_I[:3].tolist()
@@ -199,17 +234,8 @@ def plane_crossings(model: TubeModel, T_F_from_I: np.ndarray, margin_mm: float =
     X, tan, ok = A[:, :3], A[:, 3:6], A[:, 6] > 0
     zF = X[:, 2]
     tan_I = tan @ R
-    if margin_mm > 0:
-        lo, hi = model.z_lo - margin_mm, model.z_hi + margin_mm
-    else:
-        # strict: the whole cross-section must lie within the tube, else the blob is cut short by the
-        # tube's end and its centre is biased: half the cut's length along the tube, in z of F
-        cos_a = np.maximum(np.abs(tan_I[:, 2]), 1e-6)
-        clear = 0.5 * model.diameter_mm * np.sqrt(np.maximum(1 - cos_a * cos_a, 0.0)) / cos_a * np.abs(tan[:, 2])
-        lo, hi = model.z_lo + clear, model.z_hi - clear
-    inside = ok & (zF >= lo - 1e-6) & (zF <= hi + 1e-6)
     q = (X - o) @ R  # rows: R^T (X - o)
-    return q[:, :2], tan_I, zF, inside
+    return q, tan_I, zF, ok, tan[:, 2]
 
 
 def _section_extent(model, tan, slice_thickness_mm):
@@ -245,13 +271,15 @@ def _crossing_jacobian(xy: np.ndarray, tan_I: np.ndarray) -> np.ndarray:
     ``delta = P x omega - v`` in the image frame and the crossing slides
     along the tangent back to z = 0: ``dq = delta_xy - (t_xy / t_z) delta_z``.
     """
-    x, y = xy[:, 0], xy[:, 1]
-    tz = tan_I[:, 2]
-    tz = np.where(np.abs(tz) < 1e-6, 1e-6, tz)
-    a, b = tan_I[:, 0] / tz, tan_I[:, 1] / tz
+    x, y = xy[:, 0:1], xy[:, 1]
+    tz = tan_I[:, 2:3]
+    ab = tan_I[:, :2] / np.where(np.abs(tz) < 1e-6, 1e-6, tz)  # (M, 2): a, b
     J = np.zeros((xy.shape[0], 2, 6))
-    J[:, 0, 0], J[:, 0, 1], J[:, 0, 2], J[:, 0, 3], J[:, 0, 5] = a * y, -a * x, y, -1.0, a
-    J[:, 1, 0], J[:, 1, 1], J[:, 1, 2], J[:, 1, 4], J[:, 1, 5] = b * y, -b * x, -x, -1.0, b
+    np.multiply(ab, y[:, None], out=J[:, :, 0])  # a y, b y
+    np.multiply(-ab, x, out=J[:, :, 1])  # -a x, -b x
+    J[:, 0, 2], J[:, 1, 2] = y, -x[:, 0]
+    J[:, 0, 3] = J[:, 1, 4] = -1.0
+    J[:, :, 5] = ab
     return J
 
 
