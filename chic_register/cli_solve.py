@@ -136,9 +136,7 @@ def _read_solve_inputs(args) -> tuple[list, bool]:
     ranges, or, without them, every native slice (those that do not lock are
     then skipped and reported).
     """
-    from .imageio import read_slices
-    from .volume import is_volume_path, read_volume
-    from .volume_register import parse_slice_indices
+    from .imageio import is_volume_path, read_slices
 
     check_spacing_flag(args)
     volumes = [p for p in args.images if is_volume_path(p)]
@@ -147,6 +145,9 @@ def _read_solve_inputs(args) -> tuple[list, bool]:
     slices = []
     for path in args.images:
         if is_volume_path(path):
+            from .volume import read_volume
+            from .volume_register import parse_slice_indices
+
             vol = read_volume(path)
             nk = vol.shape[0]
             ks = parse_slice_indices(args.slices, nk) if args.slices else range(nk)

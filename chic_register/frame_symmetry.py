@@ -26,6 +26,7 @@ import numpy as np
 from .geometry import FiducialGeometry
 
 _N_SAMPLES = 65
+_COARSE_SAMPLES = 9  # every 8th of the 65: the solver's up-front test, before the full one (when it may pass)
 
 
 @dataclass(frozen=True)
@@ -59,9 +60,9 @@ def candidate_rotations(length_mm: float) -> list[tuple[str, np.ndarray]]:
     return out
 
 
-def _tube_samples(geom: FiducialGeometry) -> np.ndarray:
-    """Points of every tube at equal arc-length steps; shape (T, N, 3)."""
-    t = np.linspace(0.0, 1.0, _N_SAMPLES)
+def _tube_samples(geom: FiducialGeometry, n_samples: int = _N_SAMPLES) -> np.ndarray:
+    """Points of every tube at equal arc-length steps; shape (T, n_samples, 3)."""
+    t = np.linspace(0.0, 1.0, n_samples)
     return np.stack([tube.points(t) for tube in geom.tubes])
 
 
@@ -72,15 +73,21 @@ def rotation_mismatch(geom: FiducialGeometry, R: np.ndarray) -> tuple[float, tup
     tube sets, each tube a whole curve (0 for an exact symmetry); the mapping
     sends tube i to the tube nearest its image.
     """
+    return _mismatches(geom, np.asarray(R, dtype=float)[None])[0]
+
+
+def _mismatches(geom: FiducialGeometry, Rs: np.ndarray, n_samples: int = _N_SAMPLES) -> list[tuple[float, tuple[int, ...]]]:
+    """:func:`rotation_mismatch` of every rotation of ``Rs`` (shape (K, 3, 3)) at once. With fewer ``n_samples``
+    (``n_samples - 1`` dividing ``_N_SAMPLES - 1``: a subset of the same points) each mismatch is a lower bound."""
     c = np.array([0.0, 0.0, geom.body.length / 2])
-    P = _tube_samples(geom)
-    Q = (P - c) @ R.T + c  # (T, N, 3)
-    fwd = np.linalg.norm(Q[:, None] - P[None], axis=-1).max(axis=-1)  # (T, T)
-    rev = np.linalg.norm(Q[:, None] - P[None, :, ::-1], axis=-1).max(axis=-1)
-    same_diam = np.array([[a.diameter == b.diameter for b in geom.tubes] for a in geom.tubes])
-    d = np.where(same_diam, np.minimum(fwd, rev), np.inf)
-    j = np.argmin(d, axis=1)
-    return float(max(d.min(axis=1).max(), d.min(axis=0).max())), tuple(int(k) for k in j)
+    P = _tube_samples(geom, n_samples)  # (T, N, 3)
+    Q = np.einsum("tnj,kij->ktni", P - c, Rs) + c  # (K, T, N, 3): every tube turned by every rotation
+    fwd = np.linalg.norm(Q[:, :, None] - P[None, None], axis=-1).max(axis=-1)  # (K, T, T)
+    rev = np.linalg.norm(Q[:, :, None] - P[None, None, :, ::-1], axis=-1).max(axis=-1)
+    diam = np.array([t.diameter for t in geom.tubes])
+    d = np.where(diam[:, None] == diam[None, :], np.minimum(fwd, rev), np.inf)
+    return [(float(max(dk.min(axis=1).max(), dk.min(axis=0).max())), tuple(int(j) for j in np.argmin(dk, axis=1)))
+            for dk in d]
 
 
 #: A rotation mapping every tube within this share of the thinnest tube's diameter onto another is a symmetry no
@@ -91,11 +98,9 @@ EXACT_SHARE = 0.05
 
 def _candidates(geom: FiducialGeometry) -> tuple[tuple[str, float, tuple[int, ...]], ...]:
     """``(what, mismatch mm, mapping)`` of every candidate rotation of ``geom``."""
-    out = []
-    for what, R in candidate_rotations(geom.body.length):
-        mism, mapping = rotation_mismatch(geom, R)
-        out.append((what, mism, mapping))
-    return tuple(out)
+    named = candidate_rotations(geom.body.length)
+    found = _mismatches(geom, np.stack([R for _, R in named]))
+    return tuple((what, mism, mapping) for (what, _), (mism, mapping) in zip(named, found))
 
 
 @functools.lru_cache(maxsize=8)
@@ -129,6 +134,10 @@ def prior_needed(geom: FiducialGeometry, tolerance_mm: float) -> str | None:
     twin pose explains every slice exactly as well, so a search could only
     end in an ambiguous fit (or, worse, a coin toss).
     """
+    named = candidate_rotations(geom.body.length)
+    coarse = _mismatches(geom, np.stack([R for _, R in named]), _COARSE_SAMPLES)
+    if min(m for m, _ in coarse) > tolerance_mm:  # a lower bound of every mismatch: no symmetry (the common case)
+        return None
     found, _ = frame_symmetries(geom, tolerance_mm)
     if not found:
         return None

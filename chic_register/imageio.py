@@ -27,6 +27,22 @@ from .errors import ImageReadError, InputFileError
 from .safeload import open_regular_file
 from .slices import Slice
 
+#: Volume files (read by :mod:`chic_register.volume`, SimpleITK); a folder is read as a DICOM series.
+VOLUME_SUFFIXES = (".nii", ".nii.gz", ".nrrd", ".nhdr", ".mha", ".mhd")
+
+
+def _suffix(path: Path) -> str:
+    name = path.name.lower()
+    return ".nii.gz" if name.endswith(".nii.gz") else path.suffix.lower()
+
+
+def is_volume_path(path) -> bool:
+    """True for a NIfTI/NRRD/MetaImage file or a folder (read as a DICOM series): a volume, not a 2-D image.
+
+    Decided here, by name, so that a one-shot solve of a 2-D file never imports the volume code."""
+    path = Path(path)
+    return path.is_dir() or _suffix(path) in VOLUME_SUFFIXES
+
 #: Physical range of a pixel spacing (mm): 10 um (microscopy-grade MRI) to 50 mm.
 MIN_SPACING_MM = 0.01
 MAX_SPACING_MM = 50.0

@@ -186,7 +186,7 @@ def plane_crossings(model: TubeModel, T_F_from_I: np.ndarray, margin_mm: float =
 
 #: plane_crossings' memo per model (weakly held): pose bytes -> (q, tan_I, z_F, found, tangent z in F), and
 #: ("margin", mm) -> the widened extent's bounds
-_CROSSINGS: "weakref.WeakKeyDictionary" = weakref.WeakKeyDictionary()
+_CROSSINGS: weakref.WeakKeyDictionary = weakref.WeakKeyDictionary()
 
 
 def _crossings(model: TubeModel, T_F_from_I: np.ndarray):

@@ -26,26 +26,16 @@ import numpy as np
 
 from .atomic import atomic_path
 from .errors import ChicRegisterError, ImageReadError, InputFileError
+from .imageio import VOLUME_SUFFIXES as FILE_SUFFIXES
+from .imageio import _suffix, is_volume_path  # noqa: F401  (importable from here, as before)
 from .slices import Slice
 
 if TYPE_CHECKING:  # annotations only: SimpleITK is imported where it is used
     import SimpleITK as sitk
 
 MAX_VOXELS = 2**26  # 64 M voxels (512 x 512 x 256): 256 MiB as float32, read and copied once
-FILE_SUFFIXES = (".nii", ".nii.gz", ".nrrd", ".nhdr", ".mha", ".mhd")
 WRITE_SUFFIXES = (".nii", ".nii.gz", ".nrrd", ".mha")
 MR_IMAGE_STORAGE = "1.2.840.10008.5.1.4.1.1.4"  # MR Image Storage SOP class
-
-
-def _suffix(path: Path) -> str:
-    name = path.name.lower()
-    return ".nii.gz" if name.endswith(".nii.gz") else path.suffix.lower()
-
-
-def is_volume_path(path) -> bool:
-    """True for a NIfTI/NRRD/MetaImage file or a folder (read as a DICOM series)."""
-    path = Path(path)
-    return path.is_dir() or _suffix(path) in FILE_SUFFIXES
 
 
 @dataclass(frozen=True, eq=False)

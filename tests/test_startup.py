@@ -43,7 +43,7 @@ def test_one_shot_dicom_solve_imports_only_what_a_slice_needs(tmp_path, neuro_ge
     assert not [m for m in mods if m.split(".")[0] in ("SimpleITK", "matplotlib", "pyigtl")
                 or m.startswith(("scipy.optimize", "scipy.ndimage", "scipy.special"))
                 or m == "numpy.ma" or m.startswith("numpy.ma.")  # np.median / np.unique import it: ~40 ms
-                or m in ("statistics", "fractions")]  # NormalDist: ~4 ms (uncertainty.normal_quantile instead)
+                or m in ("statistics", "fractions", "chic_register.volume", "chic_register.volume_register")]  # NormalDist: ~4 ms (uncertainty.normal_quantile instead)
 
 
 def test_normal_quantile_matches_the_standard_library():

@@ -172,6 +172,21 @@ def test_z001_is_symmetric_under_a_half_turn_about_y(zgeom):
     assert "rotation by 90 deg about the z axis" in whats and len(whats) == 7
 
 
+
+def test_the_solvers_coarse_symmetry_test_bounds_the_full_one_from_below(zgeom, neuro_geometry, needle_geometry):
+    """prior_needed first compares 9 of the 65 points per tube (a subset of the same pairs): each coarse mismatch
+    is a lower bound, so a frame it clears has no symmetry, and the frames it does not clear get the full test."""
+    from chic_register.frame_symmetry import EXACT_SHARE, _mismatches, candidate_rotations, prior_needed
+
+    for g in (zgeom, neuro_geometry, needle_geometry):
+        Rs = np.stack([R for _, R in candidate_rotations(g.body.length)])
+        full, coarse = _mismatches(g, Rs), _mismatches(g, Rs, 9)
+        assert all(c <= f + 1e-12 for (c, _), (f, _) in zip(coarse, full))
+        assert min(f for f, _ in full) > 0.5 or g is zgeom  # the CHIC designs are far from any symmetry
+    assert prior_needed(zgeom, EXACT_SHARE * 1.0) is not None
+    assert prior_needed(neuro_geometry, 0.1) is None and prior_needed(needle_geometry, 0.1) is None
+    assert prior_needed(needle_geometry, 0.7) is not None  # its half turn leaves the tubes 0.63 mm apart
+
 @pytest.fixture(scope="module")
 def zcheck():
     return check_design(load_spec(ZFRAME))
