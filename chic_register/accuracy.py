@@ -286,6 +286,7 @@ def _section_refine(model: TubeModel, fit: _Fit, xys, Ss, slices, blob_sets, opt
     (tubes in tissue, blobs much wider than the channels) return ``None``:
     the blob-centre pose then stands, and is verified like any other.
     """
+    from .rician import rayleigh_sigma
     from .section import fit_sections
 
     assign = [a.copy() for a in fit.assignments]
@@ -304,7 +305,9 @@ def _section_refine(model: TubeModel, fit: _Fit, xys, Ss, slices, blob_sets, opt
                                        float(sl.slice_thickness_mm), b.noise_sigma, footprints=b.footprints,
                                        thickness_samples=(opts.section_thickness_samples if exact
                                                           else min(3, opts.section_thickness_samples)),
-                                       windows=wins[j], exact=exact)
+                                       windows=wins[j], exact=exact,
+                                       rician_sigma=rayleigh_sigma(b.background, b.noise_sigma) if opts.section_rician
+                                       else 0.0)
             q_before.append(sf.predicted_mm)
             ok = sf.fitted.copy()
             if ok.any():  # a section far from where the locked pose puts it, or faint, is not the tube's

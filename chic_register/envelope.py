@@ -13,12 +13,17 @@ thickness. See :mod:`chic_design.feasibility` for the section model.
 
 from __future__ import annotations
 
-import functools
 import math
 from dataclasses import dataclass
 
 import numpy as np
 
+from .centreline_crossings import (  # noqa: F401 - re-exported: the design checks import them from here
+    _brackets,
+    crossing_counts,
+    plane_crossings,
+    tube_crossings,
+)
 from .geometry import FiducialGeometry
 from .tubes import slab_reach_mm
 
@@ -35,76 +40,6 @@ def plane_normals(tilt_deg, azimuth_deg) -> np.ndarray:
     a = np.radians(np.asarray(azimuth_deg, dtype=float))
     t, a = np.broadcast_arrays(t, a)
     return np.stack([np.sin(t) * np.cos(a), np.sin(t) * np.sin(a), np.cos(t)], axis=-1)
-
-
-def _brackets(tube) -> tuple[np.ndarray, np.ndarray]:
-    """``(params, points)``: a tube's bracketing samples and its centreline there (per tube, computed once;
-    read-only)."""
-    try:
-        return _brackets_memo(tube)
-    except TypeError:  # a tube object that is not hashable: no memo
-        ts = tube.bracket_params()
-        return ts, tube.points(ts)
-
-
-@functools.lru_cache(maxsize=256)
-def _brackets_memo(tube) -> tuple[np.ndarray, np.ndarray]:
-    ts = tube.bracket_params()
-    pts = tube.points(ts)
-    ts.flags.writeable = pts.flags.writeable = False
-    return ts, pts
-
-
-def crossing_counts(tube, origins, normals) -> np.ndarray:
-    """How many times a tube centreline crosses each plane (origins, normals: (P, 3)); shape (P,)."""
-    pts = _brackets(tube)[1]
-    g = np.asarray(normals, dtype=float) @ pts.T - np.einsum("pi,pi->p", origins, normals)[:, None]
-    pos = g >= 0
-    return (pos[:, 1:] != pos[:, :-1]).sum(axis=1)
-
-
-def plane_crossings(tube, origins, normals, n_iter: int = 4):
-    """Crossings of a tube centreline with many planes at once (vectorised ``intersect_plane``).
-
-    ``origins``, ``normals``: shape (P, 3). The centreline is bracketed at
-    samples (its two ends for a line, <= 2 mm apart otherwise) and each first
-    bracket refined by Illinois regula falsi on ``tube.points``. Returns
-    ``(t, points, tangents, count)``: shapes (P,), (P, 3), (P, 3), (P,); ``t``
-    and the points are NaN where the plane misses the tube, ``count`` is the
-    number of crossings.
-    """
-    o = np.asarray(origins, dtype=float)
-    n = np.asarray(normals, dtype=float)
-    ts, pts = _brackets(tube)  # (K,), (K, 3)
-    off = np.einsum("pi,pi->p", o, n)
-    g = n @ pts.T - off[:, None]  # (P, K)
-    pos = g >= 0
-    change = pos[:, 1:] != pos[:, :-1]
-    count = change.sum(axis=1)
-    hit = count > 0
-    k = np.argmax(change, axis=1)
-    rows = np.arange(len(g))
-    ta, tb = ts[k], ts[k + 1]
-    ga, gb = g[rows, k], g[rows, k + 1]
-    denom = np.where(gb != ga, gb - ga, 1.0)
-    t = ta - ga * (tb - ta) / denom
-    if tube.curved:
-        side = np.zeros(len(t))  # +1: end a was replaced last time, -1: end b
-        for _ in range(n_iter):
-            gt = np.einsum("pi,pi->p", n, tube.points(t)) - off
-            same = np.sign(gt) == np.sign(ga)  # t replaces end a
-            # Illinois: halve the kept end's value when the same end is replaced twice in a row
-            ga, gb = (np.where(same, gt, np.where(side == -1, 0.5 * ga, ga)),
-                      np.where(same, np.where(side == 1, 0.5 * gb, gb), gt))
-            ta, tb = np.where(same, t, ta), np.where(same, tb, t)
-            side = np.where(same, 1.0, -1.0)
-            denom = np.where(gb != ga, gb - ga, 1.0)
-            t = np.clip(ta - ga * (tb - ta) / denom, np.minimum(ta, tb), np.maximum(ta, tb))
-    t = np.where(hit, t, np.nan)
-    safe = np.where(hit, t, 0.0)
-    points = np.where(hit[:, None], tube.points(safe), np.nan)
-    tangents = np.where(hit[:, None], tube.tangents(safe), np.nan)
-    return t, points, tangents, count
 
 
 # ----------------------------------------------------------------------------- tilt limits
@@ -344,16 +279,12 @@ class _PlaneChecker:
         origins = np.zeros_like(normals)
         origins[:, 2] = z
         P, N = len(normals), len(self.tubes)
-        C = np.empty((P, N, 3))
-        T = np.empty((P, N, 3))
-        tpar = np.empty((P, N))
-        cnt = np.empty((P, N), dtype=int)
         if len(self.pairs) == 0:  # visibility only: crossing counts suffice
+            cnt = np.empty((P, N), dtype=int)
             for k, tube in enumerate(self.tubes):
                 cnt[:, k] = crossing_counts(tube, origins, normals)
             return cnt, np.zeros((P, 0))
-        for k, tube in enumerate(self.tubes):
-            tpar[:, k], C[:, k], T[:, k], cnt[:, k] = plane_crossings(tube, origins, normals)
+        tpar, C, T, cnt = tube_crossings(self.tubes, origins, normals)
         d = C[:, self.J] - C[:, self.I]  # (P, M, 3)
         dist = np.linalg.norm(d, axis=-1)
         e0 = d / np.where(dist > 0, dist, 1.0)[..., None]

@@ -31,6 +31,7 @@ from dataclasses import dataclass
 import numpy as np
 
 from .geometry import FiducialGeometry
+from .tubes import helix_points, helix_tangents
 
 
 def sample_offsets(n: int) -> np.ndarray:
@@ -87,6 +88,50 @@ def _unit_clip(x: np.ndarray) -> np.ndarray:
     return np.minimum(x, 1.0, out=x)
 
 
+def _crossing_box(c: np.ndarray, t: np.ndarray, r: float, length: float, z_mm: float, pixel_mm: float):
+    """``(x, y, hx, hy)`` (mm): the centre in the sub-plane ``z = z_mm`` of S of one crossing's section (a tube of
+    radius ``r``, ``length``, its centreline point ``c`` and unit tangent ``t`` in S: three numbers each) and the
+    half-extents of the box that holds it, two pixels (``pixel_mm``) wider."""
+    # in-plane section: inside the ellipse (semi-axes a along the tangent's projection,
+    # and r) about the tangent line's crossing; c itself is off the plane when a line
+    # crossing was clipped to the tube's end
+    shift = (c[2] - z_mm) / t[2] if abs(t[2]) > 1e-9 else math.inf
+    if abs(shift) <= length:
+        x, y = c[0] - shift * t[0], c[1] - shift * t[1]
+        a = min(r / max(abs(t[2]), 1e-6), length + r)
+    else:  # (nearly) parallel to the plane: a band along the segment
+        x, y, a = c[0], c[1], length + r
+    txy = math.hypot(t[0], t[1])
+    ux, uy = (t[0] / txy, t[1] / txy) if txy > 1e-12 else (1.0, 0.0)
+    margin = 2.0 * pixel_mm
+    hx = math.sqrt((a * ux) ** 2 + (r * uy) ** 2) + margin
+    hy = math.sqrt((a * uy) ** 2 + (r * ux) ** 2) + margin
+    return x, y, hx, hy
+
+
+def _coverage(perp_x, perp_y, dist, u, r, length, t_x, t_y, hs_x: float, hs_y: float) -> np.ndarray:
+    """Fluid fraction of samples (arrays of one shape): ``perp_*`` the in-plane components of each sample's offset
+    from the centreline (its length ``dist`` in 3-D), ``u`` its centreline parameter; ``r``, ``length`` the tube's
+    radius and length and ``t_*`` its tangent's in-plane components in S (numbers, or arrays of the samples'
+    shape); ``hs_*`` the half-footprint of a sample. A linear ramp across the sample's footprint at the wall and
+    at the tube's ends."""
+    if dist.all():  # (no sample on the centreline: nothing to silence)
+        gx = np.abs(perp_x) / dist
+        gy = np.abs(perp_y) / dist
+    else:
+        with np.errstate(invalid="ignore", divide="ignore"):
+            gx = np.abs(perp_x) / dist
+            gy = np.abs(perp_y) / dist
+    w_r = hs_x * gx + hs_y * gy
+    if not np.isfinite(w_r).all():  # a sample on the centreline (0 / 0)
+        w_r = np.nan_to_num(w_r, nan=0.0)
+    cov = _unit_clip(0.5 + (r - dist) / np.maximum(w_r, 1e-12))
+    inside_mm = np.minimum(u, 1.0 - u) * length
+    w_e = hs_x * np.abs(t_x) + hs_y * np.abs(t_y)
+    cov *= _unit_clip(0.5 + inside_mm / np.maximum(w_e, 1e-12))
+    return cov
+
+
 def _render_crossing(tube, u_c: float, T_F_from_S: np.ndarray, z_mm: float, grid: _Grid, layer: np.ndarray):
     """Fluid fraction of one tube crossing in the sub-plane ``z = z_mm`` of S, max-composited into ``layer``."""
     R = T_F_from_S[:3, :3]
@@ -95,21 +140,7 @@ def _render_crossing(tube, u_c: float, T_F_from_S: np.ndarray, z_mm: float, grid
     t = tube.tangents(u_c)[0] @ R
     r = 0.5 * tube.diameter
     length = tube.length_mm
-    # in-plane section: inside the ellipse (semi-axes a along the tangent's projection,
-    # and r) about the tangent line's crossing; c itself is off the plane when a line
-    # crossing was clipped to the tube's end
-    shift = (c[2] - z_mm) / t[2] if abs(t[2]) > 1e-9 else math.inf
-    if abs(shift) <= length:
-        centre = c - shift * t
-        a = min(r / max(abs(t[2]), 1e-6), length + r)
-    else:  # (nearly) parallel to the plane: a band along the segment
-        centre, a = c, length + r
-    txy = math.hypot(t[0], t[1])
-    ux, uy = (t[0] / txy, t[1] / txy) if txy > 1e-12 else (1.0, 0.0)
-    margin = 2.0 * max(grid.spacing)
-    hx = math.sqrt((a * ux) ** 2 + (r * uy) ** 2) + margin
-    hy = math.sqrt((a * uy) ** 2 + (r * ux) ** 2) + margin
-    box = grid.box(centre[0], centre[1], hx, hy)
+    box = grid.box(*_crossing_box(c, t, r, length, z_mm, max(grid.spacing)))
     if box is None:
         return
     i0, i1, j0, j1 = box
@@ -129,21 +160,7 @@ def _render_crossing(tube, u_c: float, T_F_from_S: np.ndarray, z_mm: float, grid
         perp = pc - s0[..., None] * t
     dist = np.sqrt(np.einsum("...i,...i->...", perp, perp))
     rs, cs = grid.spacing
-    hs_x, hs_y = cs / grid.sub.size, rs / grid.sub.size
-    if dist.all():  # (no sample on the centreline: nothing to silence)
-        gx = np.abs(perp[..., 0]) / dist
-        gy = np.abs(perp[..., 1]) / dist
-    else:
-        with np.errstate(invalid="ignore", divide="ignore"):
-            gx = np.abs(perp[..., 0]) / dist
-            gy = np.abs(perp[..., 1]) / dist
-    w_r = hs_x * gx + hs_y * gy
-    if not np.isfinite(w_r).all():  # a sample on the centreline (0 / 0)
-        w_r = np.nan_to_num(w_r, nan=0.0)
-    cov = _unit_clip(0.5 + (r - dist) / np.maximum(w_r, 1e-12))
-    inside_mm = np.minimum(u, 1.0 - u) * length
-    w_e = hs_x * abs(t[0]) + hs_y * abs(t[1])
-    cov *= _unit_clip(0.5 + inside_mm / max(w_e, 1e-12))
+    cov = _coverage(perp[..., 0], perp[..., 1], dist, u, r, length, t[0], t[1], cs / grid.sub.size, rs / grid.sub.size)
     frac = cov[..., 0] if cov.shape[-1] == 1 else cov.mean(axis=-1)  # (one sample a pixel: its own value)
     region = layer[i0 : i1 + 1, j0 : j1 + 1]
     np.maximum(region, frac, out=region)
@@ -220,3 +237,123 @@ def render_slice(
         geom.tubes, T_F_from_S, shape, pixel_spacing_mm, slice_thickness_mm,
         center_px, supersample, thickness_samples,
     )
+
+
+def render_windows(windows, T_F_from_S: np.ndarray, pixel_spacing_mm, slice_thickness_mm: float,
+                   thickness_samples: int) -> list[np.ndarray]:
+    """Each tube drawn alone in its own window, all at once: ``windows`` ``[(tube, r0, c0, h, w)]``, one image
+    (h, w) each, as ``render_tubes([tube], T_F_from_S, (h, w), pixel_spacing_mm, slice_thickness_mm,
+    center_px=(-r0, -c0), supersample=1, thickness_samples=thickness_samples)`` draws it (to rounding).
+
+    The verification (:mod:`chic_register.window_stats`) draws a dozen small windows per pose: one pass of array
+    arithmetic over every section's pixels replaces one per section and sub-plane, whose cost was numpy's per-call
+    overhead. The same crossings, boxes and coverage (:func:`_crossing_box`, :func:`_coverage`).
+    """
+    rs, cs = (float(v) for v in pixel_spacing_mm)
+    T = np.asarray(T_F_from_S, dtype=float)
+    tF, normal = T[:3, 3], T[:3, 2]
+    offsets = _plane_offsets_mm(float(slice_thickness_mm), int(thickness_samples))
+    L = offsets.size
+    sizes = [h * w for _, _, _, h, w in windows]
+    starts = np.concatenate([[0], np.cumsum(sizes)]).astype(int)
+    total = int(starts[-1])
+    # the crossings, window by window (a window's samples are then contiguous), each sub-plane's in turn
+    cross = []  # (window, sub-plane, u_c)
+    origins = [tF + dz * normal for dz in offsets]
+    for n, (tube, *_) in enumerate(windows):
+        margin = 4.0 * tube.diameter + 0.5 * float(slice_thickness_mm)
+        for l, o in enumerate(origins):
+            cross.extend((n, l, float(u)) for u in tube.section_params(o, normal, margin))
+    buf = np.zeros((L, total))
+    if cross and total:
+        _draw_crossings(windows, cross, T, offsets, (rs, cs), starts, buf)
+    image = buf[0].copy()
+    for layer in buf[1:]:
+        image += layer
+    image /= L
+    np.clip(image, 0.0, 1.0, out=image)
+    return [image[starts[n]:starts[n + 1]].reshape(h, w) for n, (_, _, _, h, w) in enumerate(windows)]
+
+
+def _draw_crossings(windows, cross, T, offsets, spacing, starts, buf) -> None:
+    """:func:`render_windows`' crossings ``[(window, sub-plane, u_c)]`` (window by window) max-composited into
+    ``buf`` (sub-planes, all windows' pixels)."""
+    rs, cs = spacing
+    R, tF = T[:3, :3], T[:3, 3]
+    px = max(rs, cs)
+    uc = np.array([c[2] for c in cross])
+    C = np.empty((len(cross), 3))
+    Tg = np.empty((len(cross), 3))
+    a = 0
+    while a < len(cross):  # a tube's points and tangents in one call each (its crossings are contiguous)
+        n = cross[a][0]
+        b = a + 1
+        while b < len(cross) and cross[b][0] == n:
+            b += 1
+        C[a:b] = windows[n][0].points(uc[a:b])
+        Tg[a:b] = windows[n][0].tangents(uc[a:b])
+        a = b
+    C = (C - tF) @ R
+    Tg = Tg @ R
+    rows = []  # per crossing drawn: its box and what its samples need
+    total = buf.shape[1]
+    grids = {}
+    for m, ((n, l, u), c, t) in enumerate(zip(cross, C.tolist(), Tg.tolist())):
+        tube, r0, c0, h, w = windows[n]
+        if n not in grids:
+            grids[n] = _Grid((h, w), (rs, cs), (-float(r0), -float(c0)), None)
+        r, length, z = 0.5 * tube.diameter, tube.length_mm, float(offsets[l])
+        box = grids[n].box(*_crossing_box(c, t, r, length, z, px))
+        if box is not None:
+            i0, i1, j0, j1 = box  # (a curved tube is a helix: the Tube protocol's only curved kind)
+            helix = (tube.radius, tube.theta0_deg, tube.pitch_deg_per_mm, tube.z0, tube.z1) if tube.curved else ()
+            rows.append((n, l, i1 - i0 + 1, j1 - j0 + 1, *c, *t, u, length, r, z, i0 + r0, j0 + c0,
+                         l * total + int(starts[n]) + i0 * w + j0, w, *(helix or (0.0,) * 5), bool(helix)))
+    if not rows:
+        return
+    rows.sort(key=lambda row: row[-1])  # the helices' crossings last: their samples are the arrays' tail
+    P = np.array(rows, dtype=float).T  # (fields, crossings drawn)
+    win, lay = P[0].astype(int), P[1].astype(int)
+    ni, nj = P[2].astype(int), P[3].astype(int)
+    count = ni * nj
+    Q = np.repeat(P[4:], count, axis=1)  # each sample's crossing's fields
+    cvec, tvec, u_c, length, radius, z_mm, row0, col0, base, width = (
+        Q[0:3], Q[3:6], Q[6], Q[7], Q[8], Q[9], Q[10], Q[11], Q[12], Q[13])
+    local = np.arange(Q.shape[1]) - np.repeat(np.cumsum(count) - count, count)
+    nj_s = np.repeat(nj, count)
+    row = local // nj_s
+    col = local - row * nj_s
+    # sample points in S (one sample a pixel, at its centre), as _Grid.samples
+    p = np.stack([(col + col0) * cs, (row + row0) * rs, z_mm])
+    pc = p - cvec
+    s0 = (pc * tvec).sum(axis=0)  # arc length along the tangent line
+    u = u_c + s0 / length
+    perp = pc - s0 * tvec
+    n_lines = int(count[P[-1] == 0].sum())
+    if n_lines < Q.shape[1]:  # helices: re-project on the exact centreline (the nearest point to second order)
+        k = slice(n_lines, None)
+        rad, th0, pitch, z0, z1 = Q[14:19, k]
+        uk = u[k]
+        q = (helix_points(rad, th0, pitch, z0, z0 + uk * (z1 - z0)) - tF) @ R
+        tq = (helix_tangents(rad, th0, pitch, z0, z1, uk) @ R).T
+        d = p[:, k] - q.T
+        along = (d * tq).sum(axis=0)
+        perp[:, k] = d - along * tq
+        u[k] = uk + along / length[k]
+    dist = np.sqrt((perp * perp).sum(axis=0))
+    frac = _coverage(perp[0], perp[1], dist, u, radius, length, tvec[0], tvec[1], cs, rs)
+    dest = (base + row * width + col).astype(np.intp)
+    flat = buf.reshape(-1)
+    key = (win * len(offsets) + lay).tolist()
+    if len(set(key)) == len(key):
+        flat[dest] = frac  # (the buffer is zero there: one section per window and sub-plane)
+        return
+    # sections of one window and sub-plane may overlap (a helix crossing a plane twice): composited in turns
+    turn, seen = [], {}
+    for v in key:
+        turn.append(seen.get(v, 0))
+        seen[v] = turn[-1] + 1
+    turn = np.repeat(turn, count)
+    for t in range(max(seen.values())):
+        sel = turn == t
+        flat[dest[sel]] = np.maximum(flat[dest[sel]], frac[sel])

@@ -151,7 +151,7 @@ def _compare_rival(geom, model, check, T_F_from_I_rival: np.ndarray, sl) -> tupl
     the model error (:data:`MODEL_FLOOR` of the signal energy).
     """
     from .verify_pose import MODEL_FLOOR  # (the verification imports this module)
-    from .window_stats import _windows
+    from .window_stats import _lstsq, _windows
 
     pixels = np.asarray(sl.pixels, float)
     _, rival = _windows(geom, model, T_F_from_I_rival, pixels.shape, tuple(float(v) for v in sl.pixel_spacing_mm),
@@ -162,7 +162,7 @@ def _compare_rival(geom, model, check, T_F_from_I_rival: np.ndarray, sl) -> tupl
     sse = []
     for img in (check.canvas, rival):
         A = np.stack([np.ones(y.size), img[region]], axis=1)
-        coef = np.linalg.lstsq(A, y, rcond=None)[0]
+        coef = _lstsq(A, y)[0]
         r = y - A @ coef
         sse.append(float(r @ r))
     signal = check.level ** 2 * float(np.sum(check.canvas[region] ** 2))

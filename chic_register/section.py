@@ -35,6 +35,11 @@ a window, so each fit sees one tube; a joint pass then gives each tube back the
 pixels it shares with a fitted neighbour, that neighbour's fitted section
 subtracted (near the body's ends a helix runs close to its straight tube: the
 fit was 1.2-1.6x the Cramér-Rao bound there without it).
+
+In a magnitude image (Rician noise) a section's faint edge pixels read
+brighter than ``b + a S``; the fit then takes the model's Rician mean instead
+(:mod:`chic_register.rician`), or that lift moves the sections by a bias that
+grows with the noise.
 """
 
 from __future__ import annotations
@@ -46,6 +51,7 @@ from dataclasses import dataclass
 import numpy as np
 
 from .pixel_coverage import _box_edge, _chord_m2
+from .rician import inner_gain, rician_model
 from .tube_model import _section_box, _section_extent, plane_crossings
 
 
@@ -320,7 +326,8 @@ def _section_band(tan, kappa, s_lo, s_hi, r_tube, own, dx0, dy0, cs: float, rs: 
 def fit_sections(model, T_F_from_I: np.ndarray, assignment: np.ndarray, pixels: np.ndarray, pixel_spacing_mm,
                  slice_thickness_mm: float, noise_sigma: float, *, footprints=(), thickness_samples: int = 5,
                  margin_px: float = 1.5, windows: Windows | None = None,
-                 shift_iterations: int = 1, exact: bool = True, joint: bool = True) -> tuple[SectionFit, Windows]:
+                 shift_iterations: int = 1, exact: bool = True, joint: bool = True,
+                 rician_sigma: float = 0.0) -> tuple[SectionFit, Windows]:
     """Fit each matched tube's section model to ``pixels`` (rows, cols) at the pose ``T_F_from_I`` (4x4).
 
     ``assignment`` (K,): blob index per tube, -1 for unmatched (not fitted);
@@ -332,8 +339,10 @@ def fit_sections(model, T_F_from_I: np.ndarray, assignment: np.ndarray, pixels: 
     previous one put the section (the first-order fit is then refined to
     second order); ``exact``: see :func:`section_model`; ``joint``: refit
     the tubes on the pixels they share with their neighbours, whose fitted
-    sections are subtracted (:func:`_joint_pass`). Returns the fit and the
-    windows. See the module docstring.
+    sections are subtracted (:func:`_joint_pass`); ``rician_sigma`` > 0: the
+    pixels are magnitudes with Rician noise of that scale, and the fit is
+    of their mean (:func:`~chic_register.rician.rician_model`). Returns the fit and the windows.
+    See the module docstring.
     """
     q, tan, _, found = plane_crossings(model, T_F_from_I, margin_mm=1e-9)
     K = q.shape[0]
@@ -359,7 +368,18 @@ def fit_sections(model, T_F_from_I: np.ndarray, assignment: np.ndarray, pixels: 
         S, Sx, Sy = section_model(model, T_F_from_I, at, tan, windows, pixel_spacing_mm, slice_thickness_mm,
                                   thickness_samples, exact)
         at_crossing = at_crossing or (windows, (S, Sx, Sy))
-        sel, shift, info, a, n_pix = _linear_fit(S, Sx, Sy, y, own, starts, K, sel, noise_sigma)
+        if rician_sigma > 0:  # the Rician mean at each tube's gain (from its inner pixels, else a linear fit)
+            gain = inner_gain(S, y, own, K, rician_sigma)
+            if not gain[sel].all():
+                sel_l, _, _, a_l, _ = _linear_fit(S, Sx, Sy, y, own, starts, K, sel, noise_sigma)
+                lin = np.zeros(K)
+                lin[sel_l] = a_l
+                gain = np.where(gain > 0, gain, lin)
+            gain[gain <= 0] = 1.0  # (a tube no fit locates: any gain)
+            M, Mx, My, _ = rician_model(S, Sx, Sy, gain[own], None, rician_sigma)
+            sel, shift, info, a, n_pix = _linear_fit(M, Mx, My, y, own, starts, K, sel, noise_sigma)
+        else:
+            sel, shift, info, a, n_pix = _linear_fit(S, Sx, Sy, y, own, starts, K, sel, noise_sigma)
         if sel.size == 0:
             return SectionFit(q, out_pos, out_info, out_gain, n_pix, fitted), windows
         at[sel] += shift
@@ -368,7 +388,7 @@ def fit_sections(model, T_F_from_I: np.ndarray, assignment: np.ndarray, pixels: 
                                               slice_thickness_mm, thickness_samples, exact, noise_sigma, assignment,
                                               footprints, margin_px, sel, at, info, a, n_pix,
                                               reach if reach is not None and np.array_equal(sel, todo) else None,
-                                              at_crossing)
+                                              at_crossing, rician_sigma)
     out_pos[sel] = at[sel]
     out_info[sel] = info
     out_gain[sel] = a
@@ -378,7 +398,7 @@ def fit_sections(model, T_F_from_I: np.ndarray, assignment: np.ndarray, pixels: 
 
 def _joint_pass(model, T_F_from_I, q, tan, found, pixels, pixel_spacing_mm, slice_thickness_mm: float,
                 thickness_samples: int, exact: bool, noise_sigma: float, assignment, footprints, margin_px: float,
-                sel, at, info, a, n_pix, reach=None, at_crossing=None):
+                sel, at, info, a, n_pix, reach=None, at_crossing=None, rician_sigma: float = 0.0):
     """Refit the tubes ``sel`` on the pixels they share with fitted neighbours, those neighbours' fitted
     sections (position ``at``, level ``a``) subtracted (:func:`joint_windows`); :data:`JOINT_PASSES` times.
     Returns ``(sel, at, info, a, n_pix)`` as :func:`_linear_fit` gives them, unchanged when no pixel is
@@ -422,9 +442,15 @@ def _joint_pass(model, T_F_from_I, q, tan, found, pixels, pixel_spacing_mm, slic
         else:
             Sn = section_model(model, T_F_from_I, fitted_at, tan, neighbours, pixel_spacing_mm, slice_thickness_mm,
                                thickness_samples, exact)[0]
-        y_own = y.copy()
-        np.subtract.at(y_own, nb_p, gain[nb_k] * Sn)
-        sel_j, shift, info_j, a_j, n_pix_j = _linear_fit(S, Sx, Sy, y_own, jw.owner, starts, K, sel, noise_sigma)
+        nb_level = np.zeros(y.size)
+        np.add.at(nb_level, nb_p, gain[nb_k] * Sn)  # the neighbours' signal in each pixel
+        if rician_sigma > 0:  # E[y] = R(a S + n): fit (R(a0 S + n) - R(n)) / a0 to y - (R(n) - R(0))
+            M, Mx, My, lift = rician_model(S, Sx, Sy, gain[jw.owner], nb_level, rician_sigma)
+            sel_j, shift, info_j, a_j, n_pix_j = _linear_fit(M, Mx, My, y - lift, jw.owner, starts, K, sel,
+                                                             noise_sigma)
+        else:
+            sel_j, shift, info_j, a_j, n_pix_j = _linear_fit(S, Sx, Sy, y - nb_level, jw.owner, starts, K, sel,
+                                                             noise_sigma)
         if sel_j.size < sel.size:
             break  # a tube the separate fit located would be lost: keep what is there
         fitted_at[sel_j] = q[sel_j] + shift

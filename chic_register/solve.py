@@ -201,6 +201,10 @@ class SolveOptions:
     ``section_iterations`` passes (see :func:`_section_refine`); tubes whose
     fit lands more than ``section_max_shift_px`` from the pose's prediction
     are left out. Off: the pose fitted to blob centroids (faster, biased).
+    ``section_rician``: where the image's background is Rayleigh (a magnitude
+    image), the section fit models the Rician mean of the pixels
+    (:mod:`chic_register.rician`): a linear model reads the lifted faint
+    edges as a sub-pixel shift, a bias growing with the noise.
     ``verify``: before ``ok``, prove the pose against the image
     (:mod:`chic_register.verify_pose`: envelope, every predicted section
     present with its shape, nothing unexplained on the tubes' circle, pixel
@@ -245,6 +249,7 @@ class SolveOptions:
     section_done_px: float = 0.05
     section_thickness_samples: int = 5
     section_max_shift_px: float = 1.0
+    section_rician: bool = True
     verify: bool = True
     trust_tre_mm: float = TRE_TOL_MM  # (why these limits: chic_register.fit_checks)
     trust_rot_deg: float = ROT_TOL_DEG

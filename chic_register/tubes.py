@@ -159,9 +159,8 @@ class LineTube(Tube):
 
     def points(self, t) -> np.ndarray:
         """Centreline points at parameters ``t`` in [0, 1]; shape (N, 3)."""
-        t = np.atleast_1d(np.asarray(t, dtype=float))[:, None]
         p0, d = self._ends
-        return p0 + t * d
+        return line_points(p0, d, np.atleast_1d(np.asarray(t, dtype=float)))
 
     def tangents(self, t) -> np.ndarray:
         """Unit tangents at parameters ``t``; shape (N, 3)."""
@@ -290,12 +289,7 @@ class HelixTube(Tube):
     def point_at_z(self, z_mm) -> np.ndarray:
         """Centreline points at heights ``z_mm``; shape (N, 3)."""
         z = np.atleast_1d(np.asarray(z_mm, dtype=float))
-        th = np.radians(self.angle_deg_at(z))
-        out = np.empty((z.size, 3))
-        np.multiply(self.radius, np.cos(th), out=out[:, 0])
-        np.multiply(self.radius, np.sin(th), out=out[:, 1])
-        out[:, 2] = z
-        return out
+        return helix_points(self.radius, self.theta0_deg, self.pitch_deg_per_mm, self.z0, z)
 
     def points(self, t) -> np.ndarray:
         """Centreline points at parameters ``t`` in [0, 1] (z = z0 + t (z1 - z0)); shape (N, 3)."""
@@ -305,13 +299,7 @@ class HelixTube(Tube):
     def tangents(self, t) -> np.ndarray:
         """Unit tangents (pointing toward increasing z) at parameters ``t``; shape (N, 3)."""
         t = np.atleast_1d(np.asarray(t, dtype=float))
-        th = np.radians(self.angle_deg_at(self.z0 + t * (self.z1 - self.z0)))
-        w = math.radians(self.pitch_deg_per_mm) * self.radius
-        v = np.empty((th.size, 3))
-        np.multiply(-w, np.sin(th), out=v[:, 0])
-        np.multiply(w, np.cos(th), out=v[:, 1])
-        v[:, 2] = 1.0
-        return v / np.sqrt(np.add.reduce(v * v, axis=1, keepdims=True))  # (np.linalg.norm's own sum)
+        return helix_tangents(self.radius, self.theta0_deg, self.pitch_deg_per_mm, self.z0, self.z1, t)
 
     def tangents_at_z(self, z_mm) -> np.ndarray:
         """Unit tangents at heights ``z_mm`` (toward increasing z); shape (N, 3)."""
@@ -342,9 +330,10 @@ class HelixTube(Tube):
         o = np.asarray(origin, dtype=float)
         r, th0, pitch, z0 = self.radius, self.theta0_deg, self.pitch_deg_per_mm, self.z0
 
-        def f(z):  # n . (point_at_z(z) - o), as point_at_z computes it, on a scalar
-            th = np.radians(th0 + pitch * (np.float64(z) - z0))
-            return float(n @ (np.array([r * np.cos(th), r * np.sin(th), z]) - o))
+        def f(z):  # n . (point_at_z(z) - o), as point_at_z computes it, on a scalar (math's radians, cos and sin:
+            # numpy's, without the per-call cost of a ufunc on one number)
+            th = math.radians(th0 + pitch * (z - z0))
+            return float(n @ (np.array([r * math.cos(th), r * math.sin(th), z]) - o))
 
         zs, pts = self._scan
         vals = (pts - o) @ n
@@ -400,6 +389,35 @@ class HelixTube(Tube):
             "z1": float(self.z1),
             "diameter": float(self.diameter),
         }
+
+
+def line_points(p0, d, t: np.ndarray) -> np.ndarray:
+    """Points (N, 3) ``p0 + t d`` of straight centrelines at parameters ``t`` (N,) (:class:`LineTube`'s formula;
+    ``p0``, ``d`` (3,), or (N, 3): one line per point)."""
+    return p0 + t[:, None] * d
+
+
+def helix_points(radius, theta0_deg, pitch_deg_per_mm, z0, z: np.ndarray) -> np.ndarray:
+    """Centreline points (N, 3) at heights ``z`` (N,) of helices about the z axis (:class:`HelixTube`'s formula;
+    the parameters numbers, or arrays (N,): one helix per point)."""
+    th = np.radians(theta0_deg + pitch_deg_per_mm * (z - z0))
+    out = np.empty((z.size, 3))
+    np.multiply(radius, np.cos(th), out=out[:, 0])
+    np.multiply(radius, np.sin(th), out=out[:, 1])
+    out[:, 2] = z
+    return out
+
+
+def helix_tangents(radius, theta0_deg, pitch_deg_per_mm, z0, z1, t: np.ndarray) -> np.ndarray:
+    """Unit tangents (N, 3) toward increasing z at parameters ``t`` (N,) (``z = z0 + t (z1 - z0)``) of helices
+    about the z axis (:class:`HelixTube`'s formula; the parameters numbers, or arrays (N,))."""
+    th = np.radians(theta0_deg + pitch_deg_per_mm * ((z0 + t * (z1 - z0)) - z0))
+    w = np.radians(pitch_deg_per_mm) * radius
+    v = np.empty((th.size, 3))
+    np.multiply(-w, np.sin(th), out=v[:, 0])
+    np.multiply(w, np.cos(th), out=v[:, 1])
+    v[:, 2] = 1.0
+    return v / np.sqrt(np.add.reduce(v * v, axis=1, keepdims=True))  # (np.linalg.norm's own sum)
 
 
 @functools.lru_cache(maxsize=256)

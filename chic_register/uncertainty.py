@@ -95,6 +95,24 @@ def clear_of_blobs(shape, footprints, guard_px: int = 3) -> np.ndarray:
     return keep
 
 
+def clear_blocks(pixels: np.ndarray, footprints, guard_px: int, n: int) -> np.ndarray:
+    """Boolean (H // n, W // n): the n x n blocks of the image whose pixels are all finite and all clear of the blobs
+    (:func:`clear_of_blobs`), found from the footprints' boxes (the blocks they touch) rather than pixel by pixel."""
+    H, W = pixels.shape
+    hb, wb = H // n, W // n
+    clear = np.ones((hb, wb), bool)
+    for r0, c0, mask in footprints:  # the box of clear_of_blobs, clipped to the image: the blocks it touches
+        h, w = mask.shape
+        a0, a1 = max(0, r0 - guard_px), min(H, r0 + h + guard_px)
+        b0, b1 = max(0, c0 - guard_px), min(W, c0 + w + guard_px)
+        if a0 < a1 and b0 < b1:
+            clear[a0 // n:(a1 - 1) // n + 1, b0 // n:(b1 - 1) // n + 1] = False
+    finite = np.isfinite(pixels[:hb * n, :wb * n])
+    if not finite.all():
+        clear &= finite.reshape(hb, n, wb, n).all(axis=(1, 3))
+    return clear
+
+
 def background_noise(pixels: np.ndarray, footprints, guard_px: int = 3) -> NoiseEstimate:
     """Noise scale of an image from its pixels outside every blob footprint (grown by ``guard_px``)."""
     img = np.asarray(pixels, dtype=float)
@@ -131,22 +149,22 @@ def noise_correlation_axes(pixels: np.ndarray, footprints, guard_px: int = 3) ->
     :data:`MAX_NOISE_CORRELATION`]. ``(0, 0)`` when there are too few blocks.
     """
     img = np.asarray(pixels, dtype=float)
-    keep = np.isfinite(img) & clear_of_blobs(img.shape, footprints, guard_px)
     H, W = img.shape
     n = CORRELATION_BLOCK_PX
     hb, wb = H // n, W // n
     if hb == 0 or wb == 0:
         return 0.0, 0.0
-    clear = keep[:hb * n, :wb * n].reshape(hb, n, wb, n).all(axis=(1, 3))  # (hb, wb): blocks wholly clear
+    clear = clear_blocks(img, footprints, guard_px, n)  # (hb, wb): blocks wholly clear
     x = img[:hb * n, :wb * n].reshape(hb, n, wb, n).swapaxes(1, 2)[clear]  # (m, n, n), only those copied
     if x.shape[0] < 8:
         return 0.0, 0.0
-    x = x - x.mean(axis=(1, 2), keepdims=True)
+    x -= x.mean(axis=(1, 2), keepdims=True)  # (x: a copy of the blocks)
     var = np.sum(x * x, axis=(1, 2))
     ok = var > 0
     if ok.sum() < 8:
         return 0.0, 0.0
-    x, var = x[ok], var[ok]
+    if not ok.all():  # (a copy only when a block is flat)
+        x, var = x[ok], var[ok]
     pairs = n / (n - 1)  # n (n - 1) neighbour pairs per block against n^2 pixels
     rows = np.sum(x[:, 1:] * x[:, :-1], axis=(1, 2)) * pairs / var
     cols = np.sum(x[:, :, 1:] * x[:, :, :-1], axis=(1, 2)) * pairs / var

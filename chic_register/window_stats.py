@@ -11,16 +11,39 @@ from dataclasses import dataclass
 import numpy as np
 
 from .detect import _dilate
-from .render import render_tubes
+from .render import render_windows
 from .tube_model import _section_box, _section_extent, plane_crossings
 
-#: Render settings: sub-samples per pixel side (the renderer's coverage ramp anti-aliases edges already) and at
-#: most this many sub-planes over the slab.
-SUPERSAMPLE = 1
+#: Render settings: one sample a pixel (:func:`chic_register.render.render_windows`; the renderer's coverage ramp
+#: anti-aliases edges already) and at most this many sub-planes over the slab.
 MAX_THICKNESS_SAMPLES = 3
 #: One more sub-plane for every this many pixels of slab smear along a section (the renderer averages the
 #: sub-planes; between them the section's end is a ramp, within the shape tolerance at 4 px).
 SMEAR_PX_PER_SAMPLE = 4.0
+
+
+try:  # numpy's own least squares (LAPACK gelsd) without np.linalg.lstsq's wrapper: a third of a window fit's cost
+    from numpy.linalg import _umath_linalg
+except ImportError:  # pragma: no cover - another numpy: the wrapper
+    _umath_linalg = None
+_EPS = float(np.finfo(float).eps)
+
+
+def _lstsq(A: np.ndarray, y: np.ndarray):
+    """``(coef, rank)`` of ``np.linalg.lstsq(A, y, rcond=None)`` (A (m, n), y (m,) float): the same LAPACK call
+    without the wrapper's checks, the windows' fits being a few dozen small ones per pose; the wrapper itself (its
+    answer, its error) when that call is not there or gives no finite answer."""
+    m, n = A.shape
+    if _umath_linalg is not None and m > 0 and A.dtype == np.float64 and y.dtype == np.float64:
+        try:
+            with np.errstate(all="ignore"):
+                x, _, rank, _ = _umath_linalg.lstsq(A, y[:, None], _EPS * max(m, n), signature="ddd->ddid")
+        except Exception:  # noqa: BLE001 - a numpy whose private call differs: the wrapper below
+            x = None
+        if x is not None and np.isfinite(x).all():
+            return x[:, 0], int(rank)
+    coef, _, rank, _ = np.linalg.lstsq(A, y, rcond=None)
+    return coef, int(rank)
 
 
 @dataclass
@@ -50,10 +73,8 @@ def _windows(geom, model, T_F_from_I, shape, spacing, thickness_mm, margin_px: f
     txy = np.hypot(tan[:, 0], tan[:, 1])
     smear_px = float(np.max(thickness_mm * txy / np.maximum(np.abs(tan[:, 2]), 1e-3))) / px if txy.size else 0.0
     ts = int(min(MAX_THICKNESS_SAMPLES, max(1, math.ceil(smear_px / SMEAR_PX_PER_SAMPLE) + 1)))
-    render = {"pixel_spacing_mm": (rs, cs), "slice_thickness_mm": thickness_mm, "supersample": SUPERSAMPLE,
-              "thickness_samples": ts}
     H, W = shape
-    boxes = {}
+    todo = []
     for k in np.flatnonzero(found):
         r0, r1 = int(math.floor((q[k, 1] - ey[k]) / rs)), int(math.ceil((q[k, 1] + ey[k]) / rs)) + 1
         c0, c1 = int(math.floor((q[k, 0] - ex[k]) / cs)), int(math.ceil((q[k, 0] + ex[k]) / cs)) + 1
@@ -61,10 +82,10 @@ def _windows(geom, model, T_F_from_I, shape, spacing, thickness_mm, margin_px: f
         r0, r1, c0, c1 = max(r0, 0), min(r1, H), max(c0, 0), min(c1, W)
         if r1 - r0 < 2 or c1 - c0 < 2 or (r1 - r0) * (c1 - c0) > H * W // 4:
             continue
-        img = render_tubes([geom.tubes[k]], T_F_from_I, (r1 - r0, c1 - c0), center_px=(-float(r0), -float(c0)),
-                           **render)
-        if img.max() > 0:
-            boxes[int(k)] = (r0, c0, img, inside)
+        todo.append((int(k), r0, c0, r1 - r0, c1 - c0, inside))
+    imgs = render_windows([(geom.tubes[k], r0, c0, h, w) for k, r0, c0, h, w, _ in todo], T_F_from_I, (rs, cs),
+                          thickness_mm, ts) if todo else []
+    boxes = {k: (r0, c0, img, inside) for (k, r0, c0, _, _, inside), img in zip(todo, imgs) if img.max() > 0}
     out = []
     canvas = np.zeros(shape)
     for k, (r0, c0, img, inside) in boxes.items():
@@ -96,11 +117,11 @@ def _fit_window(pixels, w: _TubeWindow):
     o = w.others.ravel()
     cols = [np.ones_like(m), m] + ([o] if o.max() > 0.05 else [])
     A = np.stack(cols, axis=1)
-    coef, _, rank, _ = np.linalg.lstsq(A, y, rcond=None)
+    coef, rank = _lstsq(A, y)
     if rank < A.shape[1]:
         return None
     A1 = np.stack([np.ones_like(m), np.maximum(m, o)], axis=1)
-    coef1 = np.linalg.lstsq(A1, y, rcond=None)[0]
+    coef1 = _lstsq(A1, y)[0]
     fit1 = A1 @ coef1
     if len(cols) == 3:  # a neighbour in the window: real rods differ in fluid level (fill, bubbles, coil)
         fit2 = _composite_two_levels(y, m, o, coef)
@@ -113,11 +134,14 @@ def _composite_two_levels(y, m, o, coef, rounds: int = 3):
     """``b + max(a m, a' o)`` fitted to ``y``: the section and its neighbours each at their own fluid level,
     composited as the image is (each pixel belongs to the brighter term; a few alternating least squares)."""
     b, a, a2 = (float(v) for v in coef)
-    fit = None
+    fit = prev = None
     for _ in range(rounds):
         mine = a * m >= a2 * o
+        if prev is not None and np.array_equal(mine, prev):
+            return fit  # the same split of the pixels: the same least squares, the same fit, every round from here on
+        prev = mine
         A = np.stack([np.ones_like(m), np.where(mine, m, 0.0), np.where(mine, 0.0, o)], axis=1)
-        c, _, rank, _ = np.linalg.lstsq(A, y, rcond=None)
+        c, rank = _lstsq(A, y)
         if rank < 3 or not (c[1] > 0 and c[2] > 0):
             return fit
         b, a, a2 = (float(v) for v in c)

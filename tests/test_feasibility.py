@@ -440,3 +440,24 @@ def test_clipped_disc_distance_hand_cases():
     assert F._clipped_disc_distance(c1b, one, c2c, one, G, np.array(-0.6), np.array(-0.6)) == pytest.approx(0.3)
     # a disc entirely below the line is empty
     assert F._clipped_disc_distance(c1 - [0, 2.5, 0], one, c2, one, G, np.array(-1.5), np.array(1.0)) == np.inf
+
+
+def test_tube_crossings_are_plane_crossings_tube_by_tube(neuro_geometry, needle_geometry):
+    """The solver's envelope check asks every tube at once (straight tubes together, helices together): the same
+    numbers as plane_crossings tube by tube, for one plane and for many, and a tube of another kind (a helix of
+    another length) among them."""
+    from chic_register.envelope import plane_crossings, plane_normals, tube_crossings
+
+    rng = np.random.default_rng(3)
+    odd = HelixTube("Hx", "helix", 11.0, 40.0, -3.0, 5.0, 30.0, 2.0)  # fewer brackets than the design's helices
+    for tubes in (neuro_geometry.tubes, needle_geometry.tubes + (odd,)):
+        for P in (1, 40):
+            normals = plane_normals(rng.uniform(0, 89, P), rng.uniform(-180, 180, P)).reshape(-1, 3)
+            origins = np.zeros_like(normals)
+            origins[:, 2] = rng.uniform(-10, 60, P)
+            t, pts, tan, cnt = tube_crossings(tubes, origins, normals)
+            for k, tube in enumerate(tubes):
+                ref = plane_crossings(tube, origins, normals)
+                for got, want in zip((t[:, k], pts[:, k], tan[:, k], cnt[:, k]), ref):
+                    np.testing.assert_array_equal(got, want)
+            assert (cnt == 1).sum() > P

@@ -343,3 +343,40 @@ def test_cli_simulate_bad_files_exit_2(neuro_geometry_file, tmp_path, capsys):
     assert "unsupported suffix" in capsys.readouterr().err
     assert main(_simulate_args(neuro_geometry_file, tmp_path)) == 2
     assert "directory" in capsys.readouterr().err
+
+
+@pytest.mark.parametrize("seed", range(4))
+def test_render_windows_draws_each_tube_as_render_tubes_does(neuro_geometry, seed):
+    """The verification's batched renderer: each tube alone in its own window, as render_tubes draws it (to rounding),
+    for tilted slabs of 1-3 sub-planes, windows clipped by the sections, steep planes that cross a helix twice."""
+    from chic_register.render import render_tubes, render_windows
+    from chic_register.tube_model import plane_crossings, prepare_geometry
+
+    rng = np.random.default_rng(seed)
+    model = prepare_geometry(neuro_geometry)[0]
+    drawn = 0
+    for _ in range(6):
+        T = slice_frame(rng.uniform(5, 45), rng.uniform(0, 80), rng.uniform(-180, 180), rng.uniform(-180, 180))
+        spacing, thick, ts = (rng.uniform(0.3, 0.8), rng.uniform(0.3, 0.8)), rng.choice([0.0, 2.0]), int(rng.integers(1, 4))
+        q = plane_crossings(model, T, margin_mm=5.0)[0]
+        wins = [(tube, int(q[k, 1] / spacing[0]) - int(rng.integers(0, 25)), int(q[k, 0] / spacing[1]) - int(rng.integers(0, 25)),
+                 int(rng.integers(2, 50)), int(rng.integers(2, 50)))
+                for k, tube in enumerate(neuro_geometry.tubes) if np.isfinite(q[k]).all()]
+        for (tube, r0, c0, h, w), img in zip(wins, render_windows(wins, T, spacing, thick, ts)):
+            ref = render_tubes([tube], T, (h, w), spacing, thick, center_px=(-float(r0), -float(c0)), supersample=1,
+                               thickness_samples=ts)
+            np.testing.assert_allclose(img, ref, rtol=0, atol=1e-12)
+            drawn += ref.max() > 0
+    assert drawn > 10
+    # a plane along the axis meets a steep helix at several points: one large window holds more than one section
+    from chic_register.tubes import HelixTube
+
+    helix = HelixTube("H", "helix", 12.5, 10.0, 12.0, 0.0, 50.0, 3.0)
+    T = slice_frame(25.0, 90.0, helix.theta0_deg + 25.0 * helix.pitch_deg_per_mm, 0.0)
+    T[:3, 3] += 12.2 * T[:3, 2]  # grazing the helix: two sections a few pixels apart, and one beyond each end
+    assert len(helix.section_params(T[:3, 3], T[:3, 2], 4 * helix.diameter + 1.0)) == 4
+    wins = [(helix, -60, -60, 120, 120), (helix, -10, -40, 20, 80)]
+    for (tube, r0, c0, h, w), img in zip(wins, render_windows(wins, T, (0.5, 0.5), 2.0, 3)):
+        ref = render_tubes([tube], T, (h, w), (0.5, 0.5), 2.0, center_px=(-float(r0), -float(c0)), supersample=1,
+                           thickness_samples=3)
+        np.testing.assert_allclose(img, ref, rtol=0, atol=1e-12)

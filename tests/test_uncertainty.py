@@ -153,6 +153,26 @@ def test_noise_correlation_reads_an_interpolated_image_and_not_objects():
     assert correlation_inflation((rows, cols)) == pytest.approx(block_sum_factor(blurred), rel=0.15)
 
 
+def test_clear_blocks_are_the_blocks_wholly_clear_of_blobs_and_finite():
+    """The noise correlation's blocks, found from the footprints' boxes: the blocks whose every pixel is finite and
+    outside every footprint's box grown by the guard (clear_of_blobs), footprints at the image's edges included."""
+    from chic_register.uncertainty import clear_blocks, clear_of_blobs
+
+    rng = np.random.default_rng(8)
+    for shape in ((96, 96), (101, 77), (64, 130)):
+        img = rng.normal(size=shape)
+        img[rng.random(shape) < 0.002] = np.nan
+        fps = [(int(rng.integers(-2, shape[0] - 3)), int(rng.integers(-2, shape[1] - 3)),
+                rng.random((int(rng.integers(1, 14)), int(rng.integers(1, 14)))) < 0.7) for _ in range(12)]
+        fps = [(max(r, 0), max(c, 0), m) for r, c, m in fps]
+        for guard in (0, 3):
+            keep = np.isfinite(img) & clear_of_blobs(shape, fps, guard)
+            hb, wb = shape[0] // 8, shape[1] // 8
+            want = keep[:hb * 8, :wb * 8].reshape(hb, 8, wb, 8).all(axis=(1, 3))
+            np.testing.assert_array_equal(clear_blocks(img, fps, guard, 8), want)
+            assert want.any() and not want.all()
+
+
 def test_an_interpolated_slice_is_not_trusted_as_if_its_pixels_were_independent(monkeypatch):
     """The unlisted-damage hunt's case 885: a needle-guide slice zoomed 2x (bilinear, spacing halved) locked 0.71 deg
     off with a predicted 3-sigma rotation of 0.52 deg; with the noise correlation counted it is refused (or right)."""
