@@ -125,7 +125,7 @@ def refine(model: TubeModel, blobs_xy: list[np.ndarray], T_scanner_from_image: l
                     changed = changed or assign[j] is None or not np.array_equal(new, assign[j])
                     assign[j] = new
                 a = assign[j]
-                k = np.flatnonzero((a >= 0) & inside)
+                k = ((a >= 0) & inside).nonzero()[0]  # (1-D: np.flatnonzero, less its wrapper)
                 if k.size == 0:
                     continue
                 res = qm[k] - xy[a[k]]
@@ -165,7 +165,7 @@ def refine(model: TubeModel, blobs_xy: list[np.ndarray], T_scanner_from_image: l
         a = np.where(inside, a, -1)
         assign[j] = a
         res = np.full(a.size, np.nan)
-        k = np.flatnonzero(a >= 0)
+        k = (a >= 0).nonzero()[0]
         d = q[k] - xy[a[k]]
         res[k] = np.sqrt(np.add.reduce(d * d, axis=1))  # np.linalg.norm(d, axis=1)'s own formula, less its checks
         residuals.append(res)
