@@ -38,7 +38,9 @@ def _table():
     """``(u, g, g')`` of :func:`rician_mean` on ``u = 0, _STEP, ..., _U_MAX``."""
     u = np.arange(0.0, _U_MAX + 0.5 * _STEP, _STEP)
     x = 0.25 * u * u
-    th = np.linspace(0.0, math.pi, 241)
+    # the trapezoid rule on a smooth periodic integrand converges geometrically: 61 nodes agree with 241 (and with
+    # scipy.special.i0e / i1e) to 2e-15 up to u = 12, in 0.2 ms instead of 3 ms (once per process: a one-shot solve)
+    th = np.linspace(0.0, math.pi, 61)
     e = np.exp(x[:, None] * (np.cos(th)[None] - 1.0))  # I_n(x) e^-x = (1 / pi) int_0^pi e^{x (cos t - 1)} cos(n t)
     wts = np.full(th.size, 1.0)
     wts[[0, -1]] = 0.5
