@@ -224,7 +224,7 @@ def main(argv=None) -> int:
     ap.add_argument("--seed", type=int, default=7)
     ap.add_argument("--workers", type=int, default=2)
     args = ap.parse_args(argv)
-    t0, c0, load0 = time.perf_counter(), time.process_time(), os.getloadavg()[0]
+    t0, load0 = time.perf_counter(), os.getloadavg()[0]
     with ProcessPoolExecutor(max_workers=args.workers, initializer=_init) as ex:
         results = list(ex.map(run_case, range(args.cases), [args.seed] * args.cases, chunksize=5))
     counts = collections.defaultdict(collections.Counter)

@@ -172,7 +172,6 @@ def build_volume(geom, case: dict):
     from scipy.ndimage import gaussian_filter
 
     from chic_register.blob_width import render_tubes_widened
-    from chic_register.geometry import LineTube
     from chic_register.simulate import add_rician_noise
     from chic_register.volume import Volume, plane_frame
 

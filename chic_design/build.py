@@ -36,7 +36,7 @@ from .lifeline import die_with_parent
 from .preview import precision_job, preview_job, tilt_plot_job
 from .printability import HARD_CODES
 from .report import build_report
-from .spec import Spec, load_spec, spec_sha256
+from .spec import load_spec, spec_sha256
 from chic_register.stl import declare_space
 from .verify import STL_ANGULAR_TOLERANCE_RAD, STL_TOLERANCE_MM, VerifyResult, verify_export
 

@@ -87,7 +87,6 @@ def build_report(spec, spec_path, geometry: FiducialGeometry, part_volumes_mm3: 
                  verify_result, feasibility_markdown: str | None, timings_s: dict[str, float],
                  files: list[str], precision_markdown: str | None = None) -> str:
     """The text of ``report.md``."""
-    b = geometry.body
     if geometry.family == "zframe":
         from .zframe_report import zframe_head
 

@@ -7,8 +7,12 @@
 from __future__ import annotations
 
 import json
+from typing import TYPE_CHECKING
 
 from .errors import ChicRegisterError
+
+if TYPE_CHECKING:  # annotations only: numpy is imported where it is used
+    import numpy as np
 
 
 def check_spacing_flag(args) -> None:

@@ -13,7 +13,7 @@ from chic_design.optimize import space
 from chic_design.optimize.choose import knee_order, weakly_dominating
 from chic_design.optimize.engine import SerialEngine, make_engine, parse_scheduler
 from chic_design.optimize.errors import RequirementsError
-from chic_design.optimize.requirements import load_requirements, parse_requirements
+from chic_design.optimize.requirements import load_requirements
 from chic_design.optimize.score import dominates, pareto_front
 from chic_design.optimize.search import run_search
 from chic_design.optimize.store import ResultStore

@@ -12,7 +12,6 @@ import time
 import numpy as np
 import pytest
 
-from chic_register.errors import NoLock
 from chic_register.pose import apply
 from chic_register.simulate import simulate_slice, write_simulated
 from chic_register.track import track
