@@ -98,3 +98,19 @@ def test_geometry_key_memo_of_the_tubes_repr_is_the_repr(neuro_geometry):
     assert not _immutable_tubes(held) and not _immutable_tubes(list(tubes))
     _tubes_repr(held)
     assert id(held) not in _TUBES_REPR
+
+
+def test_gauss_newton_solve_without_numpys_private_gufunc_gives_the_same_steps(monkeypatch):
+    """refine._solve calls numpy's private LAPACK gufunc; on a numpy without it, the public wrapper gives the same
+    step, and NaNs (not an exception) for a singular matrix, as the gufunc does."""
+    import numpy as np
+
+    from chic_register import refine
+
+    rng = np.random.default_rng(5)
+    A = rng.normal(size=(6, 6))
+    H, g = A @ A.T + np.eye(6), rng.normal(size=6)
+    fast = refine._solve(H, g)
+    monkeypatch.setattr(refine, "_solve1", None)
+    assert refine._solve(H, g) == fast
+    assert all(v != v for v in refine._solve(np.zeros((6, 6)), g))  # NaNs
