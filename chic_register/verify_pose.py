@@ -84,7 +84,7 @@ from .psf import blurred_windows, fit_psf
 from .rivals import check_rivals, slice_contenders
 from .trust import _to_xy_mm
 from .tube_model import _section_extent, plane_crossings
-from .uncertainty import correlation_inflation, noise_correlation_axes
+from .noise import correlation_inflation, noise_correlation_axes
 from .window_stats import (  # noqa: F401  (_TubeWindow: the windows' type, for tests)
     _TubeWindow, _fit_window, _shape_excess, _spread, _windows, section_shift)
 
