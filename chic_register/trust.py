@@ -9,7 +9,6 @@ can resolve); :func:`_distinct` and :func:`_near_prior` compare poses.
 from __future__ import annotations
 
 import math
-import weakref
 from typing import TYPE_CHECKING
 
 import numpy as np
@@ -54,25 +53,9 @@ def _distinct(T1: np.ndarray, T2: np.ndarray, model: TubeModel) -> bool:
     ang = math.degrees(math.acos(min(1.0, max(-1.0, (np.trace(dR) - 1) / 2))))
     if ang > 1.0:
         return True
-    pts = _probe_points(model)
+    pts = model.probe_points_mm  # tube ends on the axis circle, the axis ends
     d = (pts @ T1[:3, :3].T + T1[:3, 3]) - (pts @ T2[:3, :3].T + T2[:3, 3])
     return float(np.sqrt(np.add.reduce(d * d, axis=1)).max()) > 1.0  # (np.linalg.norm's formula, less its checks)
-
-
-def _probe_points(model: TubeModel) -> np.ndarray:
-    """The points of F :func:`_distinct` compares (5, 3): tube ends on the axis circle, the axis ends (memoised
-    per model, read-only)."""
-    pts = _PROBES.get(model)
-    if pts is None:
-        L = model.length_mm
-        rmax = float(np.max(model.axis_radius_mm)) if model.axis_radius_mm.size else 0.0
-        pts = np.array([[rmax, 0, 0], [-rmax, 0, L], [0, rmax, L / 2], [0, 0, 0], [0, 0, L]])
-        pts.flags.writeable = False
-        _PROBES[model] = pts
-    return pts
-
-
-_PROBES: weakref.WeakKeyDictionary = weakref.WeakKeyDictionary()
 
 
 def _rotation_deg(R1: np.ndarray, R2: np.ndarray) -> float:

@@ -57,8 +57,14 @@ class TubeModel:
     line_params: tuple = ()
     helix_params: tuple = ()
     tubes: tuple = ()  # the geometry's tube objects (sampled by the generic first guess)
+    probe_points_mm: np.ndarray = None  # (5, 3) points of F two poses are compared at (trust._distinct)
 
     def __post_init__(self):
+        L = self.length_mm
+        rmax = float(np.max(self.axis_radius_mm)) if self.axis_radius_mm.size else 0.0
+        probes = np.array([[rmax, 0, 0], [-rmax, 0, L], [0, rmax, L / 2], [0, 0, 0], [0, 0, L]])  # tube, axis ends
+        probes.flags.writeable = False
+        object.__setattr__(self, "probe_points_mm", probes)
         li, hi = np.flatnonzero(~self.is_helix), np.flatnonzero(self.is_helix)
         d = self.d[li]
         object.__setattr__(self, "line_idx", li)
@@ -208,10 +214,7 @@ def plane_crossings(model: TubeModel, T_F_from_I: np.ndarray, margin_mm: float =
         memo[key] = hit
     q, tan_I, zF, ok, tan_z = hit
     if margin_mm > 0:
-        bounds = memo.get(("margin", margin_mm))  # the extent widened by margin_mm: per model, not per pose
-        if bounds is None:
-            bounds = memo[("margin", margin_mm)] = (model.z_lo - margin_mm - 1e-6, model.z_hi + margin_mm + 1e-6)
-        inside = ok & (zF >= bounds[0]) & (zF <= bounds[1])
+        inside = ok & (zF >= model.z_lo - margin_mm - 1e-6) & (zF <= model.z_hi + margin_mm + 1e-6)
     else:
         # strict: the whole cross-section must lie within the tube, else the blob is cut short by the
         # tube's end and its centre is biased: half the cut's length along the tube, in z of F
@@ -222,8 +225,7 @@ def plane_crossings(model: TubeModel, T_F_from_I: np.ndarray, margin_mm: float =
     return q[:, :2].copy(), tan_I.copy(), zF.copy(), inside
 
 
-#: plane_crossings' memo per model (weakly held): pose bytes -> (q, tan_I, z_F, found, tangent z in F), and
-#: ("margin", mm) -> the widened extent's bounds
+#: plane_crossings' memo per model (weakly held): pose bytes -> (q, tan_I, z_F, found, tangent z in F)
 _CROSSINGS: weakref.WeakKeyDictionary = weakref.WeakKeyDictionary()
 
 
