@@ -44,7 +44,6 @@ grows with the noise.
 
 from __future__ import annotations
 
-import functools
 import math
 from dataclasses import dataclass
 
@@ -87,7 +86,7 @@ def tube_frames(model, T_F_from_I: np.ndarray, q: np.ndarray, tan_I: np.ndarray)
     s_lo, s_hi = np.zeros(K), np.zeros(K)
     li, hi = model.line_idx, model.helix_idx
     if li.size:
-        d, p0, dd, length = _line_constants(model)
+        d, p0, dd, length = model.line_d, model.line_p0, model.line_dd, model.line_length_mm
         t = np.einsum("ij,ij->i", X[li] - p0, d) / dd
         s_lo[li], s_hi[li] = t * length, (1 - t) * length
     if hi.size:
@@ -108,14 +107,6 @@ def tube_frames(model, T_F_from_I: np.ndarray, q: np.ndarray, tan_I: np.ndarray)
 
 
 _FRAMES: dict = {}  # tube_frames' last few results: (model id, pose bytes, crossings bytes) -> (model, result)
-
-
-@functools.lru_cache(maxsize=8)
-def _line_constants(model):
-    """The line tubes' ``(d, p0, d . d, |d|)``: per model, not per pose."""
-    li = model.line_idx
-    d = model.d[li]
-    return d, model.p0[li], np.einsum("ij,ij->i", d, d), np.linalg.norm(d, axis=1)
 
 
 #: Passes of the joint fit (each tube refitted on the pixels it shares with fitted neighbours, their sections

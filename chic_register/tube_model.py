@@ -58,6 +58,8 @@ class TubeModel:
     helix_params: tuple = ()
     tubes: tuple = ()  # the geometry's tube objects (sampled by the generic first guess)
     probe_points_mm: np.ndarray = None  # (5, 3) points of F two poses are compared at (trust._distinct)
+    line_dd: np.ndarray = None  # the line tubes' d . d
+    line_length_mm: np.ndarray = None  # and |d|
 
     def __post_init__(self):
         L = self.length_mm
@@ -72,6 +74,8 @@ class TubeModel:
         object.__setattr__(self, "line_p0", self.p0[li].copy())
         object.__setattr__(self, "line_d", d.copy())
         object.__setattr__(self, "line_dunit", d / np.linalg.norm(d, axis=1, keepdims=True))
+        object.__setattr__(self, "line_dd", np.einsum("ij,ij->i", d, d))
+        object.__setattr__(self, "line_length_mm", np.linalg.norm(d, axis=1))
         object.__setattr__(self, "line_params", tuple(
             (int(k), *(float(v) for v in self.p0[k]), *(float(v) for v in self.d[k]),
              *(float(v) for v in self.d[k] / np.linalg.norm(self.d[k]))) for k in li))
