@@ -59,49 +59,66 @@ def hungarian(cost: list[list[float]]) -> list[tuple[int, int]]:
     return [(p[j] - 1, j - 1) for j in range(1, m + 1) if p[j]]
 
 
-def gated_matching(cost: np.ndarray, allowed: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+def gated_matching(cost: np.ndarray, allowed: np.ndarray, pairs: tuple | None = None) -> tuple[np.ndarray, np.ndarray]:
     """The most allowed pairs of rows and columns, and among those the least total cost.
 
     ``cost`` (K, N) float, ``allowed`` (K, N) bool. Returns ``(rows, cols)``
     int arrays of the matched pairs (all allowed), as
     ``linear_sum_assignment`` on ``where(allowed, cost, big)`` keeping the
     allowed pairs would, provided every cost is far below ``1e6``. Solved per
-    connected component of the graph of allowed pairs.
+    connected component of the graph of allowed pairs. ``pairs``: the allowed
+    pairs' ``(rows, cols)`` as lists in ``np.nonzero(allowed)``'s order, when
+    the caller has them.
     """
-    ri, ci = np.nonzero(allowed)
-    if ri.size == 0:
-        return ri, ci
-    rl, cl = ri.tolist(), ci.tolist()
-    vals = cost[ri, ci].tolist()
-    K = allowed.shape[0]
-    # connected components by union-find over the nodes (rows 0..K-1, columns K..K+N-1)
-    parent = {}
-
-    def find(x):
-        root = x
-        while parent.get(root, root) != root:
-            root = parent[root]
-        while x != root:
-            parent[x], x = root, parent.get(x, x)
-        return root
-
+    if pairs is None:
+        ri, ci = np.nonzero(allowed)
+        rl, cl = ri.tolist(), ci.tolist()
+    else:
+        rl, cl = pairs
+    if not rl:
+        return np.zeros(0, dtype=int), np.zeros(0, dtype=int)
+    vals = cost[rl, cl].tolist()
+    K, N = allowed.shape
+    row_deg, col_deg = [0] * K, [0] * N
+    for i in rl:
+        row_deg[i] += 1
+    for j in cl:
+        col_deg[j] += 1
+    # connected components by union-find over the nodes (rows 0..K-1, columns K..K+N-1); the graphs have a few
+    # tens of edges, most of them alone in their row and column: those are components of their own
+    parent = list(range(K + N))
     for i, j in zip(rl, cl):
-        a, b = find(i), find(K + j)
+        if row_deg[i] == 1 and col_deg[j] == 1:
+            continue
+        a, b = i, K + j
+        while parent[a] != a:
+            a = parent[a]
+        while parent[b] != b:
+            b = parent[b]
         if a != b:
             parent[a] = b
-    comps = {}
+    comps = {}  # in the order of each component's first edge
     for e, i in enumerate(rl):
-        comps.setdefault(find(i), []).append(e)
+        if row_deg[i] == 1 and col_deg[cl[e]] == 1:
+            comps[-1 - e] = [e]
+            continue
+        while parent[i] != i:
+            i = parent[i]
+        comps.setdefault(i, []).append(e)
     out_r, out_c = [], []
     big = 1e6
     for edges in comps.values():
-        if len(edges) == 1 or len({rl[e] for e in edges}) == 1 or len({cl[e] for e in edges}) == 1:
-            e = min(edges, key=vals.__getitem__)  # a star: its cheapest edge
-            out_r.append(rl[e])
-            out_c.append(cl[e])
+        if len(edges) == 1:
+            out_r.append(rl[edges[0]])
+            out_c.append(cl[edges[0]])
             continue
         rows = sorted({rl[e] for e in edges})
         cols = sorted({cl[e] for e in edges})
+        if len(rows) == 1 or len(cols) == 1:  # a star: its cheapest edge
+            e = min(edges, key=vals.__getitem__)
+            out_r.append(rl[e])
+            out_c.append(cl[e])
+            continue
         r_at, c_at = {r: k for k, r in enumerate(rows)}, {c: k for k, c in enumerate(cols)}
         sub = [[big] * len(cols) for _ in rows]
         for e in edges:

@@ -23,7 +23,7 @@ except ImportError:  # pragma: no cover - the public wrapper below
 
 from .matching import gated_matching
 from .pose import invert
-from .tube_model import TubeModel, _adjoint, _crossing_jacobian, _exp_se3, plane_crossings
+from .tube_model import TubeModel, _adjoint, _crossing_jacobian, _crossings_memo, _exp_se3, _inside
 
 if TYPE_CHECKING:
     from .solve import SolveOptions
@@ -46,19 +46,19 @@ class _Fit:
 
 def _assign(pred: np.ndarray, ok: np.ndarray, blobs_xy: np.ndarray, gate_mm: float) -> np.ndarray:
     """Blob index per tube (K,), -1 for none: minimum-cost matching within ``gate_mm``."""
-    K = pred.shape[0]
-    out = np.full(K, -1)
-    if blobs_xy.shape[0] == 0 or not ok.any():
+    out = np.full(pred.shape[0], -1)
+    if blobs_xy.shape[0] == 0:
         return out
     diff = pred[:, None, :] - blobs_xy[None, :, :]
     d2 = np.einsum("ijk,ijk->ij", diff, diff)  # squared distances (K, N)
     within = (d2 < gate_mm * gate_mm) & ok[:, None]
-    if within.sum(axis=0).max() <= 1 and within.sum(axis=1).max() <= 1:
+    r, c = within.nonzero()
+    rl, cl = r.tolist(), c.tolist()
+    if len(set(rl)) == len(rl) and len(set(cl)) == len(cl):
         # every gated pair is alone in its row and column: they are the (unique) optimal matching
-        r, c = np.nonzero(within)
         out[r] = c
         return out
-    r, c = gated_matching(d2, within)
+    r, c = gated_matching(d2, within, pairs=(rl, cl))
     out[r] = c
     return out
 
@@ -125,12 +125,15 @@ def refine(model: TubeModel, blobs_xy: list[np.ndarray], T_scanner_from_image: l
     step = 1.0
     for gate, iters in schedule:
         changed = False
+        margin = 5.0 if gate is not None else end_margin
         for it in range(iters):
             if it == 1 and not changed and step < 1e-5:
                 break  # converged and the assignment did not change
             Js, rs = [], []
             for j, (xy, S) in enumerate(zip(blobs_xy, T_scanner_from_image)):
-                q, tan, _, inside = plane_crossings(model, X @ S, margin_mm=5.0 if gate is not None else end_margin)
+                # plane_crossings' arrays, less its copies (read-only here)
+                hit = _crossings_memo(model, X @ S)
+                q, inside = hit[0][:, :2], _inside(model, hit, margin)
                 qm = q + offs[j] if offs[j] is not None else q  # what the detector measures
                 if gate is not None and it == 0:
                     new = _assign(qm, inside & ~exclude[j] if exclude else inside, xy, gate)
@@ -141,11 +144,12 @@ def refine(model: TubeModel, blobs_xy: list[np.ndarray], T_scanner_from_image: l
                 if k.size == 0:
                     continue
                 res = qm[k] - xy[a[k]]
-                Jk = _crossing_jacobian(q[k], tan[k]) @ ads[j]
+                # (M, 2, 6) @ (6, 6) as one (2M, 6) product: the same numbers, one BLAS call instead of M
+                Jk = _crossing_jacobian(q[k], hit[1][k]).reshape(-1, 6) @ ads[j]
                 if weights is not None and weights[j] is not None:
                     L = weights[j][k]
                     res = np.einsum("kij,kj->ki", L, res)
-                    Jk = np.einsum("kij,kjl->kil", L, Jk)
+                    Jk = np.einsum("kij,kjl->kil", L, Jk.reshape(-1, 2, 6))
                 rs.append(res.ravel())
                 Js.append(Jk.reshape(-1, 6))
             if not rs:
@@ -170,7 +174,8 @@ def refine(model: TubeModel, blobs_xy: list[np.ndarray], T_scanner_from_image: l
     # final bookkeeping
     residuals, insides, total, sq = [], [], 0, 0.0
     for j, (xy, S) in enumerate(zip(blobs_xy, T_scanner_from_image)):
-        q, _, _, inside = plane_crossings(model, X @ S, margin_mm=end_margin)
+        hit = _crossings_memo(model, X @ S)
+        q, inside = hit[0][:, :2], _inside(model, hit, end_margin)
         if offs[j] is not None:
             q = q + offs[j]
         a = assign[j] if assign[j] is not None else np.full(model.is_helix.size, -1)
@@ -183,7 +188,7 @@ def refine(model: TubeModel, blobs_xy: list[np.ndarray], T_scanner_from_image: l
         residuals.append(res)
         insides.append(inside)
         total += k.size
-        sq += float(np.sum(res[k] ** 2))
+        sq += float(np.add.reduce(res[k] ** 2))  # (np.sum less its wrapper)
     rms = math.sqrt(sq / total) if total else float("inf")
     return _Fit(X, assign, residuals, insides, total, rms)
 

@@ -13,7 +13,6 @@ from __future__ import annotations
 
 import functools
 import math
-import weakref
 from dataclasses import dataclass
 
 import numpy as np
@@ -60,6 +59,9 @@ class TubeModel:
     probe_points_mm: np.ndarray = None  # (5, 3) points of F two poses are compared at (trust._distinct)
     line_dd: np.ndarray = None  # the line tubes' d . d
     line_length_mm: np.ndarray = None  # and |d|
+    half_diameter_mm: np.ndarray = None  # 0.5 * diameter_mm
+    crossing_memo: dict = None  # plane_crossings' memo: pose bytes -> _crossings' result
+    extent_bounds: dict = None  # margin (mm) -> the widened extent (z_lo - margin - 1e-6, z_hi + margin + 1e-6)
 
     def __post_init__(self):
         L = self.length_mm
@@ -76,6 +78,9 @@ class TubeModel:
         object.__setattr__(self, "line_dunit", d / np.linalg.norm(d, axis=1, keepdims=True))
         object.__setattr__(self, "line_dd", np.einsum("ij,ij->i", d, d))
         object.__setattr__(self, "line_length_mm", np.linalg.norm(d, axis=1))
+        object.__setattr__(self, "half_diameter_mm", 0.5 * self.diameter_mm)
+        object.__setattr__(self, "crossing_memo", {})
+        object.__setattr__(self, "extent_bounds", {})
         object.__setattr__(self, "line_params", tuple(
             (int(k), *(float(v) for v in self.p0[k]), *(float(v) for v in self.d[k]),
              *(float(v) for v in self.d[k] / np.linalg.norm(self.d[k]))) for k in li))
@@ -205,47 +210,54 @@ def plane_crossings(model: TubeModel, T_F_from_I: np.ndarray, margin_mm: float =
     helices: Newton on z started from the axis crossing (scalar code: the
     arrays are tiny and numpy's per-call overhead would dominate).
     """
-    T_F_from_I = np.asarray(T_F_from_I, dtype=float)
+    hit = _crossings_memo(model, np.asarray(T_F_from_I, dtype=float))
+    return hit[0][:, :2].copy(), hit[1].copy(), hit[2].copy(), _inside(model, hit, margin_mm)
+
+
+def _crossings_memo(model: TubeModel, T_F_from_I: np.ndarray):
+    """:func:`_crossings` of a float64 (4, 4) pose, memoised per model (read-only arrays: views, not copies, for
+    the refinement's inner loop). The solver asks for the same pose's crossings several times (a fit, then its
+    checks)."""
     key = T_F_from_I.tobytes()
-    memo = _CROSSINGS.get(model)
-    hit = memo.get(key) if memo is not None else None
-    if hit is None:  # the solver asks for the same pose's crossings several times (a fit, then its checks)
+    memo = model.crossing_memo
+    hit = memo.get(key)
+    if hit is None:
         hit = _crossings(model, T_F_from_I)
-        if memo is None:
-            memo = _CROSSINGS[model] = {}
         if len(memo) >= 16:
             memo.clear()
         memo[key] = hit
-    q, tan_I, zF, ok, tan_z = hit
+    return hit
+
+
+def _inside(model: TubeModel, hit: tuple, margin_mm: float) -> np.ndarray:
+    """:func:`plane_crossings`' ``inside`` of a :func:`_crossings` result (a new array)."""
+    _, tan_I, zF, ok, tan_z = hit
     if margin_mm > 0:
-        inside = ok & (zF >= model.z_lo - margin_mm - 1e-6) & (zF <= model.z_hi + margin_mm + 1e-6)
-    else:
-        # strict: the whole cross-section must lie within the tube, else the blob is cut short by the
-        # tube's end and its centre is biased: half the cut's length along the tube, in z of F
-        cos_a = np.maximum(np.abs(tan_I[:, 2]), 1e-6)
-        clear = 0.5 * model.diameter_mm * np.sqrt(np.maximum(1 - cos_a * cos_a, 0.0)) / cos_a * np.abs(tan_z)
-        lo, hi = model.z_lo + clear, model.z_hi - clear
-        inside = ok & (zF >= lo - 1e-6) & (zF <= hi + 1e-6)
-    return q[:, :2].copy(), tan_I.copy(), zF.copy(), inside
-
-
-#: plane_crossings' memo per model (weakly held): pose bytes -> (q, tan_I, z_F, found, tangent z in F)
-_CROSSINGS: weakref.WeakKeyDictionary = weakref.WeakKeyDictionary()
+        bounds = model.extent_bounds.get(margin_mm)
+        if bounds is None:  # the same arrays each time: computed once per margin
+            bounds = model.extent_bounds[margin_mm] = (model.z_lo - margin_mm - 1e-6, model.z_hi + margin_mm + 1e-6)
+        return ok & (zF >= bounds[0]) & (zF <= bounds[1])
+    # strict: the whole cross-section must lie within the tube, else the blob is cut short by the
+    # tube's end and its centre is biased: half the cut's length along the tube, in z of F
+    cos_a = np.maximum(np.abs(tan_I[:, 2]), 1e-6)
+    clear = model.half_diameter_mm * np.sqrt(np.maximum(1 - cos_a * cos_a, 0.0)) / cos_a * np.abs(tan_z)
+    lo, hi = model.z_lo + clear, model.z_hi - clear
+    return ok & (zF >= lo - 1e-6) & (zF <= hi + 1e-6)
 
 
 def _crossings(model: TubeModel, T_F_from_I: np.ndarray):
     """:func:`plane_crossings` before the extent test: ``(q (K, 3), tan_I, z_F, found, tangent z in F)``."""
-    R = T_F_from_I[:3, :3]
-    o = T_F_from_I[:3, 3]
     (_, _, nx, ox), (_, _, ny, oy), (_, _, nz, oz) = T_F_from_I[:3].tolist()
     no = nx * ox + ny * oy + nz * oz  # the plane: x . n = no
     K = len(model.ids)
-    rows = [None] * K  # per tube: crossing (3), unit tangent (3), found; all in F
+    # per tube, all in F: crossing less the image origin (3), unit tangent (3), crossing z, found
+    rows = [None] * K
     for k, px, py, pz, dx, dy, dz, ux, uy, uz in model.line_params:
         denom = dx * nx + dy * ny + dz * nz
         safe = abs(denom) > 1e-9
         t = (no - (px * nx + py * ny + pz * nz)) / (denom if safe else 1.0)
-        rows[k] = (px + t * dx, py + t * dy, pz + t * dz, ux, uy, uz, safe)
+        z = pz + t * dz
+        rows[k] = (px + t * dx - ox, py + t * dy - oy, z - oz, ux, uy, uz, z, safe)
     if model.helix_params:
         z_axis = no / nz if abs(nz) > 1e-9 else 0.0
         cos, sin = math.cos, math.sin
@@ -272,14 +284,12 @@ def _crossings(model: TubeModel, T_F_from_I: np.ndarray):
             c, s = cos(th), sin(th)
             vx, vy = -r * om * s, r * om * c
             inv = 1.0 / math.sqrt(vx * vx + vy * vy + 1.0)
-            rows[k] = (r * c, r * s, z, vx * inv, vy * inv, inv,
+            rows[k] = (r * c - ox, r * s - oy, z - oz, vx * inv, vy * inv, inv, z,
                        good and abs(rnx * c + rny * s + nz * z - no) < 1e-6)
-    A = np.array(rows, dtype=float).reshape(K, 7)
-    X, tan, ok = A[:, :3], A[:, 3:6], A[:, 6] > 0
-    zF = X[:, 2]
-    tan_I = tan @ R
-    q = (X - o) @ R  # rows: R^T (X - o)
-    return q, tan_I, zF, ok, tan[:, 2]
+    A = np.array(rows, dtype=float).reshape(K, 8)
+    # rows R^T (X - o) and R^T tan in one product: (K, 2, 3), the crossing then the tangent of each tube
+    qt = (A[:, :6].reshape(2 * K, 3) @ T_F_from_I[:3, :3]).reshape(K, 2, 3)
+    return qt[:, 0], qt[:, 1], A[:, 6], A[:, 7] > 0, A[:, 5]
 
 
 def _section_extent(model, tan, slice_thickness_mm):
@@ -315,16 +325,19 @@ def _crossing_jacobian(xy: np.ndarray, tan_I: np.ndarray) -> np.ndarray:
     ``delta = P x omega - v`` in the image frame and the crossing slides
     along the tangent back to z = 0: ``dq = delta_xy - (t_xy / t_z) delta_z``.
     """
-    x, y = xy[:, 0:1], xy[:, 1]
     tz = tan_I[:, 2:3]
-    ab = tan_I[:, :2] / np.where(np.abs(tz) < 1e-6, 1e-6, tz)  # (M, 2): a, b
-    J = np.zeros((xy.shape[0], 2, 6))
-    np.multiply(ab, y[:, None], out=J[:, :, 0])  # a y, b y
-    np.multiply(-ab, x, out=J[:, :, 1])  # -a x, -b x
-    J[:, 0, 2], J[:, 1, 2] = y, -x[:, 0]
-    J[:, 0, 3] = J[:, 1, 4] = -1.0
-    J[:, :, 5] = ab
+    J = np.empty((xy.shape[0], 2, 6))  # every entry written below (few numpy calls: this runs in every iteration)
+    J[:, :, 3:5] = _MINUS_I2  # -v_xy
+    ab = np.divide(tan_I[:, :2], np.where(np.abs(tz) < 1e-6, 1e-6, tz), out=J[:, :, 5])  # (M, 2): a, b
+    np.multiply(ab, xy[:, 1:2], out=J[:, :, 0])  # a y, b y
+    np.multiply(ab, -xy[:, 0:1], out=J[:, :, 1])  # -a x, -b x
+    np.multiply(xy[:, ::-1], _PLUS_MINUS, out=J[:, :, 2])  # y, -x
     return J
+
+
+_MINUS_I2 = np.array([[-1.0, 0.0], [0.0, -1.0]])
+_PLUS_MINUS = np.array([1.0, -1.0])
+_MINUS_I2.flags.writeable = _PLUS_MINUS.flags.writeable = False
 
 
 def _exp_se3(xi: np.ndarray) -> np.ndarray:
