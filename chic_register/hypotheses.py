@@ -92,28 +92,40 @@ def initial_hypotheses(model: TubeModel, xy_mm: np.ndarray, ell: Ellipse, *,
         th = np.arctan2(h * w, u * cos_t)  # (N,)
         beta = (line_ang[None, :] - th[:, None]).ravel()  # (B,)
         rows_b, cols_l = np.arange(beta.size)[:, None], np.arange(Kl)[None, :]
-        # th[n] - th[i] + ang[l] - ang[m], each difference wrapped first: one add and two compares to wrap
-        e = (_wrap(th[None, :] - th[:, None])[:, None, :, None]
-             + _wrap(line_ang[:, None] - line_ang[None, :])[None, :, None, :]).reshape(beta.size, th.size, Kl)
-        e = np.where(e >= np.pi, e - 2 * np.pi, np.where(e < -np.pi, e + 2 * np.pi, e))  # (B,N,Kl)
-        jmin = np.argmin(np.abs(e), axis=1)  # (B,Kl)
-        emin = e[rows_b, jmin, cols_l]  # np.take_along_axis(e, jmin[:, None, :], axis=1)[:, 0, :], less its wrapper
+        # th[n] - th[i] + ang[l] - ang[m], each difference wrapped first: one add and two compares to wrap;
+        # laid out (B, Kl, N) so that the search over blobs runs along the last (contiguous) axis
+        e = (_wrap(th[None, :] - th[:, None])[:, None, None, :]
+             + _wrap(line_ang[:, None] - line_ang[None, :])[None, :, :, None]).reshape(beta.size, Kl, th.size)
+        np.subtract(e, 2 * np.pi, out=e, where=e >= np.pi)  # (never both: e >= pi leaves e - 2 pi >= -pi)
+        np.add(e, 2 * np.pi, out=e, where=e < -np.pi)
+        jmin = np.argmin(np.abs(e), axis=2)  # (B,Kl)
+        emin = e[rows_b, cols_l, jmin]  # np.take_along_axis, less its wrapper
         hit = np.abs(emin) < tol
         n_lines = hit.sum(axis=1)
         b = beta - np.where(hit, emin, 0).sum(axis=1) / np.maximum(n_lines, 1)
         per_h[h] = (th, n_lines, b)
-    per_sign = [(s, h, per_h[h][0], s * u * sin_t, per_h[h][1], per_h[h][2]) for s, h in signs]
-    top = max(int(ps[4].max()) for ps in per_sign)
-    rows = []  # (score, n_hel, s, h, beta, depth)
-    for s, h, th, zr, n_lines, b in per_sign:
-        keep = n_lines >= (top if top >= 3 else max(top - 1, 1))
+    top = max(int(n_lines.max()) for _, n_lines, _ in per_h.values())
+    floor = top if top >= 3 else max(top - 1, 1)
+    kept = {}  # per h: the rotations kept, their line counts and each distinct rounded rotation's first index
+    for h, (th, n_lines, b) in per_h.items():
+        keep = n_lines >= floor
         b, nl = b[keep], n_lines[keep]
         key = np.round(np.degrees(_wrap(b))).astype(int)
         first = {}  # each key's first index, keys ascending: np.unique(key, return_index=True)[1] without its sorts
         for i, v in enumerate(key.tolist()):
             first.setdefault(v, i)
-        for _, k in sorted(first.items()):
-            for depth, n_hel in _helix_depths(model, hel, th + b[k], zr, tol):
+        kept[h] = (b, nl, [k for _, k in sorted(first.items())])
+    rows = []  # (score, n_hel, s, h, beta, depth)
+    cands = {}  # (h, k) -> the helix crossings of that rotation (they do not depend on s)
+    for s, h in signs:
+        th = per_h[h][0]
+        zr = s * u * sin_t
+        b, nl, ks = kept[h]
+        for k in ks:
+            cand = cands.get((h, k))
+            if cand is None:
+                cand = cands[h, k] = _helix_candidates(model, hel, th + b[k], tol)
+            for depth, n_hel in _depths_from(model, cand, zr):
                 rows.append((int(nl[k]) + n_hel, n_hel, s, h, float(b[k]), depth))
     rows.sort(key=lambda t: (-t[0], -t[1]))
     out, seen = [], []
@@ -135,26 +147,40 @@ def _helix_depths(model: TubeModel, hel: np.ndarray, theta_F: np.ndarray, zr: np
     helices win (ties broken by spread). Returns up to ``n_best`` distinct
     ``(depth_mm, n_helices_agreeing)``, clamped to the body.
     """
-    L = model.length_mm
+    return _depths_from(model, _helix_candidates(model, hel, theta_F, tol), zr, n_best)
+
+
+def _helix_candidates(model: TubeModel, hel: np.ndarray, theta_F: np.ndarray, tol: float):
+    """:func:`_helix_depths`' part that does not depend on the blobs' heights: every (blob, helix) pair's height
+    ``z`` of the helix at the blob's angle, within the helix's extent: ``(z (M,), blob (M,), helix (M,), depth
+    tolerance (1, M), helix one-hot (M, H))``, or None for no helices or no pair."""
     if hel.size == 0:
-        return [(L / 2, 0)]
+        return None
     th0, om, z0, period, zmid, z_above, z_below, dtol, ids = _helix_terms(model, hel, tol)
     # z = z0 + (theta - th0 + 2 pi m) / om, pick m nearest to the middle of the tube
     raw = (theta_F[:, None] - th0) / om  # (N,H)
     m = np.round((zmid - raw) / period)
     z = z0 + raw + m * period
-    d = z - zr[:, None]
     inside = (z > z_above) & (z < z_below)
-    dv = d[inside]
-    hv = np.nonzero(inside)[1]  # the helix of each (the column indices, in the mask's order)
-    if dv.size == 0:
-        return [(L / 2, 0)]
+    bv, hv = np.nonzero(inside)  # the blob and helix of each (in the mask's order)
+    if hv.size == 0:
+        return None
+    return z[inside], bv, hv, dtol[hv][None, :], hv[:, None] == ids
+
+
+def _depths_from(model: TubeModel, cand, zr: np.ndarray, n_best: int = 2):
+    """:func:`_helix_depths` from :func:`_helix_candidates`' pairs and the blobs' relative heights ``zr`` (N,)."""
+    if cand is None:
+        return [(model.length_mm / 2, 0)]
+    zv, bv, hv, dtol, onehot = cand
+    dv = zv - zr[bv]  # each pair's depth
     diff = np.abs(dv[:, None] - dv[None, :])
-    close = diff < dtol[hv][None, :]
-    onehot = hv[:, None] == ids  # (M, H)
-    n = ((close.astype(float) @ onehot) > 0).sum(axis=1)  # helices agreeing with each depth
-    spread = np.where(close, diff, 0).sum(axis=1) / np.maximum(close.sum(axis=1), 1)
-    means = (close @ dv) / close.sum(axis=1)  # each row holds its own depth: never empty
+    close = diff < dtol
+    n = (close @ onehot).sum(axis=1)  # helices agreeing with each depth (a boolean product: any)
+    n_close = close.sum(axis=1)
+    spread = np.where(close, diff, 0).sum(axis=1) / np.maximum(n_close, 1)
+    means = (close @ dv) / n_close  # each row holds its own depth: never empty
+    L = model.length_mm
     out = []
     for i in np.lexsort((spread, -n)).tolist():
         depth = float(means[i])
@@ -169,7 +195,9 @@ def _helix_depths(model: TubeModel, hel: np.ndarray, theta_F: np.ndarray, zr: np
 def _helix_terms(model: TubeModel, hel: np.ndarray, tol: float) -> tuple:
     """:func:`_helix_depths`' per-geometry terms, each (1, H) (memoised per model, helices and tolerance):
     ``(theta0, omega, z0, period, middle - z0, z_lo - 3, z_hi + 3, depth tolerance, helix numbers)``."""
-    memo = _HELIX_TERMS.setdefault(model, {})
+    memo = _HELIX_TERMS.get(model)
+    if memo is None:
+        memo = _HELIX_TERMS[model] = {}
     key = (hel.tobytes(), tol)
     terms = memo.get(key)
     if terms is None:
@@ -199,11 +227,11 @@ def _pose_from_hypothesis(ell: Ellipse, cos_t, sin_t, s, h, beta, depth) -> np.n
     m = (cos_t * cb, cos_t * sb, s * sin_t)
     mn = (-h * sb, h * cb, 0.0)
     m3 = (m[1] * mn[2] - m[2] * mn[1], m[2] * mn[0] - m[0] * mn[2], m[0] * mn[1] - m[1] * mn[0])
-    # R = F @ I^T with I = [[c, -s_, 0], [s_, c, 0], [0, 0, 1]]
-    R = np.array([[m[i] * c - mn[i] * s_, m[i] * s_ + mn[i] * c, m3[i]] for i in range(3)])
+    # R = F @ I^T with I = [[c, -s_, 0], [s_, c, 0], [0, 0, 1]]; in floats, one array at the end (rigid's numbers)
+    R = [[m[i] * c - mn[i] * s_, m[i] * s_ + mn[i] * c, m3[i]] for i in range(3)]
     cx, cy = float(ell.centre[0]), float(ell.centre[1])
-    o = np.array([-(R[0, 0] * cx + R[0, 1] * cy), -(R[1, 0] * cx + R[1, 1] * cy), depth - (R[2, 0] * cx + R[2, 1] * cy)])
-    return rigid(R, o)
+    o = (-(R[0][0] * cx + R[0][1] * cy), -(R[1][0] * cx + R[1][1] * cy), depth - (R[2][0] * cx + R[2][1] * cy))
+    return np.array([R[0] + [o[0]], R[1] + [o[1]], R[2] + [o[2]], [0.0, 0.0, 0.0, 1.0]])
 
 
 
