@@ -23,7 +23,7 @@ except ImportError:  # pragma: no cover - the public wrapper below
 
 from .matching import gated_matching
 from .pose import invert
-from .tube_model import TubeModel, _adjoint, _crossing_jacobian, _crossings_memo, _exp_se3, _inside
+from .tube_model import TubeModel, _adjoint, _crossings_memo, _exp_se3, _inside, _inside_list
 
 if TYPE_CHECKING:
     from .solve import SolveOptions
@@ -122,6 +122,9 @@ def refine(model: TubeModel, blobs_xy: list[np.ndarray], T_scanner_from_image: l
     assign = list(assign0) if assign0 is not None else [None] * len(blobs_xy)
     offs = offsets_mm if offsets_mm is not None else [None] * len(blobs_xy)
     schedule = [(g, iters_per_gate) for g in gates_mm] + [(None, final_iters)]
+    xy_lists = [xy.tolist() for xy in blobs_xy]
+    offs_lists = [o.tolist() if o is not None else None for o in offs]
+    a_lists = [None] * len(blobs_xy)  # assign[j] as a list
     step = 1.0
     for gate, iters in schedule:
         changed = False
@@ -131,27 +134,33 @@ def refine(model: TubeModel, blobs_xy: list[np.ndarray], T_scanner_from_image: l
                 break  # converged and the assignment did not change
             Js, rs = [], []
             for j, (xy, S) in enumerate(zip(blobs_xy, T_scanner_from_image)):
-                # plane_crossings' arrays, less its copies (read-only here)
-                hit = _crossings_memo(model, X @ S)
-                q, inside = hit[0][:, :2], _inside(model, hit, margin)
-                qm = q + offs[j] if offs[j] is not None else q  # what the detector measures
+                hit = _crossings_memo(model, X @ S)  # plane_crossings' numbers, less its copies (read-only here)
+                inside = _inside_list(model, hit, margin)
                 if gate is not None and it == 0:
-                    new = _assign(qm, inside & ~exclude[j] if exclude else inside, xy, gate)
+                    q = hit[0][:, :2]
+                    qm = q + offs[j] if offs[j] is not None else q  # what the detector measures
+                    ins = np.array(inside, dtype=bool)
+                    new = _assign(qm, ins & ~exclude[j] if exclude else ins, xy, gate)
                     changed = changed or assign[j] is None or not np.array_equal(new, assign[j])
                     assign[j] = new
-                a = assign[j]
-                k = ((a >= 0) & inside).nonzero()[0]  # (1-D: np.flatnonzero, less its wrapper)
-                if k.size == 0:
+                    a_lists[j] = None
+                if a_lists[j] is None:
+                    a_lists[j] = assign[j].tolist()
+                a = a_lists[j]
+                k = [i for i, (ai, ok) in enumerate(zip(a, inside)) if ai >= 0 and ok]
+                if not k:
                     continue
-                res = qm[k] - xy[a[k]]
+                res, Jl = _residuals_jacobian(hit[5].tolist(), k, a, xy_lists[j], offs_lists[j])
+                M = len(k)
                 # (M, 2, 6) @ (6, 6) as one (2M, 6) product: the same numbers, one BLAS call instead of M
-                Jk = _crossing_jacobian(q[k], hit[1][k]).reshape(-1, 6) @ ads[j]
+                Jk = np.fromiter(Jl, float, 12 * M).reshape(2 * M, 6) @ ads[j]
+                res = np.fromiter(res, float, 2 * M)
                 if weights is not None and weights[j] is not None:
                     L = weights[j][k]
-                    res = np.einsum("kij,kj->ki", L, res)
-                    Jk = np.einsum("kij,kjl->kil", L, Jk.reshape(-1, 2, 6))
-                rs.append(res.ravel())
-                Js.append(Jk.reshape(-1, 6))
+                    res = np.einsum("kij,kj->ki", L, res.reshape(M, 2)).ravel()
+                    Jk = np.einsum("kij,kjl->kil", L, Jk.reshape(M, 2, 6)).reshape(-1, 6)
+                rs.append(res)
+                Js.append(Jk)
             if not rs:
                 break
             J = Js[0] if len(Js) == 1 else np.concatenate(Js)
@@ -171,26 +180,56 @@ def refine(model: TubeModel, blobs_xy: list[np.ndarray], T_scanner_from_image: l
                 break
         if step > 1e-2:  # still wandering after a whole gate: a hopeless guess, give up
             break
-    # final bookkeeping
+    # final bookkeeping (scalar code over the tubes, as in the iterations: numpy's numbers, fewer calls)
     residuals, insides, total, sq = [], [], 0, 0.0
     for j, (xy, S) in enumerate(zip(blobs_xy, T_scanner_from_image)):
         hit = _crossings_memo(model, X @ S)
-        q, inside = hit[0][:, :2], _inside(model, hit, end_margin)
-        if offs[j] is not None:
-            q = q + offs[j]
-        a = assign[j] if assign[j] is not None else np.full(model.is_helix.size, -1)
-        a = np.where(inside, a, -1)
-        assign[j] = a
-        res = np.full(a.size, np.nan)
-        k = (a >= 0).nonzero()[0]
-        d = q[k] - xy[a[k]]
-        res[k] = np.sqrt(np.add.reduce(d * d, axis=1))  # np.linalg.norm(d, axis=1)'s own formula, less its checks
-        residuals.append(res)
-        insides.append(inside)
-        total += k.size
-        sq += float(np.add.reduce(res[k] ** 2))  # (np.sum less its wrapper)
+        inside = _inside_list(model, hit, end_margin)
+        a_j = assign[j] if assign[j] is not None else np.full(model.is_helix.size, -1)
+        a = [ai if ok else -1 for ai, ok in zip(a_j.tolist(), inside)]
+        qt, xyl, offl = hit[5].tolist(), xy_lists[j], offs_lists[j]
+        res, dist = [math.nan] * len(a), []
+        for i, ai in enumerate(a):
+            if ai >= 0:
+                (x, y, _), _ = qt[i]
+                bx, by = xyl[ai]
+                if offl is not None:
+                    x, y = x + offl[i][0], y + offl[i][1]
+                dx, dy = x - bx, y - by
+                res[i] = math.sqrt(dx * dx + dy * dy)
+                dist.append(res[i])
+        assign[j] = np.array(a, dtype=a_j.dtype)
+        residuals.append(np.array(res))
+        insides.append(np.array(inside, dtype=bool))
+        total += len(dist)
+        if dist:
+            sq += float(np.add.reduce(np.array(dist) ** 2))  # numpy's sum (pairwise: not Python's)
     rms = math.sqrt(sq / total) if total else float("inf")
     return _Fit(X, assign, residuals, insides, total, rms)
+
+
+def _residuals_jacobian(qt: list, k: list, a: list, xy: list, offs: list | None):
+    """The Gauss-Newton rows of the tubes ``k`` (a list): residuals ``[x, y, ...]`` (predicted + offset - blob
+    ``a[i]``) and the crossings' Jacobian :func:`~chic_register.tube_model._crossing_jacobian` flattened
+    (``12 * len(k)``), from :func:`~chic_register.tube_model._crossings`' ``qt`` as a list.
+
+    Scalar code (the same arithmetic as the array versions, to the bit): on nine tubes a dozen numpy calls cost
+    more than the loop.
+    """
+    res, J = [], []
+    for i in k:
+        (x, y, _), (tx, ty, tz) = qt[i]
+        bx, by = xy[a[i]]
+        if offs is None:
+            res += (x - bx, y - by)
+        else:
+            dx, dy = offs[i]
+            res += (x + dx - bx, y + dy - by)
+        if -1e-6 < tz < 1e-6:
+            tz = 1e-6
+        ta, tb = tx / tz, ty / tz
+        J += (ta * y, -ta * x, y, -1.0, 0.0, ta, tb * y, -tb * x, -x, 0.0, -1.0, tb)
+    return res, J
 
 
 def _reject_outliers(model: TubeModel, xys, Ss, fit: _Fit, px_mm: list[float], opts: SolveOptions) -> _Fit:

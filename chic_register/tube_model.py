@@ -59,7 +59,7 @@ class TubeModel:
     probe_points_mm: np.ndarray = None  # (5, 3) points of F two poses are compared at (trust._distinct)
     line_dd: np.ndarray = None  # the line tubes' d . d
     line_length_mm: np.ndarray = None  # and |d|
-    half_diameter_mm: np.ndarray = None  # 0.5 * diameter_mm
+    strict_terms: tuple = ()  # per tube (half diameter, z_lo, z_hi) as floats (plane_crossings' strict extent test)
     crossing_memo: dict = None  # plane_crossings' memo: pose bytes -> _crossings' result
     extent_bounds: dict = None  # margin (mm) -> the widened extent (z_lo - margin - 1e-6, z_hi + margin + 1e-6)
 
@@ -78,7 +78,8 @@ class TubeModel:
         object.__setattr__(self, "line_dunit", d / np.linalg.norm(d, axis=1, keepdims=True))
         object.__setattr__(self, "line_dd", np.einsum("ij,ij->i", d, d))
         object.__setattr__(self, "line_length_mm", np.linalg.norm(d, axis=1))
-        object.__setattr__(self, "half_diameter_mm", 0.5 * self.diameter_mm)
+        object.__setattr__(self, "strict_terms", tuple(zip(
+            (0.5 * self.diameter_mm).tolist(), self.z_lo.tolist(), self.z_hi.tolist())))
         object.__setattr__(self, "crossing_memo", {})
         object.__setattr__(self, "extent_bounds", {})
         object.__setattr__(self, "line_params", tuple(
@@ -211,7 +212,7 @@ def plane_crossings(model: TubeModel, T_F_from_I: np.ndarray, margin_mm: float =
     arrays are tiny and numpy's per-call overhead would dominate).
     """
     hit = _crossings_memo(model, np.asarray(T_F_from_I, dtype=float))
-    return hit[0][:, :2].copy(), hit[1].copy(), hit[2].copy(), _inside(model, hit, margin_mm)
+    return hit[0][:, :2].copy(), hit[1].copy(), np.array(hit[2]), _inside(model, hit, margin_mm)
 
 
 def _crossings_memo(model: TubeModel, T_F_from_I: np.ndarray):
@@ -230,34 +231,49 @@ def _crossings_memo(model: TubeModel, T_F_from_I: np.ndarray):
 
 
 def _inside(model: TubeModel, hit: tuple, margin_mm: float) -> np.ndarray:
-    """:func:`plane_crossings`' ``inside`` of a :func:`_crossings` result (a new array)."""
-    _, tan_I, zF, ok, tan_z = hit
+    """:func:`plane_crossings`' ``inside`` (K,) bool of a :func:`_crossings` result (a new array)."""
+    return np.array(_inside_list(model, hit, margin_mm), dtype=bool)
+
+
+def _inside_list(model: TubeModel, hit: tuple, margin_mm: float) -> list:
+    """:func:`_inside` as a list of K bools.
+
+    Scalar code over the tubes (numpy's own arithmetic and comparisons, the same numbers): a dozen array
+    operations on nine tubes cost several times more.
+    """
+    _, tan_I, zF, found, tan_z, _ = hit
     if margin_mm > 0:
         bounds = model.extent_bounds.get(margin_mm)
-        if bounds is None:  # the same arrays each time: computed once per margin
-            bounds = model.extent_bounds[margin_mm] = (model.z_lo - margin_mm - 1e-6, model.z_hi + margin_mm + 1e-6)
-        return ok & (zF >= bounds[0]) & (zF <= bounds[1])
+        if bounds is None:  # the same numbers each time: computed once per margin
+            bounds = model.extent_bounds[margin_mm] = tuple(zip(
+                (model.z_lo - margin_mm - 1e-6).tolist(), (model.z_hi + margin_mm + 1e-6).tolist()))
+        return [ok and lo <= z <= hi for ok, z, (lo, hi) in zip(found, zF, bounds)]
     # strict: the whole cross-section must lie within the tube, else the blob is cut short by the
     # tube's end and its centre is biased: half the cut's length along the tube, in z of F
-    cos_a = np.maximum(np.abs(tan_I[:, 2]), 1e-6)
-    clear = model.half_diameter_mm * np.sqrt(np.maximum(1 - cos_a * cos_a, 0.0)) / cos_a * np.abs(tan_z)
-    lo, hi = model.z_lo + clear, model.z_hi - clear
-    return ok & (zF >= lo - 1e-6) & (zF <= hi + 1e-6)
+    out = []
+    for ok, z, tz_I, tz_F, (half_d, z_lo, z_hi) in zip(found, zF, tan_I[:, 2].tolist(), tan_z, model.strict_terms):
+        cos_a = max(abs(tz_I), 1e-6)
+        clear = half_d * math.sqrt(max(1 - cos_a * cos_a, 0.0)) / cos_a * abs(tz_F)
+        out.append(ok and z >= z_lo + clear - 1e-6 and z <= z_hi - clear + 1e-6)
+    return out
 
 
 def _crossings(model: TubeModel, T_F_from_I: np.ndarray):
-    """:func:`plane_crossings` before the extent test: ``(q (K, 3), tan_I, z_F, found, tangent z in F)``."""
+    """:func:`plane_crossings` before the extent test: ``(q (K, 3), tan_I (K, 3), z_F, found, tangent z in F, qt)``:
+    z_F, found and the tangent's z lists of K floats (bools); ``qt`` (K, 2, 3) the array q and tan_I are views of."""
     (_, _, nx, ox), (_, _, ny, oy), (_, _, nz, oz) = T_F_from_I[:3].tolist()
     no = nx * ox + ny * oy + nz * oz  # the plane: x . n = no
     K = len(model.ids)
-    # per tube, all in F: crossing less the image origin (3), unit tangent (3), crossing z, found
-    rows = [None] * K
+    # per tube k, in F: flat[6k:6k+6] = crossing less the image origin, unit tangent
+    flat = [0.0] * (6 * K)
+    zF, found, tan_z = [0.0] * K, [False] * K, [0.0] * K
     for k, px, py, pz, dx, dy, dz, ux, uy, uz in model.line_params:
         denom = dx * nx + dy * ny + dz * nz
         safe = abs(denom) > 1e-9
         t = (no - (px * nx + py * ny + pz * nz)) / (denom if safe else 1.0)
         z = pz + t * dz
-        rows[k] = (px + t * dx - ox, py + t * dy - oy, z - oz, ux, uy, uz, z, safe)
+        flat[6 * k:6 * k + 6] = (px + t * dx - ox, py + t * dy - oy, z - oz, ux, uy, uz)
+        zF[k], found[k], tan_z[k] = z, safe, uz
     if model.helix_params:
         z_axis = no / nz if abs(nz) > 1e-9 else 0.0
         cos, sin = math.cos, math.sin
@@ -284,12 +300,11 @@ def _crossings(model: TubeModel, T_F_from_I: np.ndarray):
             c, s = cos(th), sin(th)
             vx, vy = -r * om * s, r * om * c
             inv = 1.0 / math.sqrt(vx * vx + vy * vy + 1.0)
-            rows[k] = (r * c - ox, r * s - oy, z - oz, vx * inv, vy * inv, inv, z,
-                       good and abs(rnx * c + rny * s + nz * z - no) < 1e-6)
-    A = np.array(rows, dtype=float).reshape(K, 8)
+            flat[6 * k:6 * k + 6] = (r * c - ox, r * s - oy, z - oz, vx * inv, vy * inv, inv)
+            zF[k], found[k], tan_z[k] = z, good and abs(rnx * c + rny * s + nz * z - no) < 1e-6, inv
     # rows R^T (X - o) and R^T tan in one product: (K, 2, 3), the crossing then the tangent of each tube
-    qt = (A[:, :6].reshape(2 * K, 3) @ T_F_from_I[:3, :3]).reshape(K, 2, 3)
-    return qt[:, 0], qt[:, 1], A[:, 6], A[:, 7] > 0, A[:, 5]
+    qt = (np.fromiter(flat, float, 6 * K).reshape(2 * K, 3) @ T_F_from_I[:3, :3]).reshape(K, 2, 3)
+    return qt[:, 0], qt[:, 1], zF, found, tan_z, qt
 
 
 def _section_extent(model, tan, slice_thickness_mm):
