@@ -14,6 +14,12 @@ from dataclasses import dataclass
 
 import numpy as np
 
+try:  # numpy's LAPACK gufuncs without np.linalg's wrappers (a private module: another numpy may lack it)
+    from numpy.linalg import _umath_linalg
+except ImportError:  # pragma: no cover - the public wrappers
+    _umath_linalg = None
+
+
 @dataclass(frozen=True)
 class Ellipse:
     """An ellipse in image mm: centre (2,), semi-axes ``a >= b`` (mm), major-axis angle ``phi`` (rad)."""
@@ -93,24 +99,47 @@ def _design(xy: np.ndarray) -> np.ndarray:
 
 
 def _lsq_conic(xy: np.ndarray) -> np.ndarray:
-    """Least-squares ellipse (Fitzgibbon-Halir-Flusser) through points (N >= 5, 2) -> (6,)."""
+    """Least-squares ellipse (Fitzgibbon-Halir-Flusser) through points (N >= 5, 2) -> (6,); NaN when the scatter
+    matrix is singular (or the eigen-solution fails)."""
     D = _design(xy)
     D1, D2 = D[:, :3], D[:, 3:]
     S1, S2, S3 = D1.T @ D1, D1.T @ D2, D2.T @ D2
-    try:
-        Tm = -np.linalg.solve(S3, S2.T)
-    except np.linalg.LinAlgError:
-        return np.full(6, np.nan)
+    Tm = -_lapack_solve(S3, S2.T)
     M = S1 + S2 @ Tm
     M = np.array([M[2] / 2, -M[1], M[0] / 2])
-    w, v = np.linalg.eig(M)
-    v = np.real(v)
+    if not math.isfinite(sum(M.ravel().tolist())):  # S3 singular (np.linalg.solve would raise)
+        return np.full(6, np.nan)
+    v = _lapack_eig(M)
     cond = 4 * v[0] * v[2] - v[1] ** 2
     idx = np.flatnonzero(cond > 0)
     if idx.size == 0:
         return np.full(6, np.nan)
     a1 = v[:, idx[0]]
     return np.concatenate([a1, Tm @ a1])
+
+
+def _lapack_solve(A: np.ndarray, B: np.ndarray) -> np.ndarray:
+    """``np.linalg.solve(A, B)`` of float64 (n, n) matrices (the same LAPACK gufunc, less its wrapper's checks:
+    about half the cost), NaNs where it raises LinAlgError for a singular ``A``."""
+    if _umath_linalg is None:  # pragma: no cover - a numpy without the private module
+        try:
+            return np.linalg.solve(A, B)
+        except np.linalg.LinAlgError:
+            return np.full(B.shape, np.nan)
+    with np.errstate(invalid="ignore", divide="ignore", over="ignore", under="ignore"):
+        return _umath_linalg.solve(A, B, signature="dd->d")
+
+
+def _lapack_eig(M: np.ndarray) -> np.ndarray:
+    """The real part of ``np.linalg.eig(M)``'s eigenvectors (columns) of a finite float64 (n, n) matrix, less
+    the wrapper (NaNs where it raises for eigenvalues that do not converge)."""
+    if _umath_linalg is None:  # pragma: no cover - a numpy without the private module
+        try:
+            return np.real(np.linalg.eig(M)[1])
+        except np.linalg.LinAlgError:
+            return np.full(M.shape, np.nan)
+    with np.errstate(invalid="ignore", divide="ignore", over="ignore", under="ignore"):
+        return _umath_linalg.eig(M, signature="d->DD")[1].real
 
 
 def fit_ellipse_robust(xy_mm: np.ndarray, radius_mm: float, max_tilt_deg: float = 80.0,

@@ -40,13 +40,14 @@ if TYPE_CHECKING:
 # --------------------------------------------------------------------------- closed form (ellipse)
 
 
+@functools.lru_cache(maxsize=8)
 def ellipse_layout(model: "TubeModel", rel_tol: float = 0.1) -> bool:
     """True when the paper's closed form applies: axial lines and z-axis helices on one cylinder.
 
     Every tube must be a line parallel to the axis or a helix about it, at
     radii within ``rel_tol`` of their median, with at least one axial line
     (it fixes the twist). A Z-frame's diagonals, or tubes at different radii,
-    rule it out: its ellipse would be a false one.
+    rule it out: its ellipse would be a false one. Memoised per model.
     """
     if not model.axial.any() or not np.all(model.axial | model.is_helix):
         return False

@@ -17,7 +17,7 @@ from .hypotheses import ellipse_layout, family_hypotheses, fit_ellipse_robust, i
 from .pose import invert
 from .refine import _assign, _rank, _reject_outliers, _unexplained, refine
 from .trust import _distinct, _near_prior
-from .tube_model import TubeModel, plane_crossings
+from .tube_model import TubeModel, _crossings_memo, _inside
 
 if TYPE_CHECKING:
     from .solve import SolveOptions
@@ -79,8 +79,8 @@ def _refine_guesses(model: TubeModel, xy: np.ndarray, S: np.ndarray, hyps: list,
         X = T @ S_inv
         if not _near_prior(X, opts):
             continue
-        q, _, _, inside = plane_crossings(model, T, margin_mm=5.0)
-        scored.append((int((_assign(q, inside, xy, gate) >= 0).sum()), X))
+        hit = _crossings_memo(model, np.asarray(T, dtype=float))  # plane_crossings' numbers, less its copies
+        scored.append((int((_assign(hit[0][:, :2], _inside(model, hit, 5.0), xy, gate) >= 0).sum()), X))
     scored.sort(key=lambda t: -t[0])
 
     def full(X):

@@ -91,7 +91,8 @@ def _check_trust(fit: _Fit, others: list[_Fit], model: TubeModel, slices: list[S
         px = px_unit[j]
         res = fit.residuals[j][a >= 0]
         n_depth += int(np.sum((a >= 0) & model.depth_coding))
-        if res.size and math.sqrt(float(np.mean(res**2))) > opts.max_rms_px * px:
+        # (np.mean's sum and division, less its wrapper)
+        if res.size and math.sqrt(float(np.add.reduce(res**2)) / res.size) > opts.max_rms_px * px:
             raise NoLock(
                 f"{sl.source}: residual RMS {math.sqrt(float(np.mean(res ** 2))):.3f} mm exceeds "
                 f"{opts.max_rms_px:g} px ({opts.max_rms_px * px:.3f} mm"
