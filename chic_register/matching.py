@@ -59,26 +59,25 @@ def hungarian(cost: list[list[float]]) -> list[tuple[int, int]]:
     return [(p[j] - 1, j - 1) for j in range(1, m + 1) if p[j]]
 
 
-def gated_matching(cost: np.ndarray, allowed: np.ndarray, pairs: tuple | None = None) -> tuple[np.ndarray, np.ndarray]:
+def gated_matching(cost: np.ndarray, allowed: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
     """The most allowed pairs of rows and columns, and among those the least total cost.
 
     ``cost`` (K, N) float, ``allowed`` (K, N) bool. Returns ``(rows, cols)``
     int arrays of the matched pairs (all allowed), as
     ``linear_sum_assignment`` on ``where(allowed, cost, big)`` keeping the
     allowed pairs would, provided every cost is far below ``1e6``. Solved per
-    connected component of the graph of allowed pairs. ``pairs``: the allowed
-    pairs' ``(rows, cols)`` as lists in ``np.nonzero(allowed)``'s order, when
-    the caller has them.
+    connected component of the graph of allowed pairs.
     """
-    if pairs is None:
-        ri, ci = np.nonzero(allowed)
-        rl, cl = ri.tolist(), ci.tolist()
-    else:
-        rl, cl = pairs
+    ri, ci = np.nonzero(allowed)
+    rows, cols = matched_pairs(allowed.shape[0], allowed.shape[1], ri.tolist(), ci.tolist(), cost[ri, ci].tolist())
+    return np.asarray(rows, dtype=int), np.asarray(cols, dtype=int)
+
+
+def matched_pairs(K: int, N: int, rl: list, cl: list, vals: list) -> tuple[list, list]:
+    """:func:`gated_matching` of the allowed pairs given as lists: rows ``rl``, columns ``cl`` (row-major order,
+    as ``np.nonzero``'s) and their costs ``vals``, in a K x N graph; the matched rows and columns as lists."""
     if not rl:
-        return np.zeros(0, dtype=int), np.zeros(0, dtype=int)
-    vals = cost[rl, cl].tolist()
-    K, N = allowed.shape
+        return [], []
     row_deg, col_deg = [0] * K, [0] * N
     for i in rl:
         row_deg[i] += 1
@@ -127,4 +126,4 @@ def gated_matching(cost: np.ndarray, allowed: np.ndarray, pairs: tuple | None = 
             if sub[a][b] < big:
                 out_r.append(rows[a])
                 out_c.append(cols[b])
-    return np.asarray(out_r, dtype=int), np.asarray(out_c, dtype=int)
+    return out_r, out_c

@@ -21,7 +21,7 @@ try:  # numpy's LAPACK solve without np.linalg.solve's wrapper (a private module
 except ImportError:  # pragma: no cover - the public wrapper below
     _solve1 = None
 
-from .matching import gated_matching
+from .matching import matched_pairs
 from .pose import invert
 from .tube_model import TubeModel, _adjoint, _crossings_memo, _exp_se3, _inside, _inside_list
 
@@ -46,19 +46,19 @@ class _Fit:
 
 def _assign(pred: np.ndarray, ok: np.ndarray, blobs_xy: np.ndarray, gate_mm: float) -> np.ndarray:
     """Blob index per tube (K,), -1 for none: minimum-cost matching within ``gate_mm``."""
-    out = np.full(pred.shape[0], -1)
-    if blobs_xy.shape[0] == 0:
-        return out
+    K, N = pred.shape[0], blobs_xy.shape[0]
+    if N == 0:
+        return np.full(K, -1)
     diff = pred[:, None, :] - blobs_xy[None, :, :]
     d2 = np.einsum("ijk,ijk->ij", diff, diff)  # squared distances (K, N)
-    within = (d2 < gate_mm * gate_mm) & ok[:, None]
-    r, c = within.nonzero()
+    r, c = ((d2 < gate_mm * gate_mm) & ok[:, None]).nonzero()
     rl, cl = r.tolist(), c.tolist()
+    out = np.full(K, -1)
     if len(set(rl)) == len(rl) and len(set(cl)) == len(cl):
         # every gated pair is alone in its row and column: they are the (unique) optimal matching
-        out[r] = c
+        out[rl] = cl
         return out
-    r, c = gated_matching(d2, within, pairs=(rl, cl))
+    r, c = matched_pairs(K, N, rl, cl, d2[r, c].tolist())
     out[r] = c
     return out
 
