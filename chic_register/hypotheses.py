@@ -75,7 +75,8 @@ def initial_hypotheses(model: TubeModel, xy_mm: np.ndarray, ell: Ellipse, *,
     then the helices give the depth by consensus.
     Returns up to ``max_hypotheses`` guesses, best first.
     """
-    if not model.axial.any() or xy_mm.shape[0] == 0:
+    line_ang, ang_diff = _line_angles(model)
+    if line_ang.size == 0 or xy_mm.shape[0] == 0:
         return []
     cos_t = min(1.0, ell.b / ell.a)
     sin_t = math.sqrt(max(0.0, 1 - cos_t * cos_t))
@@ -83,7 +84,6 @@ def initial_hypotheses(model: TubeModel, xy_mm: np.ndarray, ell: Ellipse, *,
     rel = xy_mm - ell.centre
     u = rel @ np.array([c, s_])
     w = rel @ np.array([-s_, c])
-    line_ang = model.angle_rad[model.axial]
     Kl = line_ang.size
     hel = model.helix_idx
     tol = math.radians(angle_tol_deg)
@@ -95,8 +95,7 @@ def initial_hypotheses(model: TubeModel, xy_mm: np.ndarray, ell: Ellipse, *,
         rows_b, cols_l = np.arange(beta.size)[:, None], np.arange(Kl)[None, :]
         # th[n] - th[i] + ang[l] - ang[m], each difference wrapped first: one add and two compares to wrap;
         # laid out (B, Kl, N) so that the search over blobs runs along the last (contiguous) axis
-        e = (_wrap(th[None, :] - th[:, None])[:, None, None, :]
-             + _wrap(line_ang[:, None] - line_ang[None, :])[None, :, :, None]).reshape(beta.size, Kl, th.size)
+        e = (_wrap(th[None, :] - th[:, None])[:, None, None, :] + ang_diff).reshape(beta.size, Kl, th.size)
         np.subtract(e, 2 * np.pi, out=e, where=e >= np.pi)  # (never both: e >= pi leaves e - 2 pi >= -pi)
         np.add(e, 2 * np.pi, out=e, where=e < -np.pi)
         jmin = np.argmin(np.abs(e), axis=2)  # (B,Kl)
@@ -138,6 +137,16 @@ def initial_hypotheses(model: TubeModel, xy_mm: np.ndarray, ell: Ellipse, *,
         if len(out) >= max_hypotheses:
             break
     return out
+
+
+@functools.lru_cache(maxsize=8)
+def _line_angles(model: TubeModel) -> tuple[np.ndarray, np.ndarray]:
+    """The axial line tubes' angles (Kl,) and their wrapped differences ``ang[l] - ang[m]`` shaped (1, Kl, Kl, 1)
+    for :func:`initial_hypotheses` (memoised per model; read-only)."""
+    line_ang = model.angle_rad[model.axial]
+    diff = _wrap(line_ang[:, None] - line_ang[None, :])[None, :, :, None]
+    line_ang.flags.writeable = diff.flags.writeable = False
+    return line_ang, diff
 
 
 def _helix_depths(model: TubeModel, hel: np.ndarray, theta_F: np.ndarray, zr: np.ndarray, tol: float,
