@@ -98,7 +98,7 @@ def initial_hypotheses(model: TubeModel, xy_mm: np.ndarray, ell: Ellipse, *,
         e = (_wrap(th[None, :] - th[:, None])[:, None, None, :] + ang_diff).reshape(beta.size, Kl, th.size)
         np.subtract(e, 2 * np.pi, out=e, where=e >= np.pi)  # (never both: e >= pi leaves e - 2 pi >= -pi)
         np.add(e, 2 * np.pi, out=e, where=e < -np.pi)
-        jmin = np.argmin(np.abs(e), axis=2)  # (B,Kl)
+        jmin = np.abs(e).argmin(axis=2)  # (B,Kl) (the methods here and below: np.argmin's numbers, less its wrapper)
         emin = e[rows_b, cols_l, jmin]  # np.take_along_axis, less its wrapper
         hit = np.abs(emin) < tol
         n_lines = hit.sum(axis=1)
@@ -110,7 +110,7 @@ def initial_hypotheses(model: TubeModel, xy_mm: np.ndarray, ell: Ellipse, *,
     for h, (th, n_lines, b) in per_h.items():
         keep = n_lines >= floor
         b, nl = b[keep], n_lines[keep]
-        key = np.round(np.degrees(_wrap(b))).astype(int)
+        key = np.degrees(_wrap(b)).round().astype(int)
         first = {}  # each key's first index, keys ascending: np.unique(key, return_index=True)[1] without its sorts
         for i, v in enumerate(key.tolist()):
             first.setdefault(v, i)
@@ -169,7 +169,7 @@ def _helix_candidates(model: TubeModel, hel: np.ndarray, theta_F: np.ndarray, to
     th0, om, z0, period, zmid, z_above, z_below, dtol, ids = _helix_terms(model, hel, tol)
     # z = z0 + (theta - th0 + 2 pi m) / om, pick m nearest to the middle of the tube
     raw = (theta_F[:, None] - th0) / om  # (N,H)
-    m = np.round((zmid - raw) / period)
+    m = ((zmid - raw) / period).round()
     z = z0 + raw + m * period
     inside = (z > z_above) & (z < z_below)
     bv, hv = np.nonzero(inside)  # the blob and helix of each (in the mask's order)

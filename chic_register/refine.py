@@ -53,14 +53,13 @@ def _assign(pred: np.ndarray, ok: np.ndarray, blobs_xy: np.ndarray, gate_mm: flo
     d2 = np.einsum("ijk,ijk->ij", diff, diff)  # squared distances (K, N)
     r, c = ((d2 < gate_mm * gate_mm) & ok[:, None]).nonzero()
     rl, cl = r.tolist(), c.tolist()
-    out = np.full(K, -1)
-    if len(set(rl)) == len(rl) and len(set(cl)) == len(cl):
-        # every gated pair is alone in its row and column: they are the (unique) optimal matching
-        out[rl] = cl
-        return out
-    r, c = matched_pairs(K, N, rl, cl, d2[r, c].tolist())
-    out[r] = c
-    return out
+    if len(set(rl)) != len(rl) or len(set(cl)) != len(cl):
+        rl, cl = matched_pairs(K, N, rl, cl, d2[r, c].tolist())
+    # else every gated pair is alone in its row and column: they are the (unique) optimal matching
+    out = [-1] * K
+    for i, j in zip(rl, cl):
+        out[i] = j
+    return np.array(out)
 
 
 def _solve(H: np.ndarray, g: np.ndarray) -> list[float]:
@@ -245,8 +244,9 @@ def _reject_outliers(model: TubeModel, xys, Ss, fit: _Fit, px_mm: list[float], o
     gate = max(float(model.diameter_mm.max()), 2 * max(px_mm))
     for _ in range(max(0, fit.n_matched - opts.min_tubes)):
         res = [np.where(np.isfinite(r), r / px, -1.0) for r, px in zip(fit.residuals, px_mm)]
-        j = int(np.argmax([r.max() for r in res]))
-        k = int(np.argmax(res[j]))
+        worst = [float(r.max()) for r in res]
+        j = worst.index(max(worst))  # the first of the largest, as np.argmax (no NaN here)
+        k = int(res[j].argmax())
         if res[j][k] <= opts.max_rms_px:
             break
         n_depth = sum(int(np.sum((a >= 0) & model.depth_coding)) for a in fit.assignments)

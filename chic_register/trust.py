@@ -90,7 +90,7 @@ def _check_trust(fit: _Fit, others: list[_Fit], model: TubeModel, slices: list[S
         a = fit.assignments[j]
         px = px_unit[j]
         res = fit.residuals[j][a >= 0]
-        n_depth += int(np.sum((a >= 0) & model.depth_coding))
+        n_depth += int(np.count_nonzero((a >= 0) & model.depth_coding))
         # (np.mean's sum and division, less its wrapper)
         if res.size and math.sqrt(float(np.add.reduce(res**2)) / res.size) > opts.max_rms_px * px:
             raise NoLock(

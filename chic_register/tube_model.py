@@ -61,6 +61,7 @@ class TubeModel:
     line_length_mm: np.ndarray = None  # and |d|
     strict_terms: tuple = ()  # per tube (half diameter, z_lo, z_hi) as floats (plane_crossings' strict extent test)
     crossing_memo: dict = None  # plane_crossings' memo: pose bytes -> _crossings' result
+    crossing_template: tuple = ()  # _crossings' flat slots and tangent z with the line tubes' constants
     extent_bounds: dict = None  # margin (mm) -> the widened extent (z_lo - margin - 1e-6, z_hi + margin + 1e-6)
 
     def __post_init__(self):
@@ -83,11 +84,16 @@ class TubeModel:
         object.__setattr__(self, "crossing_memo", {})
         object.__setattr__(self, "extent_bounds", {})
         object.__setattr__(self, "line_params", tuple(
-            (int(k), *(float(v) for v in self.p0[k]), *(float(v) for v in self.d[k]),
-             *(float(v) for v in self.d[k] / np.linalg.norm(self.d[k]))) for k in li))
+            (int(k), 6 * int(k), *(float(v) for v in self.p0[k]), *(float(v) for v in self.d[k])) for k in li))
         object.__setattr__(self, "helix_params", tuple(
-            (int(k), float(self.radius[k]), float(self.theta0_rad[k]), float(self.omega_rad_per_mm[k]),
-             float(self.z0[k])) for k in hi))
+            (int(k), 6 * int(k), float(self.radius[k]), float(self.theta0_rad[k]),
+             float(self.omega_rad_per_mm[k]), float(self.z0[k])) for k in hi))
+        # _crossings' per-tube slots [crossing (3), unit tangent (3)] with the line tubes' constant tangents filled in
+        flat, tan_z = [0.0] * (6 * len(self.ids)), [0.0] * len(self.ids)
+        for k in li:
+            flat[6 * k + 3:6 * k + 6] = (self.d[k] / np.linalg.norm(self.d[k])).tolist()
+            tan_z[k] = flat[6 * k + 5]
+        object.__setattr__(self, "crossing_template", (tuple(flat), tuple(tan_z)))
 
     @classmethod
     def from_geometry(cls, geom: FiducialGeometry) -> "TubeModel":
@@ -224,7 +230,7 @@ def _crossings_memo(model: TubeModel, T_F_from_I: np.ndarray):
     hit = memo.get(key)
     if hit is None:
         hit = _crossings(model, T_F_from_I)
-        if len(memo) >= 16:
+        if len(memo) >= 64:  # a solve's first guesses and their refinements fit (a few kB each)
             memo.clear()
         memo[key] = hit
     return hit
@@ -264,20 +270,21 @@ def _crossings(model: TubeModel, T_F_from_I: np.ndarray):
     (_, _, nx, ox), (_, _, ny, oy), (_, _, nz, oz) = T_F_from_I[:3].tolist()
     no = nx * ox + ny * oy + nz * oz  # the plane: x . n = no
     K = len(model.ids)
-    # per tube k, in F: flat[6k:6k+6] = crossing less the image origin, unit tangent
-    flat = [0.0] * (6 * K)
-    zF, found, tan_z = [0.0] * K, [False] * K, [0.0] * K
-    for k, px, py, pz, dx, dy, dz, ux, uy, uz in model.line_params:
+    # per tube k, in F: flat[6k:6k+6] = crossing less the image origin, unit tangent (a line's: in the template)
+    flat, tan_z = list(model.crossing_template[0]), list(model.crossing_template[1])
+    zF, found = [0.0] * K, [False] * K
+    for k, k6, px, py, pz, dx, dy, dz in model.line_params:
         denom = dx * nx + dy * ny + dz * nz
         safe = abs(denom) > 1e-9
         t = (no - (px * nx + py * ny + pz * nz)) / (denom if safe else 1.0)
         z = pz + t * dz
-        flat[6 * k:6 * k + 6] = (px + t * dx - ox, py + t * dy - oy, z - oz, ux, uy, uz)
-        zF[k], found[k], tan_z[k] = z, safe, uz
+        flat[k6:k6 + 3] = (px + t * dx - ox, py + t * dy - oy, z - oz)
+        zF[k] = z
+        found[k] = safe
     if model.helix_params:
         z_axis = no / nz if abs(nz) > 1e-9 else 0.0
         cos, sin = math.cos, math.sin
-        for k, r, th0, om, z0 in model.helix_params:
+        for k, k6, r, th0, om, z0 in model.helix_params:
             z = z_axis
             rnx, rny = r * nx, r * ny
             good = False
@@ -300,7 +307,7 @@ def _crossings(model: TubeModel, T_F_from_I: np.ndarray):
             c, s = cos(th), sin(th)
             vx, vy = -r * om * s, r * om * c
             inv = 1.0 / math.sqrt(vx * vx + vy * vy + 1.0)
-            flat[6 * k:6 * k + 6] = (r * c - ox, r * s - oy, z - oz, vx * inv, vy * inv, inv)
+            flat[k6:k6 + 6] = (r * c - ox, r * s - oy, z - oz, vx * inv, vy * inv, inv)
             zF[k], found[k], tan_z[k] = z, good and abs(rnx * c + rny * s + nz * z - no) < 1e-6, inv
     # rows R^T (X - o) and R^T tan in one product: (K, 2, 3), the crossing then the tangent of each tube
     qt = (np.fromiter(flat, float, 6 * K).reshape(2 * K, 3) @ T_F_from_I[:3, :3]).reshape(K, 2, 3)
