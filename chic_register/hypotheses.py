@@ -182,7 +182,7 @@ def _depths_from(model: TubeModel, cand, zr: np.ndarray, n_best: int = 2):
     """:func:`_helix_depths` from :func:`_helix_candidates`' pairs and the blobs' relative heights ``zr`` (N,)."""
     if cand is None:
         return [(model.length_mm / 2, 0)]
-    zv, bv, hv, dtol, onehot = cand
+    zv, bv, _, dtol, onehot = cand
     dv = zv - zr[bv]  # each pair's depth
     diff = np.abs(dv[:, None] - dv[None, :])
     close = diff < dtol

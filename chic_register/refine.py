@@ -23,7 +23,7 @@ except ImportError:  # pragma: no cover - the public wrapper below
 
 from .matching import matched_pairs
 from .pose import invert
-from .tube_model import TubeModel, _adjoint, _crossings_memo, _exp_se3, _inside, _inside_list
+from .tube_model import TubeModel, _adjoint, _crossings_memo, _exp_se3, _inside_list
 
 if TYPE_CHECKING:
     from .solve import SolveOptions

@@ -8,7 +8,13 @@ import pytest
 from chic_register.matching import gated_matching, hungarian, matched_pairs
 from chic_register.pose import slice_frame
 from chic_register.refine import _residuals_jacobian
-from chic_register.tube_model import TubeModel, _crossing_jacobian, _crossings_memo, _inside, plane_crossings
+from chic_register.tube_model import (
+    TubeModel,
+    _crossing_jacobian,
+    _crossings_memo,
+    _inside,
+    plane_crossings,
+)
 
 POSES = [(25, 0, 0, 0), (12, 35, 60, -20), (38, 55, 200, 75), (2, 70, 10, 5), (49, 20, 300, 40)]
 
