@@ -142,19 +142,45 @@ def section_windows(model, q: np.ndarray, tan: np.ndarray, found: np.ndarray, to
     overlaps it), are left out. ``reach``: :func:`_window_pixels` of these
     arguments, when already computed.
     """
-    rr, cc, own, hit, far, _ = reach or _window_pixels(model, q, tan, found, todo, shape, pixel_spacing_mm,
-                                                       slice_thickness_mm, margin_px)
-    keep = ~(hit | far).any(axis=1)
-    shared = bool((hit.any(axis=1) & ~far.any(axis=1)).any())
-    if len(footprints) and assignment is not None:
-        _drop_foreign_blobs(keep, rr, cc, own, assignment, footprints)
-    return Windows(rr[keep], cc[keep], own[keep], shared)
+    reach = reach or _window_pixels(model, q, tan, found, todo, shape, pixel_spacing_mm, slice_thickness_mm,
+                                    margin_px)
+    keep, shared = _kept(reach, assignment, footprints)
+    return Windows(reach.rows[keep], reach.cols[keep], reach.own[keep], shared)
 
 
-def _window_pixels(model, q, tan, found, todo, shape, pixel_spacing_mm, slice_thickness_mm: float, margin_px: float):
-    """Every tube in ``todo``'s bounding-box pixels ``(rows, cols, owner)`` (P,), which other found tubes' grown
-    section boxes reach each (``hit`` (P, n_others)), the box corners beyond the tube's own grown box (``far``),
-    and the other tubes' indices."""
+@dataclass(eq=False)
+class Reach:
+    """Every tube in ``todo``'s bounding-box pixels ``rows``, ``cols``, ``own`` (P,); ``far`` (P,): the box's
+    corners beyond the tube's own grown section box; ``(pair_p, pair_o)`` (M,): the pixels (ascending, then by
+    tube) another found tube's grown section box reaches, and that tube (index into the model)."""
+
+    rows: np.ndarray
+    cols: np.ndarray
+    own: np.ndarray
+    far: np.ndarray
+    pair_p: np.ndarray
+    pair_o: np.ndarray
+    _foreign: tuple | None = None
+
+    def foreign(self, assignment, footprints) -> np.ndarray:
+        """(P,) bool: pixels inside an unassigned blob's footprint that does not overlap the tube's own
+        (:func:`_drop_foreign_blobs`; kept for the same ``assignment`` and ``footprints``)."""
+        if self._foreign is not None and self._foreign[0] is footprints and np.array_equal(self._foreign[1],
+                                                                                           assignment):
+            return self._foreign[2]
+        keep = np.ones(self.own.size, bool)
+        _drop_foreign_blobs(keep, self.rows, self.cols, self.own, assignment, footprints)
+        self._foreign = (footprints, np.array(assignment), ~keep)
+        return ~keep
+
+
+def _window_pixels(model, q, tan, found, todo, shape, pixel_spacing_mm, slice_thickness_mm: float,
+                   margin_px: float) -> Reach:
+    """Every tube in ``todo``'s bounding-box pixels, which other found tubes' section boxes (grown by a pixel)
+    reach each, and which lie beyond the tube's own grown box: a :class:`Reach`.
+
+    (Only the pairs of tubes whose boxes can overlap are tested, pixel by pixel: the same tests and values as
+    testing every pixel against every tube, at a fraction of the work.)"""
     rs, cs = (float(v) for v in pixel_spacing_mm)
     H, W = shape
     half_len, _, u = _section_extent(model, tan, slice_thickness_mm)
@@ -168,23 +194,63 @@ def _window_pixels(model, q, tan, found, todo, shape, pixel_spacing_mm, slice_th
     j1 = np.minimum(W - 1, np.floor((q[todo, 0] + ex[todo]) / cs)).astype(int)
     h, w = np.maximum(i1 - i0 + 1, 0), np.maximum(j1 - j0 + 1, 0)
     n = h * w
+    first = np.cumsum(n) - n
     idx = np.repeat(np.arange(todo.size), n)
-    local = np.arange(int(n.sum())) - np.repeat(np.cumsum(n) - n, n)
-    rr = i0[idx] + local // np.maximum(w[idx], 1)
-    cc = j0[idx] + local % np.maximum(w[idx], 1)
+    local = np.arange(int(n.sum())) - first[idx]
+    wi = np.maximum(w, 1)[idx]
+    rr = i0[idx] + local // wi
+    cc = j0[idx] + local % wi
     own = todo[idx]
-    # leave out what another tube's section (grown by half a pixel) reaches
-    others = np.flatnonzero(found)
-    dx = (cc * cs)[:, None] - q[others, 0][None]
-    dy = (rr * rs)[:, None] - q[others, 1][None]
+    x_mm, y_mm = cc * cs, rr * rs
+    dx, dy = x_mm - q[own, 0], y_mm - q[own, 1]
+    ux, uy = u[own, 0], u[own, 1]
+    # the corners of the bounding box that lie beyond the margin of the tube's own (rotated) section box
+    far = ((np.abs(dx * ux + dy * uy) > half_len[own] + m_mm) | (np.abs(dx * uy - dy * ux) > half_wid[own] + m_mm))
+    # what another tube's section (grown by a pixel) reaches: first the pairs of tubes (a in todo, o found) whose
+    # boxes' axis-aligned bounds can meet (|u| need not be 1: a bound for any u), then their pixels one by one
     grow = max(rs, cs)
-    along = np.abs(dx * u[others, 0] + dy * u[others, 1])
-    across = np.abs(dx * u[others, 1] - dy * u[others, 0])
-    mine = others[None] == own[:, None]
-    hit = (along < half_len[others] + grow) & (across < half_wid[others] + grow) & ~mine
-    # and the corners of the bounding box that lie beyond the margin of the tube's own (rotated) section box
-    far = ((along > half_len[others] + m_mm) | (across > half_wid[others] + m_mm)) & mine
-    return rr, cc, own, hit, far, others
+    others = np.flatnonzero(found)
+    u2 = np.einsum("ij,ij->i", u, u)
+    ax = (np.abs(u[:, 0]) * (half_len + grow) + np.abs(u[:, 1]) * (half_wid + grow)) / u2 * (1 + 1e-6) + 1e-6
+    ay = (np.abs(u[:, 1]) * (half_len + grow) + np.abs(u[:, 0]) * (half_wid + grow)) / u2 * (1 + 1e-6) + 1e-6
+    meet = ((j0 * cs)[:, None] <= (q[others, 0] + ax[others])[None]) & ((j1 * cs)[:, None] >= (q[others, 0]
+                                                                                                - ax[others])[None])
+    meet &= ((i0 * rs)[:, None] <= (q[others, 1] + ay[others])[None]) & ((i1 * rs)[:, None] >= (q[others, 1]
+                                                                                                 - ay[others])[None])
+    meet &= others[None] != todo[:, None]
+    meet &= (n > 0)[:, None]
+    ta, oc = np.nonzero(meet)  # (by tube a, then other)
+    if ta.size == 0:
+        empty = np.zeros(0, int)
+        return Reach(rr, cc, own, far, empty, empty)
+    # each pair's pixels: pixel-major within a tube's box so that, a tube's pairs being contiguous, sorting is by
+    # (pixel, other) once the blocks are laid out pixel by pixel
+    m_a = np.bincount(ta, minlength=todo.size)  # other tubes met per tube
+    pair0 = np.cumsum(m_a) - m_a  # each tube's first pair
+    size = n * m_a
+    bfirst = np.cumsum(size) - size
+    a_of = np.repeat(np.arange(todo.size), size)
+    t = np.arange(int(size.sum())) - bfirst[a_of]
+    mm = m_a[a_of]
+    p = first[a_of] + t // mm
+    o = others[oc[pair0[a_of] + t % mm]]
+    ddx, ddy = x_mm[p] - q[o, 0], y_mm[p] - q[o, 1]
+    uox, uoy = u[o, 0], u[o, 1]
+    hit = (np.abs(ddx * uox + ddy * uoy) < half_len[o] + grow) & (np.abs(ddx * uoy - ddy * uox) < half_wid[o] + grow)
+    return Reach(rr, cc, own, far, p[hit], o[hit])
+
+
+def _kept(reach: Reach, assignment, footprints, modelled=None):
+    """(P,) bool: the pixels of ``reach`` a window keeps: not beyond the tube's own box, not reached by another
+    tube's section (with ``modelled`` (K,) given: by one not modelled), not in a foreign blob's footprint; and
+    whether a window (``modelled`` None) left a pixel out for a neighbour's sake only."""
+    hit = np.zeros(reach.own.size, bool)
+    hit[reach.pair_p if modelled is None else reach.pair_p[~modelled[reach.pair_o]]] = True
+    keep = ~(hit | reach.far)
+    shared = modelled is None and bool((hit & ~reach.far).any())
+    if len(footprints) and assignment is not None:
+        keep &= ~reach.foreign(assignment, footprints)
+    return keep, shared
 
 
 def joint_windows(model, q: np.ndarray, tan: np.ndarray, found: np.ndarray, todo: np.ndarray, shape,
@@ -198,14 +264,12 @@ def joint_windows(model, q: np.ndarray, tan: np.ndarray, found: np.ndarray, todo
     :func:`fit_sections`) it is used instead of left out, which matters where
     a helix runs close to a straight tube (near the body's ends). ``reach``: as for :func:`section_windows`.
     """
-    rr, cc, own, hit, far, others = reach or _window_pixels(model, q, tan, found, todo, shape, pixel_spacing_mm,
-                                                            slice_thickness_mm, margin_px)
-    keep = ~((hit & ~modelled[others][None]) | far).any(axis=1)
-    if len(footprints) and assignment is not None:
-        _drop_foreign_blobs(keep, rr, cc, own, assignment, footprints)
-    kept = np.flatnonzero(keep)
-    p, o = np.divmod(np.flatnonzero(hit[kept]), max(hit.shape[1], 1))  # (np.nonzero's row-major pairs, faster)
-    return Windows(rr[kept], cc[kept], own[kept]), p, others[o]
+    reach = reach or _window_pixels(model, q, tan, found, todo, shape, pixel_spacing_mm, slice_thickness_mm,
+                                    margin_px)
+    keep, _ = _kept(reach, assignment, footprints, modelled)
+    pair = keep[reach.pair_p]
+    p = (np.cumsum(keep) - 1)[reach.pair_p[pair]]  # (the pairs stay ordered by pixel, then tube)
+    return Windows(reach.rows[keep], reach.cols[keep], reach.own[keep]), p, reach.pair_o[pair]
 
 
 def _drop_foreign_blobs(keep, rr, cc, own, assignment, footprints) -> None:
