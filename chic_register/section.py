@@ -266,10 +266,15 @@ def joint_windows(model, q: np.ndarray, tan: np.ndarray, found: np.ndarray, todo
     """
     reach = reach or _window_pixels(model, q, tan, found, todo, shape, pixel_spacing_mm, slice_thickness_mm,
                                     margin_px)
+    return _joint_windows(reach, assignment, footprints, modelled)[:3]
+
+
+def _joint_windows(reach: Reach, assignment, footprints, modelled):
+    """:func:`joint_windows` from ``reach``, and the (P,) mask of its pixels that it keeps."""
     keep, _ = _kept(reach, assignment, footprints, modelled)
     pair = keep[reach.pair_p]
     p = (np.cumsum(keep) - 1)[reach.pair_p[pair]]  # (the pairs stay ordered by pixel, then tube)
-    return Windows(reach.rows[keep], reach.cols[keep], reach.own[keep]), p, reach.pair_o[pair]
+    return Windows(reach.rows[keep], reach.cols[keep], reach.own[keep]), p, reach.pair_o[pair], keep
 
 
 def _drop_foreign_blobs(keep, rr, cc, own, assignment, footprints) -> None:
@@ -406,23 +411,41 @@ def fit_sections(model, T_F_from_I: np.ndarray, assignment: np.ndarray, pixels: 
     n_pix, fitted = np.zeros(K, int), np.zeros(K, bool)
     todo = np.flatnonzero((assignment >= 0) & found)
     reach = None  # the windows' pixels and what reaches them: the joint pass's too while it fits the same tubes
+    ahead = None  # the joint pass's windows when they are known now (see below)
+    joint = joint and exact and int(shift_iterations) <= 1
     if windows is None:
         reach = _window_pixels(model, q, tan, found, todo, pixels.shape, pixel_spacing_mm, slice_thickness_mm,
                                margin_px)
-        windows = section_windows(model, q, tan, found, todo, pixels.shape, pixel_spacing_mm, slice_thickness_mm,
-                                  assignment, footprints, margin_px, reach)
+        keep, shared = _kept(reach, assignment, footprints)
+        windows = Windows(reach.rows[keep], reach.cols[keep], reach.own[keep], shared)
+        if joint and shared and todo.size >= 2:
+            # a joint pass that fits the same tubes (the usual case) uses these windows and the pixels they share:
+            # draw the first model on all of them at once (each pixel's value depends on that pixel alone)
+            modelled = np.zeros(K, bool)
+            modelled[todo] = True
+            ahead = _joint_windows(reach, assignment, footprints, modelled)
+            in_windows = keep[ahead[3]]  # the windows' pixels among the joint windows' (a subset)
     own = windows.owner
     if todo.size == 0 or own.size == 0:
         return SectionFit(q, out_pos, out_info, out_gain, n_pix, fitted), windows
-    y = np.asarray(pixels, dtype=float)[windows.rows, windows.cols]
+    drawn_on = windows if ahead is None else ahead[0]
+    y = np.asarray(pixels, dtype=float)[drawn_on.rows, drawn_on.cols]
+    if ahead is not None:
+        y_joint, y = y, y[in_windows]
     starts = np.flatnonzero(np.concatenate(([True], own[1:] != own[:-1])))  # windows are contiguous, one per tube
     at = q.copy()  # where each section model is drawn: the crossing, then the fitted position
     sel = todo
     at_crossing = None  # the model drawn at the crossings (the first fit's): the joint pass reuses it
     for _ in range(max(1, int(shift_iterations))):
-        S, Sx, Sy = section_model(model, T_F_from_I, at, tan, windows, pixel_spacing_mm, slice_thickness_mm,
-                                  thickness_samples, exact)
-        at_crossing = at_crossing or (windows, (S, Sx, Sy))
+        if at_crossing is None:
+            S, Sx, Sy = section_model(model, T_F_from_I, at, tan, drawn_on, pixel_spacing_mm, slice_thickness_mm,
+                                      thickness_samples, exact)
+            at_crossing = (drawn_on, (S, Sx, Sy))
+            if ahead is not None:
+                S, Sx, Sy = S[in_windows], Sx[in_windows], Sy[in_windows]
+        else:
+            S, Sx, Sy = section_model(model, T_F_from_I, at, tan, windows, pixel_spacing_mm, slice_thickness_mm,
+                                      thickness_samples, exact)
         if rician_sigma > 0:  # the Rician mean at each tube's gain (from its inner pixels, else a linear fit)
             gain = inner_gain(S, y, own, K, rician_sigma)
             if not gain[sel].all():
@@ -438,12 +461,13 @@ def fit_sections(model, T_F_from_I: np.ndarray, assignment: np.ndarray, pixels: 
         if sel.size == 0:
             return SectionFit(q, out_pos, out_info, out_gain, n_pix, fitted), windows
         at[sel] += shift
-    if joint and windows.shared and exact and sel.size >= 2 and int(shift_iterations) <= 1:
+    if joint and windows.shared and sel.size >= 2:
+        same = reach is not None and np.array_equal(sel, todo)  # the same tubes: the same joint windows
         sel, at, info, a, n_pix = _joint_pass(model, T_F_from_I, q, tan, found, pixels, pixel_spacing_mm,
                                               slice_thickness_mm, thickness_samples, exact, noise_sigma, assignment,
                                               footprints, margin_px, sel, at, info, a, n_pix,
-                                              reach if reach is not None and np.array_equal(sel, todo) else None,
-                                              at_crossing, rician_sigma)
+                                              reach if same else None, at_crossing, rician_sigma,
+                                              ahead[:3] + (y_joint,) if same and ahead is not None else None)
     out_pos[sel] = at[sel]
     out_info[sel] = info
     out_gain[sel] = a
@@ -453,17 +477,22 @@ def fit_sections(model, T_F_from_I: np.ndarray, assignment: np.ndarray, pixels: 
 
 def _joint_pass(model, T_F_from_I, q, tan, found, pixels, pixel_spacing_mm, slice_thickness_mm: float,
                 thickness_samples: int, exact: bool, noise_sigma: float, assignment, footprints, margin_px: float,
-                sel, at, info, a, n_pix, reach=None, at_crossing=None, rician_sigma: float = 0.0):
+                sel, at, info, a, n_pix, reach=None, at_crossing=None, rician_sigma: float = 0.0, ahead=None):
     """Refit the tubes ``sel`` on the pixels they share with fitted neighbours, those neighbours' fitted
     sections (position ``at``, level ``a``) subtracted (:func:`joint_windows`); :data:`JOINT_PASSES` times.
     Returns ``(sel, at, info, a, n_pix)`` as :func:`_linear_fit` gives them, unchanged when no pixel is
     shared or a tube would be lost. ``at_crossing``: ``(windows, (S, Sx, Sy))``, :func:`section_model` at the
-    crossings ``q`` on some windows, whose pixels are then not drawn again (the model is pixel by pixel)."""
+    crossings ``q`` on some windows, whose pixels are then not drawn again (the model is pixel by pixel).
+    ``ahead``: ``(windows, pixel, tube, y)``, :func:`joint_windows` and their pixels' values, when ``at_crossing``
+    was drawn on exactly those windows."""
     K = q.shape[0]
-    modelled = np.zeros(K, bool)
-    modelled[sel] = True
-    jw, nb_p, nb_k = joint_windows(model, q, tan, found, sel, pixels.shape, pixel_spacing_mm, slice_thickness_mm,
-                                   modelled, assignment, footprints, margin_px, reach)
+    if ahead is None:
+        modelled = np.zeros(K, bool)
+        modelled[sel] = True
+        jw, nb_p, nb_k = joint_windows(model, q, tan, found, sel, pixels.shape, pixel_spacing_mm, slice_thickness_mm,
+                                       modelled, assignment, footprints, margin_px, reach)
+    else:
+        jw, nb_p, nb_k, y = ahead
     if nb_p.size == 0:
         return sel, at, info, a, n_pix
     gain = np.zeros(K)
@@ -476,7 +505,7 @@ def _joint_pass(model, T_F_from_I, q, tan, found, pixels, pixel_spacing_mm, slic
     Sn0 = section_model(model, T_F_from_I, fitted_at, tan, neighbours, pixel_spacing_mm, slice_thickness_mm,
                         thickness_samples, exact)[0]
     strong = np.zeros(jw.owner.size, bool)
-    np.logical_or.at(strong, nb_p, Sn0 > JOINT_NEIGHBOUR_LEVEL)
+    strong[nb_p[Sn0 > JOINT_NEIGHBOUR_LEVEL]] = True
     if strong.any():
         keep = ~strong
         remap = np.cumsum(keep) - 1
@@ -486,10 +515,15 @@ def _joint_pass(model, T_F_from_I, q, tan, found, pixels, pixel_spacing_mm, slic
         if nb_p.size == 0:
             return sel, at, info, a, n_pix
         neighbours = Windows(jw.rows[nb_p], jw.cols[nb_p], nb_k)
-    y = np.asarray(pixels, dtype=float)[jw.rows, jw.cols]
     starts = np.flatnonzero(np.concatenate(([True], jw.owner[1:] != jw.owner[:-1])))
-    S, Sx, Sy = _model_reusing(model, T_F_from_I, q, tan, jw, pixels.shape, pixel_spacing_mm, slice_thickness_mm,
-                               thickness_samples, exact, at_crossing)
+    if ahead is None:
+        y = np.asarray(pixels, dtype=float)[jw.rows, jw.cols]
+        S, Sx, Sy = _model_reusing(model, T_F_from_I, q, tan, jw, pixels.shape, pixel_spacing_mm, slice_thickness_mm,
+                                   thickness_samples, exact, at_crossing)
+    else:  # at_crossing was drawn on the joint windows before the strong pixels left
+        S, Sx, Sy = at_crossing[1]
+        if strong.any():
+            S, Sx, Sy, y = S[keep], Sx[keep], Sy[keep], y[keep]
     for n_pass in range(JOINT_PASSES):
         if n_pass == 0:
             # the same neighbours' pixels (less the strong ones) at the same fitted positions: the same model
@@ -497,8 +531,7 @@ def _joint_pass(model, T_F_from_I, q, tan, found, pixels, pixel_spacing_mm, slic
         else:
             Sn = section_model(model, T_F_from_I, fitted_at, tan, neighbours, pixel_spacing_mm, slice_thickness_mm,
                                thickness_samples, exact)[0]
-        nb_level = np.zeros(y.size)
-        np.add.at(nb_level, nb_p, gain[nb_k] * Sn)  # the neighbours' signal in each pixel
+        nb_level = np.bincount(nb_p, gain[nb_k] * Sn, y.size)  # the neighbours' signal in each pixel (in order)
         if rician_sigma > 0:  # E[y] = R(a S + n): fit (R(a0 S + n) - R(n)) / a0 to y - (R(n) - R(0))
             M, Mx, My, lift = rician_model(S, Sx, Sy, gain[jw.owner], nb_level, rician_sigma)
             sel_j, shift, info_j, a_j, n_pix_j = _linear_fit(M, Mx, My, y - lift, jw.owner, starts, K, sel,
