@@ -349,24 +349,25 @@ def _section_band(tan, kappa, s_lo, s_hi, r_tube, own, dx0, dy0, cs: float, rs: 
     amount, below 1e-3 mm for these curvatures). ``ends``: model the end faces;
     ``curved``: correct the coverage for the curvature of the section's edge.
     """
+    # (laid out plane by pixel, (nz, P): a per-pixel value broadcasts along whole rows, where the pixel-by-plane
+    # layout broadcast along rows of nz; the same values, operation by operation)
     nz = thickness_samples if thick > 0 else 1
-    sz = (((np.arange(nz) + 0.5) / nz - 0.5) * thick)[None]
-    t, kap = tan[own], kappa[own]
-    tx, ty, tz = t[:, 0:1], t[:, 1:2], t[:, 2:3]
-    dxs, dys = dx0[:, None], dy0[:, None]
+    sz = (((np.arange(nz) + 0.5) / nz - 0.5) * thick)[:, None]
+    t, kap = tan[own].T, kappa[own].T
+    tx, ty, tz = t
     if s00 is None:  # (section_model has it: dx0 t_x + dy0 t_y)
         s00 = dx0 * tan[own, 0] + dy0 * tan[own, 1]
-    s0 = s00[:, None] + sz * tz  # arc length along the tangent
+    s0 = s00 + sz * tz  # arc length along the tangent
     h = 0.5 * s0 * s0
-    ex_ = dxs - s0 * tx - h * kap[:, 0:1]
-    ey_ = dys - s0 * ty - h * kap[:, 1:2]
-    ez_ = sz - s0 * tz - h * kap[:, 2:3]
+    ex_ = dx0 - s0 * tx - h * kap[0]
+    ey_ = dy0 - s0 * ty - h * kap[1]
+    ez_ = sz - s0 * tz - h * kap[2]
     pxy2 = ex_ * ex_ + ey_ * ey_
     dist = np.sqrt(pxy2 + ez_ * ez_)
     inv_p = 1.0 / np.sqrt(np.maximum(pxy2, 1e-24))
     nx, ny = ex_ * inv_p, ey_ * inv_p  # the section edge's in-plane outward normal
     # in-plane signed distance to the edge (inside > 0), and the pixel's exact coverage of a straight edge
-    delta = (r_tube[own][:, None] - dist) * (dist * inv_p)
+    delta = (r_tube[own] - dist) * (dist * inv_p)
     cov, dcov = _box_edge(delta, cs * np.abs(nx), rs * np.abs(ny))
     # the edge is curved (curvature of the section's outline at the pixel): the inside loses kappa tau^2 / 2
     # along the chord of the pixel at the edge, tau its coordinate along the edge from the foot point
@@ -374,12 +375,14 @@ def _section_band(tan, kappa, s_lo, s_hi, r_tube, own, dx0, dy0, cs: float, rs: 
         cross = (ex_ * ty - ey_ * tx) * inv_p
         cov -= dcov * _chord_m2(delta, nx, ny, cs, rs) * (0.5 * (1.0 - cross * cross) * inv_p)
     if ends:  # the tube's end faces: a ramp across the pixel along the centreline
-        inside = np.minimum(s_lo[own][:, None] + s0, s_hi[own][:, None] - s0)
+        inside = np.minimum(s_lo[own] + s0, s_hi[own] - s0)
         end = np.clip(0.5 + inside / np.maximum(cs * np.abs(tx) + rs * np.abs(ty), 1e-12), 0.0, 1.0)
         cov *= end
         dcov *= end
     inv_nz = 1.0 / nz
-    # moving the section by (dx, dy) raises delta by n . (dx, dy)
+    # moving the section by (dx, dy) raises delta by n . (dx, dy); the sums over the planes in pixel-by-plane
+    # layout, as numpy orders them there (a sum's rounding depends on its order)
+    cov, dcov, nx, ny = (np.ascontiguousarray(v.T) for v in (cov, dcov, nx, ny))
     return cov.sum(axis=1) * inv_nz, np.einsum("ij,ij->i", dcov, nx) * inv_nz, np.einsum("ij,ij->i", dcov, ny) * inv_nz
 
 
