@@ -119,6 +119,11 @@ JOINT_NEIGHBOUR_LEVEL = 0.05
 _PAIR_I = np.array([0, 0, 0, 0, 1, 1, 1, 2, 2, 3, 0, 1, 2, 3])
 _PAIR_J = np.array([0, 1, 2, 3, 1, 2, 3, 2, 3, 3, 4, 4, 4, 4])
 _SYM = np.array([[0, 1, 2, 3], [1, 4, 5, 6], [2, 5, 7, 8], [3, 6, 8, 9]])
+# _linear_fit's rows of products: 1, S, Sx, Sy, y, then rows _PROD_I times rows _PROD_J; _PROD_ROW: the row of
+# each (_PAIR_I, _PAIR_J) product
+_PROD_I = np.array([1, 1, 1, 2, 2, 3, 1, 2, 3])
+_PROD_J = np.array([1, 2, 3, 2, 3, 3, 4, 4, 4])
+_PROD_ROW = np.array([0, 1, 2, 3, 5, 6, 7, 8, 9, 10, 4, 11, 12, 13])
 
 
 @dataclass(frozen=True, eq=False)
@@ -583,20 +588,14 @@ def _linear_fit(S, Sx, Sy, y, own, starts, K: int, todo, noise_sigma: float):
 
     Returns ``(tubes fitted, shift (n, 2) mm, information (n, 2, 2), gain (n,), pixels per tube (K,))``.
     """
-    # (P, 14): the normal matrix's 10 entries, then the right-hand side; F[:, _PAIR_I] * F[:, _PAIR_J] for
-    # F = [1, S, Sx, Sy, y], column by column (several times faster than the fancy-indexed product; the same values)
-    prods = np.empty((S.size, _PAIR_I.size))
-    prods[:, 0] = 1.0
-    F = (None, S, Sx, Sy, y)
-    for c, (i, j) in enumerate(zip(_PAIR_I.tolist(), _PAIR_J.tolist())):
-        if c == 0:
-            continue
-        if i == 0:
-            prods[:, c] = F[j]
-        else:
-            np.multiply(F[i], F[j], out=prods[:, c])
+    # (14, P), a product per row: 1, S, Sx, Sy, y written in, then the pairwise products of rows 1-4 (_PROD_I,
+    # _PROD_J) at once; summed over each window (add.reduceat sums a row's segment as it sums a column's)
+    prods = np.empty((_PROD_ROW.size, S.size))
+    prods[0] = 1.0
+    prods[1], prods[2], prods[3], prods[4] = S, Sx, Sy, y
+    np.multiply(prods[_PROD_I], prods[_PROD_J], out=prods[5:])
     sums = np.zeros((K, _PAIR_I.size))
-    sums[own[starts]] = np.add.reduceat(prods, starts, axis=0)
+    sums[own[starts]] = np.add.reduceat(prods, starts, axis=1).T[:, _PROD_ROW]
     N = sums[:, _SYM]  # (K, 4, 4)
     rhs = sums[:, 10:14]
     n_pix = np.rint(N[:, 0, 0]).astype(int)
