@@ -207,8 +207,10 @@ def _window_pixels(model, q, tan, found, todo, shape, pixel_spacing_mm, slice_th
     cc = j0[idx] + local % wi
     own = todo[idx]
     x_mm, y_mm = cc * cs, rr * rs
-    dx, dy = x_mm - q[own, 0], y_mm - q[own, 1]
-    ux, uy = u[own, 0], u[own, 1]
+    qx, qy = q.T.copy()  # (contiguous rows: 1-d gathers, several times cheaper than 2-d fancy indexing)
+    u_rows = u.T.copy()
+    dx, dy = x_mm - qx[own], y_mm - qy[own]
+    ux, uy = u_rows[0][own], u_rows[1][own]
     # the corners of the bounding box that lie beyond the margin of the tube's own (rotated) section box
     far = ((np.abs(dx * ux + dy * uy) > half_len[own] + m_mm) | (np.abs(dx * uy - dy * ux) > half_wid[own] + m_mm))
     # what another tube's section (grown by a pixel) reaches: first the pairs of tubes (a in todo, o found) whose
@@ -239,8 +241,8 @@ def _window_pixels(model, q, tan, found, todo, shape, pixel_spacing_mm, slice_th
     mm = m_a[a_of]
     p = first[a_of] + t // mm
     o = others[oc[pair0[a_of] + t % mm]]
-    ddx, ddy = x_mm[p] - q[o, 0], y_mm[p] - q[o, 1]
-    uox, uoy = u[o, 0], u[o, 1]
+    ddx, ddy = x_mm[p] - qx[o], y_mm[p] - qy[o]
+    uox, uoy = u_rows[0][o], u_rows[1][o]
     hit = (np.abs(ddx * uox + ddy * uoy) < half_len[o] + grow) & (np.abs(ddx * uoy - ddy * uox) < half_wid[o] + grow)
     return Reach(rr, cc, own, far, p[hit], o[hit])
 
@@ -321,9 +323,12 @@ def section_model(model, T_F_from_I: np.ndarray, q: np.ndarray, tan: np.ndarray,
     # ---- pixels no edge crosses in any plane are wholly fluid (1) or wholly outside (0), with no slope: from
     # the middle plane, the distance to the centreline moving by at most |t_xy| T / 2 across the slab, plus the
     # half-diagonal of the pixel and the helix's sag over the window
-    dx0, dy0 = win.cols * cs - q[own, 0], win.rows * rs - q[own, 1]
-    txy = np.hypot(tan[:, 0], tan[:, 1])
-    s00 = dx0 * tan[own, 0] + dy0 * tan[own, 1]
+    # (per-tube values gathered per pixel from contiguous rows: numpy's 2-d fancy indexing costs several times more)
+    qx, qy = q.T.copy()
+    tan_rows = tan.T.copy()
+    dx0, dy0 = win.cols * cs - qx[own], win.rows * rs - qy[own]
+    txy = np.hypot(tan_rows[0], tan_rows[1])
+    s00 = dx0 * tan_rows[0][own] + dy0 * tan_rows[1][own]
     dist0 = np.sqrt(np.maximum(dx0 * dx0 + dy0 * dy0 - s00 * s00, 0.0))
     reach = np.hypot(dx0, dy0) + 0.5 * thick + 0.5 * math.hypot(cs, rs)
     # (per tube, then per pixel: the same values as per pixel throughout, fewer operations)
@@ -337,16 +342,18 @@ def section_model(model, T_F_from_I: np.ndarray, q: np.ndarray, tan: np.ndarray,
     S[deep & (clear_end > 0)] = 1.0
     band = np.flatnonzero((np.abs(inner) <= slack) | (deep & (clear_end <= 0)))
     if band.size:
-        S[band], Sx[band], Sy[band] = _section_band(tan, kappa, s_lo, s_hi, r_tube, own[band], dx0[band], dy0[band],
+        S[band], Sx[band], Sy[band] = _section_band(tan_rows, kappa, s_lo, s_hi, r_tube, own[band], dx0[band], dy0[band],
                                                     cs, rs, thick, thickness_samples,
                                                     ends=bool((clear_end[band] <= 0).any()), curved=exact,
                                                     s00=s00[band])
     return S, Sx, Sy
 
 
-def _section_band(tan, kappa, s_lo, s_hi, r_tube, own, dx0, dy0, cs: float, rs: float, thick: float,
+def _section_band(tan_rows, kappa, s_lo, s_hi, r_tube, own, dx0, dy0, cs: float, rs: float, thick: float,
                   thickness_samples: int, ends: bool = True, curved: bool = True, s00=None):
     """:func:`section_model` at pixels an edge may cross: every plane across the slice, the exact pixel coverage.
+
+    ``tan_rows`` (3, K): the tubes' tangents, a row per component.
 
     The distance of a point to the centreline is measured from the curve
     point ``s0 t + kappa s0^2 / 2`` at its arc length ``s0`` along the
@@ -358,10 +365,10 @@ def _section_band(tan, kappa, s_lo, s_hi, r_tube, own, dx0, dy0, cs: float, rs: 
     # layout broadcast along rows of nz; the same values, operation by operation)
     nz = thickness_samples if thick > 0 else 1
     sz = (((np.arange(nz) + 0.5) / nz - 0.5) * thick)[:, None]
-    t, kap = tan[own].T, kappa[own].T
-    tx, ty, tz = t
+    tx, ty, tz = np.take(tan_rows, own, axis=1)
+    kap = np.take(kappa.T, own, axis=1)
     if s00 is None:  # (section_model has it: dx0 t_x + dy0 t_y)
-        s00 = dx0 * tan[own, 0] + dy0 * tan[own, 1]
+        s00 = dx0 * tx + dy0 * ty
     s0 = s00 + sz * tz  # arc length along the tangent
     h = 0.5 * s0 * s0
     ex_ = dx0 - s0 * tx - h * kap[0]
