@@ -81,22 +81,29 @@ def tube_frames(model, T_F_from_I: np.ndarray, q: np.ndarray, tan_I: np.ndarray)
         return hit[1]  # (read-only arrays)
     K = q.shape[0]
     R, o = T_F_from_I[:3, :3], T_F_from_I[:3, 3]
-    X = np.column_stack([q, np.zeros(K)]) @ R.T + o  # crossings in F
-    kappa_F = np.zeros((K, 3))
+    Xq = np.zeros((K, 3))
+    Xq[:, :2] = q
+    X = Xq @ R.T + o  # crossings in F
+    x_F, y_F, z_F = X.T.copy()  # (rows: 1-d gathers, cheaper than 2-d fancy indexing)
+    k_x, k_y = np.zeros(K), np.zeros(K)
     s_lo, s_hi = np.zeros(K), np.zeros(K)
     li, hi = model.line_idx, model.helix_idx
     if li.size:
         d, p0, dd, length = model.line_d, model.line_p0, model.line_dd, model.line_length_mm
-        t = np.einsum("ij,ij->i", X[li] - p0, d) / dd
+        t = np.einsum("ij,ij->i", np.take(X, li, axis=0) - p0, d) / dd
         s_lo[li], s_hi[li] = t * length, (1 - t) * length
     if hi.size:
         r, om = model.radius[hi], model.omega_rad_per_mm[hi]
         g2 = 1 + (r * om) ** 2
-        th = np.arctan2(X[hi, 1], X[hi, 0])
-        kappa_F[hi, 0] = -r * om * om * np.cos(th) / g2
-        kappa_F[hi, 1] = -r * om * om * np.sin(th) / g2
+        th = np.arctan2(y_F[hi], x_F[hi])
+        c = -r * om * om
+        k_x[hi] = c * np.cos(th) / g2
+        k_y[hi] = c * np.sin(th) / g2
         g = np.sqrt(g2)
-        s_lo[hi], s_hi[hi] = (X[hi, 2] - model.z_lo[hi]) * g, (model.z_hi[hi] - X[hi, 2]) * g
+        z = z_F[hi]
+        s_lo[hi], s_hi[hi] = (z - model.z_lo[hi]) * g, (model.z_hi[hi] - z) * g
+    kappa_F = np.zeros((K, 3))
+    kappa_F[:, 0], kappa_F[:, 1] = k_x, k_y
     out = (kappa_F @ R, s_lo, s_hi)
     for v in out:
         v.flags.writeable = False
