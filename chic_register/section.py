@@ -131,6 +131,7 @@ _SYM = np.array([[0, 1, 2, 3], [1, 4, 5, 6], [2, 5, 7, 8], [3, 6, 8, 9]])
 _PROD_I = np.array([1, 1, 1, 2, 2, 3, 1, 2, 3])
 _PROD_J = np.array([1, 2, 3, 2, 3, 3, 4, 4, 4])
 _PROD_ROW = np.array([0, 1, 2, 3, 5, 6, 7, 8, 9, 10, 4, 11, 12, 13])
+_ADJUGATE_SIGN = np.array([[1.0, -1.0], [-1.0, 1.0]])
 
 
 @dataclass(frozen=True, eq=False)
@@ -610,26 +611,28 @@ def _linear_fit(S, Sx, Sy, y, own, starts, K: int, todo, noise_sigma: float):
     np.multiply(prods[_PROD_I], prods[_PROD_J], out=prods[5:])
     sums = np.zeros((K, _PAIR_I.size))
     sums[own[starts]] = np.add.reduceat(prods, starts, axis=1).T[:, _PROD_ROW]
-    N = sums[:, _SYM]  # (K, 4, 4)
-    rhs = sums[:, 10:14]
-    n_pix = np.rint(N[:, 0, 0]).astype(int)
-    sel = todo[(n_pix[todo] >= 8) & (N[todo, 1, 1] > 0) & (N[todo, 2, 2] + N[todo, 3, 3] > 0)]
+    # (the normal matrix's diagonal: sums 0, 4, 7, 9; rows taken with np.take: 2-d fancy indexing costs more)
+    n_pix = np.rint(sums[:, 0]).astype(int)
+    s_todo = np.take(sums, todo, axis=0)
+    sel = todo[(n_pix[todo] >= 8) & (s_todo[:, 4] > 0) & (s_todo[:, 7] + s_todo[:, 9] > 0)]
+    s_sel = np.take(sums, sel, axis=0)
+    N = np.take(s_sel, _SYM, axis=1)  # (n, 4, 4)
     Ninv = np.zeros((sel.size, 4, 4))
     try:
-        Ninv[:] = np.linalg.inv(N[sel])
+        Ninv[:] = np.linalg.inv(N)
     except np.linalg.LinAlgError:  # one singular window: invert one by one
-        for i, k in enumerate(sel.tolist()):
+        for i in range(sel.size):
             try:
-                Ninv[i] = np.linalg.inv(N[k])
+                Ninv[i] = np.linalg.inv(N[i])
             except np.linalg.LinAlgError:
                 Ninv[i] = np.nan
-    theta = np.einsum("kij,kj->ki", Ninv, rhs[sel])
+    theta = np.einsum("kij,kj->ki", Ninv, s_sel[:, 10:14])
     a = theta[:, 1]
     blk = Ninv[:, 2:4, 2:4]
     det = blk[:, 0, 0] * blk[:, 1, 1] - blk[:, 0, 1] * blk[:, 1, 0]
     ok = (a > 0) & np.isfinite(det) & (det > 0)
     sel, theta, a, blk, det = sel[ok], theta[ok], a[ok], blk[ok], det[ok]
     # the shift (x, y) mm, and its information: (a / sigma)^2 times the inverse of its block of N^-1
-    inv_blk = np.stack([np.stack([blk[:, 1, 1], -blk[:, 0, 1]], -1), np.stack([-blk[:, 1, 0], blk[:, 0, 0]], -1)], 1)
+    inv_blk = np.swapaxes(blk[:, ::-1, ::-1], 1, 2) * _ADJUGATE_SIGN  # [[d, -b], [-c, a]] of [[a, b], [c, d]]
     info = inv_blk / det[:, None, None] * ((a / max(noise_sigma, 1e-12)) ** 2)[:, None, None]
     return sel, theta[:, 2:4] / a[:, None], info, a, n_pix
