@@ -315,13 +315,14 @@ def _drop_foreign_blobs(keep, rr, cc, own, assignment, footprints) -> None:
 
 
 def section_model(model, T_F_from_I: np.ndarray, q: np.ndarray, tan: np.ndarray, win: Windows, pixel_spacing_mm,
-                  slice_thickness_mm: float, thickness_samples: int = 5, exact: bool = True):
+                  slice_thickness_mm: float, thickness_samples: int = 5, exact: bool = True, *, slopes: bool = True):
     """The model image of each window pixel's tube and its derivatives for the section moving in the image.
 
     Returns ``(S, Sx, Sy)`` (P,): the fluid fraction of the pixel and its
     derivatives (per mm) for the section shifted along x (columns) and y (rows).
     ``exact=False``: without the edge-curvature term (a first approximation,
-    for a pass whose only job is to bring the next one close).
+    for a pass whose only job is to bring the next one close). ``slopes=False``:
+    ``S`` alone (``Sx``, ``Sy`` None), for a neighbour's level.
     """
     rs, cs = (float(v) for v in pixel_spacing_mm)
     thick = float(slice_thickness_mm)
@@ -344,21 +345,23 @@ def section_model(model, T_F_from_I: np.ndarray, q: np.ndarray, tan: np.ndarray,
              + 0.5 * math.hypot(cs, rs) + 1e-6)
     clear_end = np.minimum(s_lo[own] + s00, s_hi[own] - s00) - reach
     S = np.zeros(own.size)
-    Sx, Sy = np.zeros(own.size), np.zeros(own.size)
+    Sx, Sy = (np.zeros(own.size), np.zeros(own.size)) if slopes else (None, None)
     inner = r_tube[own] - dist0
     deep = inner > slack
     S[deep & (clear_end > 0)] = 1.0
     band = np.flatnonzero((np.abs(inner) <= slack) | (deep & (clear_end <= 0)))
     if band.size:
-        S[band], Sx[band], Sy[band] = _section_band(tan_rows, kappa, s_lo, s_hi, r_tube, own[band], dx0[band], dy0[band],
-                                                    cs, rs, thick, thickness_samples,
-                                                    ends=bool((clear_end[band] <= 0).any()), curved=exact,
-                                                    s00=s00[band])
+        drawn = _section_band(tan_rows, kappa, s_lo, s_hi, r_tube, own[band], dx0[band], dy0[band], cs, rs, thick,
+                              thickness_samples, ends=bool((clear_end[band] <= 0).any()), curved=exact,
+                              s00=s00[band], slopes=slopes)
+        S[band] = drawn[0]
+        if slopes:
+            Sx[band], Sy[band] = drawn[1:]
     return S, Sx, Sy
 
 
 def _section_band(tan_rows, kappa, s_lo, s_hi, r_tube, own, dx0, dy0, cs: float, rs: float, thick: float,
-                  thickness_samples: int, ends: bool = True, curved: bool = True, s00=None):
+                  thickness_samples: int, ends: bool = True, curved: bool = True, s00=None, slopes: bool = True):
     """:func:`section_model` at pixels an edge may cross: every plane across the slice, the exact pixel coverage.
 
     ``tan_rows`` (3, K): the tubes' tangents, a row per component.
@@ -398,8 +401,11 @@ def _section_band(tan_rows, kappa, s_lo, s_hi, r_tube, own, dx0, dy0, cs: float,
         inside = np.minimum(s_lo[own] + s0, s_hi[own] - s0)
         end = np.clip(0.5 + inside / np.maximum(cs * np.abs(tx) + rs * np.abs(ty), 1e-12), 0.0, 1.0)
         cov *= end
-        dcov *= end
+        if slopes:
+            dcov *= end
     inv_nz = 1.0 / nz
+    if not slopes:
+        return (np.ascontiguousarray(cov.T).sum(axis=1) * inv_nz,)
     # moving the section by (dx, dy) raises delta by n . (dx, dy); the sums over the planes in pixel-by-plane
     # layout, as numpy orders them there (a sum's rounding depends on its order)
     cov, dcov, nx, ny = (np.ascontiguousarray(v.T) for v in (cov, dcov, nx, ny))
@@ -526,7 +532,7 @@ def _joint_pass(model, T_F_from_I, q, tan, found, pixels, pixel_spacing_mm, slic
     # carry its partial-volume model error (largest at steep, elongated sections) into the tube's fit
     neighbours = Windows(jw.rows[nb_p], jw.cols[nb_p], nb_k)
     Sn0 = section_model(model, T_F_from_I, fitted_at, tan, neighbours, pixel_spacing_mm, slice_thickness_mm,
-                        thickness_samples, exact)[0]
+                        thickness_samples, exact, slopes=False)[0]
     strong = np.zeros(jw.owner.size, bool)
     strong[nb_p[Sn0 > JOINT_NEIGHBOUR_LEVEL]] = True
     if strong.any():
