@@ -201,10 +201,11 @@ def _window_pixels(model, q, tan, found, todo, shape, pixel_spacing_mm, slice_th
     u = np.where((np.abs(u).sum(axis=1) > 0)[:, None], u, [1.0, 0.0])  # a round section: any direction
     m_mm = margin_px * max(rs, cs)
     ex, ey = (e + m_mm for e in _section_box(half_len, half_wid, u))
-    i0 = np.maximum(0, np.ceil((q[todo, 1] - ey[todo]) / rs)).astype(int)
-    i1 = np.minimum(H - 1, np.floor((q[todo, 1] + ey[todo]) / rs)).astype(int)
-    j0 = np.maximum(0, np.ceil((q[todo, 0] - ex[todo]) / cs)).astype(int)
-    j1 = np.minimum(W - 1, np.floor((q[todo, 0] + ex[todo]) / cs)).astype(int)
+    qx, qy = q.T.copy()  # (contiguous rows: 1-d gathers, several times cheaper than 2-d fancy indexing)
+    i0 = np.maximum(0, np.ceil((qy[todo] - ey[todo]) / rs)).astype(int)
+    i1 = np.minimum(H - 1, np.floor((qy[todo] + ey[todo]) / rs)).astype(int)
+    j0 = np.maximum(0, np.ceil((qx[todo] - ex[todo]) / cs)).astype(int)
+    j1 = np.minimum(W - 1, np.floor((qx[todo] + ex[todo]) / cs)).astype(int)
     h, w = np.maximum(i1 - i0 + 1, 0), np.maximum(j1 - j0 + 1, 0)
     n = h * w
     first = np.cumsum(n) - n
@@ -215,7 +216,6 @@ def _window_pixels(model, q, tan, found, todo, shape, pixel_spacing_mm, slice_th
     cc = j0[idx] + local % wi
     own = todo[idx]
     x_mm, y_mm = cc * cs, rr * rs
-    qx, qy = q.T.copy()  # (contiguous rows: 1-d gathers, several times cheaper than 2-d fancy indexing)
     u_rows = u.T.copy()
     dx, dy = x_mm - qx[own], y_mm - qy[own]
     ux, uy = u_rows[0][own], u_rows[1][own]
@@ -228,10 +228,9 @@ def _window_pixels(model, q, tan, found, todo, shape, pixel_spacing_mm, slice_th
     u2 = np.einsum("ij,ij->i", u, u)
     ax = (np.abs(u[:, 0]) * (half_len + grow) + np.abs(u[:, 1]) * (half_wid + grow)) / u2 * (1 + 1e-6) + 1e-6
     ay = (np.abs(u[:, 1]) * (half_len + grow) + np.abs(u[:, 0]) * (half_wid + grow)) / u2 * (1 + 1e-6) + 1e-6
-    meet = ((j0 * cs)[:, None] <= (q[others, 0] + ax[others])[None]) & ((j1 * cs)[:, None] >= (q[others, 0]
-                                                                                                - ax[others])[None])
-    meet &= ((i0 * rs)[:, None] <= (q[others, 1] + ay[others])[None]) & ((i1 * rs)[:, None] >= (q[others, 1]
-                                                                                                 - ay[others])[None])
+    qxo, qyo, axo, ayo = qx[others], qy[others], ax[others], ay[others]
+    meet = ((j0 * cs)[:, None] <= (qxo + axo)[None]) & ((j1 * cs)[:, None] >= (qxo - axo)[None])
+    meet &= ((i0 * rs)[:, None] <= (qyo + ayo)[None]) & ((i1 * rs)[:, None] >= (qyo - ayo)[None])
     meet &= others[None] != todo[:, None]
     meet &= (n > 0)[:, None]
     ta, oc = np.nonzero(meet)  # (by tube a, then other)
@@ -341,7 +340,8 @@ def section_model(model, T_F_from_I: np.ndarray, q: np.ndarray, tan: np.ndarray,
     dist0 = np.sqrt(np.maximum(dx0 * dx0 + dy0 * dy0 - s00 * s00, 0.0))
     reach = np.hypot(dx0, dy0) + 0.5 * thick + 0.5 * math.hypot(cs, rs)
     # (per tube, then per pixel: the same values as per pixel throughout, fewer operations)
-    slack = ((txy * 0.5 * thick)[own] + (0.5 * np.linalg.norm(kappa, axis=1))[own] * reach * reach
+    kappa_norm = np.sqrt(np.add.reduce(kappa * kappa, axis=1))  # (np.linalg.norm's sums, without its wrapper)
+    slack = ((txy * 0.5 * thick)[own] + (0.5 * kappa_norm)[own] * reach * reach
              + 0.5 * math.hypot(cs, rs) + 1e-6)
     clear_end = np.minimum(s_lo[own] + s00, s_hi[own] - s00) - reach
     S = np.zeros(own.size)
