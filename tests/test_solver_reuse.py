@@ -80,6 +80,18 @@ def test_model_taken_from_an_earlier_draw_is_the_whole_draw(neuro_geometry):
     assert all(np.array_equal(g, w) for g, w in zip(got, want))
 
 
+def test_section_model_without_slopes_is_the_same_level(neuro_geometry):
+    model, _ = prepare_geometry(neuro_geometry)
+    pixels, T = _near_end(neuro_geometry)
+    q, tan, _, found = plane_crossings(model, T, margin_mm=1e-9)
+    win = section_windows(model, q, tan, found, np.flatnonzero(found), pixels.shape, (0.5, 0.5), 2.0)
+    for exact in (True, False):
+        S, Sx, Sy = section_model(model, T, q, tan, win, (0.5, 0.5), 2.0, 5, exact)
+        level, no_x, no_y = section_model(model, T, q, tan, win, (0.5, 0.5), 2.0, 5, exact, slopes=False)
+        assert ((S > 0) & (S < 1)).sum() > 50 and np.abs(Sx).max() > 0
+        assert np.array_equal(level, S) and no_x is None and no_y is None
+
+
 def test_plane_crossings_memo_hands_out_fresh_arrays(neuro_geometry):
     model, _ = prepare_geometry(neuro_geometry)
     _, T = _near_end(neuro_geometry)
