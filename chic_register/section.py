@@ -454,10 +454,10 @@ def _linear_fit(S, Sx, Sy, y, own, starts, K: int, todo, noise_sigma: float):
     sel = todo[(n_pix[todo] >= 8) & (s_todo[:, 4] > 0) & (s_todo[:, 7] + s_todo[:, 9] > 0)]
     s_sel = np.take(sums, sel, axis=0)
     N = np.take(s_sel, _SYM, axis=1)  # (n, 4, 4)
-    Ninv = np.zeros((sel.size, 4, 4))
     try:
-        Ninv[:] = np.linalg.inv(N)
+        Ninv = np.linalg.inv(N)
     except np.linalg.LinAlgError:  # one singular window: invert one by one
+        Ninv = np.zeros((sel.size, 4, 4))
         for i in range(sel.size):
             try:
                 Ninv[i] = np.linalg.inv(N[i])
@@ -468,7 +468,8 @@ def _linear_fit(S, Sx, Sy, y, own, starts, K: int, todo, noise_sigma: float):
     blk = Ninv[:, 2:4, 2:4]
     det = blk[:, 0, 0] * blk[:, 1, 1] - blk[:, 0, 1] * blk[:, 1, 0]
     ok = (a > 0) & np.isfinite(det) & (det > 0)
-    sel, theta, a, blk, det = sel[ok], theta[ok], a[ok], blk[ok], det[ok]
+    if not ok.all():
+        sel, theta, a, blk, det = sel[ok], theta[ok], a[ok], blk[ok], det[ok]
     # the shift (x, y) mm, and its information: (a / sigma)^2 times the inverse of its block of N^-1
     inv_blk = np.swapaxes(blk[:, ::-1, ::-1], 1, 2) * _ADJUGATE_SIGN  # [[d, -b], [-c, a]] of [[a, b], [c, d]]
     info = inv_blk / det[:, None, None] * ((a / max(noise_sigma, 1e-12)) ** 2)[:, None, None]
