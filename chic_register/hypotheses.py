@@ -101,8 +101,8 @@ def initial_hypotheses(model: TubeModel, xy_mm: np.ndarray, ell: Ellipse, *,
         jmin = np.abs(e).argmin(axis=2)  # (B,Kl) (the methods here and below: np.argmin's numbers, less its wrapper)
         emin = e[rows_b, cols_l, jmin]  # np.take_along_axis, less its wrapper
         hit = np.abs(emin) < tol
-        n_lines = hit.sum(axis=1)
-        b = beta - np.where(hit, emin, 0).sum(axis=1) / np.maximum(n_lines, 1)
+        n_lines = np.add.reduce(hit, axis=1)
+        b = beta - np.add.reduce(np.where(hit, emin, 0), axis=1) / np.maximum(n_lines, 1)
         per_h[h] = (th, n_lines, b)
     top = max(int(n_lines.max()) for _, n_lines, _ in per_h.values())
     floor = top if top >= 3 else max(top - 1, 1)
@@ -186,17 +186,19 @@ def _depths_from(model: TubeModel, cand, zr: np.ndarray, n_best: int = 2):
     dv = zv - zr[bv]  # each pair's depth
     diff = np.abs(dv[:, None] - dv[None, :])
     close = diff < dtol
-    n = (close @ onehot).sum(axis=1)  # helices agreeing with each depth (a boolean product: any)
-    n_close = close.sum(axis=1)
-    spread = np.where(close, diff, 0).sum(axis=1) / np.maximum(n_close, 1)
+    # (np.add.reduce: the sums' numbers, less ndarray.sum's wrapper)
+    n = np.add.reduce(close @ onehot, axis=1)  # helices agreeing with each depth (a boolean product: any)
+    n_close = np.add.reduce(close, axis=1)
+    spread = np.add.reduce(np.where(close, diff, 0), axis=1) / np.maximum(n_close, 1)
     means = (close @ dv) / n_close  # each row holds its own depth: never empty
     L = model.length_mm
     out = []
+    means_l, n_l = means.tolist(), n.tolist()
     for i in np.lexsort((spread, -n)).tolist():
-        depth = float(means[i])
+        depth = means_l[i]
         if any(abs(depth - o[0]) < 1.0 for o in out):
             continue
-        out.append((min(max(depth, 0.0), L), int(n[i])))
+        out.append((min(max(depth, 0.0), L), n_l[i]))
         if len(out) >= n_best:
             break
     return out
