@@ -149,21 +149,11 @@ def _line_angles(model: TubeModel) -> tuple[np.ndarray, np.ndarray]:
     return line_ang, diff
 
 
-def _helix_depths(model: TubeModel, hel: np.ndarray, theta_F: np.ndarray, zr: np.ndarray, tol: float,
-                  n_best: int = 2):
-    """Candidate depths of the ellipse centre from blob angles in F (N,) and relative heights (N,).
-
-    Every (blob, helix) pair implies a depth; depths agreed on by the most
-    helices win (ties broken by spread). Returns up to ``n_best`` distinct
-    ``(depth_mm, n_helices_agreeing)``, clamped to the body.
-    """
-    return _depths_from(model, _helix_candidates(model, hel, theta_F, tol), zr, n_best)
-
-
 def _helix_candidates(model: TubeModel, hel: np.ndarray, theta_F: np.ndarray, tol: float):
-    """:func:`_helix_depths`' part that does not depend on the blobs' heights: every (blob, helix) pair's height
-    ``z`` of the helix at the blob's angle, within the helix's extent: ``(z (M,), blob (M,), helix (M,), depth
-    tolerance (1, M), helix one-hot (M, H))``, or None for no helices or no pair."""
+    """Candidate depths of the ellipse centre, first part: from blob angles in F ``theta_F`` (N,), every (blob,
+    helix) pair's height ``z`` of the helix at the blob's angle, within the helix's extent: ``(z (M,), blob (M,),
+    helix (M,), depth tolerance (1, M), helix one-hot (M, H))``, or None for no helices or no pair. (It does not
+    depend on the blobs' heights: :func:`initial_hypotheses` shares it between the two ends of the major axis.)"""
     if hel.size == 0:
         return None
     th0, om, z0, period, zmid, z_above, z_below, dtol, ids = _helix_terms(model, hel, tol)
@@ -179,7 +169,13 @@ def _helix_candidates(model: TubeModel, hel: np.ndarray, theta_F: np.ndarray, to
 
 
 def _depths_from(model: TubeModel, cand, zr: np.ndarray, n_best: int = 2):
-    """:func:`_helix_depths` from :func:`_helix_candidates`' pairs and the blobs' relative heights ``zr`` (N,)."""
+    """Candidate depths of the ellipse centre from :func:`_helix_candidates`' pairs and the blobs' heights
+    relative to it ``zr`` (N,).
+
+    Every (blob, helix) pair implies a depth; depths agreed on by the most
+    helices win (ties broken by spread). Returns up to ``n_best`` distinct
+    ``(depth_mm, n_helices_agreeing)``, clamped to the body.
+    """
     if cand is None:
         return [(model.length_mm / 2, 0)]
     zv, bv, _, dtol, onehot = cand
@@ -205,7 +201,7 @@ def _depths_from(model: TubeModel, cand, zr: np.ndarray, n_best: int = 2):
 
 
 def _helix_terms(model: TubeModel, hel: np.ndarray, tol: float) -> tuple:
-    """:func:`_helix_depths`' per-geometry terms, each (1, H) (memoised per model, helices and tolerance):
+    """:func:`_helix_candidates`' per-geometry terms, each (1, H) (memoised per model, helices and tolerance):
     ``(theta0, omega, z0, period, middle - z0, z_lo - 3, z_hi + 3, depth tolerance, helix numbers)``."""
     memo = _HELIX_TERMS.get(model)
     if memo is None:
