@@ -132,17 +132,14 @@ def _mean_std(values: np.ndarray) -> tuple[float, float]:
     return mean, math.sqrt(float(np.add.reduce(dev * dev)) / n)
 
 
-def _bounding_boxes(labels: np.ndarray, mask: np.ndarray, n: int) -> list:
-    """Per label 1..n, ``(row slice, col slice)`` of its bounding box (``scipy.ndimage.find_objects``'s result).
+def _bounding_boxes(lab: np.ndarray, rows: np.ndarray, cols: np.ndarray, n: int):
+    """Per label 1..n, ``(row slice, col slice)`` of its bounding box (``scipy.ndimage.find_objects``'s result),
+    and ``(order, starts)``: the pixels sorted by label (raster order within one), and where each label's run starts.
 
-    From the labelled pixels only (``mask``): sorted by label, the first and
-    last rows and the least and greatest columns of each run.
+    ``lab``, ``rows``, ``cols``: label, row and column of every labelled pixel, in raster order.
     """
-    flat = np.flatnonzero(mask)  # (np.nonzero of a 2-D mask is several times slower)
-    rr, cc = np.divmod(flat, mask.shape[1])
-    lab = labels.ravel()[flat]
     order = np.argsort(lab, kind="stable")  # stable: rows stay ascending within a label
-    lab, rr, cc = lab[order], rr[order], cc[order]
+    lab, rr, cc = lab[order], rows[order], cols[order]
     starts = np.flatnonzero(np.concatenate(([True], lab[1:] != lab[:-1])))
     ends = np.append(starts[1:], lab.size) - 1
     r0, r1 = rr[starts].tolist(), (rr[ends] + 1).tolist()
@@ -150,7 +147,7 @@ def _bounding_boxes(labels: np.ndarray, mask: np.ndarray, n: int) -> list:
     out = [None] * n
     for k, label in enumerate(lab[starts].tolist()):
         out[label - 1] = (slice(r0[k], r1[k]), slice(c0[k], c1[k]))
-    return out
+    return out, (order, starts)
 
 
 def _maximum_filter(vals: np.ndarray, size: int) -> np.ndarray:
@@ -225,41 +222,43 @@ def _binomial_cols(x: np.ndarray, y: np.ndarray, pair: np.ndarray) -> None:
     y *= 0.25
 
 
-def _shape(mask: np.ndarray) -> tuple[float, float]:
-    """Minor/major axis ratio of a bool mask's second moments and its variance across (px^2), from row/column sums."""
-    w = mask.astype(float)
-    wr, wc = w.sum(axis=1), w.sum(axis=0)
-    total = float(wr.sum())
-    rr = np.arange(w.shape[0], dtype=float)
-    cc = np.arange(w.shape[1], dtype=float)
-    dr, dc = rr - float(wr @ rr) / total, cc - float(wc @ cc) / total
-    srr, scc, src = float(wr @ (dr * dr)) / total, float(wc @ (dc * dc)) / total, float(dr @ w @ dc) / total
-    half_tr, det = (srr + scc) / 2, srr * scc - src * src
-    root = math.sqrt(max(half_tr * half_tr - det, 0.0))
-    big, small = half_tr + root, max(half_tr - root, 0.0)
-    return (math.sqrt(small / big) if big > 0 else 1.0), small
+def _index(n: int) -> np.ndarray:
+    """``np.arange(n, dtype=float)``, as a view of one cached array (the moments' row and column indices)."""
+    global _INDEX
+    if n > _INDEX.size:
+        _INDEX = np.arange(max(n, 2 * _INDEX.size), dtype=float)
+    return _INDEX[:n]
+
+
+_INDEX = np.arange(256, dtype=float)
 
 
 def _moments(w: np.ndarray):
-    """Centroid (row, col) of weights ``w`` (h, w) and the minor/major axis ratio of their spread.
+    """Centroid (row, col) of weights ``w`` (h, w), the minor/major axis ratio of their spread and its variance
+    across (px^2).
 
     From the row and column sums (two passes over ``w``, then vectors of
-    length h and w): these windows are small, so call overhead dominates.
+    length h and w): these windows are small, so call overhead dominates
+    (hence the ufuncs' own reductions, without ``sum``'s wrapper).
     Returns None when the weights do not sum to a positive total.
     """
-    wr, wc = w.sum(axis=1), w.sum(axis=0)
-    total = float(wr.sum())
+    wr, wc = np.add.reduce(w, 1), np.add.reduce(w, 0)
+    total = float(np.add.reduce(wr))
     if not total > 0:
         return None
-    rr = np.arange(w.shape[0], dtype=float)
-    cc = np.arange(w.shape[1], dtype=float)
+    rr, cc = _index(w.shape[0]), _index(w.shape[1])
     mr, mc = float(wr @ rr) / total, float(wc @ cc) / total
     dr, dc = rr - mr, cc - mc
     srr, scc, src = float(wr @ (dr * dr)) / total, float(wc @ (dc * dc)) / total, float(dr @ w @ dc) / total
     half_tr, det = (srr + scc) / 2, srr * scc - src * src
     root = math.sqrt(max(half_tr * half_tr - det, 0.0))
     big, small = half_tr + root, max(half_tr - root, 0.0)
-    return mr, mc, (math.sqrt(small / big) if big > 0 else 1.0)
+    return mr, mc, (math.sqrt(small / big) if big > 0 else 1.0), small
+
+
+def _shape(mask: np.ndarray) -> tuple[float, float]:
+    """Minor/major axis ratio of a bool mask's second moments and its variance across (px^2)."""
+    return _moments(mask.astype(float))[2:]
 
 
 def detect_blobs(
@@ -342,35 +341,49 @@ def _detect(pixels, pixel_spacing_mm, tube_diameter_mm: float, min_area_factor: 
     base = median(smooth[::4, ::4])
     thr = base + threshold_fraction * (thr - base)
     mask = smooth > thr
-    labels, n = cc3d.connected_components(mask, connectivity=4, return_N=True)  # 4-connected, raster order
+    flat = np.flatnonzero(mask)  # the pixels above the threshold: a few per cent of a slice
     # background and noise: the pixels well below the threshold (mean and spread)
     sub_img = img[::2, ::2]
     bg_pixels = sub_img[sub_smooth < base + 0.25 * (thr - base)]
     if bg_pixels.size < 16:
         bg_pixels = sub_img[sub_smooth <= base]
     bg, sigma_n = _mean_std(bg_pixels)
-    if n == 0:
+    if flat.size == 0:
         return Blobs.empty(bg, sigma_n, thr)
-    area = np.bincount(labels[mask], minlength=n + 1)[1:]  # only the labelled pixels: far fewer
-    objs = _bounding_boxes(labels, mask, n)
+    k = dilate_px if dilate_px is not None else 1
+    H, W = img.shape
+    # components (4-connected, numbered in raster order) labelled on the mask's bounding box only, widened by the
+    # blobs' margin k: the same labels as on the whole image, at a fraction of the cost; `labels` starts at (R0, C0)
+    rows, cols = np.divmod(flat, W)
+    m = max(k, 0)
+    R0, R1 = max(0, int(rows[0]) - m), min(H, int(rows[-1]) + 1 + m)
+    C0, C1 = max(0, int(cols.min()) - m), min(W, int(cols.max()) + 1 + m)
+    labels, n = cc3d.connected_components(mask[R0:R1, C0:C1], connectivity=4, return_N=True)
+    lab_px = labels[rows - R0, cols - C0]  # every labelled pixel's label, in raster order
+    area = np.bincount(lab_px, minlength=n + 1)[1:]
+    objs, (order, starts) = _bounding_boxes(lab_px, rows, cols, n)
+    # each component's pixel values in raster order, for its mean (the same sum as raw[blob].sum())
+    vals = img[rows[order], cols[order]]
+    first = np.zeros(n + 1, np.intp)
+    first[lab_px[order[starts]]] = starts
     keep = np.flatnonzero((area >= min_area_factor * a0) & (area <= max_area_factor * a0))
     # a component too large for one tube may be several blurred ones run together (wide blobs of close tubes):
     # it is offered split at higher levels, never whole
     merged = set(np.flatnonzero((area > max_area_factor * a0) & (area <= 150 * a0)).tolist()) if split_touching else set()
-    k = dilate_px if dilate_px is not None else 1
+    grown = _dilate(labels != 0) if k == 1 else None  # every component's footprint at once (see below)
     centres, areas, means, ratios, contrasts, feet, widths = [], [], [], [], [], [], []
-    H, W = img.shape
     for i in sorted(set(keep.tolist()) | merged):
         sl = objs[i]
         r0, r1 = max(0, sl[0].start - k), min(H, sl[0].stop + k)
         c0, c1 = max(0, sl[1].start - k), min(W, sl[1].stop + k)
-        lab = labels[r0:r1, c0:c1]
-        blob = lab == i + 1
-        raw = img[r0:r1, c0:c1]
-        mean_i = float(raw[blob].sum()) / float(area[i])
+        n_i = int(area[i])
+        mean_i = float(np.add.reduce(vals[first[i + 1]:first[i + 1] + n_i])) / float(n_i)
         contrast = (mean_i - bg) / sigma_n if sigma_n > 0 else math.inf
         if contrast < min_contrast:
             continue
+        lab = labels[r0 - R0:r1 - R0, c0 - C0:c1 - C0]
+        blob = lab == i + 1
+        raw = img[r0:r1, c0:c1]
         ratio, minor_var = _shape(blob)
         if i not in merged:
             widths.append(4 * math.sqrt(max(minor_var - 1 / 12, 0.0)))  # a disc's diameter, less a pixel's spread
@@ -383,15 +396,20 @@ def _detect(pixels, pixel_spacing_mm, tube_diameter_mm: float, min_area_factor: 
             parts = _split(blob, smooth[r0:r1, c0:c1], r_px) or [blob]
             if len(parts) > 1:
                 parts = [blob] + parts
-        others = (lab != 0) ^ blob
-        if others.any():  # keep out of the neighbours' own edges
-            others = _dilate(others)
-            keep_out = ~others
-        else:
-            keep_out = None
+        keep_out, alone = None, False
+        if np.count_nonzero(lab) > n_i:  # other components in the box: keep out of the neighbours' own edges
+            keep_out = ~_dilate((lab != 0) ^ blob)
+        elif grown is not None:
+            # alone in its box and in the ring just outside it (so no neighbour's pixel reaches the box's edge):
+            # its dilation in the box is that of all the components
+            q0, q1, p0, p1 = max(R0, r0 - 1), min(R1, r1 + 1), max(C0, c0 - 1), min(C1, c1 + 1)
+            alone = np.count_nonzero(labels[q0 - R0:q1 - R0, p0 - C0:p1 - C0]) == n_i
         raw_bg = raw - bg
         for part in parts:
-            foot = _dilate(part, k)
+            if part is blob and alone:
+                foot = grown[r0 - R0:r1 - R0, c0 - C0:c1 - C0].copy()
+            else:
+                foot = _dilate(part, k)
             if keep_out is not None:
                 foot &= keep_out
             if part is not blob:
