@@ -340,23 +340,30 @@ def blob_width_ratio(model: TubeModel, slices, blob_sets, assignments) -> float:
     footprint cuts the tails). Intensity-weighted, not thresholded, so a
     brighter object elsewhere in the image does not shrink it.
     """
+    from .detect import _index  # (the cached np.arange(n, dtype=float); detect is loaded before any fit)
+
     ratios = []
     for sl, b, a in zip(slices, blob_sets, assignments):
         img = np.asarray(sl.pixels, float)
         rs, cs = (float(v) for v in sl.pixel_spacing_mm)
-        for k in np.flatnonzero(a >= 0):
+        bg = b.background
+        for k in np.flatnonzero(a >= 0).tolist():
             i = int(a[k])
             if i >= len(b.footprints):
                 continue
             r0, c0, mask = b.footprints[i]
-            # (np.clip(v, 0.0, None) is np.maximum(v, 0.0), less its wrapper)
-            w = np.maximum(img[r0:r0 + mask.shape[0], c0:c0 + mask.shape[1]] - b.background, 0.0) * mask
-            total = float(w.sum())
+            h, wd = mask.shape
+            # np.maximum(window - background, 0) * mask, in place; the ufuncs' own reductions (small windows: call
+            # overhead dominates)
+            w = img[r0:r0 + h, c0:c0 + wd] - bg
+            np.maximum(w, 0.0, out=w)
+            w *= mask
+            total = float(np.add.reduce(w, axis=None))
             if not total > 0:
                 continue
-            y = np.arange(mask.shape[0]) * rs
-            x = np.arange(mask.shape[1]) * cs
-            wy, wx = w.sum(axis=1), w.sum(axis=0)  # the marginals give the means and variances
+            y = _index(h) * rs
+            x = _index(wd) * cs
+            wy, wx = np.add.reduce(w, 1), np.add.reduce(w, 0)  # the marginals give the means and variances
             my, mx = float(wy @ y) / total, float(wx @ x) / total
             dy, dx = y - my, x - mx
             cyy = float(wy @ (dy * dy)) / total - rs * rs / 12
