@@ -64,20 +64,30 @@ class Blobs:
 
 def otsu_threshold(image: np.ndarray, bins: int = 256) -> float:
     """Otsu's threshold of an image (any shape), from a ``bins``-bin histogram."""
-    lo, hi = float(image.min()), float(image.max())
+    x = image.ravel()
+    lo, hi = float(np.minimum.reduce(x)), float(np.maximum.reduce(x))
     if hi <= lo:
         return lo
-    q = np.minimum(((image.ravel() - lo) * (bins / (hi - lo))).astype(np.intp), bins - 1)
+    t = x - lo  # (x - lo) * (bins / (hi - lo)), in place
+    t *= bins / (hi - lo)
+    q = t.astype(np.intp)
+    np.minimum(q, bins - 1, out=q)
     hist = np.bincount(q, minlength=bins).astype(float)
-    centres = lo + (np.arange(bins) + 0.5) * (hi - lo) / bins
-    w0 = np.cumsum(hist)
+    steps = _OTSU_STEPS.get(bins)
+    if steps is None:
+        steps = _OTSU_STEPS[bins] = np.arange(bins) + 0.5
+    centres = lo + steps * (hi - lo) / bins
+    w0 = np.add.accumulate(hist)  # (np.cumsum, less its wrapper)
     w1 = w0[-1] - w0
-    m0 = np.cumsum(hist * centres)
+    m0 = np.add.accumulate(hist * centres)
     mu0 = m0 / np.maximum(w0, 1e-12)
     mu1 = (m0[-1] - m0) / np.maximum(w1, 1e-12)
     between = w0 * w1 * (mu0 - mu1) ** 2
-    k = int(np.argmax(between[:-1]))
+    k = int(between[:-1].argmax())
     return float(lo + (k + 1) * (hi - lo) / bins)
+
+
+_OTSU_STEPS: dict = {}  # bins -> the bin centres' offsets, np.arange(bins) + 0.5
 
 
 def _dilate(mask: np.ndarray, iterations: int = 1) -> np.ndarray:
@@ -327,7 +337,7 @@ def _detect(pixels, pixel_spacing_mm, tube_diameter_mm: float, min_area_factor: 
     img = np.asarray(pixels, dtype=float)
     if img.ndim != 2 or img.size == 0:
         return Blobs.empty()
-    lo, hi = float(img.min()), float(img.max())
+    lo, hi = float(np.minimum.reduce(img, axis=None)), float(np.maximum.reduce(img, axis=None))
     if not (math.isfinite(lo) and math.isfinite(hi)):  # a NaN or an infinity anywhere shows in min / max
         return Blobs.empty()
     if hi - lo <= 1e-12 * max(1.0, abs(hi)):
