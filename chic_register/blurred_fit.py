@@ -364,11 +364,11 @@ def blob_width_ratio(model: TubeModel, slices, blob_sets, assignments) -> float:
             y = _index(h) * rs
             x = _index(wd) * cs
             wy, wx = np.add.reduce(w, 1), np.add.reduce(w, 0)  # the marginals give the means and variances
-            my, mx = float(wy @ y) / total, float(wx @ x) / total
+            my, mx = float(wy.dot(y)) / total, float(wx.dot(x)) / total  # (dot: matmul's BLAS call, less overhead)
             dy, dx = y - my, x - mx
-            cyy = float(wy @ (dy * dy)) / total - rs * rs / 12
-            cxx = float(wx @ (dx * dx)) / total - cs * cs / 12
-            cxy = float(dy @ w @ dx) / total
+            cyy = float(wy.dot(dy * dy)) / total - rs * rs / 12
+            cxx = float(wx.dot(dx * dx)) / total - cs * cs / 12
+            cxy = float(dy.dot(w).dot(dx)) / total
             minor = 0.5 * (cxx + cyy) - math.sqrt(0.25 * (cxx - cyy) ** 2 + cxy * cxy)
             if minor > 0:
                 ratios.append(4.0 * math.sqrt(minor) / float(model.diameter_mm[k]))

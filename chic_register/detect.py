@@ -250,7 +250,7 @@ def _moments(w: np.ndarray):
 
     From the row and column sums (two passes over ``w``, then vectors of
     length h and w): these windows are small, so call overhead dominates
-    (hence the ufuncs' own reductions, without ``sum``'s wrapper).
+    (hence the ufuncs' own reductions, without ``sum``'s wrapper, and ``dot``).
     Returns None when the weights do not sum to a positive total.
     """
     wr, wc = np.add.reduce(w, 1), np.add.reduce(w, 0)
@@ -258,9 +258,10 @@ def _moments(w: np.ndarray):
     if not total > 0:
         return None
     rr, cc = _index(w.shape[0]), _index(w.shape[1])
-    mr, mc = float(wr @ rr) / total, float(wc @ cc) / total
+    # (ndarray.dot is matmul's BLAS call, less its ufunc machinery: the same bits)
+    mr, mc = float(wr.dot(rr)) / total, float(wc.dot(cc)) / total
     dr, dc = rr - mr, cc - mc
-    srr, scc, src = float(wr @ (dr * dr)) / total, float(wc @ (dc * dc)) / total, float(dr @ w @ dc) / total
+    srr, scc, src = float(wr.dot(dr * dr)) / total, float(wc.dot(dc * dc)) / total, float(dr.dot(w).dot(dc)) / total
     half_tr, det = (srr + scc) / 2, srr * scc - src * src
     root = math.sqrt(max(half_tr * half_tr - det, 0.0))
     big, small = half_tr + root, max(half_tr - root, 0.0)
