@@ -179,27 +179,35 @@ def _maximum_filter(vals: np.ndarray, size: int) -> np.ndarray:
     return out
 
 
-def _smooth(img: np.ndarray, sigma_px: float) -> np.ndarray:
+def _smooth(img: np.ndarray, sigma_px: float, scale_at_end: bool = False) -> np.ndarray:
     """Separable binomial smoothing (float32), the closest of widths 3 / 5 / 7 to a Gaussian of ``sigma_px``.
 
     ``n`` passes of [1, 2, 1] / 4 have sigma sqrt(n / 2); array shifts are
     several times faster than ``scipy.ndimage.gaussian_filter`` on one core.
-    Edges replicate the border pixel.
+    Edges replicate the border pixel. ``scale_at_end``: the passes' divisions
+    by 4 made once at the end, for an image whose pixels all lie in
+    [2^-100, 2^100] (the caller's promise): every sum then stays a normal
+    float, where a power of two scales exactly, so the result is the same
+    to the bit, with a pass over the image less per half-pass.
     """
     n = min(3, max(1, int(round(2 * sigma_px * sigma_px))))
     a = img.astype(np.float32)
     h, w = a.shape
+    scale = not (scale_at_end and h >= 2 and w >= 2)
     # two image buffers and one of pair sums, reused by every pass: fresh large arrays cost page faults
     b = np.empty_like(a)
     pair = np.empty(h * w, np.float32)
     for _ in range(n):
-        _binomial_rows(a, b, pair)
-        _binomial_cols(b, a, pair)
+        _binomial_rows(a, b, pair, scale)
+        _binomial_cols(b, a, pair, scale)
+    if not scale:
+        a *= 0.25 ** (2 * n)
     return a
 
 
-def _binomial_rows(x: np.ndarray, y: np.ndarray, pair: np.ndarray) -> None:
-    """``y`` = one [1, 2, 1] / 4 pass along axis 0 of ``x`` (h, w), edges replicated; ``pair``: scratch (>= h * w).
+def _binomial_rows(x: np.ndarray, y: np.ndarray, pair: np.ndarray, scale: bool = True) -> None:
+    """``y`` = one [1, 2, 1] / 4 pass along axis 0 of ``x`` (h, w), edges replicated; ``pair``: scratch (>= h * w);
+    without the division by 4 unless ``scale`` (``h`` >= 2 then).
 
     Sums of neighbouring pairs, then sums of neighbouring pair sums.
     """
@@ -212,10 +220,11 @@ def _binomial_rows(x: np.ndarray, y: np.ndarray, pair: np.ndarray) -> None:
     np.add(p[:-1], p[1:], out=y[1:-1])
     y[0] = p[0] + 2 * x[0]  # replicated x[-1] = x[0]
     y[-1] = p[-1] + 2 * x[-1]
-    y *= 0.25
+    if scale:
+        y *= 0.25
 
 
-def _binomial_cols(x: np.ndarray, y: np.ndarray, pair: np.ndarray) -> None:
+def _binomial_cols(x: np.ndarray, y: np.ndarray, pair: np.ndarray, scale: bool = True) -> None:
     """The same pass along axis 1, on the flattened image (one long contiguous loop, not h short ones).
 
     Pairs that straddle two rows only land in the first and last columns,
@@ -230,7 +239,8 @@ def _binomial_cols(x: np.ndarray, y: np.ndarray, pair: np.ndarray) -> None:
     np.add(p[:-1], p[1:], out=y.reshape(-1)[1:-1])
     y[:, 0] = x[:, 0] * 3 + x[:, 1]
     y[:, -1] = x[:, -2] + x[:, -1] * 3
-    y *= 0.25
+    if scale:
+        y *= 0.25
 
 
 def _index(n: int) -> np.ndarray:
@@ -347,7 +357,7 @@ def _detect(pixels, pixel_spacing_mm, tube_diameter_mm: float, min_area_factor: 
     r_px = 0.5 * tube_diameter_mm / math.sqrt(rs * cs)
     a0 = math.pi * r_px * r_px
     sig = smooth_sigma_px if smooth_sigma_px is not None else max(0.5, 0.3 * r_px)
-    smooth = _smooth(img, sig)
+    smooth = _smooth(img, sig, scale_at_end=lo >= 2.0 ** -100 and hi <= 2.0 ** 100)  # (exact: see _smooth)
     sub_smooth = np.ascontiguousarray(smooth[::2, ::2])  # (Otsu's histogram is faster from a contiguous copy)
     thr = otsu_threshold(sub_smooth)
     base = median(smooth[::4, ::4])
