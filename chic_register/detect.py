@@ -142,22 +142,53 @@ def _mean_std(values: np.ndarray) -> tuple[float, float]:
     return mean, math.sqrt(float(np.add.reduce(dev * dev)) / n)
 
 
-def _bounding_boxes(lab: np.ndarray, rows: np.ndarray, cols: np.ndarray, n: int):
-    """Per label 1..n, ``(row slice, col slice)`` of its bounding box (``scipy.ndimage.find_objects``'s result),
-    and ``(order, starts)``: the pixels sorted by label (raster order within one), and where each label's run starts.
+@dataclass(frozen=True)
+class _Components:
+    """The labelled pixels of an image, gathered per component (label j + 1 at index j, j < n).
 
-    ``lab``, ``rows``, ``cols``: label, row and column of every labelled pixel, in raster order.
+    ``boxes``: per component ``(r0, r1, c0, c1)``, its bounding box widened
+    by the footprint's margin (clipped to the image); ``start``: where its
+    pixels begin in ``values`` (the image's values at the labelled pixels,
+    sorted by label, raster order within one); ``row_counts`` /
+    ``col_counts``: its pixels per row / column of its box (floats, the
+    boxes one after the other from ``row_at`` / ``col_at``), and
+    ``row_sums`` / ``col_sums``: the sums of its pixels' rows / columns in
+    its box (exact integers, as floats). These are a mask's own row and
+    column sums and moments, found for every component in a few passes over
+    its pixels instead of several calls per component.
     """
+
+    boxes: list
+    start: list
+    values: np.ndarray
+    row_counts: np.ndarray
+    row_at: list
+    col_counts: np.ndarray
+    col_at: list
+    row_sums: list
+    col_sums: list
+
+
+def _components(img: np.ndarray, lab: np.ndarray, rows: np.ndarray, cols: np.ndarray, n: int, margin: int):
+    """:class:`_Components` of the labels 1..n (each present), from ``lab``, ``rows``, ``cols``: the label, row and
+    column of every labelled pixel in raster order; boxes widened by ``margin`` pixels."""
+    H, W = img.shape
     order = np.argsort(lab, kind="stable")  # stable: rows stay ascending within a label
     lab, rr, cc = lab[order], rows[order], cols[order]
-    starts = np.flatnonzero(np.concatenate(([True], lab[1:] != lab[:-1])))
+    starts = np.flatnonzero(np.concatenate(([True], lab[1:] != lab[:-1])))  # label j + 1 from starts[j]
     ends = np.append(starts[1:], lab.size) - 1
-    r0, r1 = rr[starts].tolist(), (rr[ends] + 1).tolist()
-    c0, c1 = np.minimum.reduceat(cc, starts).tolist(), (np.maximum.reduceat(cc, starts) + 1).tolist()
-    out = [None] * n
-    for k, label in enumerate(lab[starts].tolist()):
-        out[label - 1] = (slice(r0[k], r1[k]), slice(c0[k], c1[k]))
-    return out, (order, starts)
+    r0, r1 = np.maximum(rr[starts] - margin, 0), np.minimum(rr[ends] + 1 + margin, H)
+    c0 = np.maximum(np.minimum.reduceat(cc, starts) - margin, 0)
+    c1 = np.minimum(np.maximum.reduceat(cc, starts) + 1 + margin, W)
+    j = lab.astype(np.intp) - 1
+    lr, lc = rr - r0[j], cc - c0[j]  # rows and columns in the box
+    h, w = r1 - r0, c1 - c0
+    row_at, col_at = np.cumsum(h) - h, np.cumsum(w) - w
+    row_counts = np.bincount(row_at[j] + lr, minlength=int(h.sum())).astype(float)
+    col_counts = np.bincount(col_at[j] + lc, minlength=int(w.sum())).astype(float)
+    return _Components(list(zip(r0.tolist(), r1.tolist(), c0.tolist(), c1.tolist())), starts.tolist(), img[rr, cc],
+                       row_counts, row_at.tolist(), col_counts, col_at.tolist(),
+                       np.bincount(j, weights=lr, minlength=n).tolist(), np.bincount(j, weights=lc, minlength=n).tolist())
 
 
 def _maximum_filter(vals: np.ndarray, size: int) -> np.ndarray:
@@ -267,15 +298,20 @@ def _moments(w: np.ndarray):
     total = float(np.add.reduce(wr))
     if not total > 0:
         return None
-    rr, cc = _index(w.shape[0]), _index(w.shape[1])
     # (ndarray.dot is matmul's BLAS call, less its ufunc machinery: the same bits)
-    mr, mc = float(wr.dot(rr)) / total, float(wc.dot(cc)) / total
-    dr, dc = rr - mr, cc - mc
+    mr, mc = float(wr.dot(_index(w.shape[0]))) / total, float(wc.dot(_index(w.shape[1]))) / total
+    return (mr, mc) + _spread(w, wr, wc, total, mr, mc)
+
+
+def _spread(w: np.ndarray, wr: np.ndarray, wc: np.ndarray, total: float, mr: float, mc: float):
+    """``(minor/major axis ratio, variance across)`` of weights ``w`` (h, w) with row and column sums ``wr``,
+    ``wc``, sum ``total`` and centroid ``(mr, mc)``."""
+    dr, dc = _index(w.shape[0]) - mr, _index(w.shape[1]) - mc
     srr, scc, src = float(wr.dot(dr * dr)) / total, float(wc.dot(dc * dc)) / total, float(dr.dot(w).dot(dc)) / total
     half_tr, det = (srr + scc) / 2, srr * scc - src * src
     root = math.sqrt(max(half_tr * half_tr - det, 0.0))
     big, small = half_tr + root, max(half_tr - root, 0.0)
-    return mr, mc, (math.sqrt(small / big) if big > 0 else 1.0), small
+    return (math.sqrt(small / big) if big > 0 else 1.0), small
 
 
 def _shape(mask: np.ndarray) -> tuple[float, float]:
@@ -383,30 +419,31 @@ def _detect(pixels, pixel_spacing_mm, tube_diameter_mm: float, min_area_factor: 
     labels, n = cc3d.connected_components(mask[R0:R1, C0:C1], connectivity=4, return_N=True)
     lab_px = labels[rows - R0, cols - C0]  # every labelled pixel's label, in raster order
     area = np.bincount(lab_px, minlength=n + 1)[1:]
-    objs, (order, starts) = _bounding_boxes(lab_px, rows, cols, n)
-    # each component's pixel values in raster order, for its mean (the same sum as raw[blob].sum())
-    vals = img[rows[order], cols[order]]
-    first = np.zeros(n + 1, np.intp)
-    first[lab_px[order[starts]]] = starts
+    comp = _components(img, lab_px, rows, cols, n, k)
     keep = np.flatnonzero((area >= min_area_factor * a0) & (area <= max_area_factor * a0))
     # a component too large for one tube may be several blurred ones run together (wide blobs of close tubes):
     # it is offered split at higher levels, never whole
     merged = set(np.flatnonzero((area > max_area_factor * a0) & (area <= 150 * a0)).tolist()) if split_touching else set()
     grown = _dilate(labels != 0) if k == 1 else None  # every component's footprint at once (see below)
+    img_bg = img[R0:R1, C0:C1] - bg
     centres, areas, means, ratios, contrasts, feet, widths = [], [], [], [], [], [], []
     for i in sorted(set(keep.tolist()) | merged):
-        sl = objs[i]
-        r0, r1 = max(0, sl[0].start - k), min(H, sl[0].stop + k)
-        c0, c1 = max(0, sl[1].start - k), min(W, sl[1].stop + k)
+        r0, r1, c0, c1 = comp.boxes[i]
         n_i = int(area[i])
-        mean_i = float(np.add.reduce(vals[first[i + 1]:first[i + 1] + n_i])) / float(n_i)
+        # its mean: the sum of raw[blob], in the same order
+        mean_i = float(np.add.reduce(comp.values[comp.start[i]:comp.start[i] + n_i])) / float(n_i)
         contrast = (mean_i - bg) / sigma_n if sigma_n > 0 else math.inf
         if contrast < min_contrast:
             continue
         lab = labels[r0 - R0:r1 - R0, c0 - C0:c1 - C0]
         blob = lab == i + 1
         raw = img[r0:r1, c0:c1]
-        ratio, minor_var = _shape(blob)
+        # _shape(blob), from the row and column counts and sums found for all components at once
+        h, w = r1 - r0, c1 - c0
+        total = float(n_i)
+        ratio, minor_var = _spread(blob.astype(float), comp.row_counts[comp.row_at[i]:comp.row_at[i] + h],
+                                   comp.col_counts[comp.col_at[i]:comp.col_at[i] + w], total,
+                                   comp.row_sums[i] / total, comp.col_sums[i] / total)
         if i not in merged:
             widths.append(4 * math.sqrt(max(minor_var - 1 / 12, 0.0)))  # a disc's diameter, less a pixel's spread
         parts = [blob]
@@ -426,7 +463,7 @@ def _detect(pixels, pixel_spacing_mm, tube_diameter_mm: float, min_area_factor: 
             # its dilation in the box is that of all the components
             q0, q1, p0, p1 = max(R0, r0 - 1), min(R1, r1 + 1), max(C0, c0 - 1), min(C1, c1 + 1)
             alone = np.count_nonzero(labels[q0 - R0:q1 - R0, p0 - C0:p1 - C0]) == n_i
-        raw_bg = raw - bg
+        raw_bg = img_bg[r0 - R0:r1 - R0, c0 - C0:c1 - C0]  # (raw - bg)
         for part in parts:
             if part is blob and alone:
                 foot = grown[r0 - R0:r1 - R0, c0 - C0:c1 - C0].copy()
