@@ -169,14 +169,17 @@ class _Components:
     col_sums: list
 
 
-def _components(img: np.ndarray, lab: np.ndarray, rows: np.ndarray, cols: np.ndarray, n: int, margin: int):
-    """:class:`_Components` of the labels 1..n (each present), from ``lab``, ``rows``, ``cols``: the label, row and
-    column of every labelled pixel in raster order; boxes widened by ``margin`` pixels."""
+def _components(img: np.ndarray, lab: np.ndarray, rows: np.ndarray, cols: np.ndarray, area: np.ndarray,
+                margin: int):
+    """:class:`_Components` of the labels 1..n (each present, ``area`` (n,) pixels), from ``lab``, ``rows``,
+    ``cols``: the label, row and column of every labelled pixel in raster order; boxes widened by ``margin`` pixels."""
     H, W = img.shape
+    n = area.size
     order = np.argsort(lab, kind="stable")  # stable: rows stay ascending within a label
     lab, rr, cc = lab[order], rows[order], cols[order]
-    starts = np.flatnonzero(np.concatenate(([True], lab[1:] != lab[:-1])))  # label j + 1 from starts[j]
-    ends = np.append(starts[1:], lab.size) - 1
+    ends = np.cumsum(area)
+    starts = ends - area  # label j + 1 from starts[j]
+    ends -= 1
     r0, r1 = np.maximum(rr[starts] - margin, 0), np.minimum(rr[ends] + 1 + margin, H)
     c0 = np.maximum(np.minimum.reduceat(cc, starts) - margin, 0)
     c1 = np.minimum(np.maximum.reduceat(cc, starts) + 1 + margin, W)
@@ -419,7 +422,7 @@ def _detect(pixels, pixel_spacing_mm, tube_diameter_mm: float, min_area_factor: 
     labels, n = cc3d.connected_components(mask[R0:R1, C0:C1], connectivity=4, return_N=True)
     lab_px = labels[rows - R0, cols - C0]  # every labelled pixel's label, in raster order
     area = np.bincount(lab_px, minlength=n + 1)[1:]
-    comp = _components(img, lab_px, rows, cols, n, k)
+    comp = _components(img, lab_px, rows, cols, area, k)
     keep = np.flatnonzero((area >= min_area_factor * a0) & (area <= max_area_factor * a0))
     # a component too large for one tube may be several blurred ones run together (wide blobs of close tubes):
     # it is offered split at higher levels, never whole
