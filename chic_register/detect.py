@@ -419,7 +419,8 @@ def _detect(pixels, pixel_spacing_mm, tube_diameter_mm: float, min_area_factor: 
     m = max(k, 0)
     R0, R1 = max(0, int(rows[0]) - m), min(H, int(rows[-1]) + 1 + m)
     C0, C1 = max(0, int(cols.min()) - m), min(W, int(cols.max()) + 1 + m)
-    labels, n = cc3d.connected_components(mask[R0:R1, C0:C1], connectivity=4, return_N=True)
+    # (a contiguous mask: cc3d copies a strided one slowly)
+    labels, n = cc3d.connected_components(smooth[R0:R1, C0:C1] > thr, connectivity=4, return_N=True)
     lab_px = labels[rows - R0, cols - C0]  # every labelled pixel's label, in raster order
     area = np.bincount(lab_px, minlength=n + 1)[1:]
     comp = _components(img, lab_px, rows, cols, area, k)
