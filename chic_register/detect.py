@@ -204,13 +204,30 @@ def _maximum_filter(vals: np.ndarray, size: int) -> np.ndarray:
     H, W = vals.shape
     padded = np.full((H + 2 * h, W + 2 * h), -np.inf, dtype=vals.dtype)  # (np.pad's result, less its overhead)
     padded[h:h + H, h:h + W] = vals
-    rows = padded[:H].copy()  # separable: the maximum over the window's rows, then over its columns (exact)
-    for d in range(1, size):
-        np.maximum(rows, padded[d:d + H], out=rows)
-    out = rows[:, :W].copy()
-    for d in range(1, size):
-        np.maximum(out, rows[:, d:d + W], out=out)
-    return out
+    # separable: the maximum over the window's rows, then over its columns (exact)
+    return _running_max(_running_max(padded, size, 0), size, 1)
+
+
+def _running_max(a: np.ndarray, size: int, axis: int) -> np.ndarray:
+    """Maximum of every ``size`` consecutive values of ``a`` along ``axis`` (the axis shrinks by ``size - 1``).
+
+    By doubling: maxima over 2, 4, ... values, then two overlapping windows
+    of the largest power of two make up ``size`` (a maximum is exact in any
+    order): ~log2(size) operations instead of ``size - 1``.
+    """
+    def span(x, start, stop):
+        return x[start:stop] if axis == 0 else x[:, start:stop]
+
+    n = a.shape[axis]
+    m, width = a, 1
+    while 2 * width <= size:
+        length = m.shape[axis]
+        m = np.maximum(span(m, 0, length - width), span(m, width, length))
+        width *= 2
+    out_len = n - size + 1
+    if width == size:
+        return m
+    return np.maximum(span(m, 0, out_len), span(m, size - width, size - width + out_len))
 
 
 def _smooth(img: np.ndarray, sigma_px: float, scale_at_end: bool = False) -> np.ndarray:
