@@ -307,12 +307,21 @@ _INDEX = np.arange(256, dtype=float)
 
 def _moments(w: np.ndarray):
     """Centroid (row, col) of weights ``w`` (h, w), the minor/major axis ratio of their spread and its variance
-    across (px^2).
+    across (px^2); None when the weights do not sum to a positive total."""
+    c = _centroid(w, with_sums=True)
+    if c is None:
+        return None
+    mr, mc, wr, wc, total = c
+    return (mr, mc) + _spread(w, wr, wc, total, mr, mc)
+
+
+def _centroid(w: np.ndarray, with_sums: bool = False):
+    """Centroid ``(row, col)`` of weights ``w`` (h, w) (then its row sums, column sums and total when
+    ``with_sums``); None when the weights do not sum to a positive total.
 
     From the row and column sums (two passes over ``w``, then vectors of
     length h and w): these windows are small, so call overhead dominates
     (hence the ufuncs' own reductions, without ``sum``'s wrapper, and ``dot``).
-    Returns None when the weights do not sum to a positive total.
     """
     wr, wc = np.add.reduce(w, 1), np.add.reduce(w, 0)
     total = float(np.add.reduce(wr))
@@ -320,7 +329,7 @@ def _moments(w: np.ndarray):
         return None
     # (ndarray.dot is matmul's BLAS call, less its ufunc machinery: the same bits)
     mr, mc = float(wr.dot(_index(w.shape[0]))) / total, float(wc.dot(_index(w.shape[1]))) / total
-    return (mr, mc) + _spread(w, wr, wc, total, mr, mc)
+    return (mr, mc, wr, wc, total) if with_sums else (mr, mc)
 
 
 def _spread(w: np.ndarray, wr: np.ndarray, wc: np.ndarray, total: float, mr: float, mc: float):
@@ -494,7 +503,7 @@ def _detect(pixels, pixel_spacing_mm, tube_diameter_mm: float, min_area_factor: 
                 foot &= keep_out
             if part is not blob:
                 foot &= ~(blob & ~part)  # a split half stays out of the other half
-            m = _moments(raw_bg * foot)
+            m = _centroid(raw_bg * foot)  # (its spread is the blob's own, from _spread above)
             if m is None:
                 continue
             centres.append((r0 + m[0], c0 + m[1]))
