@@ -42,10 +42,9 @@ import numpy as np
 
 from .geometry import FiducialGeometry
 from .pose import rigid, slice_angles, slice_frame, wrap_deg
+from .pose_params import PARAMETER_FRAME, PARAMETER_ORDER, default_target, target_jacobian, tre_rms_mm  # noqa: F401
+from .pose_params import deg_mm_scale as _scale
 
-#: Order and units of the pose covariance (rotations about F's axes through its origin; translations along them).
-PARAMETER_ORDER = ("rx_deg", "ry_deg", "rz_deg", "tx_mm", "ty_mm", "tz_mm")
-PARAMETER_FRAME = "F (fiducial): rotation r (deg) about F's x, y, z axes through F's origin, then translation t (mm) along them; a point p of F moves by r x p + t"
 NOISE_MODELS = ("rician", "gaussian")
 #: Sampling of the renderer: (supersample, thickness_samples).
 QUALITY = {"default": (4, 5), "fast": (3, 3)}
@@ -304,26 +303,6 @@ def fisher_information(geom: FiducialGeometry, depth_mm: float, tilt_deg: float,
 # --------------------------------------------------------------------------- reported errors
 
 
-def _scale() -> np.ndarray:
-    """Factors from (rad, mm) to the reported (deg, mm)."""
-    return np.array([math.degrees(1.0)] * 3 + [1.0] * 3)
-
-
-def target_jacobian(target_F_mm) -> np.ndarray:
-    """d(target position in F)/d(delta) for delta in (rad, mm): ``[-[p]x | I]`` (3x6)."""
-    p = np.asarray(target_F_mm, dtype=float)
-    skew = np.array([[0.0, -p[2], p[1]], [p[2], 0.0, -p[0]], [-p[1], p[0], 0.0]])
-    return np.hstack([-skew, np.eye(3)])
-
-
-def tre_rms_mm(cov_deg_mm: np.ndarray, target_F_mm) -> float:
-    """RMS 3-D error of a point of F under the pose covariance (order :data:`PARAMETER_ORDER`)."""
-    s = _scale()
-    J = target_jacobian(target_F_mm)
-    C = np.asarray(cov_deg_mm) / np.outer(s, s)  # back to rad, mm
-    return float(math.sqrt(max(0.0, np.trace(J @ C @ J.T))))
-
-
 def angle_jacobian(T_F_from_S: np.ndarray) -> np.ndarray:
     """d(normal angle components (2), twist, depth)/d(delta) (4x6, rad and mm), numerically on ``slice_angles``."""
     T = np.asarray(T_F_from_S, dtype=float)
@@ -361,12 +340,6 @@ def summarise(cov_deg_mm: np.ndarray, T_F_from_S: np.ndarray, target_F_mm) -> di
     }
 
 
-def default_target(geom: FiducialGeometry) -> tuple[float, float, float]:
-    """The geometry's tool tip if it has one, else the centre of the body on its axis."""
-    tool = getattr(geom, "tool", None)
-    if tool is not None:
-        return tuple(float(v) for v in tool.tip_mm)
-    return (0.0, 0.0, 0.5 * float(geom.body.length))
 
 
 # --------------------------------------------------------------------------- public API

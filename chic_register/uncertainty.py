@@ -20,7 +20,7 @@ improbably large (above its 99th percentile), the covariance is scaled up by
 it, so a model misfit widens the reported uncertainty instead of hiding.
 
 The covariance is reported for the perturbation ``delta`` of
-:data:`chic_register.crlb.PARAMETER_ORDER` (rotation about F's axes in deg,
+:data:`chic_register.pose_params.PARAMETER_ORDER` (rotation about F's axes in deg,
 then translation along them in mm): the fiducial's points ``p`` (F) move by
 ``r x p + t``, i.e. ``T_scanner_from_fiducial @ exp(delta)``.
 """
@@ -33,7 +33,7 @@ from dataclasses import dataclass
 
 import numpy as np
 
-from .crlb import PARAMETER_FRAME, PARAMETER_ORDER, default_target, tre_rms_mm
+from .pose_params import PARAMETER_FRAME, PARAMETER_ORDER, default_target, tre_rms_mm
 from .detect import median
 from .noise import (  # noqa: F401  (the noise model, importable from here as before)
     CORRELATION_BLOCK_PX,
@@ -287,7 +287,7 @@ def chi2_quantile(p: float, dof: int) -> float:
 
 
 def target_point(geom, target_F_mm=None) -> tuple[float, float, float]:
-    """The TRE target: given, else the geometry's tool tip, else the body's centre on the axis (see :func:`chic_register.crlb.default_target`)."""
+    """The TRE target: given, else the geometry's tool tip, else the body's centre on the axis (see :func:`chic_register.pose_params.default_target`)."""
     if target_F_mm is not None:
         return tuple(float(v) for v in target_F_mm)
     return default_target(geom)

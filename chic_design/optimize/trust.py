@@ -51,7 +51,7 @@ def solver_limits() -> TrustLimits:
 def solver_sds(cov_deg_mm, length_mm: float) -> tuple[float, float]:
     """Worst-direction 1-sigma of the frame centre's displacement (mm) and of the rotation (deg) of a pose
     covariance in :data:`chic_register.crlb.PARAMETER_ORDER` (what ``pose_precision`` reports, from the bound)."""
-    from chic_register.crlb import _scale, target_jacobian
+    from chic_register.pose_params import deg_mm_scale as _scale, target_jacobian
 
     s = _scale()
     C = np.asarray(cov_deg_mm, dtype=float) / np.outer(s, s)  # rad, mm
