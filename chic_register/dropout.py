@@ -72,7 +72,7 @@ def fill_dropouts(pixels: np.ndarray) -> tuple[np.ndarray, int]:
     if img.size and img.dtype.kind in "fiu":
         lo, hi = float(np.minimum.reduce(img, axis=None)), float(np.maximum.reduce(img, axis=None))
     pixels, n_bad = _fill_non_finite(pixels, lo, hi)
-    pixels, n_specks = _fill_specks(pixels)
+    pixels, n_specks = _fill_specks(pixels, nonzero=not n_bad and (lo > 0 or hi < 0))
     if not n_bad and (lo > 0 or hi < 0):
         return pixels, n_specks
     filled, n_zero = _fill_zeros(pixels)
@@ -104,9 +104,9 @@ def _fill_non_finite(pixels: np.ndarray, lo: float = math.nan, hi: float = math.
     return out, n
 
 
-def _fill_specks(pixels: np.ndarray) -> tuple[np.ndarray, int]:
+def _fill_specks(pixels: np.ndarray, nonzero: bool = False) -> tuple[np.ndarray, int]:
     """Bright specks (hot pixels, impulse noise) replaced by the median of their neighbours, when the image is strewn
-    with them (:data:`MIN_SPECK_SHARE`).
+    with them (:data:`MIN_SPECK_SHARE`); ``nonzero``: the caller knows that no pixel is 0.
 
     A speck stands alone: it exceeds the median of its eight neighbours by
     nearly its whole height above the background (:data:`SPECK_ALONE`) and by
@@ -117,7 +117,8 @@ def _fill_specks(pixels: np.ndarray) -> tuple[np.ndarray, int]:
     if img.ndim != 2 or min(img.shape) < 3:
         return pixels, 0
     sample = img[::4, ::4]  # the background and noise level from a sixteenth of the pixels: cheap and ample
-    sample = sample[sample != 0]  # (zeros: a clipped or masked background, not the noise's spread)
+    # (zeros: a clipped or masked background, not the noise's spread)
+    sample = sample.ravel() if nonzero else sample[sample != 0]
     if sample.size < 16:
         return pixels, 0
     background = median(sample)  # (np.median's value, without its overhead: finite pixels here)
