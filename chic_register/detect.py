@@ -204,30 +204,25 @@ def _maximum_filter(vals: np.ndarray, size: int) -> np.ndarray:
     H, W = vals.shape
     padded = np.full((H + 2 * h, W + 2 * h), -np.inf, dtype=vals.dtype)  # (np.pad's result, less its overhead)
     padded[h:h + H, h:h + W] = vals
-    # separable: the maximum over the window's rows, then over its columns (exact)
-    return _running_max(_running_max(padded, size, 0), size, 1)
+    # separable: the maximum over the window's rows, then over its columns (on the transposed view; exact)
+    return _running_max(_running_max(padded, size).T, size).T
 
 
-def _running_max(a: np.ndarray, size: int, axis: int) -> np.ndarray:
-    """Maximum of every ``size`` consecutive values of ``a`` along ``axis`` (the axis shrinks by ``size - 1``).
+def _running_max(a: np.ndarray, size: int) -> np.ndarray:
+    """Maximum of every ``size`` consecutive rows of ``a`` (the first axis shrinks by ``size - 1``).
 
-    By doubling: maxima over 2, 4, ... values, then two overlapping windows
-    of the largest power of two make up ``size`` (a maximum is exact in any
+    By doubling: maxima over 2, 4, ... rows, then two overlapping windows of
+    the largest power of two make up ``size`` (a maximum is exact in any
     order): ~log2(size) operations instead of ``size - 1``.
     """
-    def span(x, start, stop):
-        return x[start:stop] if axis == 0 else x[:, start:stop]
-
-    n = a.shape[axis]
     m, width = a, 1
     while 2 * width <= size:
-        length = m.shape[axis]
-        m = np.maximum(span(m, 0, length - width), span(m, width, length))
+        m = np.maximum(m[:-width], m[width:])
         width *= 2
-    out_len = n - size + 1
     if width == size:
         return m
-    return np.maximum(span(m, 0, out_len), span(m, size - width, size - width + out_len))
+    n_out = a.shape[0] - size + 1
+    return np.maximum(m[:n_out], m[size - width:size - width + n_out])
 
 
 def _smooth(img: np.ndarray, sigma_px: float, scale_at_end: bool = False) -> np.ndarray:
