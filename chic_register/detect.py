@@ -71,8 +71,13 @@ def otsu_threshold(image: np.ndarray, bins: int = 256) -> float:
     t = x - lo  # (x - lo) * (bins / (hi - lo)), in place
     t *= bins / (hi - lo)
     q = t.astype(np.intp)
-    np.minimum(q, bins - 1, out=q)
-    hist = np.bincount(q, minlength=bins).astype(float)
+    # np.bincount(np.minimum(q, bins - 1)): the top value's bin (bins) folded into the last, without a pass over q
+    hist = np.bincount(q, minlength=bins + 1)
+    if hist.size == bins + 1:
+        hist[bins - 1] += hist[bins]
+        hist = hist[:bins].astype(float)
+    else:  # (rounding past the top bin: not seen, but then exactly as it says)
+        hist = np.bincount(np.minimum(q, bins - 1), minlength=bins).astype(float)
     steps = _OTSU_STEPS.get(bins)
     if steps is None:
         steps = _OTSU_STEPS[bins] = np.arange(bins) + 0.5

@@ -143,3 +143,28 @@ def test_footprints_areas_and_means_follow_the_per_blob_rules():
             assert np.array_equal(foot, ref)
             assert area == np.count_nonzero(labels == own)  # the whole component lies in its box
             assert mean == img[r0:r0 + foot.shape[0], c0:c0 + foot.shape[1]][blob].sum() / area
+
+
+def test_otsu_is_the_histogram_rule():
+    """The threshold equals the textbook computation (every value in one of ``bins`` equal bins, the top value in
+    the last) on images whose maximum sits exactly at the top edge."""
+
+    def reference(image, bins=256):
+        lo, hi = float(image.min()), float(image.max())
+        q = np.minimum(((image.ravel() - lo) * (bins / (hi - lo))).astype(np.intp), bins - 1)
+        hist = np.bincount(q, minlength=bins).astype(float)
+        centres = lo + (np.arange(bins) + 0.5) * (hi - lo) / bins
+        w0 = np.cumsum(hist)
+        w1 = w0[-1] - w0
+        m0 = np.cumsum(hist * centres)
+        mu0 = m0 / np.maximum(w0, 1e-12)
+        mu1 = (m0[-1] - m0) / np.maximum(w1, 1e-12)
+        k = int(np.argmax((w0 * w1 * (mu0 - mu1) ** 2)[:-1]))
+        return float(lo + (k + 1) * (hi - lo) / bins)
+
+    rng = np.random.default_rng(6)
+    for dtype in (np.float32, np.float64):
+        for _ in range(50):
+            img = np.concatenate([rng.normal(0, 1, 3000), rng.normal(rng.uniform(3, 30), 1, 400)]).astype(dtype)
+            img[rng.integers(img.size, size=rng.integers(1, 5))] = img.max()  # ties at the top edge
+            assert otsu_threshold(img.reshape(68, 50)) == reference(img.reshape(68, 50))
