@@ -108,12 +108,11 @@ def rician_model(S, Sx, Sy, gain, other, sigma: float):
     unbiased at any noise level.
     """
     inv = 1.0 / sigma
-    if other is None:  # no neighbour: R(0), the floor
+    if other is None:  # no neighbour: R(0), the floor, and no lift
         g, slope = rician_mean((gain * S) * inv)
-        g0 = np.full(S.size, RAYLEIGH_MEAN)
-    else:
-        g, slope = rician_mean((gain * S + other) * inv)
-        g0, _ = rician_mean(other * inv)
+        return (g - RAYLEIGH_MEAN) * (sigma / gain), slope * Sx, slope * Sy, np.zeros(S.size)
+    g, slope = rician_mean((gain * S + other) * inv)
+    g0, _ = rician_mean(other * inv)
     return (g - g0) * (sigma / gain), slope * Sx, slope * Sy, (g0 - RAYLEIGH_MEAN) * sigma
 
 

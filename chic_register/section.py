@@ -49,9 +49,19 @@ from dataclasses import dataclass
 
 import numpy as np
 
+from .fit_windows import (
+    Windows,
+    _joint_windows,
+    _kept,
+    _window_pixels,
+    joint_windows,
+    section_windows,
+)
 from .pixel_coverage import _box_edge, _chord_m2
 from .rician import inner_gain, rician_model
-from .tube_model import _section_box, _section_extent, plane_crossings
+from .tube_model import plane_crossings
+
+__all__ = ["SectionFit", "Windows", "fit_sections", "joint_windows", "section_model", "section_windows", "tube_frames"]
 
 
 @dataclass(frozen=True, eq=False)
@@ -81,22 +91,29 @@ def tube_frames(model, T_F_from_I: np.ndarray, q: np.ndarray, tan_I: np.ndarray)
         return hit[1]  # (read-only arrays)
     K = q.shape[0]
     R, o = T_F_from_I[:3, :3], T_F_from_I[:3, 3]
-    X = np.column_stack([q, np.zeros(K)]) @ R.T + o  # crossings in F
-    kappa_F = np.zeros((K, 3))
+    Xq = np.zeros((K, 3))
+    Xq[:, :2] = q
+    X = Xq @ R.T + o  # crossings in F
+    x_F, y_F, z_F = X.T.copy()  # (rows: 1-d gathers, cheaper than 2-d fancy indexing)
+    k_x, k_y = np.zeros(K), np.zeros(K)
     s_lo, s_hi = np.zeros(K), np.zeros(K)
     li, hi = model.line_idx, model.helix_idx
     if li.size:
         d, p0, dd, length = model.line_d, model.line_p0, model.line_dd, model.line_length_mm
-        t = np.einsum("ij,ij->i", X[li] - p0, d) / dd
+        t = np.einsum("ij,ij->i", np.take(X, li, axis=0) - p0, d) / dd
         s_lo[li], s_hi[li] = t * length, (1 - t) * length
     if hi.size:
         r, om = model.radius[hi], model.omega_rad_per_mm[hi]
         g2 = 1 + (r * om) ** 2
-        th = np.arctan2(X[hi, 1], X[hi, 0])
-        kappa_F[hi, 0] = -r * om * om * np.cos(th) / g2
-        kappa_F[hi, 1] = -r * om * om * np.sin(th) / g2
+        th = np.arctan2(y_F[hi], x_F[hi])
+        c = -r * om * om
+        k_x[hi] = c * np.cos(th) / g2
+        k_y[hi] = c * np.sin(th) / g2
         g = np.sqrt(g2)
-        s_lo[hi], s_hi[hi] = (X[hi, 2] - model.z_lo[hi]) * g, (model.z_hi[hi] - X[hi, 2]) * g
+        z = z_F[hi]
+        s_lo[hi], s_hi[hi] = (z - model.z_lo[hi]) * g, (model.z_hi[hi] - z) * g
+    kappa_F = np.zeros((K, 3))
+    kappa_F[:, 0], kappa_F[:, 1] = k_x, k_y
     out = (kappa_F @ R, s_lo, s_hi)
     for v in out:
         v.flags.writeable = False
@@ -119,125 +136,23 @@ JOINT_NEIGHBOUR_LEVEL = 0.05
 _PAIR_I = np.array([0, 0, 0, 0, 1, 1, 1, 2, 2, 3, 0, 1, 2, 3])
 _PAIR_J = np.array([0, 1, 2, 3, 1, 2, 3, 2, 3, 3, 4, 4, 4, 4])
 _SYM = np.array([[0, 1, 2, 3], [1, 4, 5, 6], [2, 5, 7, 8], [3, 6, 8, 9]])
-
-
-@dataclass(frozen=True, eq=False)
-class Windows:
-    """The pixels each tube's fit uses: ``rows``, ``cols`` (P,) and ``owner`` (P,), the tube index."""
-
-    rows: np.ndarray
-    cols: np.ndarray
-    owner: np.ndarray
-    shared: bool = True  # some pixel was left out for a neighbouring tube's sake (the joint pass has work)
-
-
-def section_windows(model, q: np.ndarray, tan: np.ndarray, found: np.ndarray, todo: np.ndarray, shape,
-                    pixel_spacing_mm, slice_thickness_mm: float, assignment=None, footprints=(),
-                    margin_px: float = 1.5, reach=None) -> Windows:
-    """Each tube in ``todo``'s section box grown by ``margin_px``, less what another tube or blob reaches.
-
-    ``q``, ``tan``, ``found``: :func:`~chic_register.solve.plane_crossings`
-    at the pose. Pixels within half a pixel of another tube's section box,
-    or inside the footprint of a blob that is not the tube's own (nor
-    overlaps it), are left out. ``reach``: :func:`_window_pixels` of these
-    arguments, when already computed.
-    """
-    rr, cc, own, hit, far, _ = reach or _window_pixels(model, q, tan, found, todo, shape, pixel_spacing_mm,
-                                                       slice_thickness_mm, margin_px)
-    keep = ~(hit | far).any(axis=1)
-    shared = bool((hit.any(axis=1) & ~far.any(axis=1)).any())
-    if len(footprints) and assignment is not None:
-        _drop_foreign_blobs(keep, rr, cc, own, assignment, footprints)
-    return Windows(rr[keep], cc[keep], own[keep], shared)
-
-
-def _window_pixels(model, q, tan, found, todo, shape, pixel_spacing_mm, slice_thickness_mm: float, margin_px: float):
-    """Every tube in ``todo``'s bounding-box pixels ``(rows, cols, owner)`` (P,), which other found tubes' grown
-    section boxes reach each (``hit`` (P, n_others)), the box corners beyond the tube's own grown box (``far``),
-    and the other tubes' indices."""
-    rs, cs = (float(v) for v in pixel_spacing_mm)
-    H, W = shape
-    half_len, _, u = _section_extent(model, tan, slice_thickness_mm)
-    half_wid = 0.5 * model.diameter_mm  # across its length a section is the tube's width
-    u = np.where((np.abs(u).sum(axis=1) > 0)[:, None], u, [1.0, 0.0])  # a round section: any direction
-    m_mm = margin_px * max(rs, cs)
-    ex, ey = (e + m_mm for e in _section_box(half_len, half_wid, u))
-    i0 = np.maximum(0, np.ceil((q[todo, 1] - ey[todo]) / rs)).astype(int)
-    i1 = np.minimum(H - 1, np.floor((q[todo, 1] + ey[todo]) / rs)).astype(int)
-    j0 = np.maximum(0, np.ceil((q[todo, 0] - ex[todo]) / cs)).astype(int)
-    j1 = np.minimum(W - 1, np.floor((q[todo, 0] + ex[todo]) / cs)).astype(int)
-    h, w = np.maximum(i1 - i0 + 1, 0), np.maximum(j1 - j0 + 1, 0)
-    n = h * w
-    idx = np.repeat(np.arange(todo.size), n)
-    local = np.arange(int(n.sum())) - np.repeat(np.cumsum(n) - n, n)
-    rr = i0[idx] + local // np.maximum(w[idx], 1)
-    cc = j0[idx] + local % np.maximum(w[idx], 1)
-    own = todo[idx]
-    # leave out what another tube's section (grown by half a pixel) reaches
-    others = np.flatnonzero(found)
-    dx = (cc * cs)[:, None] - q[others, 0][None]
-    dy = (rr * rs)[:, None] - q[others, 1][None]
-    grow = max(rs, cs)
-    along = np.abs(dx * u[others, 0] + dy * u[others, 1])
-    across = np.abs(dx * u[others, 1] - dy * u[others, 0])
-    mine = others[None] == own[:, None]
-    hit = (along < half_len[others] + grow) & (across < half_wid[others] + grow) & ~mine
-    # and the corners of the bounding box that lie beyond the margin of the tube's own (rotated) section box
-    far = ((along > half_len[others] + m_mm) | (across > half_wid[others] + m_mm)) & mine
-    return rr, cc, own, hit, far, others
-
-
-def joint_windows(model, q: np.ndarray, tan: np.ndarray, found: np.ndarray, todo: np.ndarray, shape,
-                  pixel_spacing_mm, slice_thickness_mm: float, modelled: np.ndarray, assignment=None, footprints=(),
-                  margin_px: float = 1.5, reach=None):
-    """:func:`section_windows` keeping the pixels that only ``modelled`` (K,) tubes' sections reach besides the
-    tube's own, and those pairs: ``(windows, pixel (M,) index into the windows, tube (M,))``.
-
-    A pixel two sections share carries information on both: with the
-    neighbour's fitted section subtracted (the joint pass of
-    :func:`fit_sections`) it is used instead of left out, which matters where
-    a helix runs close to a straight tube (near the body's ends). ``reach``: as for :func:`section_windows`.
-    """
-    rr, cc, own, hit, far, others = reach or _window_pixels(model, q, tan, found, todo, shape, pixel_spacing_mm,
-                                                            slice_thickness_mm, margin_px)
-    keep = ~((hit & ~modelled[others][None]) | far).any(axis=1)
-    if len(footprints) and assignment is not None:
-        _drop_foreign_blobs(keep, rr, cc, own, assignment, footprints)
-    kept = np.flatnonzero(keep)
-    p, o = np.divmod(np.flatnonzero(hit[kept]), max(hit.shape[1], 1))  # (np.nonzero's row-major pairs, faster)
-    return Windows(rr[kept], cc[kept], own[kept]), p, others[o]
-
-
-def _drop_foreign_blobs(keep, rr, cc, own, assignment, footprints) -> None:
-    """Clear ``keep`` on window pixels inside an unassigned blob's footprint that does not overlap the tube's own."""
-    assigned = {int(b) for b in assignment if b >= 0}
-    for n, (r0, c0, m) in enumerate(footprints):
-        if n in assigned:
-            continue
-        h, w = m.shape
-        inside = (rr >= r0) & (rr < r0 + h) & (cc >= c0) & (cc < c0 + w)
-        if not inside.any():
-            continue
-        for k in np.unique(own[inside]).tolist():
-            R0, C0, M = footprints[int(assignment[k])]
-            a0, b0 = max(r0, R0), max(c0, C0)
-            a1, b1 = min(r0 + h, R0 + M.shape[0]), min(c0 + w, C0 + M.shape[1])
-            if a0 < a1 and b0 < b1:
-                theirs, mine = m[a0 - r0:a1 - r0, b0 - c0:b1 - c0], M[a0 - R0:a1 - R0, b0 - C0:b1 - C0]
-                if (theirs & mine).any():
-                    continue  # a split half of the tube's own blob, or the whole of it
-            sel = np.flatnonzero(inside & (own == k))
-            keep[sel[m[rr[sel] - r0, cc[sel] - c0]]] = False
+# _linear_fit's rows of products: 1, S, Sx, Sy, y, then rows _PROD_I times rows _PROD_J; _PROD_ROW: the row of
+# each (_PAIR_I, _PAIR_J) product
+_PROD_I = np.array([1, 1, 1, 2, 2, 3, 1, 2, 3])
+_PROD_J = np.array([1, 2, 3, 2, 3, 3, 4, 4, 4])
+_PROD_ROW = np.array([0, 1, 2, 3, 5, 6, 7, 8, 9, 10, 4, 11, 12, 13])
+_ADJUGATE_SIGN = np.array([[1.0, -1.0], [-1.0, 1.0]])
 
 
 def section_model(model, T_F_from_I: np.ndarray, q: np.ndarray, tan: np.ndarray, win: Windows, pixel_spacing_mm,
-                  slice_thickness_mm: float, thickness_samples: int = 5, exact: bool = True):
+                  slice_thickness_mm: float, thickness_samples: int = 5, exact: bool = True, *, slopes: bool = True):
     """The model image of each window pixel's tube and its derivatives for the section moving in the image.
 
     Returns ``(S, Sx, Sy)`` (P,): the fluid fraction of the pixel and its
     derivatives (per mm) for the section shifted along x (columns) and y (rows).
     ``exact=False``: without the edge-curvature term (a first approximation,
-    for a pass whose only job is to bring the next one close).
+    for a pass whose only job is to bring the next one close). ``slopes=False``:
+    ``S`` alone (``Sx``, ``Sy`` None), for a neighbour's level.
     """
     rs, cs = (float(v) for v in pixel_spacing_mm)
     thick = float(slice_thickness_mm)
@@ -247,32 +162,40 @@ def section_model(model, T_F_from_I: np.ndarray, q: np.ndarray, tan: np.ndarray,
     # ---- pixels no edge crosses in any plane are wholly fluid (1) or wholly outside (0), with no slope: from
     # the middle plane, the distance to the centreline moving by at most |t_xy| T / 2 across the slab, plus the
     # half-diagonal of the pixel and the helix's sag over the window
-    dx0, dy0 = win.cols * cs - q[own, 0], win.rows * rs - q[own, 1]
-    txy = np.hypot(tan[:, 0], tan[:, 1])
-    s00 = dx0 * tan[own, 0] + dy0 * tan[own, 1]
+    # (per-tube values gathered per pixel from contiguous rows: numpy's 2-d fancy indexing costs several times more)
+    qx, qy = q.T.copy()
+    tan_rows = tan.T.copy()
+    dx0, dy0 = win.cols * cs - qx[own], win.rows * rs - qy[own]
+    txy = np.hypot(tan_rows[0], tan_rows[1])
+    s00 = dx0 * tan_rows[0][own] + dy0 * tan_rows[1][own]
     dist0 = np.sqrt(np.maximum(dx0 * dx0 + dy0 * dy0 - s00 * s00, 0.0))
     reach = np.hypot(dx0, dy0) + 0.5 * thick + 0.5 * math.hypot(cs, rs)
     # (per tube, then per pixel: the same values as per pixel throughout, fewer operations)
-    slack = ((txy * 0.5 * thick)[own] + (0.5 * np.linalg.norm(kappa, axis=1))[own] * reach * reach
+    kappa_norm = np.sqrt(np.add.reduce(kappa * kappa, axis=1))  # (np.linalg.norm's sums, without its wrapper)
+    slack = ((txy * 0.5 * thick)[own] + (0.5 * kappa_norm)[own] * reach * reach
              + 0.5 * math.hypot(cs, rs) + 1e-6)
     clear_end = np.minimum(s_lo[own] + s00, s_hi[own] - s00) - reach
     S = np.zeros(own.size)
-    Sx, Sy = np.zeros(own.size), np.zeros(own.size)
+    Sx, Sy = (np.zeros(own.size), np.zeros(own.size)) if slopes else (None, None)
     inner = r_tube[own] - dist0
     deep = inner > slack
     S[deep & (clear_end > 0)] = 1.0
     band = np.flatnonzero((np.abs(inner) <= slack) | (deep & (clear_end <= 0)))
     if band.size:
-        S[band], Sx[band], Sy[band] = _section_band(tan, kappa, s_lo, s_hi, r_tube, own[band], dx0[band], dy0[band],
-                                                    cs, rs, thick, thickness_samples,
-                                                    ends=bool((clear_end[band] <= 0).any()), curved=exact,
-                                                    s00=s00[band])
+        drawn = _section_band(tan_rows, kappa, s_lo, s_hi, r_tube, own[band], dx0[band], dy0[band], cs, rs, thick,
+                              thickness_samples, ends=bool((clear_end[band] <= 0).any()), curved=exact,
+                              s00=s00[band], slopes=slopes)
+        S[band] = drawn[0]
+        if slopes:
+            Sx[band], Sy[band] = drawn[1:]
     return S, Sx, Sy
 
 
-def _section_band(tan, kappa, s_lo, s_hi, r_tube, own, dx0, dy0, cs: float, rs: float, thick: float,
-                  thickness_samples: int, ends: bool = True, curved: bool = True, s00=None):
+def _section_band(tan_rows, kappa, s_lo, s_hi, r_tube, own, dx0, dy0, cs: float, rs: float, thick: float,
+                  thickness_samples: int, ends: bool = True, curved: bool = True, s00=None, slopes: bool = True):
     """:func:`section_model` at pixels an edge may cross: every plane across the slice, the exact pixel coverage.
+
+    ``tan_rows`` (3, K): the tubes' tangents, a row per component.
 
     The distance of a point to the centreline is measured from the curve
     point ``s0 t + kappa s0^2 / 2`` at its arc length ``s0`` along the
@@ -280,24 +203,25 @@ def _section_band(tan, kappa, s_lo, s_hi, r_tube, own, dx0, dy0, cs: float, rs: 
     amount, below 1e-3 mm for these curvatures). ``ends``: model the end faces;
     ``curved``: correct the coverage for the curvature of the section's edge.
     """
+    # (laid out plane by pixel, (nz, P): a per-pixel value broadcasts along whole rows, where the pixel-by-plane
+    # layout broadcast along rows of nz; the same values, operation by operation)
     nz = thickness_samples if thick > 0 else 1
-    sz = (((np.arange(nz) + 0.5) / nz - 0.5) * thick)[None]
-    t, kap = tan[own], kappa[own]
-    tx, ty, tz = t[:, 0:1], t[:, 1:2], t[:, 2:3]
-    dxs, dys = dx0[:, None], dy0[:, None]
+    sz = (((np.arange(nz) + 0.5) / nz - 0.5) * thick)[:, None]
+    tx, ty, tz = np.take(tan_rows, own, axis=1)
+    kap = np.take(kappa.T, own, axis=1)
     if s00 is None:  # (section_model has it: dx0 t_x + dy0 t_y)
-        s00 = dx0 * tan[own, 0] + dy0 * tan[own, 1]
-    s0 = s00[:, None] + sz * tz  # arc length along the tangent
+        s00 = dx0 * tx + dy0 * ty
+    s0 = s00 + sz * tz  # arc length along the tangent
     h = 0.5 * s0 * s0
-    ex_ = dxs - s0 * tx - h * kap[:, 0:1]
-    ey_ = dys - s0 * ty - h * kap[:, 1:2]
-    ez_ = sz - s0 * tz - h * kap[:, 2:3]
+    ex_ = dx0 - s0 * tx - h * kap[0]
+    ey_ = dy0 - s0 * ty - h * kap[1]
+    ez_ = sz - s0 * tz - h * kap[2]
     pxy2 = ex_ * ex_ + ey_ * ey_
     dist = np.sqrt(pxy2 + ez_ * ez_)
     inv_p = 1.0 / np.sqrt(np.maximum(pxy2, 1e-24))
     nx, ny = ex_ * inv_p, ey_ * inv_p  # the section edge's in-plane outward normal
     # in-plane signed distance to the edge (inside > 0), and the pixel's exact coverage of a straight edge
-    delta = (r_tube[own][:, None] - dist) * (dist * inv_p)
+    delta = (r_tube[own] - dist) * (dist * inv_p)
     cov, dcov = _box_edge(delta, cs * np.abs(nx), rs * np.abs(ny))
     # the edge is curved (curvature of the section's outline at the pixel): the inside loses kappa tau^2 / 2
     # along the chord of the pixel at the edge, tau its coordinate along the edge from the foot point
@@ -305,12 +229,17 @@ def _section_band(tan, kappa, s_lo, s_hi, r_tube, own, dx0, dy0, cs: float, rs: 
         cross = (ex_ * ty - ey_ * tx) * inv_p
         cov -= dcov * _chord_m2(delta, nx, ny, cs, rs) * (0.5 * (1.0 - cross * cross) * inv_p)
     if ends:  # the tube's end faces: a ramp across the pixel along the centreline
-        inside = np.minimum(s_lo[own][:, None] + s0, s_hi[own][:, None] - s0)
+        inside = np.minimum(s_lo[own] + s0, s_hi[own] - s0)
         end = np.clip(0.5 + inside / np.maximum(cs * np.abs(tx) + rs * np.abs(ty), 1e-12), 0.0, 1.0)
         cov *= end
-        dcov *= end
+        if slopes:
+            dcov *= end
     inv_nz = 1.0 / nz
-    # moving the section by (dx, dy) raises delta by n . (dx, dy)
+    if not slopes:
+        return (np.ascontiguousarray(cov.T).sum(axis=1) * inv_nz,)
+    # moving the section by (dx, dy) raises delta by n . (dx, dy); the sums over the planes in pixel-by-plane
+    # layout, as numpy orders them there (a sum's rounding depends on its order)
+    cov, dcov, nx, ny = (np.ascontiguousarray(v.T) for v in (cov, dcov, nx, ny))
     return cov.sum(axis=1) * inv_nz, np.einsum("ij,ij->i", dcov, nx) * inv_nz, np.einsum("ij,ij->i", dcov, ny) * inv_nz
 
 
@@ -342,23 +271,41 @@ def fit_sections(model, T_F_from_I: np.ndarray, assignment: np.ndarray, pixels: 
     n_pix, fitted = np.zeros(K, int), np.zeros(K, bool)
     todo = np.flatnonzero((assignment >= 0) & found)
     reach = None  # the windows' pixels and what reaches them: the joint pass's too while it fits the same tubes
+    ahead = None  # the joint pass's windows when they are known now (see below)
+    joint = joint and exact and int(shift_iterations) <= 1
     if windows is None:
         reach = _window_pixels(model, q, tan, found, todo, pixels.shape, pixel_spacing_mm, slice_thickness_mm,
                                margin_px)
-        windows = section_windows(model, q, tan, found, todo, pixels.shape, pixel_spacing_mm, slice_thickness_mm,
-                                  assignment, footprints, margin_px, reach)
+        keep, shared = _kept(reach, assignment, footprints)
+        windows = Windows(reach.rows[keep], reach.cols[keep], reach.own[keep], shared)
+        if joint and shared and todo.size >= 2:
+            # a joint pass that fits the same tubes (the usual case) uses these windows and the pixels they share:
+            # draw the first model on all of them at once (each pixel's value depends on that pixel alone)
+            modelled = np.zeros(K, bool)
+            modelled[todo] = True
+            ahead = _joint_windows(reach, assignment, footprints, modelled)
+            in_windows = keep[ahead[3]]  # the windows' pixels among the joint windows' (a subset)
     own = windows.owner
     if todo.size == 0 or own.size == 0:
         return SectionFit(q, out_pos, out_info, out_gain, n_pix, fitted), windows
-    y = np.asarray(pixels, dtype=float)[windows.rows, windows.cols]
+    drawn_on = windows if ahead is None else ahead[0]
+    y = np.asarray(pixels, dtype=float)[drawn_on.rows, drawn_on.cols]
+    if ahead is not None:
+        y_joint, y = y, y[in_windows]
     starts = np.flatnonzero(np.concatenate(([True], own[1:] != own[:-1])))  # windows are contiguous, one per tube
     at = q.copy()  # where each section model is drawn: the crossing, then the fitted position
     sel = todo
     at_crossing = None  # the model drawn at the crossings (the first fit's): the joint pass reuses it
     for _ in range(max(1, int(shift_iterations))):
-        S, Sx, Sy = section_model(model, T_F_from_I, at, tan, windows, pixel_spacing_mm, slice_thickness_mm,
-                                  thickness_samples, exact)
-        at_crossing = at_crossing or (windows, (S, Sx, Sy))
+        if at_crossing is None:
+            S, Sx, Sy = section_model(model, T_F_from_I, at, tan, drawn_on, pixel_spacing_mm, slice_thickness_mm,
+                                      thickness_samples, exact)
+            at_crossing = (drawn_on, (S, Sx, Sy))
+            if ahead is not None:
+                S, Sx, Sy = S[in_windows], Sx[in_windows], Sy[in_windows]
+        else:
+            S, Sx, Sy = section_model(model, T_F_from_I, at, tan, windows, pixel_spacing_mm, slice_thickness_mm,
+                                      thickness_samples, exact)
         if rician_sigma > 0:  # the Rician mean at each tube's gain (from its inner pixels, else a linear fit)
             gain = inner_gain(S, y, own, K, rician_sigma)
             if not gain[sel].all():
@@ -374,12 +321,13 @@ def fit_sections(model, T_F_from_I: np.ndarray, assignment: np.ndarray, pixels: 
         if sel.size == 0:
             return SectionFit(q, out_pos, out_info, out_gain, n_pix, fitted), windows
         at[sel] += shift
-    if joint and windows.shared and exact and sel.size >= 2 and int(shift_iterations) <= 1:
+    if joint and windows.shared and sel.size >= 2:
+        same = reach is not None and np.array_equal(sel, todo)  # the same tubes: the same joint windows
         sel, at, info, a, n_pix = _joint_pass(model, T_F_from_I, q, tan, found, pixels, pixel_spacing_mm,
                                               slice_thickness_mm, thickness_samples, exact, noise_sigma, assignment,
                                               footprints, margin_px, sel, at, info, a, n_pix,
-                                              reach if reach is not None and np.array_equal(sel, todo) else None,
-                                              at_crossing, rician_sigma)
+                                              reach if same else None, at_crossing, rician_sigma,
+                                              ahead[:3] + (y_joint,) if same and ahead is not None else None)
     out_pos[sel] = at[sel]
     out_info[sel] = info
     out_gain[sel] = a
@@ -389,17 +337,22 @@ def fit_sections(model, T_F_from_I: np.ndarray, assignment: np.ndarray, pixels: 
 
 def _joint_pass(model, T_F_from_I, q, tan, found, pixels, pixel_spacing_mm, slice_thickness_mm: float,
                 thickness_samples: int, exact: bool, noise_sigma: float, assignment, footprints, margin_px: float,
-                sel, at, info, a, n_pix, reach=None, at_crossing=None, rician_sigma: float = 0.0):
+                sel, at, info, a, n_pix, reach=None, at_crossing=None, rician_sigma: float = 0.0, ahead=None):
     """Refit the tubes ``sel`` on the pixels they share with fitted neighbours, those neighbours' fitted
     sections (position ``at``, level ``a``) subtracted (:func:`joint_windows`); :data:`JOINT_PASSES` times.
     Returns ``(sel, at, info, a, n_pix)`` as :func:`_linear_fit` gives them, unchanged when no pixel is
     shared or a tube would be lost. ``at_crossing``: ``(windows, (S, Sx, Sy))``, :func:`section_model` at the
-    crossings ``q`` on some windows, whose pixels are then not drawn again (the model is pixel by pixel)."""
+    crossings ``q`` on some windows, whose pixels are then not drawn again (the model is pixel by pixel).
+    ``ahead``: ``(windows, pixel, tube, y)``, :func:`joint_windows` and their pixels' values, when ``at_crossing``
+    was drawn on exactly those windows."""
     K = q.shape[0]
-    modelled = np.zeros(K, bool)
-    modelled[sel] = True
-    jw, nb_p, nb_k = joint_windows(model, q, tan, found, sel, pixels.shape, pixel_spacing_mm, slice_thickness_mm,
-                                   modelled, assignment, footprints, margin_px, reach)
+    if ahead is None:
+        modelled = np.zeros(K, bool)
+        modelled[sel] = True
+        jw, nb_p, nb_k = joint_windows(model, q, tan, found, sel, pixels.shape, pixel_spacing_mm, slice_thickness_mm,
+                                       modelled, assignment, footprints, margin_px, reach)
+    else:
+        jw, nb_p, nb_k, y = ahead
     if nb_p.size == 0:
         return sel, at, info, a, n_pix
     gain = np.zeros(K)
@@ -410,9 +363,9 @@ def _joint_pass(model, T_F_from_I, q, tan, found, pixels, pixel_spacing_mm, slic
     # carry its partial-volume model error (largest at steep, elongated sections) into the tube's fit
     neighbours = Windows(jw.rows[nb_p], jw.cols[nb_p], nb_k)
     Sn0 = section_model(model, T_F_from_I, fitted_at, tan, neighbours, pixel_spacing_mm, slice_thickness_mm,
-                        thickness_samples, exact)[0]
+                        thickness_samples, exact, slopes=False)[0]
     strong = np.zeros(jw.owner.size, bool)
-    np.logical_or.at(strong, nb_p, Sn0 > JOINT_NEIGHBOUR_LEVEL)
+    strong[nb_p[Sn0 > JOINT_NEIGHBOUR_LEVEL]] = True
     if strong.any():
         keep = ~strong
         remap = np.cumsum(keep) - 1
@@ -422,10 +375,15 @@ def _joint_pass(model, T_F_from_I, q, tan, found, pixels, pixel_spacing_mm, slic
         if nb_p.size == 0:
             return sel, at, info, a, n_pix
         neighbours = Windows(jw.rows[nb_p], jw.cols[nb_p], nb_k)
-    y = np.asarray(pixels, dtype=float)[jw.rows, jw.cols]
     starts = np.flatnonzero(np.concatenate(([True], jw.owner[1:] != jw.owner[:-1])))
-    S, Sx, Sy = _model_reusing(model, T_F_from_I, q, tan, jw, pixels.shape, pixel_spacing_mm, slice_thickness_mm,
-                               thickness_samples, exact, at_crossing)
+    if ahead is None:
+        y = np.asarray(pixels, dtype=float)[jw.rows, jw.cols]
+        S, Sx, Sy = _model_reusing(model, T_F_from_I, q, tan, jw, pixels.shape, pixel_spacing_mm, slice_thickness_mm,
+                                   thickness_samples, exact, at_crossing)
+    else:  # at_crossing was drawn on the joint windows before the strong pixels left
+        S, Sx, Sy = at_crossing[1]
+        if strong.any():
+            S, Sx, Sy, y = S[keep], Sx[keep], Sy[keep], y[keep]
     for n_pass in range(JOINT_PASSES):
         if n_pass == 0:
             # the same neighbours' pixels (less the strong ones) at the same fitted positions: the same model
@@ -433,8 +391,7 @@ def _joint_pass(model, T_F_from_I, q, tan, found, pixels, pixel_spacing_mm, slic
         else:
             Sn = section_model(model, T_F_from_I, fitted_at, tan, neighbours, pixel_spacing_mm, slice_thickness_mm,
                                thickness_samples, exact)[0]
-        nb_level = np.zeros(y.size)
-        np.add.at(nb_level, nb_p, gain[nb_k] * Sn)  # the neighbours' signal in each pixel
+        nb_level = np.bincount(nb_p, gain[nb_k] * Sn, y.size)  # the neighbours' signal in each pixel (in order)
         if rician_sigma > 0:  # E[y] = R(a S + n): fit (R(a0 S + n) - R(n)) / a0 to y - (R(n) - R(0))
             M, Mx, My, lift = rician_model(S, Sx, Sy, gain[jw.owner], nb_level, rician_sigma)
             sel_j, shift, info_j, a_j, n_pix_j = _linear_fit(M, Mx, My, y - lift, jw.owner, starts, K, sel,
@@ -483,40 +440,37 @@ def _linear_fit(S, Sx, Sy, y, own, starts, K: int, todo, noise_sigma: float):
 
     Returns ``(tubes fitted, shift (n, 2) mm, information (n, 2, 2), gain (n,), pixels per tube (K,))``.
     """
-    # (P, 14): the normal matrix's 10 entries, then the right-hand side; F[:, _PAIR_I] * F[:, _PAIR_J] for
-    # F = [1, S, Sx, Sy, y], column by column (several times faster than the fancy-indexed product; the same values)
-    prods = np.empty((S.size, _PAIR_I.size))
-    prods[:, 0] = 1.0
-    F = (None, S, Sx, Sy, y)
-    for c, (i, j) in enumerate(zip(_PAIR_I.tolist(), _PAIR_J.tolist())):
-        if c == 0:
-            continue
-        if i == 0:
-            prods[:, c] = F[j]
-        else:
-            np.multiply(F[i], F[j], out=prods[:, c])
+    # (14, P), a product per row: 1, S, Sx, Sy, y written in, then the pairwise products of rows 1-4 (_PROD_I,
+    # _PROD_J) at once; summed over each window (add.reduceat sums a row's segment as it sums a column's)
+    prods = np.empty((_PROD_ROW.size, S.size))
+    prods[0] = 1.0
+    prods[1], prods[2], prods[3], prods[4] = S, Sx, Sy, y
+    np.multiply(prods[_PROD_I], prods[_PROD_J], out=prods[5:])
     sums = np.zeros((K, _PAIR_I.size))
-    sums[own[starts]] = np.add.reduceat(prods, starts, axis=0)
-    N = sums[:, _SYM]  # (K, 4, 4)
-    rhs = sums[:, 10:14]
-    n_pix = np.rint(N[:, 0, 0]).astype(int)
-    sel = todo[(n_pix[todo] >= 8) & (N[todo, 1, 1] > 0) & (N[todo, 2, 2] + N[todo, 3, 3] > 0)]
-    Ninv = np.zeros((sel.size, 4, 4))
+    sums[own[starts]] = np.add.reduceat(prods, starts, axis=1).T[:, _PROD_ROW]
+    # (the normal matrix's diagonal: sums 0, 4, 7, 9; rows taken with np.take: 2-d fancy indexing costs more)
+    n_pix = np.rint(sums[:, 0]).astype(int)
+    s_todo = np.take(sums, todo, axis=0)
+    sel = todo[(n_pix[todo] >= 8) & (s_todo[:, 4] > 0) & (s_todo[:, 7] + s_todo[:, 9] > 0)]
+    s_sel = np.take(sums, sel, axis=0)
+    N = np.take(s_sel, _SYM, axis=1)  # (n, 4, 4)
     try:
-        Ninv[:] = np.linalg.inv(N[sel])
+        Ninv = np.linalg.inv(N)
     except np.linalg.LinAlgError:  # one singular window: invert one by one
-        for i, k in enumerate(sel.tolist()):
+        Ninv = np.zeros((sel.size, 4, 4))
+        for i in range(sel.size):
             try:
-                Ninv[i] = np.linalg.inv(N[k])
+                Ninv[i] = np.linalg.inv(N[i])
             except np.linalg.LinAlgError:
                 Ninv[i] = np.nan
-    theta = np.einsum("kij,kj->ki", Ninv, rhs[sel])
+    theta = np.einsum("kij,kj->ki", Ninv, s_sel[:, 10:14])
     a = theta[:, 1]
     blk = Ninv[:, 2:4, 2:4]
     det = blk[:, 0, 0] * blk[:, 1, 1] - blk[:, 0, 1] * blk[:, 1, 0]
     ok = (a > 0) & np.isfinite(det) & (det > 0)
-    sel, theta, a, blk, det = sel[ok], theta[ok], a[ok], blk[ok], det[ok]
+    if not ok.all():
+        sel, theta, a, blk, det = sel[ok], theta[ok], a[ok], blk[ok], det[ok]
     # the shift (x, y) mm, and its information: (a / sigma)^2 times the inverse of its block of N^-1
-    inv_blk = np.stack([np.stack([blk[:, 1, 1], -blk[:, 0, 1]], -1), np.stack([-blk[:, 1, 0], blk[:, 0, 0]], -1)], 1)
+    inv_blk = np.swapaxes(blk[:, ::-1, ::-1], 1, 2) * _ADJUGATE_SIGN  # [[d, -b], [-c, a]] of [[a, b], [c, d]]
     info = inv_blk / det[:, None, None] * ((a / max(noise_sigma, 1e-12)) ** 2)[:, None, None]
     return sel, theta[:, 2:4] / a[:, None], info, a, n_pix
