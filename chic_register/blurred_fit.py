@@ -31,6 +31,7 @@ from dataclasses import dataclass
 
 import numpy as np
 
+from .wide_blobs import WIDE_RATIO, blob_width_ratio, blobs_wide  # noqa: F401  (importable from here as before)
 from .detect import median
 from .errors import NoLock
 from .fit_checks import STRETCH_MIN, worst_errors
@@ -50,9 +51,6 @@ ITERATIONS = 8
 DONE_DEG, DONE_MM = 1e-3, 1e-3
 #: Forward-difference steps: rad for the turns, mm for the shifts, pixels for the blur, the stretch's share.
 STEP_RAD, STEP_MM, STEP_PX, STEP_STRETCH = 2e-4, 2e-3, 1e-2, 1e-3
-#: Blobs this many times wider than the channels (median over the slices' measured widths) take the blurred fit
-#: (:func:`blob_width_ratio` reads 0.99-1.05 for sharp sections, 1.14-1.36 for blobs 1.5x, 1.2-1.7 for 2x).
-WIDE_RATIO = 1.15
 #: The image's stretch is fitted within +-this share (a wrong pixel spacing; the verification refuses above 2 %).
 MAX_STRETCH = 0.3
 #: A fitted stretch this many of its standard deviations from zero (and above fit_checks.STRETCH_MIN) is refused.
@@ -329,49 +327,6 @@ def _gauss_newton(prob: _Problem, X: np.ndarray, centre: np.ndarray, sigma0: flo
     cov = ((N_inv @ meat @ N_inv) * (prob.y.size / dof))[:n_free, :n_free]
     sd = np.sqrt(np.maximum(np.diag(cov)[7:9], 0.0)) if n_free > 7 else np.zeros(2)
     return X, (cov, sd, math.sqrt(ssr / dof))
-
-
-def blob_width_ratio(model: TubeModel, slices, blob_sets, assignments) -> float:
-    """Median over the matched blobs of their width across (4 x the minor standard deviation of the intensity
-    above the background over the blob's footprint, less a pixel's own spread) over their tube's diameter.
-
-    A sharp section reads about 1 (a disc's minor sigma is a quarter of its
-    diameter), a blob blurred to twice the channel's width about 1.6-2 (the
-    footprint cuts the tails). Intensity-weighted, not thresholded, so a
-    brighter object elsewhere in the image does not shrink it.
-    """
-    ratios = []
-    for sl, b, a in zip(slices, blob_sets, assignments):
-        img = np.asarray(sl.pixels, float)
-        rs, cs = (float(v) for v in sl.pixel_spacing_mm)
-        for k in np.flatnonzero(a >= 0):
-            i = int(a[k])
-            if i >= len(b.footprints):
-                continue
-            r0, c0, mask = b.footprints[i]
-            # (np.clip(v, 0.0, None) is np.maximum(v, 0.0), less its wrapper)
-            w = np.maximum(img[r0:r0 + mask.shape[0], c0:c0 + mask.shape[1]] - b.background, 0.0) * mask
-            total = float(w.sum())
-            if not total > 0:
-                continue
-            y = np.arange(mask.shape[0]) * rs
-            x = np.arange(mask.shape[1]) * cs
-            wy, wx = w.sum(axis=1), w.sum(axis=0)  # the marginals give the means and variances
-            my, mx = float(wy @ y) / total, float(wx @ x) / total
-            dy, dx = y - my, x - mx
-            cyy = float(wy @ (dy * dy)) / total - rs * rs / 12
-            cxx = float(wx @ (dx * dx)) / total - cs * cs / 12
-            cxy = float(dy @ w @ dx) / total
-            minor = 0.5 * (cxx + cyy) - math.sqrt(0.25 * (cxx - cyy) ** 2 + cxy * cxy)
-            if minor > 0:
-                ratios.append(4.0 * math.sqrt(minor) / float(model.diameter_mm[k]))
-    return median(ratios) if len(ratios) >= 3 else float("nan")
-
-
-def blobs_wide(model: TubeModel, slices, blob_sets, assignments) -> bool:
-    """Whether the blurred fit is for these slices: their matched blobs :data:`WIDE_RATIO` times the channels' width
-    or wider (:func:`blob_width_ratio`)."""
-    return blob_width_ratio(model, slices, blob_sets, assignments) >= WIDE_RATIO
 
 
 def spread_slices(n_slices: int, n_max: int = BLURRED_MAX_SLICES) -> list[int]:

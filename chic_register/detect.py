@@ -19,6 +19,11 @@ from dataclasses import dataclass
 import cc3d
 import numpy as np
 
+from .image_filters import _dilate, _maximum_filter, _smooth
+from .quantiles import sorted_span
+
+#: :func:`median` of this many values or more: from a bracket of the middle values (see ``quantiles.sorted_span``).
+MEDIAN_SPAN_MIN = 2048
 
 
 @dataclass(frozen=True, eq=False)
@@ -60,50 +65,61 @@ class Blobs:
 
 def otsu_threshold(image: np.ndarray, bins: int = 256) -> float:
     """Otsu's threshold of an image (any shape), from a ``bins``-bin histogram."""
-    lo, hi = float(image.min()), float(image.max())
+    x = image.ravel()
+    lo, hi = float(np.minimum.reduce(x)), float(np.maximum.reduce(x))
     if hi <= lo:
         return lo
-    q = np.minimum(((image.ravel() - lo) * (bins / (hi - lo))).astype(np.intp), bins - 1)
-    hist = np.bincount(q, minlength=bins).astype(float)
-    centres = lo + (np.arange(bins) + 0.5) * (hi - lo) / bins
-    w0 = np.cumsum(hist)
+    t = x - lo  # (x - lo) * (bins / (hi - lo)), in place
+    t *= bins / (hi - lo)
+    q = t.astype(np.intp)
+    # np.bincount(np.minimum(q, bins - 1)): the top value's bin (bins) folded into the last, without a pass over q
+    hist = np.bincount(q, minlength=bins + 1)
+    if hist.size == bins + 1:
+        hist[bins - 1] += hist[bins]
+        hist = hist[:bins].astype(float)
+    else:  # (rounding past the top bin: not seen, but then exactly as it says)
+        hist = np.bincount(np.minimum(q, bins - 1), minlength=bins).astype(float)
+    steps = _OTSU_STEPS.get(bins)
+    if steps is None:
+        steps = _OTSU_STEPS[bins] = np.arange(bins) + 0.5
+    centres = lo + steps * (hi - lo) / bins
+    w0 = np.add.accumulate(hist)  # (np.cumsum, less its wrapper)
     w1 = w0[-1] - w0
-    m0 = np.cumsum(hist * centres)
+    m0 = np.add.accumulate(hist * centres)
     mu0 = m0 / np.maximum(w0, 1e-12)
     mu1 = (m0[-1] - m0) / np.maximum(w1, 1e-12)
     between = w0 * w1 * (mu0 - mu1) ** 2
-    k = int(np.argmax(between[:-1]))
+    k = int(between[:-1].argmax())
     return float(lo + (k + 1) * (hi - lo) / bins)
 
 
-def _dilate(mask: np.ndarray, iterations: int = 1) -> np.ndarray:
-    """3 x 3 (8-connected) binary dilation of a small mask (h, w), by array shifts (no scipy call overhead)."""
-    out = mask
-    for _ in range(iterations):
-        m = out.copy()
-        m[1:] |= out[:-1]
-        m[:-1] |= out[1:]
-        row = m.copy()
-        m[:, 1:] |= row[:, :-1]
-        m[:, :-1] |= row[:, 1:]
-        out = m
-    return out
+_OTSU_STEPS: dict = {}  # bins -> the bin centres' offsets, np.arange(bins) + 0.5
 
 
 def median(values) -> float:
     """The median of an array's finite or infinite values (NaN not checked), as ``np.median`` but from a partition.
 
     ``np.median`` (and ``np.percentile``) import ``numpy.ma`` on first use,
-    about 60 ms on the start-up path of a one-shot solve.
+    about 60 ms on the start-up path of a one-shot solve. Large arrays (a
+    background sample) take the middle values from :func:`~chic_register.quantiles.sorted_span`.
     """
-    a = np.asarray(values, dtype=float).ravel()
+    a = np.asarray(values)
+    if a.dtype != np.float64 and a.dtype != np.float32:  # (float32 orders as its float64 values: no copy needed)
+        a = a.astype(float)
+    a = a.ravel()
     n = a.size
     if n == 0:
         return math.nan
     h = n // 2
+    if n >= MEDIAN_SPAN_MIN:
+        mid = sorted_span(a, h - 1 + n % 2, h)
+        if mid is not None:
+            return float(mid[0]) if n % 2 else 0.5 * (float(mid[0]) + float(mid[1]))
+    p = a.copy()  # (np.partition's own steps, less its wrappers)
     if n % 2:
-        return float(np.partition(a, h)[h])
-    p = np.partition(a, (h - 1, h))
+        p.partition(h)
+        return float(p[h])
+    p.partition((h - 1, h))
     return 0.5 * (float(p[h - 1]) + float(p[h]))
 
 
@@ -118,134 +134,110 @@ def _mean_std(values: np.ndarray) -> tuple[float, float]:
     return mean, math.sqrt(float(np.add.reduce(dev * dev)) / n)
 
 
-def _bounding_boxes(labels: np.ndarray, mask: np.ndarray, n: int) -> list:
-    """Per label 1..n, ``(row slice, col slice)`` of its bounding box (``scipy.ndimage.find_objects``'s result).
+@dataclass(frozen=True)
+class _Components:
+    """The labelled pixels of an image, gathered per component (label j + 1 at index j, j < n).
 
-    From the labelled pixels only (``mask``): sorted by label, the first and
-    last rows and the least and greatest columns of each run.
+    ``boxes``: per component ``(r0, r1, c0, c1)``, its bounding box widened
+    by the footprint's margin (clipped to the image); ``start``: where its
+    pixels begin in ``values`` (the image's values at the labelled pixels,
+    sorted by label, raster order within one); ``row_counts`` /
+    ``col_counts``: its pixels per row / column of its box (floats, the
+    boxes one after the other from ``row_at`` / ``col_at``), and
+    ``row_sums`` / ``col_sums``: the sums of its pixels' rows / columns in
+    its box (exact integers, as floats). These are a mask's own row and
+    column sums and moments, found for every component in a few passes over
+    its pixels instead of several calls per component.
     """
-    flat = np.flatnonzero(mask)  # (np.nonzero of a 2-D mask is several times slower)
-    rr, cc = np.divmod(flat, mask.shape[1])
-    lab = labels.ravel()[flat]
-    order = np.argsort(lab, kind="stable")  # stable: rows stay ascending within a label
-    lab, rr, cc = lab[order], rr[order], cc[order]
-    starts = np.flatnonzero(np.concatenate(([True], lab[1:] != lab[:-1])))
-    ends = np.append(starts[1:], lab.size) - 1
-    r0, r1 = rr[starts].tolist(), (rr[ends] + 1).tolist()
-    c0, c1 = np.minimum.reduceat(cc, starts).tolist(), (np.maximum.reduceat(cc, starts) + 1).tolist()
-    out = [None] * n
-    for k, label in enumerate(lab[starts].tolist()):
-        out[label - 1] = (slice(r0[k], r1[k]), slice(c0[k], c1[k]))
-    return out
+
+    boxes: list
+    start: list
+    values: np.ndarray
+    row_counts: np.ndarray
+    row_at: list
+    col_counts: np.ndarray
+    col_at: list
+    row_sums: list
+    col_sums: list
 
 
-def _maximum_filter(vals: np.ndarray, size: int) -> np.ndarray:
-    """Maximum over each ``size`` x ``size`` window (odd ``size``), as ``scipy.ndimage.maximum_filter``.
+def _components(img: np.ndarray, lab: np.ndarray, rows: np.ndarray, cols: np.ndarray, area: np.ndarray,
+                margin: int):
+    """:class:`_Components` of the labels 1..n (each present, ``area`` (n,) pixels), from ``lab``, ``rows``,
+    ``cols``: the label, row and column of every labelled pixel in raster order; boxes widened by ``margin`` pixels."""
+    H, W = img.shape
+    n = area.size
+    order = lab.argsort(kind="stable")  # stable: rows stay ascending within a label (methods: less overhead)
+    lab, rr, cc = lab[order], rows[order], cols[order]
+    ends = area.cumsum()
+    starts = ends - area  # label j + 1 from starts[j]
+    ends -= 1
+    r0, r1 = np.maximum(rr[starts] - margin, 0), np.minimum(rr[ends] + 1 + margin, H)
+    c0 = np.maximum(np.minimum.reduceat(cc, starts) - margin, 0)
+    c1 = np.minimum(np.maximum.reduceat(cc, starts) + 1 + margin, W)
+    j = lab.astype(np.intp) - 1
+    lr, lc = rr - r0[j], cc - c0[j]  # rows and columns in the box
+    h, w = r1 - r0, c1 - c0
+    row_at, col_at = h.cumsum() - h, w.cumsum() - w
+    row_counts = np.bincount(row_at[j] + lr, minlength=int(h.sum())).astype(float)
+    col_counts = np.bincount(col_at[j] + lc, minlength=int(w.sum())).astype(float)
+    return _Components(list(zip(r0.tolist(), r1.tolist(), c0.tolist(), c1.tolist())), starts.tolist(), img[rr, cc],
+                       row_counts, row_at.tolist(), col_counts, col_at.tolist(),
+                       np.bincount(j, weights=lr, minlength=n).tolist(), np.bincount(j, weights=lc, minlength=n).tolist())
 
-    The border is padded with -inf; for a maximum that equals scipy's default
-    mirror padding, whose values all lie within the window already.
+
+def _index(n: int) -> np.ndarray:
+    """``np.arange(n, dtype=float)``, as a view of one cached array (the moments' row and column indices)."""
+    global _INDEX
+    if n > _INDEX.size:
+        _INDEX = np.arange(max(n, 2 * _INDEX.size), dtype=float)
+    return _INDEX[:n]
+
+
+_INDEX = np.arange(256, dtype=float)
+
+
+def _moments(w: np.ndarray):
+    """Centroid (row, col) of weights ``w`` (h, w), the minor/major axis ratio of their spread and its variance
+    across (px^2); None when the weights do not sum to a positive total."""
+    c = _centroid(w, with_sums=True)
+    if c is None:
+        return None
+    mr, mc, wr, wc, total = c
+    return (mr, mc) + _spread(w, wr, wc, total, mr, mc)
+
+
+def _centroid(w: np.ndarray, with_sums: bool = False):
+    """Centroid ``(row, col)`` of weights ``w`` (h, w) (then its row sums, column sums and total when
+    ``with_sums``); None when the weights do not sum to a positive total.
+
+    From the row and column sums (two passes over ``w``, then vectors of
+    length h and w): these windows are small, so call overhead dominates
+    (hence the ufuncs' own reductions, without ``sum``'s wrapper, and ``dot``).
     """
-    h = size // 2
-    padded = np.pad(vals, h, constant_values=-np.inf)
-    H, W = vals.shape
-    rows = padded[:H].copy()  # separable: the maximum over the window's rows, then over its columns (exact)
-    for d in range(1, size):
-        np.maximum(rows, padded[d:d + H], out=rows)
-    out = rows[:, :W].copy()
-    for d in range(1, size):
-        np.maximum(out, rows[:, d:d + W], out=out)
-    return out
+    wr, wc = np.add.reduce(w, 1), np.add.reduce(w, 0)
+    total = float(np.add.reduce(wr))
+    if not total > 0:
+        return None
+    # (ndarray.dot is matmul's BLAS call, less its ufunc machinery: the same bits)
+    mr, mc = float(wr.dot(_index(w.shape[0]))) / total, float(wc.dot(_index(w.shape[1]))) / total
+    return (mr, mc, wr, wc, total) if with_sums else (mr, mc)
 
 
-def _smooth(img: np.ndarray, sigma_px: float) -> np.ndarray:
-    """Separable binomial smoothing (float32), the closest of widths 3 / 5 / 7 to a Gaussian of ``sigma_px``.
-
-    ``n`` passes of [1, 2, 1] / 4 have sigma sqrt(n / 2); array shifts are
-    several times faster than ``scipy.ndimage.gaussian_filter`` on one core.
-    Edges replicate the border pixel.
-    """
-    n = min(3, max(1, int(round(2 * sigma_px * sigma_px))))
-    a = img.astype(np.float32)
-    h, w = a.shape
-    # two image buffers and one of pair sums, reused by every pass: fresh large arrays cost page faults
-    b = np.empty_like(a)
-    pair = np.empty(h * w, np.float32)
-    for _ in range(n):
-        _binomial_rows(a, b, pair)
-        _binomial_cols(b, a, pair)
-    return a
-
-
-def _binomial_rows(x: np.ndarray, y: np.ndarray, pair: np.ndarray) -> None:
-    """``y`` = one [1, 2, 1] / 4 pass along axis 0 of ``x`` (h, w), edges replicated; ``pair``: scratch (>= h * w).
-
-    Sums of neighbouring pairs, then sums of neighbouring pair sums.
-    """
-    h, w = x.shape
-    if h < 2:
-        y[...] = x
-        return
-    p = pair[: (h - 1) * w].reshape(h - 1, w)
-    np.add(x[:-1], x[1:], out=p)  # x[i] + x[i+1]
-    np.add(p[:-1], p[1:], out=y[1:-1])
-    y[0] = p[0] + 2 * x[0]  # replicated x[-1] = x[0]
-    y[-1] = p[-1] + 2 * x[-1]
-    y *= 0.25
-
-
-def _binomial_cols(x: np.ndarray, y: np.ndarray, pair: np.ndarray) -> None:
-    """The same pass along axis 1, on the flattened image (one long contiguous loop, not h short ones).
-
-    Pairs that straddle two rows only land in the first and last columns,
-    which are then overwritten with their replicated-edge values.
-    """
-    h, w = x.shape
-    if w < 2:
-        y[...] = x
-        return
-    xf, p = x.reshape(-1), pair[: h * w - 1]
-    np.add(xf[:-1], xf[1:], out=p)  # p[i * w + j] = x[i, j] + x[i, j + 1] for j < w - 1
-    np.add(p[:-1], p[1:], out=y.reshape(-1)[1:-1])
-    y[:, 0] = x[:, 0] * 3 + x[:, 1]
-    y[:, -1] = x[:, -2] + x[:, -1] * 3
-    y *= 0.25
-
-
-def _shape(mask: np.ndarray) -> tuple[float, float]:
-    """Minor/major axis ratio of a bool mask's second moments and its variance across (px^2), from row/column sums."""
-    w = mask.astype(float)
-    wr, wc = w.sum(axis=1), w.sum(axis=0)
-    total = float(wr.sum())
-    rr = np.arange(w.shape[0], dtype=float)
-    cc = np.arange(w.shape[1], dtype=float)
-    dr, dc = rr - float(wr @ rr) / total, cc - float(wc @ cc) / total
-    srr, scc, src = float(wr @ (dr * dr)) / total, float(wc @ (dc * dc)) / total, float(dr @ w @ dc) / total
+def _spread(w: np.ndarray, wr: np.ndarray, wc: np.ndarray, total: float, mr: float, mc: float):
+    """``(minor/major axis ratio, variance across)`` of weights ``w`` (h, w) with row and column sums ``wr``,
+    ``wc``, sum ``total`` and centroid ``(mr, mc)``."""
+    dr, dc = _index(w.shape[0]) - mr, _index(w.shape[1]) - mc
+    srr, scc, src = float(wr.dot(dr * dr)) / total, float(wc.dot(dc * dc)) / total, float(dr.dot(w).dot(dc)) / total
     half_tr, det = (srr + scc) / 2, srr * scc - src * src
     root = math.sqrt(max(half_tr * half_tr - det, 0.0))
     big, small = half_tr + root, max(half_tr - root, 0.0)
     return (math.sqrt(small / big) if big > 0 else 1.0), small
 
 
-def _moments(w: np.ndarray):
-    """Centroid (row, col) of weights ``w`` (h, w) and the minor/major axis ratio of their spread.
-
-    From the row and column sums (two passes over ``w``, then vectors of
-    length h and w): these windows are small, so call overhead dominates.
-    Returns None when the weights do not sum to a positive total.
-    """
-    wr, wc = w.sum(axis=1), w.sum(axis=0)
-    total = float(wr.sum())
-    if not total > 0:
-        return None
-    rr = np.arange(w.shape[0], dtype=float)
-    cc = np.arange(w.shape[1], dtype=float)
-    mr, mc = float(wr @ rr) / total, float(wc @ cc) / total
-    dr, dc = rr - mr, cc - mc
-    srr, scc, src = float(wr @ (dr * dr)) / total, float(wc @ (dc * dc)) / total, float(dr @ w @ dc) / total
-    half_tr, det = (srr + scc) / 2, srr * scc - src * src
-    root = math.sqrt(max(half_tr * half_tr - det, 0.0))
-    big, small = half_tr + root, max(half_tr - root, 0.0)
-    return mr, mc, (math.sqrt(small / big) if big > 0 else 1.0)
+def _shape(mask: np.ndarray) -> tuple[float, float]:
+    """Minor/major axis ratio of a bool mask's second moments and its variance across (px^2)."""
+    return _moments(mask.astype(float))[2:]
 
 
 def detect_blobs(
@@ -313,7 +305,7 @@ def _detect(pixels, pixel_spacing_mm, tube_diameter_mm: float, min_area_factor: 
     img = np.asarray(pixels, dtype=float)
     if img.ndim != 2 or img.size == 0:
         return Blobs.empty()
-    lo, hi = float(img.min()), float(img.max())
+    lo, hi = float(np.minimum.reduce(img, axis=None)), float(np.maximum.reduce(img, axis=None))
     if not (math.isfinite(lo) and math.isfinite(hi)):  # a NaN or an infinity anywhere shows in min / max
         return Blobs.empty()
     if hi - lo <= 1e-12 * max(1.0, abs(hi)):
@@ -322,42 +314,58 @@ def _detect(pixels, pixel_spacing_mm, tube_diameter_mm: float, min_area_factor: 
     r_px = 0.5 * tube_diameter_mm / math.sqrt(rs * cs)
     a0 = math.pi * r_px * r_px
     sig = smooth_sigma_px if smooth_sigma_px is not None else max(0.5, 0.3 * r_px)
-    smooth = _smooth(img, sig)
+    smooth = _smooth(img, sig, scale_at_end=lo >= 2.0 ** -100 and hi <= 2.0 ** 100)  # (exact: see _smooth)
     sub_smooth = np.ascontiguousarray(smooth[::2, ::2])  # (Otsu's histogram is faster from a contiguous copy)
     thr = otsu_threshold(sub_smooth)
     base = median(smooth[::4, ::4])
     thr = base + threshold_fraction * (thr - base)
     mask = smooth > thr
-    labels, n = cc3d.connected_components(mask, connectivity=4, return_N=True)  # 4-connected, raster order
+    flat = mask.ravel().nonzero()[0]  # the pixels above the threshold (a few per cent of a slice): np.flatnonzero
     # background and noise: the pixels well below the threshold (mean and spread)
     sub_img = img[::2, ::2]
     bg_pixels = sub_img[sub_smooth < base + 0.25 * (thr - base)]
     if bg_pixels.size < 16:
         bg_pixels = sub_img[sub_smooth <= base]
     bg, sigma_n = _mean_std(bg_pixels)
-    if n == 0:
+    if flat.size == 0:
         return Blobs.empty(bg, sigma_n, thr)
-    area = np.bincount(labels[mask], minlength=n + 1)[1:]  # only the labelled pixels: far fewer
-    objs = _bounding_boxes(labels, mask, n)
+    k = dilate_px if dilate_px is not None else 1
+    H, W = img.shape
+    # components (4-connected, numbered in raster order) labelled on the mask's bounding box only, widened by the
+    # blobs' margin k: the same labels as on the whole image, at a fraction of the cost; `labels` starts at (R0, C0)
+    rows, cols = np.divmod(flat, W)
+    m = max(k, 0)
+    R0, R1 = max(0, int(rows[0]) - m), min(H, int(rows[-1]) + 1 + m)
+    C0, C1 = max(0, int(cols.min()) - m), min(W, int(cols.max()) + 1 + m)
+    # (a contiguous mask: cc3d copies a strided one slowly)
+    labels, n = cc3d.connected_components(smooth[R0:R1, C0:C1] > thr, connectivity=4, return_N=True)
+    lab_px = labels[rows - R0, cols - C0]  # every labelled pixel's label, in raster order
+    area = np.bincount(lab_px, minlength=n + 1)[1:]
+    comp = _components(img, lab_px, rows, cols, area, k)
     keep = np.flatnonzero((area >= min_area_factor * a0) & (area <= max_area_factor * a0))
     # a component too large for one tube may be several blurred ones run together (wide blobs of close tubes):
     # it is offered split at higher levels, never whole
     merged = set(np.flatnonzero((area > max_area_factor * a0) & (area <= 150 * a0)).tolist()) if split_touching else set()
-    k = dilate_px if dilate_px is not None else 1
+    grown = _dilate(labels != 0) if k == 1 else None  # every component's footprint at once (see below)
+    img_bg = img[R0:R1, C0:C1] - bg
     centres, areas, means, ratios, contrasts, feet, widths = [], [], [], [], [], [], []
-    H, W = img.shape
     for i in sorted(set(keep.tolist()) | merged):
-        sl = objs[i]
-        r0, r1 = max(0, sl[0].start - k), min(H, sl[0].stop + k)
-        c0, c1 = max(0, sl[1].start - k), min(W, sl[1].stop + k)
-        lab = labels[r0:r1, c0:c1]
-        blob = lab == i + 1
-        raw = img[r0:r1, c0:c1]
-        mean_i = float(raw[blob].sum()) / float(area[i])
+        r0, r1, c0, c1 = comp.boxes[i]
+        n_i = int(area[i])
+        # its mean: the sum of raw[blob], in the same order
+        mean_i = float(np.add.reduce(comp.values[comp.start[i]:comp.start[i] + n_i])) / float(n_i)
         contrast = (mean_i - bg) / sigma_n if sigma_n > 0 else math.inf
         if contrast < min_contrast:
             continue
-        ratio, minor_var = _shape(blob)
+        lab = labels[r0 - R0:r1 - R0, c0 - C0:c1 - C0]
+        blob = lab == i + 1
+        raw = img[r0:r1, c0:c1]
+        # _shape(blob), from the row and column counts and sums found for all components at once
+        h, w = r1 - r0, c1 - c0
+        total = float(n_i)
+        ratio, minor_var = _spread(blob.astype(float), comp.row_counts[comp.row_at[i]:comp.row_at[i] + h],
+                                   comp.col_counts[comp.col_at[i]:comp.col_at[i] + w], total,
+                                   comp.row_sums[i] / total, comp.col_sums[i] / total)
         if i not in merged:
             widths.append(4 * math.sqrt(max(minor_var - 1 / 12, 0.0)))  # a disc's diameter, less a pixel's spread
         parts = [blob]
@@ -369,20 +377,25 @@ def _detect(pixels, pixel_spacing_mm, tube_diameter_mm: float, min_area_factor: 
             parts = _split(blob, smooth[r0:r1, c0:c1], r_px) or [blob]
             if len(parts) > 1:
                 parts = [blob] + parts
-        others = (lab != 0) ^ blob
-        if others.any():  # keep out of the neighbours' own edges
-            others = _dilate(others)
-            keep_out = ~others
-        else:
-            keep_out = None
-        raw_bg = raw - bg
+        keep_out, alone = None, False
+        if np.count_nonzero(lab) > n_i:  # other components in the box: keep out of the neighbours' own edges
+            keep_out = ~_dilate((lab != 0) ^ blob)
+        elif grown is not None:
+            # alone in its box and in the ring just outside it (so no neighbour's pixel reaches the box's edge):
+            # its dilation in the box is that of all the components
+            q0, q1, p0, p1 = max(R0, r0 - 1), min(R1, r1 + 1), max(C0, c0 - 1), min(C1, c1 + 1)
+            alone = np.count_nonzero(labels[q0 - R0:q1 - R0, p0 - C0:p1 - C0]) == n_i
+        raw_bg = img_bg[r0 - R0:r1 - R0, c0 - C0:c1 - C0]  # (raw - bg)
         for part in parts:
-            foot = _dilate(part, k)
+            if part is blob and alone:
+                foot = grown[r0 - R0:r1 - R0, c0 - C0:c1 - C0].copy()
+            else:
+                foot = _dilate(part, k)
             if keep_out is not None:
                 foot &= keep_out
             if part is not blob:
                 foot &= ~(blob & ~part)  # a split half stays out of the other half
-            m = _moments(raw_bg * foot)
+            m = _centroid(raw_bg * foot)  # (its spread is the blob's own, from _spread above)
             if m is None:
                 continue
             centres.append((r0 + m[0], c0 + m[1]))
@@ -469,7 +482,7 @@ def _split(blob: np.ndarray, smooth: np.ndarray, r_px: float):
     vals = np.where(blob, smooth, -np.inf)
     size = max(3, int(2 * round(0.8 * r_px) + 1))
     peaks = (vals == _maximum_filter(vals, size)) & blob
-    pr, pc = np.nonzero(peaks)
+    pr, pc = peaks.nonzero()
     if pr.size < 2:
         return None
     order = np.argsort(-smooth[pr, pc])

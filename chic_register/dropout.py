@@ -65,19 +65,28 @@ def fill_dropouts(pixels: np.ndarray) -> tuple[np.ndarray, int]:
     """``(pixels, n_filled)``: each lost pixel (not a finite number, a bright speck, or an exact zero amid signal,
     see the module's doc) replaced by the median of the valid pixels of its ``WINDOW_PX`` neighbourhood; the input itself when there
     are none."""
-    pixels, n_bad = _fill_non_finite(pixels)
-    pixels, n_specks = _fill_specks(pixels)
+    img = np.asarray(pixels)
+    # the range, once: a NaN or an infinity anywhere shows in it, and an image of positive (or negative) pixels only
+    # has no exact zero, before the specks are filled or after (a speck takes the median of its neighbours)
+    lo = hi = math.nan
+    if img.size and img.dtype.kind in "fiu":
+        lo, hi = float(np.minimum.reduce(img, axis=None)), float(np.maximum.reduce(img, axis=None))
+    pixels, n_bad = _fill_non_finite(pixels, lo, hi)
+    pixels, n_specks = _fill_specks(pixels, nonzero=not n_bad and (lo > 0 or hi < 0))
+    if not n_bad and (lo > 0 or hi < 0):
+        return pixels, n_specks
     filled, n_zero = _fill_zeros(pixels)
     return filled, n_bad + n_specks + n_zero
 
 
-def _fill_non_finite(pixels: np.ndarray) -> tuple[np.ndarray, int]:
+def _fill_non_finite(pixels: np.ndarray, lo: float = math.nan, hi: float = math.nan) -> tuple[np.ndarray, int]:
     """NaN or infinite pixels (a processing step's holes) filled from their finite neighbours, or with the median of
-    the finite pixels where they have none."""
+    the finite pixels where they have none. ``lo``, ``hi``: the pixels' range when known (NaN: not known)."""
     img = np.asarray(pixels)
-    if not np.issubdtype(img.dtype, np.floating):
+    if img.dtype.kind != "f":  # (np.issubdtype(dtype, np.floating), less its overhead)
         return pixels, 0
-    lo, hi = img.min(initial=0.0), img.max(initial=0.0)  # NaN or an infinity anywhere shows in one of them
+    if math.isnan(lo) or math.isnan(hi):  # (not known, or NaN pixels: the check in full)
+        lo, hi = img.min(initial=0.0), img.max(initial=0.0)  # NaN or an infinity anywhere shows in one of them
     if math.isfinite(lo) and math.isfinite(hi):
         return pixels, 0
     finite = np.isfinite(img)
@@ -95,9 +104,9 @@ def _fill_non_finite(pixels: np.ndarray) -> tuple[np.ndarray, int]:
     return out, n
 
 
-def _fill_specks(pixels: np.ndarray) -> tuple[np.ndarray, int]:
+def _fill_specks(pixels: np.ndarray, nonzero: bool = False) -> tuple[np.ndarray, int]:
     """Bright specks (hot pixels, impulse noise) replaced by the median of their neighbours, when the image is strewn
-    with them (:data:`MIN_SPECK_SHARE`).
+    with them (:data:`MIN_SPECK_SHARE`); ``nonzero``: the caller knows that no pixel is 0.
 
     A speck stands alone: it exceeds the median of its eight neighbours by
     nearly its whole height above the background (:data:`SPECK_ALONE`) and by
@@ -108,7 +117,8 @@ def _fill_specks(pixels: np.ndarray) -> tuple[np.ndarray, int]:
     if img.ndim != 2 or min(img.shape) < 3:
         return pixels, 0
     sample = img[::4, ::4]  # the background and noise level from a sixteenth of the pixels: cheap and ample
-    sample = sample[sample != 0]  # (zeros: a clipped or masked background, not the noise's spread)
+    # (zeros: a clipped or masked background, not the noise's spread)
+    sample = sample.ravel() if nonzero else sample[sample != 0]
     if sample.size < 16:
         return pixels, 0
     background = median(sample)  # (np.median's value, without its overhead: finite pixels here)

@@ -46,7 +46,7 @@ from .accuracy import (  # noqa: F401
     centroid_offsets,
     template_shifts,
 )
-from .blurred_fit import blobs_wide, blurred_stage
+from .wide_blobs import blobs_wide
 from .detect import Blobs, detect_blobs
 from .dropout import fill_slice_dropouts
 from .errors import AmbiguousFit, ImprecisePose, NoLock, SliceRefused
@@ -370,6 +370,8 @@ def register(slices: list[Slice], geom: FiducialGeometry, *, options: SolveOptio
     blurred = None  # that pixel fit (chic_register.blurred_fit.BlurredFit)
     wide = opts.blurred_fit and not opts.centroid_model and blobs_wide(model, slices, blob_sets, best.assignments)
     if wide:  # the sections are blurred: the sharp section model does not describe them, a blurred one does
+        from .blurred_fit import blurred_stage
+
         best, precision, blurred = blurred_stage(model, best, xys, Ss, slices, blob_sets)
     elif opts.section_fit and not opts.centroid_model:
         fine = _section_refine(model, best, xys, Ss, slices, blob_sets, opts)

@@ -89,3 +89,82 @@ def test_smoothing_is_repeated_binomial_passes_with_replicated_edges():
             out = _smooth(img, sigma)
             assert out.dtype == np.float32 and out.shape == shape
             assert np.allclose(out, ref, atol=1e-6)
+
+
+def test_smoothing_scaled_at_the_end_is_the_same_to_the_bit():
+    from chic_register.detect import _smooth
+
+    rng = np.random.default_rng(2)
+    for lo, hi in [(1e-25, 1e-24), (0.5, 4095.0), (1.0, 1e25), (1e-20, 1e20)]:
+        img = np.exp(rng.uniform(np.log(lo), np.log(hi), (61, 47)))
+        for sigma in (0.5, 0.9, 1.3):
+            assert np.array_equal(_smooth(img, sigma, scale_at_end=True), _smooth(img, sigma))
+
+
+def test_maximum_filter_is_scipys():
+    from scipy import ndimage as ndi
+
+    from chic_register.detect import _maximum_filter
+
+    rng = np.random.default_rng(3)
+    for _ in range(300):
+        shape, size = tuple(rng.integers(1, 25, 2)), int(rng.choice([1, 3, 5, 7, 9, 13]))
+        vals = rng.normal(size=shape).astype(np.float32)
+        vals[rng.random(shape) < 0.3] = -np.inf
+        ref = ndi.maximum_filter(vals, size=size, mode="constant", cval=-np.inf)
+        assert np.array_equal(_maximum_filter(vals, size), ref)
+
+
+def test_footprints_areas_and_means_follow_the_per_blob_rules():
+    """Blobs close enough that neighbours fall in each other's boxes and in the ring around them: every footprint is
+    the blob dilated by one pixel less the neighbours' own dilations within its box, areas and means the blob's own."""
+    import cc3d
+
+    from chic_register.detect import _dilate, _smooth
+
+    rng = np.random.default_rng(4)
+    yy, xx = np.mgrid[:96, :96]
+    for trial in range(6):
+        img = rng.normal(10.0, 1.0, (96, 96))
+        # rows and columns of discs 7-10 px apart: gaps of a pixel or two between many of them
+        rows, cols = np.cumsum(rng.uniform(7.0, 10.0, 9)), np.cumsum(rng.uniform(7.0, 10.0, 9))
+        for r in rows[rows < 90]:
+            for c in cols[cols < 90]:
+                img += 60.0 * (np.hypot(yy - r, xx - c) < rng.uniform(2.3, 3.2))
+        b = detect_blobs(img, (0.5, 0.5), 3.0, smooth_sigma_px=0.9, split_touching=False, size_from_image=False)
+        assert len(b) >= 30
+        labels = cc3d.connected_components(_smooth(img, 0.9) > b.threshold, connectivity=4)
+        for (r0, c0, foot), area, mean in zip(b.footprints, b.area_px, b.mean_intensity):
+            lab = labels[r0:r0 + foot.shape[0], c0:c0 + foot.shape[1]]
+            own = np.bincount(lab[foot & (lab > 0)]).argmax()
+            blob = lab == own
+            others = (lab != 0) & ~blob
+            ref = _dilate(blob) & ~_dilate(others) if others.any() else _dilate(blob)
+            assert np.array_equal(foot, ref)
+            assert area == np.count_nonzero(labels == own)  # the whole component lies in its box
+            assert mean == img[r0:r0 + foot.shape[0], c0:c0 + foot.shape[1]][blob].sum() / area
+
+
+def test_otsu_is_the_histogram_rule():
+    """The threshold equals the textbook computation (every value in one of ``bins`` equal bins, the top value in
+    the last) on images whose maximum sits exactly at the top edge."""
+
+    def reference(image, bins=256):
+        lo, hi = float(image.min()), float(image.max())
+        q = np.minimum(((image.ravel() - lo) * (bins / (hi - lo))).astype(np.intp), bins - 1)
+        hist = np.bincount(q, minlength=bins).astype(float)
+        centres = lo + (np.arange(bins) + 0.5) * (hi - lo) / bins
+        w0 = np.cumsum(hist)
+        w1 = w0[-1] - w0
+        m0 = np.cumsum(hist * centres)
+        mu0 = m0 / np.maximum(w0, 1e-12)
+        mu1 = (m0[-1] - m0) / np.maximum(w1, 1e-12)
+        k = int(np.argmax((w0 * w1 * (mu0 - mu1) ** 2)[:-1]))
+        return float(lo + (k + 1) * (hi - lo) / bins)
+
+    rng = np.random.default_rng(6)
+    for dtype in (np.float32, np.float64):
+        for _ in range(50):
+            img = np.concatenate([rng.normal(0, 1, 3000), rng.normal(rng.uniform(3, 30), 1, 400)]).astype(dtype)
+            img[rng.integers(img.size, size=rng.integers(1, 5))] = img.max()  # ties at the top edge
+            assert otsu_threshold(img.reshape(68, 50)) == reference(img.reshape(68, 50))

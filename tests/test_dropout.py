@@ -94,3 +94,20 @@ def test_bright_specks_are_removed_and_the_slice_registers(neuro_geometry):
     s, t = reg.slices[0], sim.truth.angles
     assert s.filled_pixels >= 0.9 * hot.sum()
     assert abs(s.depth_mm - t.depth_mm) < 0.2 and abs(s.tilt_deg - t.tilt_deg) < 0.3
+
+
+@pytest.mark.parametrize("dtype", [np.float64, np.float32, np.uint16, np.int32])
+def test_integer_and_float_images_alike_with_and_without_zeros(dtype):
+    """The image's range decides whether the zero test runs (no zero in a positive image): the same fills for every
+    pixel type, and a positive image without dropouts comes back as it is."""
+    rng = np.random.default_rng(2)
+    img, disc = _disc_image(rng, level=400.0, sigma=40.0)
+    img = np.maximum(np.round(img), 1.0).astype(dtype)  # positive: no zero anywhere
+    filled, n = fill_dropouts(img)
+    assert n == 0 and filled is img
+    lost = rng.random(img.shape) < 0.2
+    damaged = np.where(lost, 0, img).astype(dtype)
+    filled, n = fill_dropouts(damaged)
+    ref, n_ref = fill_dropouts(damaged.astype(np.float64))
+    assert n == n_ref > 0 and np.array_equal(filled, ref)
+    assert np.median(filled[disc & lost]) == pytest.approx(400.0, abs=40.0)

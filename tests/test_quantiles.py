@@ -35,3 +35,34 @@ def test_unrepresentative_sample_falls_back_to_the_whole_array():
     ranks = np.array([100, 8000, 8001, 31000])
     assert np.array_equal(order_statistics(x, ranks), np.sort(x)[ranks])
     assert np.array_equal(percentiles(x, [25, 50, 75]), np.percentile(x, [25, 50, 75]))
+
+
+def test_sorted_span_is_the_sorted_values_or_a_miss():
+    from chic_register.quantiles import sorted_span
+
+    rng = np.random.default_rng(4)
+    hits = 0
+    for x in list(_arrays(rng)) + [rng.normal(size=4096).astype(np.float32), np.full(5000, 2.5)]:
+        ref = np.sort(x)
+        for k0 in (0, x.size // 4, x.size // 2 - 1, x.size - 2):
+            for k1 in (k0, k0 + 1):
+                got = sorted_span(x, k0, k1)
+                if got is not None:
+                    hits += 1
+                    assert got.dtype == x.dtype and np.array_equal(got, ref[k0:k1 + 1])
+    assert hits >= 20  # the bracket does its work (middle ranks of the larger arrays)
+    skewed = rng.normal(size=32000)
+    skewed[::16] += 1000.0  # the sample far above the rest: a miss, never a wrong value
+    assert sorted_span(skewed, 16000, 16001) is None
+
+
+def test_median_is_numpys_on_both_sides_of_the_bracketed_size():
+    from chic_register.detect import MEDIAN_SPAN_MIN, median
+
+    rng = np.random.default_rng(5)
+    for n in (1, 2, 9, MEDIAN_SPAN_MIN - 1, MEDIAN_SPAN_MIN, 4096, 4097, 16384):
+        for x in (rng.normal(size=n), rng.normal(size=n).astype(np.float32), rng.integers(0, 5, n),
+                  np.abs(rng.normal(size=n) + 1j * rng.normal(size=n))):
+            assert median(x) == float(np.median(np.asarray(x, float)))  # (float32: the middle pair's mean in float64)
+    img = rng.normal(size=(256, 256)).astype(np.float32)
+    assert median(img[::4, ::4]) == float(np.median(img[::4, ::4].astype(float)))  # a strided view, as detect's

@@ -44,6 +44,9 @@ def test_one_shot_dicom_solve_imports_only_what_a_slice_needs(tmp_path, neuro_ge
                 or m.startswith(("scipy.optimize", "scipy.ndimage", "scipy.special"))
                 or m == "numpy.ma" or m.startswith("numpy.ma.")  # np.median / np.unique import it: ~40 ms
                 or m in ("statistics", "fractions", "chic_register.volume", "chic_register.volume_register")]  # NormalDist: ~4 ms (uncertainty.normal_quantile instead)
+    # a sharp slice needs neither the bound's renderer (pose_params holds the covariance's convention) nor the
+    # blurred pixel fit (wide_blobs decides it is not needed)
+    assert "chic_register.crlb" not in mods and "chic_register.blurred_fit" not in mods
 
 
 def test_normal_quantile_matches_the_standard_library():
