@@ -347,19 +347,16 @@ def _crossing_jacobian(xy: np.ndarray, tan_I: np.ndarray) -> np.ndarray:
     ``delta = P x omega - v`` in the image frame and the crossing slides
     along the tangent back to z = 0: ``dq = delta_xy - (t_xy / t_z) delta_z``.
     """
+    x, y = xy[:, 0:1], xy[:, 1]
     tz = tan_I[:, 2:3]
-    J = np.empty((xy.shape[0], 2, 6))  # every entry written below (few numpy calls: this runs in every iteration)
-    J[:, :, 3:5] = _MINUS_I2  # -v_xy
-    ab = np.divide(tan_I[:, :2], np.where(np.abs(tz) < 1e-6, 1e-6, tz), out=J[:, :, 5])  # (M, 2): a, b
-    np.multiply(ab, xy[:, 1:2], out=J[:, :, 0])  # a y, b y
-    np.multiply(ab, -xy[:, 0:1], out=J[:, :, 1])  # -a x, -b x
-    np.multiply(xy[:, ::-1], _PLUS_MINUS, out=J[:, :, 2])  # y, -x
+    ab = tan_I[:, :2] / np.where(np.abs(tz) < 1e-6, 1e-6, tz)  # (M, 2): a, b
+    J = np.zeros((xy.shape[0], 2, 6))
+    np.multiply(ab, y[:, None], out=J[:, :, 0])  # a y, b y
+    np.multiply(-ab, x, out=J[:, :, 1])  # -a x, -b x
+    J[:, 0, 2], J[:, 1, 2] = y, -x[:, 0]
+    J[:, 0, 3] = J[:, 1, 4] = -1.0
+    J[:, :, 5] = ab
     return J
-
-
-_MINUS_I2 = np.array([[-1.0, 0.0], [0.0, -1.0]])
-_PLUS_MINUS = np.array([1.0, -1.0])
-_MINUS_I2.flags.writeable = _PLUS_MINUS.flags.writeable = False
 
 
 def _exp_se3(xi: np.ndarray) -> np.ndarray:
