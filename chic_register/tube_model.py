@@ -250,7 +250,9 @@ def _inside_list(model: TubeModel, hit: tuple, margin_mm: float) -> list:
     _, tan_I, zF, found, tan_z, _ = hit
     if margin_mm > 0:
         bounds = model.extent_bounds.get(margin_mm)
-        if bounds is None:  # the same numbers each time: computed once per margin
+        if bounds is None:  # the same numbers each time: computed once per margin (a few margins in use)
+            if len(model.extent_bounds) >= 16:
+                model.extent_bounds.clear()
             bounds = model.extent_bounds[margin_mm] = tuple(zip(
                 (model.z_lo - margin_mm - 1e-6).tolist(), (model.z_hi + margin_mm + 1e-6).tolist()))
         return [ok and lo <= z <= hi for ok, z, (lo, hi) in zip(found, zF, bounds)]
