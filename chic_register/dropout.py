@@ -17,6 +17,11 @@ do, has zeros that are the noise itself). Left alone too: an image mostly
 zero (a noise-free render, or a volume masked outside the anatomy: its zeros
 are a region, not scattered pixels), and zeros in a neighbourhood with too
 few valid pixels to fill from (the inside of a masked region).
+
+Bright specks (hot pixels) are filled the same way when the image is strewn
+with them, or when one lies far beyond the image's bright level: a single
+corrupt value at 100x the fluid's would otherwise set the detector's
+threshold for the whole slice.
 """
 
 from __future__ import annotations
@@ -53,6 +58,17 @@ SPECK_SIGMAS = 5.0
 MIN_SPECK_SHARE = 0.01
 #: Fewer exact zeros than this share are not worth a pass (integer images may round a few background pixels to 0).
 MIN_ZERO_SHARE = 0.002
+#: A speck this many times farther from the background than the image's bright level (:data:`EXTREME_RANK`) is
+#: filled even alone: one corrupt pixel at 100x the fluid's level would otherwise set the detector's threshold
+#: for the whole image (a speck below 30x the fluid is harmless: the detector's own area and contrast tests).
+EXTREME_FACTOR = 10.0
+#: The image's bright level: the height of the this-many-th brightest pixel of a sixteenth of the image (the
+#: fluid's level when the fiducial's sections cover a few per cent of the slice; the noise's top when they do not,
+#: and then a section still shares its level with its neighbours, so is not a speck).
+EXTREME_RANK = 8
+#: At most this share of the pixels may be extreme specks (more is an object or an image scaled in parts, not
+#: corrupt pixels).
+MAX_EXTREME_SHARE = 0.001
 
 
 def _neighbourhoods(img: np.ndarray, fill) -> np.ndarray:
@@ -72,7 +88,8 @@ def fill_dropouts(pixels: np.ndarray) -> tuple[np.ndarray, int]:
     if img.size and img.dtype.kind in "fiu":
         lo, hi = float(np.minimum.reduce(img, axis=None)), float(np.maximum.reduce(img, axis=None))
     pixels, n_bad = _fill_non_finite(pixels, lo, hi)
-    pixels, n_specks = _fill_specks(pixels, nonzero=not n_bad and (lo > 0 or hi < 0))
+    pixels, n_specks = _fill_specks(pixels, nonzero=not n_bad and (lo > 0 or hi < 0),
+                                    lo_hi=None if n_bad else (lo, hi))
     if not n_bad and (lo > 0 or hi < 0):
         return pixels, n_specks
     filled, n_zero = _fill_zeros(pixels)
@@ -104,9 +121,10 @@ def _fill_non_finite(pixels: np.ndarray, lo: float = math.nan, hi: float = math.
     return out, n
 
 
-def _fill_specks(pixels: np.ndarray, nonzero: bool = False) -> tuple[np.ndarray, int]:
+def _fill_specks(pixels: np.ndarray, nonzero: bool = False, lo_hi=None) -> tuple[np.ndarray, int]:
     """Bright specks (hot pixels, impulse noise) replaced by the median of their neighbours, when the image is strewn
-    with them (:data:`MIN_SPECK_SHARE`); ``nonzero``: the caller knows that no pixel is 0.
+    with them (:data:`MIN_SPECK_SHARE`) or one stands far beyond the image's bright level (:data:`EXTREME_FACTOR`);
+    ``nonzero``: the caller knows that no pixel is 0; ``lo_hi``: the pixels' (finite) range when known.
 
     A speck stands alone: it exceeds the median of its eight neighbours by
     nearly its whole height above the background (:data:`SPECK_ALONE`) and by
@@ -123,6 +141,9 @@ def _fill_specks(pixels: np.ndarray, nonzero: bool = False) -> tuple[np.ndarray,
         return pixels, 0
     background = median(sample)  # (np.median's value, without its overhead: finite pixels here)
     sigma = max(1.4826 * median(np.abs(sample - background)), 1e-12)
+    img, n_extreme = _fill_extreme_specks(img, sample, background, sigma, lo_hi)
+    if n_extreme:
+        pixels = img
     level = SPECK_SIGMAS * sigma
     # too few bright pixels to hold that many specks (a plain slice: its tube sections): counted first on a
     # superset, the pixels above background + level less a slack far beyond the subtraction's rounding, then
@@ -130,7 +151,7 @@ def _fill_specks(pixels: np.ndarray, nonzero: bool = False) -> tuple[np.ndarray,
     maybe = img > (background + level) - 1e-9 * (abs(background) + level)
     need = MIN_SPECK_SHARE * img.size
     if np.count_nonzero(maybe) < need or np.count_nonzero(img[maybe] - background > level) < need:
-        return pixels, 0
+        return pixels, n_extreme
     height = img - background
     # a quick look (pixels above every one of their eight neighbours by far), then the rule itself
     padded = np.pad(img, 1, constant_values=-np.inf)
@@ -142,7 +163,7 @@ def _fill_specks(pixels: np.ndarray, nonzero: bool = False) -> tuple[np.ndarray,
                 np.maximum(top, padded[1 + dr:1 + dr + h, 1 + dc:1 + dc + w], out=top)
     alone = (img - top > SPECK_ALONE * height) & (img - top > SPECK_SIGMAS * sigma)
     if alone.sum() < 0.5 * MIN_SPECK_SHARE * img.size:
-        return pixels, 0
+        return pixels, n_extreme
     # then the rule itself, on the bright pixels only: far above the median of their neighbours
     bright = np.flatnonzero(height > SPECK_SIGMAS * sigma)
     rows, cols = np.unravel_index(bright, img.shape)
@@ -152,10 +173,39 @@ def _fill_specks(pixels: np.ndarray, nonzero: bool = False) -> tuple[np.ndarray,
     speck = (value - nb > SPECK_ALONE * height[rows, cols]) & (value - nb > SPECK_SIGMAS * sigma)
     n = int(speck.sum())
     if n < MIN_SPECK_SHARE * img.size:
-        return pixels, 0
+        return pixels, n_extreme
     out = img.copy()
     out[rows[speck], cols[speck]] = nb[speck]
-    return out, n
+    return out, n + n_extreme
+
+
+def _fill_extreme_specks(img: np.ndarray, sample: np.ndarray, background: float, sigma: float, lo_hi=None):
+    """``(img, n)``: lone pixels :data:`EXTREME_FACTOR` times farther from ``background`` than the bright level of
+    ``sample`` (either way: a corrupt value may be hugely negative too) set to the median of their neighbours.
+    Most images have none, which one partial sort of the sample and the image's range show."""
+    lo, hi = lo_hi if lo_hi is not None else (float(np.minimum.reduce(img, axis=None)),
+                                               float(np.maximum.reduce(img, axis=None)))
+    k = min(EXTREME_RANK, sample.size)
+    spread = np.abs(sample - background)
+    bright = max(float(np.partition(spread, spread.size - k)[spread.size - k]), SPECK_SIGMAS * sigma)
+    reach = EXTREME_FACTOR * bright
+    if hi - background <= reach and background - lo <= reach:
+        return img, 0
+    far = np.flatnonzero(np.abs(img - background) > reach)
+    if far.size > MAX_EXTREME_SHARE * img.size:
+        return img, 0
+    rows, cols = np.unravel_index(far, img.shape)
+    hoods = np.delete(_neighbourhoods(img, np.nan)[rows, cols].reshape(far.size, -1), WINDOW_PX ** 2 // 2, axis=1)
+    nb = np.nanmedian(hoods, axis=1)
+    # alone: EXTREME_FACTOR times farther from the background than every one of its neighbours (a section's pixel
+    # has a neighbour at its own level, even amid lost pixels)
+    dev = np.abs(img[rows, cols] - background)
+    speck = dev > EXTREME_FACTOR * np.nanmax(np.abs(hoods - background), axis=1)
+    if not speck.any():
+        return img, 0
+    out = img.copy()
+    out[rows[speck], cols[speck]] = nb[speck]
+    return out, int(speck.sum())
 
 
 def _fill_zeros(pixels: np.ndarray) -> tuple[np.ndarray, int]:

@@ -292,6 +292,7 @@ def register(slices: list[Slice], geom: FiducialGeometry, *, options: SolveOptio
             raise AmbiguousFit(why, {"needs_prior": True})
     t0 = time.perf_counter()
     slices, filled = fill_slice_dropouts(slices)
+    _check_pixel_range(slices)
     model, geom_sha = prepare_geometry(geom)
     blob_sets, xys = [], []
     for sl in slices:
@@ -501,6 +502,25 @@ def _only_slices(model: TubeModel, fit, keep: list[int], xys, Ss):
     out = refine(model, xys, Ss, fit.T_F_from_scanner, gates_mm=(), final_iters=0, assign0=assign)
     meas = None if fit.measurements is None else [fit.measurements[i] for i in keep]
     return dataclasses.replace(out, T_F_from_scanner=fit.T_F_from_scanner, measurements=meas)
+
+
+#: Largest pixel magnitude the detector takes: it smooths in single precision (to 3.4e38), with headroom for its sums.
+MAX_PIXEL_MAGNITUDE = 2.0 ** 100
+
+
+def _check_pixel_range(slices) -> None:
+    """Raise :class:`NoLock` for a slice whose pixels (lost ones already filled) reach beyond
+    :data:`MAX_PIXEL_MAGNITUDE`: no MR image holds such values (a rescale slope or a conversion gone wrong)."""
+    for sl in slices:
+        img = np.asarray(sl.pixels)
+        if img.size == 0 or img.dtype.kind != "f":
+            continue
+        lo, hi = float(np.minimum.reduce(img, axis=None)), float(np.maximum.reduce(img, axis=None))
+        peak = max(abs(lo), abs(hi))
+        if peak > MAX_PIXEL_MAGNITUDE and math.isfinite(lo) and math.isfinite(hi):
+            raise NoLock(f"{sl.source}: pixel values reach {peak:.3g}, beyond the {MAX_PIXEL_MAGNITUDE:.3g} the detector "
+                         "takes (single precision): rescale the image (a rescale slope or a unit conversion gone wrong?)",
+                         {"pixel_peak": peak})
 
 
 def _worth_flattening(blobs: Blobs, model: TubeModel) -> bool:

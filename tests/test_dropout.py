@@ -111,3 +111,36 @@ def test_integer_and_float_images_alike_with_and_without_zeros(dtype):
     ref, n_ref = fill_dropouts(damaged.astype(np.float64))
     assert n == n_ref > 0 and np.array_equal(filled, ref)
     assert np.median(filled[disc & lost]) == pytest.approx(400.0, abs=40.0)
+
+
+@pytest.mark.parametrize("value", [100.0, 1e300, -1e300])
+def test_one_extreme_pixel_is_filled_and_the_slice_registers(neuro_geometry, value):
+    """One corrupt pixel far beyond the fluid's level (100x it, or a float's extreme, either sign) would set the
+    detector's threshold for the whole image (one candidate found, or a crash beyond single precision): it alone
+    is filled and the slice registers to the right pose. A speck 5x the fluid's level is left to the detector."""
+    from dataclasses import replace
+
+    sim = simulate_slice(neuro_geometry, 25, 30, 40, 10, slice_thickness_mm=2.0, noise="rician", snr=20.0, rng=5)
+    plain = np.array(sim.slice.pixels, float)
+    px = plain.copy()
+    px[10, 200] = value * plain.max()
+    filled, n = fill_dropouts(px)
+    assert n == 1 and filled[10, 200] == pytest.approx(np.median(plain[9:12, 199:202]), abs=0.5 * plain.max())
+    assert np.array_equal(np.delete(filled.ravel(), 10 * px.shape[1] + 200), np.delete(plain.ravel(), 10 * px.shape[1] + 200))
+    reg = register([replace(sim.slice, pixels=px)], neuro_geometry)
+    s, t = reg.slices[0], sim.truth.angles
+    assert s.filled_pixels == 1
+    assert abs(s.depth_mm - t.depth_mm) < 0.2 and abs(s.tilt_deg - t.tilt_deg) < 0.3
+    px[10, 200] = 5.0 * plain.max()
+    assert fill_dropouts(px)[1] == 0
+
+
+def test_pixels_beyond_single_precision_are_refused_with_a_reason(neuro_geometry):
+    """A whole image scaled to 1e120 (a rescale slope gone wrong): no_lock saying so, not a crash."""
+    from dataclasses import replace
+
+    from chic_register.errors import NoLock
+
+    sim = simulate_slice(neuro_geometry, 25, 30, 40, 10, slice_thickness_mm=2.0, noise="rician", snr=20.0, rng=5)
+    with pytest.raises(NoLock, match="pixel values reach 1.*e\\+120"):
+        register([replace(sim.slice, pixels=np.asarray(sim.slice.pixels, float) * 1e120)], neuro_geometry)
