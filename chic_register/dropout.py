@@ -140,6 +140,8 @@ def _fill_specks(pixels: np.ndarray, nonzero: bool = False, lo_hi=None) -> tuple
     if sample.size < 16:
         return pixels, 0
     background = median(sample)  # (np.median's value, without its overhead: finite pixels here)
+    if not math.isfinite(background):  # (an image of NaNs or infinities: nothing to fill from)
+        return pixels, 0
     sigma = max(1.4826 * median(np.abs(sample - background)), 1e-12)
     img, n_extreme = _fill_extreme_specks(img, sample, background, sigma, lo_hi)
     if n_extreme:
@@ -192,7 +194,7 @@ def _fill_extreme_specks(img: np.ndarray, sample: np.ndarray, background: float,
     if hi - background <= reach and background - lo <= reach:
         return img, 0
     far = np.flatnonzero(np.abs(img - background) > reach)
-    if far.size > MAX_EXTREME_SHARE * img.size:
+    if far.size == 0 or far.size > MAX_EXTREME_SHARE * img.size:  # (none: an image of NaNs, whose range is NaN)
         return img, 0
     rows, cols = np.unravel_index(far, img.shape)
     hoods = np.delete(_neighbourhoods(img, np.nan)[rows, cols].reshape(far.size, -1), WINDOW_PX ** 2 // 2, axis=1)

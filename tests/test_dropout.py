@@ -144,3 +144,18 @@ def test_pixels_beyond_single_precision_are_refused_with_a_reason(neuro_geometry
     sim = simulate_slice(neuro_geometry, 25, 30, 40, 10, slice_thickness_mm=2.0, noise="rician", snr=20.0, rng=5)
     with pytest.raises(NoLock, match="pixel values reach 1.*e\\+120"):
         register([replace(sim.slice, pixels=np.asarray(sim.slice.pixels, float) * 1e120)], neuro_geometry)
+
+
+@pytest.mark.parametrize("fill", [np.nan, np.inf, -np.inf])
+def test_an_image_with_no_finite_pixel_is_refused_quietly(neuro_geometry, fill):
+    """Nothing to fill from: no_lock with its reason, no exception and no numpy warning."""
+    import warnings
+
+    from chic_register.errors import NoLock
+    from chic_register.slices import Slice
+
+    with warnings.catch_warnings():
+        warnings.simplefilter("error")
+        assert fill_dropouts(np.full((64, 64), fill))[1] == 0
+        with pytest.raises(NoLock, match="candidate"):
+            register([Slice(np.full((64, 64), fill), (0.5, 0.5), slice_thickness_mm=2.0, source="x")], neuro_geometry)
