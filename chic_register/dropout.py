@@ -134,11 +134,17 @@ def _fill_specks(pixels: np.ndarray, nonzero: bool = False, lo_hi=None) -> tuple
     img = np.asarray(pixels, float)
     if img.ndim != 2 or min(img.shape) < 3:
         return pixels, 0
-    sample = img[::4, ::4]  # the background and noise level from a sixteenth of the pixels: cheap and ample
+    grid = img[::4, ::4]  # the background and noise level from a sixteenth of the pixels: cheap and ample
     # (zeros: a clipped or masked background, not the noise's spread)
-    sample = sample.ravel() if nonzero else sample[sample != 0]
-    if sample.size < 16:
-        return pixels, 0
+    sample = grid.ravel() if nonzero else grid[grid != 0]
+    if sample.size < 16:  # a mostly-zero image (a noise-free render, a masked slice): only a lone extreme pixel
+        grid = grid.ravel()
+        background = median(grid)
+        if not math.isfinite(background):
+            return pixels, 0
+        sigma = max(1.4826 * median(np.abs(grid - background)), 1e-12)
+        img, n_extreme = _fill_extreme_specks(img, grid, background, sigma, lo_hi)
+        return (img, n_extreme) if n_extreme else (pixels, 0)
     background = median(sample)  # (np.median's value, without its overhead: finite pixels here)
     if not math.isfinite(background):  # (an image of NaNs or infinities: nothing to fill from)
         return pixels, 0

@@ -159,3 +159,19 @@ def test_an_image_with_no_finite_pixel_is_refused_quietly(neuro_geometry, fill):
         assert fill_dropouts(np.full((64, 64), fill))[1] == 0
         with pytest.raises(NoLock, match="candidate"):
             register([Slice(np.full((64, 64), fill), (0.5, 0.5), slice_thickness_mm=2.0, source="x")], neuro_geometry)
+
+
+def test_one_extreme_pixel_in_a_noise_free_render_is_filled(neuro_geometry):
+    """A mostly-zero image (no noise to measure) with one corrupt pixel: that pixel alone is filled (the render's
+    sections, partial-volume rims included, are left as they are) and the slice registers."""
+    from dataclasses import replace
+
+    sim = simulate_slice(neuro_geometry, 25, 30, 40, 10, slice_thickness_mm=2.0, rng=5)
+    plain = np.array(sim.slice.pixels, float)
+    assert (plain == 0).mean() > 0.9 and fill_dropouts(plain)[1] == 0
+    px = plain.copy()
+    px[5, 5] = 1e6
+    filled, n = fill_dropouts(px)
+    assert n == 1 and np.array_equal(filled, plain)
+    reg = register([replace(sim.slice, pixels=px)], neuro_geometry)
+    assert abs(reg.slices[0].tilt_deg - sim.truth.angles.tilt_deg) < 0.3
