@@ -18,7 +18,7 @@ from chic_register.cli import main
 from chic_register.detect import detect_blobs
 from chic_register.errors import ChicRegisterError, NoLock
 from chic_register.geometry import Body, FiducialGeometry, LineTube, write_geometry
-from chic_register.hypotheses import _rotations_from_affine, family_hypotheses, parallel_family
+from chic_register.generic_guess import _rotations_from_affine, family_hypotheses, parallel_family
 from chic_register.pose import apply, rigid, rot_y, rot_z, slice_frame
 from chic_register.simulate import add_rician_noise, simulate_slice
 from chic_register.solve import _depth_tube_name, plane_crossings, prepare_geometry, register
@@ -270,7 +270,7 @@ def test_no_lock_without_the_depth_tubes_or_with_the_wrong_geometry(zf, neuro_ge
 def test_first_guess_on_hundreds_of_specks_samples_its_triples(zf):
     """300 candidate blobs (an image strewn with bright specks): C(300, 3) = 4.5 million triples are sampled to the
     pair budget, not enumerated (that allocated gigabytes), and the nearest-blob search agrees with brute force."""
-    from chic_register.hypotheses import _affine_candidates, _nearest_blob_mm, parallel_family
+    from chic_register.generic_guess import _affine_candidates, _nearest_blob_mm, parallel_family
     from chic_register.solve import prepare_geometry
 
     model, _ = prepare_geometry(zf)
