@@ -19,7 +19,7 @@ from dataclasses import dataclass
 import cc3d
 import numpy as np
 
-from .image_filters import _dilate, _maximum_filter, _smooth
+from .image_filters import SAFE_MAGNITUDE, _dilate, _maximum_filter, _smooth
 from .quantiles import sorted_span
 
 #: :func:`median` of this many values or more: from a bracket of the middle values (see ``quantiles.sorted_span``).
@@ -235,9 +235,6 @@ def _spread(w: np.ndarray, wr: np.ndarray, wc: np.ndarray, total: float, mr: flo
     return (math.sqrt(small / big) if big > 0 else 1.0), small
 
 
-def _shape(mask: np.ndarray) -> tuple[float, float]:
-    """Minor/major axis ratio of a bool mask's second moments and its variance across (px^2)."""
-    return _moments(mask.astype(float))[2:]
 
 
 def detect_blobs(
@@ -308,13 +305,15 @@ def _detect(pixels, pixel_spacing_mm, tube_diameter_mm: float, min_area_factor: 
     lo, hi = float(np.minimum.reduce(img, axis=None)), float(np.maximum.reduce(img, axis=None))
     if not (math.isfinite(lo) and math.isfinite(hi)):  # a NaN or an infinity anywhere shows in min / max
         return Blobs.empty()
+    if max(-lo, hi) > SAFE_MAGNITUDE:  # beyond the smoothing's single precision (register says so before this)
+        return Blobs.empty()
     if hi - lo <= 1e-12 * max(1.0, abs(hi)):
         return Blobs.empty(background=lo)
     rs, cs = (float(v) for v in pixel_spacing_mm)
     r_px = 0.5 * tube_diameter_mm / math.sqrt(rs * cs)
     a0 = math.pi * r_px * r_px
     sig = smooth_sigma_px if smooth_sigma_px is not None else max(0.5, 0.3 * r_px)
-    smooth = _smooth(img, sig, scale_at_end=lo >= 2.0 ** -100 and hi <= 2.0 ** 100)  # (exact: see _smooth)
+    smooth = _smooth(img, sig, scale_at_end=lo >= 1.0 / SAFE_MAGNITUDE and hi <= SAFE_MAGNITUDE)  # (exact: see _smooth)
     sub_smooth = np.ascontiguousarray(smooth[::2, ::2])  # (Otsu's histogram is faster from a contiguous copy)
     thr = otsu_threshold(sub_smooth)
     base = median(smooth[::4, ::4])
@@ -360,7 +359,7 @@ def _detect(pixels, pixel_spacing_mm, tube_diameter_mm: float, min_area_factor: 
         lab = labels[r0 - R0:r1 - R0, c0 - C0:c1 - C0]
         blob = lab == i + 1
         raw = img[r0:r1, c0:c1]
-        # _shape(blob), from the row and column counts and sums found for all components at once
+        # the blob's axis ratio and spread across, from the row and column counts and sums found for all components at once
         h, w = r1 - r0, c1 - c0
         total = float(n_i)
         ratio, minor_var = _spread(blob.astype(float), comp.row_counts[comp.row_at[i]:comp.row_at[i] + h],

@@ -137,21 +137,19 @@ def _fill_specks(pixels: np.ndarray, nonzero: bool = False, lo_hi=None) -> tuple
     grid = img[::4, ::4]  # the background and noise level from a sixteenth of the pixels: cheap and ample
     # (zeros: a clipped or masked background, not the noise's spread)
     sample = grid.ravel() if nonzero else grid[grid != 0]
-    if sample.size < 16:  # a mostly-zero image (a noise-free render, a masked slice): only a lone extreme pixel
-        grid = grid.ravel()
-        background = median(grid)
-        if not math.isfinite(background):
-            return pixels, 0
-        sigma = max(1.4826 * median(np.abs(grid - background)), 1e-12)
-        img, n_extreme = _fill_extreme_specks(img, grid, background, sigma, lo_hi)
-        return (img, n_extreme) if n_extreme else (pixels, 0)
+    mostly_zero = sample.size < 16  # (a noise-free render, a masked slice: only a lone extreme pixel is filled)
+    if mostly_zero:
+        sample = grid.ravel()
     background = median(sample)  # (np.median's value, without its overhead: finite pixels here)
     if not math.isfinite(background):  # (an image of NaNs or infinities: nothing to fill from)
         return pixels, 0
-    sigma = max(1.4826 * median(np.abs(sample - background)), 1e-12)
-    img, n_extreme = _fill_extreme_specks(img, sample, background, sigma, lo_hi)
+    spread = np.abs(sample - background)
+    sigma = max(1.4826 * median(spread), 1e-12)
+    img, n_extreme = _fill_extreme_specks(img, spread, background, sigma, lo_hi)
     if n_extreme:
         pixels = img
+    if mostly_zero:
+        return pixels, n_extreme
     level = SPECK_SIGMAS * sigma
     # too few bright pixels to hold that many specks (a plain slice: its tube sections): counted first on a
     # superset, the pixels above background + level less a slack far beyond the subtraction's rounding, then
@@ -187,14 +185,14 @@ def _fill_specks(pixels: np.ndarray, nonzero: bool = False, lo_hi=None) -> tuple
     return out, n + n_extreme
 
 
-def _fill_extreme_specks(img: np.ndarray, sample: np.ndarray, background: float, sigma: float, lo_hi=None):
-    """``(img, n)``: lone pixels :data:`EXTREME_FACTOR` times farther from ``background`` than the bright level of
-    ``sample`` (either way: a corrupt value may be hugely negative too) set to the median of their neighbours.
+def _fill_extreme_specks(img: np.ndarray, spread: np.ndarray, background: float, sigma: float, lo_hi=None):
+    """``(img, n)``: lone pixels :data:`EXTREME_FACTOR` times farther from ``background`` than the bright level of a
+    sample of the image (``spread``: its distances from ``background``; either way: a corrupt value may be hugely
+    negative too) set to the median of their neighbours.
     Most images have none, which one partial sort of the sample and the image's range show."""
     lo, hi = lo_hi if lo_hi is not None else (float(np.minimum.reduce(img, axis=None)),
                                                float(np.maximum.reduce(img, axis=None)))
-    k = min(EXTREME_RANK, sample.size)
-    spread = np.abs(sample - background)
+    k = min(EXTREME_RANK, spread.size)
     bright = max(float(np.partition(spread, spread.size - k)[spread.size - k]), SPECK_SIGMAS * sigma)
     reach = EXTREME_FACTOR * bright
     if hi - background <= reach and background - lo <= reach:

@@ -23,7 +23,6 @@ from __future__ import annotations
 
 import functools
 import math
-import weakref
 from typing import TYPE_CHECKING
 
 import numpy as np
@@ -154,7 +153,7 @@ def _helix_candidates(model: TubeModel, hel: np.ndarray, theta_F: np.ndarray, to
     depend on the blobs' heights: :func:`initial_hypotheses` shares it between the two ends of the major axis.)"""
     if hel.size == 0:
         return None
-    th0, om, z0, period, zmid, z_above, z_below, dtol, ids = _helix_terms(model, hel, tol)
+    th0, om, z0, period, zmid, z_above, z_below, dtol, ids = _helix_terms(model, tol)
     # z = z0 + (theta - th0 + 2 pi m) / om, pick m nearest to the middle of the tube
     raw = (theta_F[:, None] - th0) / om  # (N,H)
     m = ((zmid - raw) / period).round()
@@ -198,31 +197,21 @@ def _depths_from(model: TubeModel, cand, zr: np.ndarray, n_best: int = 2):
     return out
 
 
-def _helix_terms(model: TubeModel, hel: np.ndarray, tol: float) -> tuple:
-    """:func:`_helix_candidates`' per-geometry terms, each (1, H) (memoised per model, helices and tolerance):
-    ``(theta0, omega, z0, period, middle - z0, z_lo - 3, z_hi + 3, depth tolerance, helix numbers)``."""
-    memo = _HELIX_TERMS.get(model)
-    if memo is None:
-        memo = _HELIX_TERMS[model] = {}
-    key = (hel.tobytes(), tol)
-    terms = memo.get(key)
-    if terms is None:
-        th0, om, z0 = model.theta0_rad[hel], model.omega_rad_per_mm[hel], model.z0[hel]
-        zlo, zhi = model.z_lo[hel], model.z_hi[hel]
-        period = 2 * np.pi / np.abs(om)
-        zmid = (zlo + zhi) / 2 - z0
-        dtol = tol / np.abs(om)  # depth tolerance of the angle tolerance
-        terms = (th0[None, :], om[None, :], z0[None, :], period[None, :], zmid[None, :], (zlo - 3)[None, :],
-                 (zhi + 3)[None, :], dtol, np.arange(hel.size)[None, :])
-        for a in terms:
-            a.flags.writeable = False
-        if len(memo) >= 16:
-            memo.clear()
-        memo[key] = terms
+@functools.lru_cache(maxsize=16)
+def _helix_terms(model: TubeModel, tol: float) -> tuple:
+    """:func:`_helix_candidates`' per-geometry terms for the model's helices, each (1, H) (memoised per model and
+    tolerance): ``(theta0, omega, z0, period, middle - z0, z_lo - 3, z_hi + 3, depth tolerance, helix numbers)``."""
+    hel = model.helix_idx
+    th0, om, z0 = model.theta0_rad[hel], model.omega_rad_per_mm[hel], model.z0[hel]
+    zlo, zhi = model.z_lo[hel], model.z_hi[hel]
+    period = 2 * np.pi / np.abs(om)
+    zmid = (zlo + zhi) / 2 - z0
+    dtol = tol / np.abs(om)  # depth tolerance of the angle tolerance
+    terms = (th0[None, :], om[None, :], z0[None, :], period[None, :], zmid[None, :], (zlo - 3)[None, :],
+             (zhi + 3)[None, :], dtol, np.arange(hel.size)[None, :])
+    for a in terms:
+        a.flags.writeable = False
     return terms
-
-
-_HELIX_TERMS: weakref.WeakKeyDictionary = weakref.WeakKeyDictionary()
 
 
 def _pose_from_hypothesis(ell: Ellipse, cos_t, sin_t, s, h, beta, depth) -> np.ndarray:

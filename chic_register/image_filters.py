@@ -22,6 +22,11 @@ def _dilate(mask: np.ndarray, iterations: int = 1) -> np.ndarray:
     return out
 
 
+#: Largest pixel magnitude :func:`_smooth` takes (it works in single precision, to 3.4e38, with headroom for its
+#: sums); 2^-100 is the smallest for its ``scale_at_end``.
+SAFE_MAGNITUDE = 2.0 ** 100
+
+
 def _smooth(img: np.ndarray, sigma_px: float, scale_at_end: bool = False) -> np.ndarray:
     """Separable binomial smoothing (float32), the closest of widths 3 / 5 / 7 to a Gaussian of ``sigma_px``.
 

@@ -60,6 +60,7 @@ from .hypotheses import (  # noqa: F401  (the first-guess stage; its public name
     initial_hypotheses,
     parallel_family,
 )
+from .image_filters import SAFE_MAGNITUDE
 from .joint import _joint, _no_slice_locked, _solve_order, _track
 from .pose import invert, slice_angles
 from .refine import _assign, _Fit, _unexplained, refine  # noqa: F401
@@ -504,8 +505,8 @@ def _only_slices(model: TubeModel, fit, keep: list[int], xys, Ss):
     return dataclasses.replace(out, T_F_from_scanner=fit.T_F_from_scanner, measurements=meas)
 
 
-#: Largest pixel magnitude the detector takes: it smooths in single precision (to 3.4e38), with headroom for its sums.
-MAX_PIXEL_MAGNITUDE = 2.0 ** 100
+#: Largest pixel magnitude the detector takes (its smoothing is in single precision).
+MAX_PIXEL_MAGNITUDE = SAFE_MAGNITUDE
 
 
 def _check_pixel_range(slices) -> None:
