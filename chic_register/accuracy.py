@@ -23,6 +23,16 @@ from .refine import _Fit, refine
 from .trust import _pixel_mm
 from .tube_model import TubeModel, _section_extent, plane_crossings
 
+#: A fitted section disagrees with the pose the other sections give when its whitened residual (chi-square, 2 degrees
+#: of freedom, under its own information) exceeds this (a 4e-6 tail) ...
+SECTION_OUTLIER_CHI2 = 25.0
+#: ... and this many times the median of the other matched sections' (a model error shared by every section, a
+#: blurred or mis-scaled image, raises them all alike and drops none): a blob on the tubes' circle, a stripe, a
+#: ghost or lost pixels over one section pull its position by a fraction of a pixel, which a clean section's noise
+#: does not. Such a section is left out and the pose refitted on the rest (at most :data:`MAX_SECTION_OUTLIERS`).
+SECTION_OUTLIER_RATIO = 10.0
+MAX_SECTION_OUTLIERS = 2
+
 
 def centroid_offsets(tubes, model: TubeModel, T_F_from_I: np.ndarray, assignment: np.ndarray, footprints,
                      pixel_spacing_mm, slice_thickness_mm: float, *, supersample: int = 5,
@@ -307,7 +317,7 @@ def _section_refine(model: TubeModel, fit: _Fit, xys, Ss, slices, blob_sets, opt
                                                           else min(3, opts.section_thickness_samples)),
                                        windows=wins[j], exact=exact,
                                        rician_sigma=rayleigh_sigma(b.background, b.noise_sigma) if opts.section_rician
-                                       else 0.0)
+                                       else 0.0, lost=sl.lost)
             q_before.append(sf.predicted_mm)
             ok = sf.fitted.copy()
             if ok.any():  # a section far from where the locked pose puts it, or faint, is not the tube's
@@ -337,5 +347,54 @@ def _section_refine(model: TubeModel, fit: _Fit, xys, Ss, slices, blob_sets, opt
         if exact and moved < opts.section_done_px * px:
             break
         exact = moved < opts.section_close_px * px
+    return fit
+
+
+def section_chi2(model: TubeModel, fit: _Fit, assign, Ss) -> list[np.ndarray]:
+    """Per slice, each matched tube's whitened residual ``|L (predicted - fitted)|^2`` (K,) under its section fit's
+    information (``fit.measurements``); NaN for unmatched tubes."""
+    out = []
+    for j, S in enumerate(Ss):
+        xy, L, _ = fit.measurements[j]
+        a = assign[j]
+        k = np.flatnonzero(a >= 0)
+        q = plane_crossings(model, fit.T_F_from_scanner @ S, margin_mm=1e-9)[0]
+        chi2 = np.full(a.size, np.nan)
+        r = q[k] - xy[a[k]]
+        w = np.einsum("kij,kj->ki", L[k], r)
+        chi2[k] = np.einsum("ki,ki->k", w, w)
+        out.append(chi2)
+    return out
+
+
+def drop_section_outliers(model: TubeModel, fit: _Fit, Ss, opts) -> _Fit:
+    """``fit`` (a :func:`_section_refine` result) refitted without the sections that alone disagree with the
+    others' pose (:data:`SECTION_OUTLIER_CHI2`, :data:`SECTION_OUTLIER_RATIO`), one at a time, up to
+    :data:`MAX_SECTION_OUTLIERS`; never below ``min_tubes`` / ``min_depth_tubes``. ``fit`` itself when none does."""
+    if fit.measurements is None:
+        return fit
+    assign = fit.assignments
+    for _ in range(MAX_SECTION_OUTLIERS):
+        chi2 = section_chi2(model, fit, assign, Ss)
+        flat = np.concatenate(chi2)
+        ok = np.isfinite(flat)
+        if ok.sum() <= opts.min_tubes:
+            break
+        worst = int(np.nanargmax(flat))
+        rest = np.delete(flat, worst)
+        rest = rest[np.isfinite(rest)]
+        if not (flat[worst] > SECTION_OUTLIER_CHI2 and flat[worst] > SECTION_OUTLIER_RATIO * median(rest)):
+            break
+        j, k = divmod(worst, len(model.ids))
+        n_depth = sum(int(((a >= 0) & model.depth_coding).sum()) for a in assign)
+        if model.depth_coding[k] and n_depth <= opts.min_depth_tubes:
+            break
+        assign = [a.copy() for a in assign]
+        assign[j][k] = -1
+        xys = [m[0] for m in fit.measurements]
+        Ls = [m[1] for m in fit.measurements]
+        refit = refine(model, xys, Ss, fit.T_F_from_scanner, gates_mm=(), final_iters=6, assign0=assign,
+                       strict_ends=False, weights=Ls, tol=1e-5)
+        fit = dataclasses.replace(refit, measurements=fit.measurements)
     return fit
 

@@ -81,6 +81,13 @@ def fill_dropouts(pixels: np.ndarray) -> tuple[np.ndarray, int]:
     """``(pixels, n_filled)``: each lost pixel (not a finite number, a bright speck, or an exact zero amid signal,
     see the module's doc) replaced by the median of the valid pixels of its ``WINDOW_PX`` neighbourhood; the input itself when there
     are none."""
+    return lost_pixels(pixels)[:2]
+
+
+def lost_pixels(pixels: np.ndarray) -> tuple[np.ndarray, int, np.ndarray | None]:
+    """:func:`fill_dropouts`, and the (rows, cols) bool mask of the lost pixels (None when there are none): the
+    filled ones, and every exact zero of an image whose zeros are lost samples (those in the background too, which
+    are not filled: a fit over a section's surroundings must leave them out as well)."""
     img = np.asarray(pixels)
     # the range, once: a NaN or an infinity anywhere shows in it, and an image of positive (or negative) pixels only
     # has no exact zero, before the specks are filled or after (a speck takes the median of its neighbours)
@@ -91,9 +98,18 @@ def fill_dropouts(pixels: np.ndarray) -> tuple[np.ndarray, int]:
     pixels, n_specks = _fill_specks(pixels, nonzero=not n_bad and (lo > 0 or hi < 0),
                                     lo_hi=None if n_bad else (lo, hi))
     if not n_bad and (lo > 0 or hi < 0):
-        return pixels, n_specks
-    filled, n_zero = _fill_zeros(pixels)
-    return filled, n_bad + n_specks + n_zero
+        return pixels, n_specks, _changed(img, pixels) if n_specks else None
+    filled, n_zero, zeros = _fill_zeros(pixels)
+    n = n_bad + n_specks + n_zero
+    lost = _changed(img, filled) if n else None
+    if zeros is not None:
+        lost = zeros if lost is None else lost | zeros
+    return filled, n, lost
+
+
+def _changed(before: np.ndarray, after: np.ndarray) -> np.ndarray:
+    """(rows, cols) bool: the pixels a fill changed (a NaN counts as changed)."""
+    return ~(np.asarray(before) == np.asarray(after))
 
 
 def _fill_non_finite(pixels: np.ndarray, lo: float = math.nan, hi: float = math.nan) -> tuple[np.ndarray, int]:
@@ -214,13 +230,14 @@ def _fill_extreme_specks(img: np.ndarray, spread: np.ndarray, background: float,
     return out, int(speck.sum())
 
 
-def _fill_zeros(pixels: np.ndarray) -> tuple[np.ndarray, int]:
-    """Exact zeros amid the signal of a noisy image filled (see the module's doc)."""
+def _fill_zeros(pixels: np.ndarray) -> tuple[np.ndarray, int, np.ndarray | None]:
+    """Exact zeros amid the signal of a noisy image filled (see the module's doc); ``(pixels, n_filled, zeros)``,
+    ``zeros`` the mask of every exact zero when they are lost samples, else None."""
     img = np.asarray(pixels)
     zero = img == 0
     share = np.count_nonzero(zero) / zero.size if zero.size else 0.0  # (zero.mean(), in one pass)
     if not (MIN_ZERO_SHARE <= share <= MAX_ZERO_SHARE) or not np.all(np.isfinite(img)):
-        return pixels, 0
+        return pixels, 0, None
     img = img.astype(float)
     valid = img[~zero]
     background = median(valid)
@@ -228,29 +245,31 @@ def _fill_zeros(pixels: np.ndarray) -> tuple[np.ndarray, int]:
     # lost samples fall anywhere, signal or not; zeros that are clipped noise avoid the signal
     near_signal = _neighbourhoods(img > level, False).any(axis=(2, 3))
     if not near_signal.any() or zero[near_signal].mean() < SCATTER_SHARE * share:
-        return pixels, 0
+        return pixels, 0, None
     valid_share = _neighbourhoods(~zero, False).mean(axis=(2, 3))
     candidates = zero & (valid_share >= MIN_VALID_SHARE)
     if not candidates.any():
-        return pixels, 0
+        return pixels, 0, zero
     hoods = _neighbourhoods(np.where(zero, np.nan, img), np.nan)[candidates]  # (n, W, W)
     fill = np.nanmedian(hoods.reshape(len(hoods), -1), axis=1)
     lost = fill > level
     if not lost.any():
-        return pixels, 0
+        return pixels, 0, zero
     out = img.copy()
     rows, cols = np.nonzero(candidates)
     out[rows[lost], cols[lost]] = fill[lost]
-    return out, int(lost.sum())
+    return out, int(lost.sum()), zero
 
 
 def fill_slice_dropouts(slices: list) -> tuple[list, dict]:
-    """The slices with their lost pixels filled (:mod:`chic_register.dropout`), and ``{source: n filled}``."""
+    """The slices with their lost pixels filled and marked (``Slice.lost``, :func:`lost_pixels`), and
+    ``{source: n filled}``."""
     out, filled = [], {}
     for sl in slices:
-        pixels, n = fill_dropouts(sl.pixels)
+        pixels, n, lost = lost_pixels(sl.pixels)
+        if n or lost is not None:
+            sl = dataclasses.replace(sl, pixels=pixels, lost=lost)
         if n:
-            sl = dataclasses.replace(sl, pixels=pixels)
             filled[sl.source] = filled.get(sl.source, 0) + n
         out.append(sl)
     return out, filled

@@ -29,6 +29,11 @@ ROT_TOL_DEG = 0.75
 #: scatter well above its noise, and in the false-lock hunt (benchmarks/hunt.py, 5000 cases) every such pose had a
 #: 3-sigma rotation above 0.8 deg, while the correct poses that 0.75 deg lets through were all within 0.5 mm, 0.5 deg.
 PRECISION_SIGMAS = 3.0
+#: A pose refitted without a section the damage pulled off (chic_register.accuracy.drop_section_outliers) is held to
+#: this many: what moved one section may have moved others by less than their noise shows, along the direction a
+#: single slice knows least. In the false-lock hunt a tool in the bore pulled one section of a near-normal slice off
+#: and turned the rest's consistent pose 0.99 deg at 4.4 of its predicted sigmas (seed 0, case 1795).
+OUTLIER_PRECISION_SIGMAS = 4.5
 #: The residual scatter of 6-10 tubes is itself uncertain (12-14 degrees of freedom): the scatter used is its
 #: upper bound at this confidence (chi-square), so a few lucky residuals do not make a pose look precise.
 SCATTER_CONFIDENCE = 0.9

@@ -71,9 +71,10 @@ class Reach:
 
 
 def _window_pixels(model, q, tan, found, todo, shape, pixel_spacing_mm, slice_thickness_mm: float,
-                   margin_px: float) -> Reach:
+                   margin_px: float, lost=None) -> Reach:
     """Every tube in ``todo``'s bounding-box pixels, which other found tubes' section boxes (grown by a pixel)
-    reach each, and which lie beyond the tube's own grown box: a :class:`Reach`.
+    reach each, and which lie beyond the tube's own grown box: a :class:`Reach`. ``lost``: (rows, cols) bool,
+    pixels lost to dropout (:mod:`chic_register.dropout`), counted as beyond the box (no window keeps them).
 
     (Only the pairs of tubes whose boxes can overlap are tested, pixel by pixel: the same tests and values as
     testing every pixel against every tube, at a fraction of the work.)"""
@@ -104,6 +105,8 @@ def _window_pixels(model, q, tan, found, todo, shape, pixel_spacing_mm, slice_th
     ux, uy = u_rows[0][own], u_rows[1][own]
     # the corners of the bounding box that lie beyond the margin of the tube's own (rotated) section box
     far = ((np.abs(dx * ux + dy * uy) > half_len[own] + m_mm) | (np.abs(dx * uy - dy * ux) > half_wid[own] + m_mm))
+    if lost is not None:
+        far |= lost[rr, cc]
     # what another tube's section (grown by a pixel) reaches: first the pairs of tubes (a in todo, o found) whose
     # boxes' axis-aligned bounds can meet (|u| need not be 1: a bound for any u), then their pixels one by one
     grow = max(rs, cs)
@@ -152,17 +155,18 @@ def _kept(reach: Reach, assignment, footprints, modelled=None):
 
 def joint_windows(model, q: np.ndarray, tan: np.ndarray, found: np.ndarray, todo: np.ndarray, shape,
                   pixel_spacing_mm, slice_thickness_mm: float, modelled: np.ndarray, assignment=None, footprints=(),
-                  margin_px: float = 1.5, reach=None):
+                  margin_px: float = 1.5, reach=None, lost=None):
     """:func:`section_windows` keeping the pixels that only ``modelled`` (K,) tubes' sections reach besides the
     tube's own, and those pairs: ``(windows, pixel (M,) index into the windows, tube (M,))``.
 
     A pixel two sections share carries information on both: with the
     neighbour's fitted section subtracted (the joint pass of
     :func:`fit_sections`) it is used instead of left out, which matters where
-    a helix runs close to a straight tube (near the body's ends). ``reach``: as for :func:`section_windows`.
+    a helix runs close to a straight tube (near the body's ends). ``reach``: as for :func:`section_windows`;
+    ``lost``: as for :func:`_window_pixels`.
     """
     reach = reach or _window_pixels(model, q, tan, found, todo, shape, pixel_spacing_mm, slice_thickness_mm,
-                                    margin_px)
+                                    margin_px, lost)
     return _joint_windows(reach, assignment, footprints, modelled)[:3]
 
 

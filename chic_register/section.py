@@ -247,7 +247,7 @@ def fit_sections(model, T_F_from_I: np.ndarray, assignment: np.ndarray, pixels: 
                  slice_thickness_mm: float, noise_sigma: float, *, footprints=(), thickness_samples: int = 5,
                  margin_px: float = 1.5, windows: Windows | None = None,
                  shift_iterations: int = 1, exact: bool = True, joint: bool = True,
-                 rician_sigma: float = 0.0) -> tuple[SectionFit, Windows]:
+                 rician_sigma: float = 0.0, lost=None) -> tuple[SectionFit, Windows]:
     """Fit each matched tube's section model to ``pixels`` (rows, cols) at the pose ``T_F_from_I`` (4x4).
 
     ``assignment`` (K,): blob index per tube, -1 for unmatched (not fitted);
@@ -261,7 +261,9 @@ def fit_sections(model, T_F_from_I: np.ndarray, assignment: np.ndarray, pixels: 
     the tubes on the pixels they share with their neighbours, whose fitted
     sections are subtracted (:func:`_joint_pass`); ``rician_sigma`` > 0: the
     pixels are magnitudes with Rician noise of that scale, and the fit is
-    of their mean (:func:`~chic_register.rician.rician_model`). Returns the fit and the windows.
+    of their mean (:func:`~chic_register.rician.rician_model`); ``lost``: (rows, cols) bool, pixels lost to
+    dropout (:mod:`chic_register.dropout`; their filled values carry no information), left out of every window.
+    Returns the fit and the windows.
     See the module docstring.
     """
     q, tan, _, found = plane_crossings(model, T_F_from_I, margin_mm=1e-9)
@@ -275,7 +277,7 @@ def fit_sections(model, T_F_from_I: np.ndarray, assignment: np.ndarray, pixels: 
     joint = joint and exact and int(shift_iterations) <= 1
     if windows is None:
         reach = _window_pixels(model, q, tan, found, todo, pixels.shape, pixel_spacing_mm, slice_thickness_mm,
-                               margin_px)
+                               margin_px, lost)
         keep, shared = _kept(reach, assignment, footprints)
         windows = Windows(reach.rows[keep], reach.cols[keep], reach.own[keep], shared)
         if joint and shared and todo.size >= 2:
@@ -327,7 +329,8 @@ def fit_sections(model, T_F_from_I: np.ndarray, assignment: np.ndarray, pixels: 
                                               slice_thickness_mm, thickness_samples, exact, noise_sigma, assignment,
                                               footprints, margin_px, sel, at, info, a, n_pix,
                                               reach if same else None, at_crossing, rician_sigma,
-                                              ahead[:3] + (y_joint,) if same and ahead is not None else None)
+                                              ahead[:3] + (y_joint,) if same and ahead is not None else None,
+                                              lost)
     out_pos[sel] = at[sel]
     out_info[sel] = info
     out_gain[sel] = a
@@ -337,20 +340,21 @@ def fit_sections(model, T_F_from_I: np.ndarray, assignment: np.ndarray, pixels: 
 
 def _joint_pass(model, T_F_from_I, q, tan, found, pixels, pixel_spacing_mm, slice_thickness_mm: float,
                 thickness_samples: int, exact: bool, noise_sigma: float, assignment, footprints, margin_px: float,
-                sel, at, info, a, n_pix, reach=None, at_crossing=None, rician_sigma: float = 0.0, ahead=None):
+                sel, at, info, a, n_pix, reach=None, at_crossing=None, rician_sigma: float = 0.0, ahead=None,
+                lost=None):
     """Refit the tubes ``sel`` on the pixels they share with fitted neighbours, those neighbours' fitted
     sections (position ``at``, level ``a``) subtracted (:func:`joint_windows`); :data:`JOINT_PASSES` times.
     Returns ``(sel, at, info, a, n_pix)`` as :func:`_linear_fit` gives them, unchanged when no pixel is
     shared or a tube would be lost. ``at_crossing``: ``(windows, (S, Sx, Sy))``, :func:`section_model` at the
     crossings ``q`` on some windows, whose pixels are then not drawn again (the model is pixel by pixel).
     ``ahead``: ``(windows, pixel, tube, y)``, :func:`joint_windows` and their pixels' values, when ``at_crossing``
-    was drawn on exactly those windows."""
+    was drawn on exactly those windows. ``lost``: as for :func:`fit_sections`."""
     K = q.shape[0]
     if ahead is None:
         modelled = np.zeros(K, bool)
         modelled[sel] = True
         jw, nb_p, nb_k = joint_windows(model, q, tan, found, sel, pixels.shape, pixel_spacing_mm, slice_thickness_mm,
-                                       modelled, assignment, footprints, margin_px, reach)
+                                       modelled, assignment, footprints, margin_px, reach, lost)
     else:
         jw, nb_p, nb_k, y = ahead
     if nb_p.size == 0:

@@ -413,10 +413,16 @@ def register(slices: list[Slice], geom: FiducialGeometry, *, options: SolveOptio
                     best = _only_slices(model, best, keep, xys, Ss)
                     locked = _only_slices(model, locked, keep, xys, Ss) if locked is not best else best
         except ImprecisePose:
-            if opts.centroid_model or not opts.refine_when_imprecise or precision is not None:
+            if opts.centroid_model or precision is not None:
                 raise
-            else:
-                checks = None
+            checks = None
+            if best is not locked:
+                # one section pulled off by damage (a blob on it, a stripe, lost pixels) spoils the scatter the
+                # precision test sees: the pose refitted without it, held to a stricter precision
+                checks, best = _without_outlier_sections(geom, model, best, rivals, slices, Ss, blob_sets, opts)
+            if checks is None and not opts.refine_when_imprecise:
+                raise
+            if checks is None:
                 if best is not locked:
                     # the precision test estimates the noise from the residual scatter, unweighted: the section
                     # fit's residuals along elongated sections make it pessimistic, so the centroid fit is judged
@@ -503,6 +509,25 @@ def _only_slices(model: TubeModel, fit, keep: list[int], xys, Ss):
     out = refine(model, xys, Ss, fit.T_F_from_scanner, gates_mm=(), final_iters=0, assign0=assign)
     meas = None if fit.measurements is None else [fit.measurements[i] for i in keep]
     return dataclasses.replace(out, T_F_from_scanner=fit.T_F_from_scanner, measurements=meas)
+
+
+def _without_outlier_sections(geom, model: TubeModel, fit, rivals, slices, Ss, blob_sets, opts):
+    """``(checks, fit)`` of the section fit ``fit`` refitted without its outlier sections
+    (:func:`~chic_register.accuracy.drop_section_outliers`) when that pose verifies at
+    :data:`~chic_register.fit_checks.OUTLIER_PRECISION_SIGMAS` and lies within the trust limits of ``fit``;
+    else ``(None, fit)``."""
+    from .accuracy import drop_section_outliers
+    from .fit_checks import OUTLIER_PRECISION_SIGMAS
+    from .verify_pose import verify_fit
+
+    dropped = drop_section_outliers(model, fit, Ss, opts)
+    if dropped is fit or _distinct(dropped.T_F_from_scanner, fit.T_F_from_scanner, model):
+        return None, fit
+    try:
+        return verify_fit(geom, model, dropped, rivals, slices, Ss, blob_sets, opts,
+                          precision_sigmas=OUTLIER_PRECISION_SIGMAS), dropped
+    except NoLock:
+        return None, fit
 
 
 #: Largest pixel magnitude the detector takes (its smoothing is in single precision).

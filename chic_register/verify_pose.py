@@ -339,14 +339,16 @@ def _check_stretch(model, fit, xys, Ss, opts) -> None:
 
 
 def verify_fit(geom, model, fit, rivals, slices, Ss, blob_sets, opts, precision=None,
-               name_slice: bool = False, psf_px: float | None = None) -> list[SliceCheck]:
+               name_slice: bool = False, psf_px: float | None = None,
+               precision_sigmas: float = PRECISION_SIGMAS) -> list[SliceCheck]:
     """Verify a solved pose (a ``solve._Fit``) in every slice, and that no distinct rival verifies as well.
 
     ``rivals``: per slice, the other refined hypotheses of that slice alone
     (``solve._Fit`` in the slice's own scanner frame, as ``fit``);
     ``precision``: the pose's 1-sigma ``(TRE mm, rotation deg)`` when the
     pose was fitted to the pixels (:mod:`chic_register.blurred_fit`), else
-    from the positions' residuals (:func:`pose_precision`); ``name_slice``: a
+    from the positions' residuals (:func:`pose_precision`), within the trust
+    limits at ``precision_sigmas`` of it; ``name_slice``: a
     series' slices that fail their own checks raise :class:`SliceRefused`
     naming them all (a volume's registration leaves them out). Raises
     :class:`NoLock` with the first failure; returns one :class:`SliceCheck` per slice.
@@ -387,7 +389,7 @@ def verify_fit(geom, model, fit, rivals, slices, Ss, blob_sets, opts, precision=
     f = max(correlation_inflation(noise_correlation_axes(np.asarray(sl.pixels), b.footprints))
             for sl, b in zip(slices, blob_sets))
     tre, rot = tre * f, rot * f
-    k = PRECISION_SIGMAS
+    k = precision_sigmas
     tre_tol, rot_tol = opts.trust_tre_mm, opts.trust_rot_deg
     if k * tre > tre_tol or k * rot > rot_tol:
         raise ImprecisePose(f"the pose is not precise enough to trust: {k:g} sigma of its predicted error is "

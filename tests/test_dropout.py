@@ -175,3 +175,40 @@ def test_one_extreme_pixel_in_a_noise_free_render_is_filled(neuro_geometry):
     assert n == 1 and np.array_equal(filled, plain)
     reg = register([replace(sim.slice, pixels=px)], neuro_geometry)
     assert abs(reg.slices[0].tilt_deg - sim.truth.angles.tilt_deg) < 0.3
+
+
+def test_every_zero_of_an_image_with_lost_samples_is_marked_lost():
+    """The mask covers the filled zeros and the background's (not filled: a section fit's surroundings must leave
+    them out too), and no valid pixel; an undamaged image has no mask."""
+    from chic_register.dropout import lost_pixels
+
+    rng = np.random.default_rng(4)
+    img, disc = _disc_image(rng)
+    assert lost_pixels(img)[2] is None
+    gone = rng.random(img.shape) < 0.3
+    filled, n, lost = lost_pixels(np.where(gone, 0.0, img))
+    assert n > 0 and np.array_equal(lost, gone)
+
+
+def test_lost_pixels_are_left_out_of_the_section_fit(neuro_geometry, monkeypatch):
+    """A tilted slice with 30 % of its pixels zeroed: the section fit leaves the lost pixels out (their filled values
+    are a smoothed guess), so the pose is within a few hundredths of a degree of the truth and locks; fitted with
+    the filled values as if measured, the same slice is refused as imprecise."""
+    import chic_register.dropout as dropout
+    from chic_register.errors import ImprecisePose
+    from chic_register.slices import Slice
+
+    sim = simulate_slice(neuro_geometry, 22.0, 20.0, 35.0, 10.0, shape=(200, 200), pixel_spacing_mm=(0.5, 0.5),
+                         slice_thickness_mm=1.5, noise="rician", snr=40.0, image_position=(0.0, 0.0, 0.0),
+                         rng=np.random.default_rng(7))
+    px = np.array(sim.slice.pixels)
+    px[np.random.default_rng(8).random(px.shape) < 0.3] = 0.0
+    sl = Slice(px, (0.5, 0.5), slice_thickness_mm=1.5)
+    reg = register([sl], neuro_geometry)
+    dR = reg.T_scanner_from_fiducial[:3, :3].T @ np.asarray(sim.truth.T_scanner_from_fiducial)[:3, :3]
+    assert np.degrees(np.arccos(np.clip((np.trace(dR) - 1) / 2, -1, 1))) < 0.1
+    assert reg.slices[0].filled_pixels > 0
+    marked = dropout.lost_pixels
+    monkeypatch.setattr(dropout, "lost_pixels", lambda p: marked(p)[:2] + (None,))
+    with pytest.raises(ImprecisePose):
+        register([sl], neuro_geometry)
