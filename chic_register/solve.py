@@ -61,6 +61,7 @@ from .hypotheses import (  # noqa: F401  (the first-guess stage; its public name
     parallel_family,
 )
 from .image_filters import SAFE_MAGNITUDE
+from .magnitude import refuse_signed
 from .joint import _joint, _no_slice_locked, _solve_order, _track
 from .pose import invert, slice_angles
 from .refine import _assign, _Fit, _unexplained, refine  # noqa: F401
@@ -298,6 +299,7 @@ def register(slices: list[Slice], geom: FiducialGeometry, *, options: SolveOptio
     blob_sets, xys = [], []
     for sl in slices:
         b = detect_blobs(sl.pixels, sl.pixel_spacing_mm, model.diameter_mm, **(detect_options or {}))
+        refuse_signed(sl.pixels, b.threshold, sl.source)
         blob_sets.append(b)
         xys.append(_to_xy_mm(b, sl))
     t1 = time.perf_counter()

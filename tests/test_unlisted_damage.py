@@ -118,3 +118,31 @@ def test_a_small_stretch_that_turns_the_pose_is_refused(monkeypatch):
     assert refused_or_right(outcome(1, 1825, "zoom2"))
     monkeypatch.setattr(vp, "STRETCH_MOVE_SHARE", np.inf)
     assert false_lock(outcome(1, 1825, "zoom2"))
+
+
+@pytest.mark.parametrize("seed, index", [(2, 615), (3, 175), (3, 495)])
+def test_a_signed_image_is_refused(monkeypatch, seed, index):
+    """The real part of a complex image under a phase ramp (the hunt's signed_phase): its sections are shaded by
+    the cosine of the phase, and the three such slices of seeds 2 and 3 locked 0.52-0.90 deg off with residuals
+    like noise. The background's blocks averaging below zero in one part and above it in another refuse them."""
+    import chic_register.solve as solve
+
+    sl, _, geom = damaged_case(seed, index, "signed_phase")
+    with pytest.raises(NoLock, match="signed"):
+        register([sl], geom)
+    monkeypatch.setattr(solve, "refuse_signed", lambda *a: None)
+    assert false_lock(outcome(seed, index, "signed_phase"))
+
+
+def test_a_magnitude_image_with_an_offset_or_shading_is_not_signed():
+    """An offset subtracted from a magnitude image moves every background block alike, shading scales them: neither
+    gives blocks of both signs; the same background under a cosine that turns negative does."""
+    from chic_register.magnitude import MIN_SIGNED_BLOCKS, signed_blocks
+
+    rng = np.random.default_rng(5)
+    noise = np.hypot(rng.standard_normal((128, 128)), rng.standard_normal((128, 128)))  # Rayleigh, sigma 1
+    xx = np.mgrid[0:128, 0:128][1] / 128.0
+    for img in (noise, noise - 1.2, noise - 3.0, noise * (0.3 + 1.5 * xx)):
+        assert min(signed_blocks(img, np.inf)) < MIN_SIGNED_BLOCKS
+    negative, positive = signed_blocks(noise * np.cos(2 * np.pi * 0.8 * xx + 0.3), np.inf)
+    assert min(negative, positive) >= MIN_SIGNED_BLOCKS
