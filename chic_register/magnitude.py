@@ -52,7 +52,10 @@ def refuse_signed(pixels: np.ndarray, bright: float, source: str) -> None:
     """:class:`NoLock` when ``pixels`` are signed, not magnitudes (see the module's doc); free for an image with no
     negative pixel."""
     img = np.asarray(pixels)
-    if img.size == 0 or img.dtype.kind == "u" or float(np.minimum.reduce(img, axis=None)) >= 0:
+    if img.size == 0 or img.dtype.kind == "u":
+        return
+    lo = float(np.minimum.reduce(img, axis=None))
+    if not lo < 0 or not math.isfinite(lo) or not np.isfinite(img).all():  # (non-finite pixels: refused elsewhere)
         return
     negative, positive = signed_blocks(img, bright)
     if min(negative, positive) >= MIN_SIGNED_BLOCKS:
