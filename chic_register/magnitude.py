@@ -48,13 +48,13 @@ def signed_blocks(pixels: np.ndarray, bright: float) -> tuple[int, int]:
     return int(np.count_nonzero(mean < -SIGN_SIGMAS * se)), int(np.count_nonzero(mean > SIGN_SIGMAS * se))
 
 
-def refuse_signed(pixels: np.ndarray, bright: float, source: str) -> None:
+def refuse_signed(pixels: np.ndarray, bright: float, source: str, lowest: float = math.nan) -> None:
     """:class:`NoLock` when ``pixels`` are signed, not magnitudes (see the module's doc); free for an image with no
-    negative pixel."""
+    negative pixel. ``lowest``: the smallest pixel, when known (NaN: found here)."""
     img = np.asarray(pixels)
     if img.size == 0 or img.dtype.kind == "u":
         return
-    lo = float(np.minimum.reduce(img, axis=None))
+    lo = lowest if not math.isnan(lowest) else float(np.minimum.reduce(img, axis=None))
     if not lo < 0 or not math.isfinite(lo) or not np.isfinite(img).all():  # (non-finite pixels: refused elsewhere)
         return
     negative, positive = signed_blocks(img, bright)

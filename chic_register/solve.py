@@ -294,12 +294,12 @@ def register(slices: list[Slice], geom: FiducialGeometry, *, options: SolveOptio
             raise AmbiguousFit(why, {"needs_prior": True})
     t0 = time.perf_counter()
     slices, filled = fill_slice_dropouts(slices)
-    _check_pixel_range(slices)
+    lows = _check_pixel_range(slices)
     model, geom_sha = prepare_geometry(geom)
     blob_sets, xys = [], []
-    for sl in slices:
+    for sl, lo in zip(slices, lows):
         b = detect_blobs(sl.pixels, sl.pixel_spacing_mm, model.diameter_mm, **(detect_options or {}))
-        refuse_signed(sl.pixels, b.threshold, sl.source)
+        refuse_signed(sl.pixels, b.threshold, sl.source, lo)
         blob_sets.append(b)
         xys.append(_to_xy_mm(b, sl))
     t1 = time.perf_counter()
@@ -536,19 +536,24 @@ def _without_outlier_sections(geom, model: TubeModel, fit, rivals, slices, Ss, b
 MAX_PIXEL_MAGNITUDE = SAFE_MAGNITUDE
 
 
-def _check_pixel_range(slices) -> None:
+def _check_pixel_range(slices) -> list[float]:
     """Raise :class:`NoLock` for a slice whose pixels (lost ones already filled) reach beyond
-    :data:`MAX_PIXEL_MAGNITUDE`: no MR image holds such values (a rescale slope or a conversion gone wrong)."""
+    :data:`MAX_PIXEL_MAGNITUDE`: no MR image holds such values (a rescale slope or a conversion gone wrong).
+    Returns each slice's smallest pixel (NaN when not computed: an empty or integer image)."""
+    lows = []
     for sl in slices:
         img = np.asarray(sl.pixels)
         if img.size == 0 or img.dtype.kind != "f":
+            lows.append(math.nan)
             continue
         lo, hi = float(np.minimum.reduce(img, axis=None)), float(np.maximum.reduce(img, axis=None))
+        lows.append(lo)
         peak = max(abs(lo), abs(hi))
         if peak > MAX_PIXEL_MAGNITUDE and math.isfinite(lo) and math.isfinite(hi):
             raise NoLock(f"{sl.source}: pixel values reach {peak:.3g}, beyond the {MAX_PIXEL_MAGNITUDE:.3g} the detector "
                          "takes (single precision): rescale the image (a rescale slope or a unit conversion gone wrong?)",
                          {"pixel_peak": peak})
+    return lows
 
 
 def _worth_flattening(blobs: Blobs, model: TubeModel) -> bool:
