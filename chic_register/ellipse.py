@@ -14,10 +14,8 @@ from dataclasses import dataclass
 
 import numpy as np
 
-try:  # numpy's LAPACK gufuncs without np.linalg's wrappers (a private module: another numpy may lack it)
-    from numpy.linalg import _umath_linalg
-except ImportError:  # pragma: no cover - the public wrappers
-    _umath_linalg = None
+from .lapack import eig_vectors as _lapack_eig
+from .lapack import solve as _lapack_solve
 
 
 @dataclass(frozen=True)
@@ -124,30 +122,6 @@ def _lsq_conic(xy: np.ndarray) -> np.ndarray:
         return np.full(6, np.nan)
     a1 = v[:, idx[0]]
     return np.concatenate([a1, Tm @ a1])
-
-
-def _lapack_solve(A: np.ndarray, B: np.ndarray) -> np.ndarray:
-    """``np.linalg.solve(A, B)`` of float64 (n, n) matrices (the same LAPACK gufunc, less its wrapper's checks:
-    about half the cost), NaNs where it raises LinAlgError for a singular ``A``."""
-    if _umath_linalg is None:  # pragma: no cover - a numpy without the private module
-        try:
-            return np.linalg.solve(A, B)
-        except np.linalg.LinAlgError:
-            return np.full(B.shape, np.nan)
-    with np.errstate(invalid="ignore", divide="ignore", over="ignore", under="ignore"):
-        return _umath_linalg.solve(A, B, signature="dd->d")
-
-
-def _lapack_eig(M: np.ndarray) -> np.ndarray:
-    """The real part of ``np.linalg.eig(M)``'s eigenvectors (columns) of a finite float64 (n, n) matrix, less
-    the wrapper (NaNs where it raises for eigenvalues that do not converge)."""
-    if _umath_linalg is None:  # pragma: no cover - a numpy without the private module
-        try:
-            return np.real(np.linalg.eig(M)[1])
-        except np.linalg.LinAlgError:
-            return np.full(M.shape, np.nan)
-    with np.errstate(invalid="ignore", divide="ignore", over="ignore", under="ignore"):
-        return _umath_linalg.eig(M, signature="d->DD")[1].real
 
 
 def fit_ellipse_robust(xy_mm: np.ndarray, radius_mm: float, max_tilt_deg: float = 80.0,

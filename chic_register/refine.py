@@ -16,11 +16,7 @@ from typing import TYPE_CHECKING
 
 import numpy as np
 
-try:  # numpy's LAPACK solve without np.linalg.solve's wrapper (a private module: another numpy may lack it)
-    from numpy.linalg._umath_linalg import solve1 as _solve1
-except ImportError:  # pragma: no cover - the public wrapper below
-    _solve1 = None
-
+from .lapack import solve_vector as _solve
 from .matching import matched_pairs
 from .pose import invert
 from .tube_model import TubeModel, _adjoint, _crossings_memo, _exp_se3, _inside_list
@@ -60,21 +56,6 @@ def _assign(pred: np.ndarray, ok: np.ndarray, blobs_xy: np.ndarray, gate_mm: flo
     for i, j in zip(rl, cl):
         out[i] = j
     return np.array(out)
-
-
-def _solve(H: np.ndarray, g: np.ndarray) -> list[float]:
-    """``np.linalg.solve(H, g)`` (float64 (n, n) and (n,)) as a list: the same LAPACK gufunc without the wrapper's
-    checks and error-state switch (~5 us a call of ~7); NaNs (and a RuntimeWarning) where np.linalg.solve raises
-    LinAlgError for a singular H (the public wrapper, with the same NaNs, where numpy has no such gufunc)."""
-    if _solve1 is not None:
-        try:
-            return _solve1(H, g, signature="dd->d").tolist()
-        except TypeError:  # pragma: no cover - a numpy whose private gufunc takes other arguments
-            pass
-    try:
-        return np.linalg.solve(H, g).tolist()
-    except np.linalg.LinAlgError:
-        return [math.nan] * len(g)
 
 
 def _image_adjoint(S: np.ndarray) -> np.ndarray:

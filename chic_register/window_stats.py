@@ -11,6 +11,7 @@ from dataclasses import dataclass
 import numpy as np
 
 from .detect import _dilate
+from .lapack import lstsq as _lstsq
 from .render import render_windows
 from .tube_model import _section_box, _section_extent, plane_crossings
 
@@ -22,28 +23,6 @@ MAX_THICKNESS_SAMPLES = 3
 SMEAR_PX_PER_SAMPLE = 4.0
 
 
-try:  # numpy's own least squares (LAPACK gelsd) without np.linalg.lstsq's wrapper: a third of a window fit's cost
-    from numpy.linalg import _umath_linalg
-except ImportError:  # pragma: no cover - another numpy: the wrapper
-    _umath_linalg = None
-_EPS = float(np.finfo(float).eps)
-
-
-def _lstsq(A: np.ndarray, y: np.ndarray):
-    """``(coef, rank)`` of ``np.linalg.lstsq(A, y, rcond=None)`` (A (m, n), y (m,) float): the same LAPACK call
-    without the wrapper's checks, the windows' fits being a few dozen small ones per pose; the wrapper itself (its
-    answer, its error) when that call is not there or gives no finite answer."""
-    m, n = A.shape
-    if _umath_linalg is not None and m > 0 and A.dtype == np.float64 and y.dtype == np.float64:
-        try:
-            with np.errstate(all="ignore"):
-                x, _, rank, _ = _umath_linalg.lstsq(A, y[:, None], _EPS * max(m, n), signature="ddd->ddid")
-        except Exception:  # noqa: BLE001 - a numpy whose private call differs: the wrapper below
-            x = None
-        if x is not None and np.isfinite(x).all():
-            return x[:, 0], int(rank)
-    coef, _, rank, _ = np.linalg.lstsq(A, y, rcond=None)
-    return coef, int(rank)
 
 
 @dataclass

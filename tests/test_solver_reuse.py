@@ -143,16 +143,17 @@ def test_geometry_key_memo_of_the_tubes_repr_is_the_repr(neuro_geometry):
 
 
 def test_gauss_newton_solve_without_numpys_private_gufunc_gives_the_same_steps(monkeypatch):
-    """refine._solve calls numpy's private LAPACK gufunc; on a numpy without it, the public wrapper gives the same
-    step, and NaNs (not an exception) for a singular matrix, as the gufunc does."""
+    """refine's Gauss-Newton steps (lapack.solve_vector) call numpy's private LAPACK gufunc; on a numpy without it,
+    the public wrapper gives the same step, and NaNs (not an exception) for a singular matrix, as the gufunc does."""
     import numpy as np
 
-    from chic_register import refine
+    from chic_register import lapack, refine
 
+    assert refine._solve is lapack.solve_vector
     rng = np.random.default_rng(5)
     A = rng.normal(size=(6, 6))
     H, g = A @ A.T + np.eye(6), rng.normal(size=6)
-    fast = refine._solve(H, g)
-    monkeypatch.setattr(refine, "_solve1", None)
-    assert refine._solve(H, g) == fast
-    assert all(v != v for v in refine._solve(np.zeros((6, 6)), g))  # NaNs
+    fast = lapack.solve_vector(H, g)
+    monkeypatch.setattr(lapack, "_solve1", None)
+    assert lapack.solve_vector(H, g) == fast
+    assert all(v != v for v in lapack.solve_vector(np.zeros((6, 6)), g))  # NaNs
