@@ -319,7 +319,8 @@ def _section_refine(model: TubeModel, fit: _Fit, xys, Ss, slices, blob_sets, opt
                                        rician_sigma=rayleigh_sigma(b.background, b.noise_sigma) if opts.section_rician
                                        else 0.0, lost=sl.lost)
             q_before.append(sf.predicted_mm)
-            ok = sf.fitted.copy()
+            info = sf.info  # a window too thin to locate the section both ways (lost pixels) is no measurement
+            ok = sf.fitted & (info[:, 0, 0] > 0) & (info[:, 0, 0] * info[:, 1, 1] - info[:, 0, 1] * info[:, 1, 0] > 0)
             if ok.any():  # a section far from where the locked pose puts it, or faint, is not the tube's
                 shift = np.linalg.norm(sf.position_mm - sf.predicted_mm, axis=1)
                 ok &= (shift <= opts.section_max_shift_px * _pixel_mm(sl)) & (sf.gain >= 0.5 * median(sf.gain[ok]))

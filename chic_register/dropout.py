@@ -268,6 +268,8 @@ def fill_slice_dropouts(slices: list) -> tuple[list, dict]:
     for sl in slices:
         pixels, n, lost = lost_pixels(sl.pixels)
         if n or lost is not None:
+            if sl.lost is not None:  # a mask the caller gave, and these
+                lost = np.asarray(sl.lost, bool) if lost is None else lost | np.asarray(sl.lost, bool)
             sl = dataclasses.replace(sl, pixels=pixels, lost=lost)
         if n:
             filled[sl.source] = filled.get(sl.source, 0) + n

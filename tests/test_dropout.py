@@ -212,3 +212,42 @@ def test_lost_pixels_are_left_out_of_the_section_fit(neuro_geometry, monkeypatch
     monkeypatch.setattr(dropout, "lost_pixels", lambda p: marked(p)[:2] + (None,))
     with pytest.raises(ImprecisePose):
         register([sl], neuro_geometry)
+
+
+def test_a_section_whose_window_cannot_locate_it_both_ways_is_left_out(neuro_geometry, monkeypatch):
+    """Lost pixels can leave a tube's window a single row: its section is then located along the row only (a
+    singular information matrix). That tube is left out of the section fit, and the pose still locks on the rest
+    (its Cholesky factor would raise otherwise)."""
+    import dataclasses
+
+    import chic_register.section as section
+
+    sim = simulate_slice(neuro_geometry, 22.0, 20.0, 35.0, 10.0, shape=(200, 200), pixel_spacing_mm=(0.5, 0.5),
+                         slice_thickness_mm=1.5, noise="rician", snr=40.0, rng=np.random.default_rng(7))
+    real = section.fit_sections
+
+    def one_thin_window(*args, **kwargs):
+        sf, windows = real(*args, **kwargs)
+        k = int(np.flatnonzero(sf.fitted)[0])
+        info = sf.info.copy()
+        info[k] = [[info[k, 0, 0], 0.0], [0.0, 0.0]]  # no information across the row
+        return dataclasses.replace(sf, info=info), windows
+
+    monkeypatch.setattr(section, "fit_sections", one_thin_window)
+    reg = register([sim.slice], neuro_geometry, verify=False)
+    assert reg.slices[0].n_tubes >= 6
+
+
+def test_a_callers_lost_mask_is_kept_beside_the_found_one():
+    from chic_register.dropout import fill_slice_dropouts
+    from chic_register.slices import Slice
+
+    rng = np.random.default_rng(6)
+    img, _ = _disc_image(rng)
+    gone = rng.random(img.shape) < 0.2
+    given = np.zeros(img.shape, bool)
+    given[5, :] = True  # a row the caller knows is bad
+    (out,), filled = fill_slice_dropouts([Slice(np.where(gone, 0.0, img), (1.0, 1.0), lost=given)])
+    assert np.array_equal(out.lost, gone | given) and filled
+    (plain,), _ = fill_slice_dropouts([Slice(img, (1.0, 1.0), lost=given)])
+    assert plain.lost is given
