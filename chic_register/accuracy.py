@@ -320,7 +320,8 @@ def _section_refine(model: TubeModel, fit: _Fit, xys, Ss, slices, blob_sets, opt
                                        else 0.0, lost=sl.lost)
             q_before.append(sf.predicted_mm)
             info = sf.info  # a window too thin to locate the section both ways (lost pixels) is no measurement
-            ok = sf.fitted & (info[:, 0, 0] > 0) & (info[:, 0, 0] * info[:, 1, 1] - info[:, 0, 1] * info[:, 1, 0] > 0)
+            a00, a11 = info[:, 0, 0], info[:, 1, 1]
+            ok = sf.fitted & (a00 > 0) & (a00 * a11 - info[:, 0, 1] * info[:, 1, 0] > 1e-9 * a00 * a11)
             if ok.any():  # a section far from where the locked pose puts it, or faint, is not the tube's
                 shift = np.linalg.norm(sf.position_mm - sf.predicted_mm, axis=1)
                 ok &= (shift <= opts.section_max_shift_px * _pixel_mm(sl)) & (sf.gain >= 0.5 * median(sf.gain[ok]))
@@ -398,4 +399,3 @@ def drop_section_outliers(model: TubeModel, fit: _Fit, Ss, opts) -> _Fit:
                        strict_ends=False, weights=Ls, tol=1e-5)
         fit = dataclasses.replace(refit, measurements=fit.measurements)
     return fit
-

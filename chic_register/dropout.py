@@ -266,10 +266,15 @@ def fill_slice_dropouts(slices: list) -> tuple[list, dict]:
     ``{source: n filled}``."""
     out, filled = [], {}
     for sl in slices:
+        given = None
+        if sl.lost is not None:  # a mask the caller gave: kept beside the one found here
+            given = np.asarray(sl.lost, dtype=bool)
+            if given.shape != np.shape(sl.pixels):
+                raise ValueError(f"{sl.source}: Slice.lost has shape {given.shape}; the pixels have shape "
+                                 f"{np.shape(sl.pixels)}")
         pixels, n, lost = lost_pixels(sl.pixels)
-        if n or lost is not None:
-            if sl.lost is not None:  # a mask the caller gave, and these
-                lost = np.asarray(sl.lost, bool) if lost is None else lost | np.asarray(sl.lost, bool)
+        lost = given if lost is None else lost if given is None else lost | given
+        if n or lost is not sl.lost:
             sl = dataclasses.replace(sl, pixels=pixels, lost=lost)
         if n:
             filled[sl.source] = filled.get(sl.source, 0) + n

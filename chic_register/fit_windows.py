@@ -163,7 +163,7 @@ def joint_windows(model, q: np.ndarray, tan: np.ndarray, found: np.ndarray, todo
     neighbour's fitted section subtracted (the joint pass of
     :func:`fit_sections`) it is used instead of left out, which matters where
     a helix runs close to a straight tube (near the body's ends). ``reach``: as for :func:`section_windows`;
-    ``lost``: as for :func:`_window_pixels`.
+    ``lost``: (rows, cols) bool, pixels no window keeps (lost to dropout).
     """
     reach = reach or _window_pixels(model, q, tan, found, todo, shape, pixel_spacing_mm, slice_thickness_mm,
                                     margin_px, lost)

@@ -9,8 +9,13 @@ the same way (a pose 0.5-0.9 deg off whose residuals look like noise, in the
 unlisted-damage hunt). Its telltale is in the background: a magnitude
 image's noise averages above zero everywhere, a signed image's averages
 below zero where the phase has turned and above it elsewhere. An offset
-subtracted from a magnitude image (a display or scaling offset) shifts
-every background block alike, so it is not mistaken for one.
+subtracted from the noise of a magnitude image (a display or scaling
+offset) shifts every background block alike, so it is not mistaken for
+one; but an offset larger than the noise under dim tissue (below the tubes'
+level) leaves air blocks below zero and tissue blocks above it, and such an
+image is refused too (its reason says to remove the offset): a refusal,
+never a wrong pose. Blocks with less spread than the noise (a mask, padding)
+are no noise samples and are not counted.
 """
 
 from __future__ import annotations
@@ -26,14 +31,19 @@ from .errors import NoLock
 BLOCK_PX = 8
 #: A block's mean is of one sign when it lies this many of its standard errors from zero (a 3e-7 tail each) ...
 SIGN_SIGMAS = 5.0
-#: ... and the image is signed when at least this many background blocks are of each sign.
+#: ... and this share of the image's noise from it (a mask's edge, half noise and half a constant, does not) ...
+SIGN_DEPTH = 0.5
+#: ... and the image is signed when at least this many background blocks are of each sign ...
 MIN_SIGNED_BLOCKS = 3
+#: ... and this share of them (a phase that turns within the field turns a large part of it).
+MIN_SIGNED_SHARE = 0.05
 
 
-def signed_blocks(pixels: np.ndarray, bright: float) -> tuple[int, int]:
+def signed_blocks(pixels: np.ndarray, bright: float, noise_sigma: float = 0.0) -> tuple[int, int]:
     """``(negative, positive)``: how many :data:`BLOCK_PX`-square blocks of ``pixels`` (rows, cols), none of whose
-    pixels reaches ``bright`` (the detector's threshold: no section in them), have a mean significantly below zero,
-    and how many significantly above (:data:`SIGN_SIGMAS` standard errors of the block's mean)."""
+    pixels reaches ``bright`` (the detector's threshold: no section in them) and whose spread is at least half
+    ``noise_sigma`` (noise samples, not a mask), have a mean significantly below zero, and how many significantly
+    above (:data:`SIGN_SIGMAS` standard errors of the block's mean and :data:`SIGN_DEPTH` noise sigmas)."""
     img = np.asarray(pixels, dtype=float)
     b = BLOCK_PX
     h, w = img.shape[0] // b, img.shape[1] // b
@@ -44,22 +54,28 @@ def signed_blocks(pixels: np.ndarray, bright: float) -> tuple[int, int]:
     if blocks.shape[0] == 0:
         return 0, 0
     mean = blocks.mean(axis=1)
-    se = blocks.std(axis=1, ddof=1) / b
-    return int(np.count_nonzero(mean < -SIGN_SIGMAS * se)), int(np.count_nonzero(mean > SIGN_SIGMAS * se))
+    spread = blocks.std(axis=1, ddof=1)
+    noisy = spread > max(0.5 * noise_sigma, 0.0)
+    mean = mean[noisy]
+    far = np.maximum(SIGN_SIGMAS * spread[noisy] / b, SIGN_DEPTH * noise_sigma)
+    return int(np.count_nonzero(mean < -far)), int(np.count_nonzero(mean > far))
 
 
-def refuse_signed(pixels: np.ndarray, bright: float, source: str, lowest: float = math.nan) -> None:
+def refuse_signed(pixels: np.ndarray, bright: float, noise_sigma: float, source: str,
+                  lowest: float = math.nan) -> None:
     """:class:`NoLock` when ``pixels`` are signed, not magnitudes (see the module's doc); free for an image with no
-    negative pixel. ``lowest``: the smallest pixel, when known (NaN: found here)."""
+    negative pixel. ``bright``, ``noise_sigma``: the detector's threshold and noise; ``lowest``: the smallest
+    pixel, when known (NaN: found here)."""
     img = np.asarray(pixels)
     if img.size == 0 or img.dtype.kind == "u":
         return
     lo = lowest if not math.isnan(lowest) else float(np.minimum.reduce(img, axis=None))
     if not lo < 0 or not math.isfinite(lo) or not np.isfinite(img).all():  # (non-finite pixels: refused elsewhere)
         return
-    negative, positive = signed_blocks(img, bright)
-    if min(negative, positive) >= MIN_SIGNED_BLOCKS:
+    negative, positive = signed_blocks(img, bright, noise_sigma)
+    if min(negative, positive) >= max(MIN_SIGNED_BLOCKS, MIN_SIGNED_SHARE * (negative + positive)):
         raise NoLock(f"{source}: the image is signed, not a magnitude image: its background averages below zero in "
                      f"{negative} blocks of {BLOCK_PX} px and above zero in {positive} (the real part of a complex "
-                     f"image, a phase-sensitive or a subtracted one?); register the magnitude image",
+                     f"image, a phase-sensitive or a subtracted one, or an offset subtracted?); register the magnitude image, "
+                     f"without an offset",
                      {"negative_blocks": negative, "positive_blocks": positive})

@@ -254,7 +254,7 @@ def fit_sections(model, T_F_from_I: np.ndarray, assignment: np.ndarray, pixels: 
     ``footprints``: the detector's ``(row0, col0, mask)`` per blob, whose
     pixels are left out of every other tube's window; ``noise_sigma`` scales
     the information matrices; ``windows``: the pixels to use (from an earlier
-    call at a nearby pose), else :func:`section_windows`;
+    call at a nearby pose), else :func:`section_windows` (less ``lost``);
     ``shift_iterations``: fits per tube, each with the model drawn where the
     previous one put the section (the first-order fit is then refined to
     second order); ``exact``: see :func:`section_model`; ``joint``: refit

@@ -31,7 +31,8 @@ class Slice:
     row_dir: np.ndarray = field(default_factory=lambda: np.array([0.0, 1.0, 0.0]))
     slice_thickness_mm: float = 0.0
     source: str = "<array>"
-    #: (rows, cols) bool: pixels lost to dropout and filled by the solver (:mod:`chic_register.dropout`), or None
+    #: (rows, cols) bool, or None: pixels that carry no measurement (lost to dropout: filled by the solver, or zeros
+    #: it leaves; a caller may mark more), which the section fit leaves out (:mod:`chic_register.dropout`)
     lost: np.ndarray | None = None
 
     @property

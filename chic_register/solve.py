@@ -61,8 +61,8 @@ from .hypotheses import (  # noqa: F401  (the first-guess stage; its public name
     parallel_family,
 )
 from .image_filters import SAFE_MAGNITUDE
-from .magnitude import refuse_signed
 from .joint import _joint, _no_slice_locked, _solve_order, _track
+from .magnitude import refuse_signed
 from .pose import invert, slice_angles
 from .refine import _assign, _Fit, _unexplained, refine  # noqa: F401
 from .single_slice import _solve_one
@@ -212,10 +212,11 @@ class SolveOptions:
     present with its shape, nothing unexplained on the tubes' circle, pixel
     spacing, no rival that explains the pixels nearly as well, and a
     predicted error (3 sigma) within ``trust_tre_mm`` at the frame centre and
-    ``trust_rot_deg``; when only that last test fails in the fast mode and
-    ``refine_when_imprecise``, the accuracy mode's refinement is tried before
-    refusing); off only for
-    studies of the raw fit.
+    ``trust_rot_deg``; when only that last test fails, the section fit is
+    tried again without a section the damage pulled off alone, held to 4.5
+    sigma (:func:`_without_outlier_sections`), and then, with
+    ``refine_when_imprecise``, the accuracy mode's refinement, before
+    refusing); off only for studies of the raw fit.
     ``blurred_fit``: when the blobs are clearly wider than the channels,
     the pose is fitted to the pixels through a blurred model of all the
     sections at once (:mod:`chic_register.blurred_fit`) instead of the
@@ -299,7 +300,7 @@ def register(slices: list[Slice], geom: FiducialGeometry, *, options: SolveOptio
     blob_sets, xys = [], []
     for sl, lo in zip(slices, lows):
         b = detect_blobs(sl.pixels, sl.pixel_spacing_mm, model.diameter_mm, **(detect_options or {}))
-        refuse_signed(sl.pixels, b.threshold, sl.source, lo)
+        refuse_signed(sl.pixels, b.threshold, b.noise_sigma, sl.source, lo)
         blob_sets.append(b)
         xys.append(_to_xy_mm(b, sl))
     t1 = time.perf_counter()
@@ -516,8 +517,8 @@ def _only_slices(model: TubeModel, fit, keep: list[int], xys, Ss):
 def _without_outlier_sections(geom, model: TubeModel, fit, rivals, slices, Ss, blob_sets, opts):
     """``(checks, fit)`` of the section fit ``fit`` refitted without its outlier sections
     (:func:`~chic_register.accuracy.drop_section_outliers`) when that pose verifies at
-    :data:`~chic_register.fit_checks.OUTLIER_PRECISION_SIGMAS` and lies within the trust limits of ``fit``;
-    else ``(None, fit)``."""
+    :data:`~chic_register.fit_checks.OUTLIER_PRECISION_SIGMAS` and lies within 1 mm and 1 deg of ``fit``
+    (:func:`~chic_register.trust._distinct`); else ``(None, fit)``."""
     from .accuracy import drop_section_outliers
     from .fit_checks import OUTLIER_PRECISION_SIGMAS
     from .verify_pose import verify_fit

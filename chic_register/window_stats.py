@@ -23,8 +23,6 @@ MAX_THICKNESS_SAMPLES = 3
 SMEAR_PX_PER_SAMPLE = 4.0
 
 
-
-
 @dataclass
 class _TubeWindow:
     k: int

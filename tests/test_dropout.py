@@ -183,10 +183,10 @@ def test_every_zero_of_an_image_with_lost_samples_is_marked_lost():
     from chic_register.dropout import lost_pixels
 
     rng = np.random.default_rng(4)
-    img, disc = _disc_image(rng)
+    img = _disc_image(rng)[0]
     assert lost_pixels(img)[2] is None
     gone = rng.random(img.shape) < 0.3
-    filled, n, lost = lost_pixels(np.where(gone, 0.0, img))
+    _, n, lost = lost_pixels(np.where(gone, 0.0, img))
     assert n > 0 and np.array_equal(lost, gone)
 
 
@@ -194,7 +194,7 @@ def test_lost_pixels_are_left_out_of_the_section_fit(neuro_geometry, monkeypatch
     """A tilted slice with 30 % of its pixels zeroed: the section fit leaves the lost pixels out (their filled values
     are a smoothed guess), so the pose is within a few hundredths of a degree of the truth and locks; fitted with
     the filled values as if measured, the same slice is refused as imprecise."""
-    import chic_register.dropout as dropout
+    from chic_register import dropout
     from chic_register.errors import ImprecisePose
     from chic_register.slices import Slice
 
@@ -220,7 +220,7 @@ def test_a_section_whose_window_cannot_locate_it_both_ways_is_left_out(neuro_geo
     (its Cholesky factor would raise otherwise)."""
     import dataclasses
 
-    import chic_register.section as section
+    from chic_register import section
 
     sim = simulate_slice(neuro_geometry, 22.0, 20.0, 35.0, 10.0, shape=(200, 200), pixel_spacing_mm=(0.5, 0.5),
                          slice_thickness_mm=1.5, noise="rician", snr=40.0, rng=np.random.default_rng(7))
@@ -243,11 +243,13 @@ def test_a_callers_lost_mask_is_kept_beside_the_found_one():
     from chic_register.slices import Slice
 
     rng = np.random.default_rng(6)
-    img, _ = _disc_image(rng)
+    img = _disc_image(rng)[0]
     gone = rng.random(img.shape) < 0.2
     given = np.zeros(img.shape, bool)
     given[5, :] = True  # a row the caller knows is bad
     (out,), filled = fill_slice_dropouts([Slice(np.where(gone, 0.0, img), (1.0, 1.0), lost=given)])
     assert np.array_equal(out.lost, gone | given) and filled
-    (plain,), _ = fill_slice_dropouts([Slice(img, (1.0, 1.0), lost=given)])
-    assert plain.lost is given
+    (plain,), _ = fill_slice_dropouts([Slice(img, (1.0, 1.0), lost=given.astype(np.uint8))])
+    assert plain.lost.dtype == bool and np.array_equal(plain.lost, given)
+    with pytest.raises(ValueError, match="shape"):
+        fill_slice_dropouts([Slice(img, (1.0, 1.0), lost=given[:10])])

@@ -125,7 +125,7 @@ def test_a_signed_image_is_refused(monkeypatch, seed, index):
     """The real part of a complex image under a phase ramp (the hunt's signed_phase): its sections are shaded by
     the cosine of the phase, and the three such slices of seeds 2 and 3 locked 0.52-0.90 deg off with residuals
     like noise. The background's blocks averaging below zero in one part and above it in another refuse them."""
-    import chic_register.solve as solve
+    from chic_register import solve
 
     sl, _, geom = damaged_case(seed, index, "signed_phase")
     with pytest.raises(NoLock, match="signed"):
@@ -135,14 +135,17 @@ def test_a_signed_image_is_refused(monkeypatch, seed, index):
 
 
 def test_a_magnitude_image_with_an_offset_or_shading_is_not_signed():
-    """An offset subtracted from a magnitude image moves every background block alike, shading scales them: neither
-    gives blocks of both signs; the same background under a cosine that turns negative does."""
+    """An offset subtracted from a magnitude image's noise moves every background block alike, shading scales them:
+    neither gives blocks of both signs, nor do the constant blocks of a masked field (no noise samples); the same
+    background under a cosine that turns negative does."""
     from chic_register.magnitude import MIN_SIGNED_BLOCKS, signed_blocks
 
     rng = np.random.default_rng(5)
     noise = np.hypot(rng.standard_normal((128, 128)), rng.standard_normal((128, 128)))  # Rayleigh, sigma 1
     xx = np.mgrid[0:128, 0:128][1] / 128.0
-    for img in (noise, noise - 1.2, noise - 3.0, noise * (0.3 + 1.5 * xx)):
-        assert min(signed_blocks(img, np.inf)) < MIN_SIGNED_BLOCKS
+    masked = np.where(np.hypot(*(np.mgrid[0:128, 0:128] - 64.0)) < 50, noise, 0.0)  # zero outside the field
+    for img in (noise, noise - 1.2, noise - 3.0, noise * (0.3 + 1.5 * xx), masked - 0.5):
+        assert min(signed_blocks(img, np.inf, noise_sigma=1.0)) < MIN_SIGNED_BLOCKS
+    assert min(signed_blocks(masked - 0.5, np.inf)) >= MIN_SIGNED_BLOCKS  # its constant blocks, if counted
     negative, positive = signed_blocks(noise * np.cos(2 * np.pi * 0.8 * xx + 0.3), np.inf)
     assert min(negative, positive) >= MIN_SIGNED_BLOCKS
