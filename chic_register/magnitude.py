@@ -25,10 +25,13 @@ import math
 import numpy as np
 
 from .errors import NoLock
+from .noise import clear_blocks
 
 #: Side (pixels) of the background blocks whose means are compared: 64 noise samples, a standard error of the mean
-#: of about a tenth of the noise, and dozens of blocks in the smallest slice the solver takes.
+#: of about a tenth of the noise, and dozens of blocks in the smallest slice the solver takes ...
 BLOCK_PX = 8
+#: ... clear of every blob's footprint grown by this many pixels (as the noise estimates' blocks).
+GUARD_PX = 3
 #: A block's mean is of one sign when it lies this many of its standard errors from zero (a 3e-7 tail each) ...
 SIGN_SIGMAS = 5.0
 #: ... and this share of the image's noise from it (a mask's edge, half noise and half a constant, does not) ...
@@ -39,18 +42,19 @@ MIN_SIGNED_BLOCKS = 3
 MIN_SIGNED_SHARE = 0.05
 
 
-def signed_blocks(pixels: np.ndarray, bright: float, noise_sigma: float = 0.0) -> tuple[int, int]:
-    """``(negative, positive)``: how many :data:`BLOCK_PX`-square blocks of ``pixels`` (rows, cols), none of whose
-    pixels reaches ``bright`` (the detector's threshold: no section in them) and whose spread is at least half
-    ``noise_sigma`` (noise samples, not a mask), have a mean significantly below zero, and how many significantly
-    above (:data:`SIGN_SIGMAS` standard errors of the block's mean and :data:`SIGN_DEPTH` noise sigmas)."""
+def signed_blocks(pixels: np.ndarray, footprints, noise_sigma: float = 0.0) -> tuple[int, int]:
+    """``(negative, positive)``: how many :data:`BLOCK_PX`-square blocks of ``pixels`` (rows, cols) clear of the
+    blobs (``footprints``, the detector's: :func:`~chic_register.noise.clear_blocks`) and with a spread of at
+    least half ``noise_sigma`` (noise samples, not a mask) have a mean significantly below zero, and how many
+    significantly above (:data:`SIGN_SIGMAS` standard errors of the block's mean and :data:`SIGN_DEPTH` noise
+    sigmas)."""
     img = np.asarray(pixels, dtype=float)
     b = BLOCK_PX
     h, w = img.shape[0] // b, img.shape[1] // b
     if h * w == 0:
         return 0, 0
-    blocks = img[:h * b, :w * b].reshape(h, b, w, b).swapaxes(1, 2).reshape(h * w, b * b)
-    blocks = blocks[blocks.max(axis=1) < bright] if math.isfinite(bright) else blocks
+    clear = clear_blocks(img, footprints, GUARD_PX, b)  # (h, w)
+    blocks = img[:h * b, :w * b].reshape(h, b, w, b).swapaxes(1, 2)[clear].reshape(-1, b * b)
     if blocks.shape[0] == 0:
         return 0, 0
     mean = blocks.mean(axis=1)
@@ -61,18 +65,17 @@ def signed_blocks(pixels: np.ndarray, bright: float, noise_sigma: float = 0.0) -
     return int(np.count_nonzero(mean < -far)), int(np.count_nonzero(mean > far))
 
 
-def refuse_signed(pixels: np.ndarray, bright: float, noise_sigma: float, source: str,
-                  lowest: float = math.nan) -> None:
+def refuse_signed(pixels: np.ndarray, blobs, source: str, lowest: float = math.nan) -> None:
     """:class:`NoLock` when ``pixels`` are signed, not magnitudes (see the module's doc); free for an image with no
-    negative pixel. ``bright``, ``noise_sigma``: the detector's threshold and noise; ``lowest``: the smallest
-    pixel, when known (NaN: found here)."""
+    negative pixel. ``blobs``: the detector's :class:`~chic_register.detect.Blobs` of the image (footprints,
+    noise); ``lowest``: the smallest pixel, when known (NaN: found here)."""
     img = np.asarray(pixels)
     if img.size == 0 or img.dtype.kind == "u":
         return
     lo = lowest if not math.isnan(lowest) else float(np.minimum.reduce(img, axis=None))
-    if not lo < 0 or not math.isfinite(lo) or not np.isfinite(img).all():  # (non-finite pixels: refused elsewhere)
-        return
-    negative, positive = signed_blocks(img, bright, noise_sigma)
+    if not lo < 0 or not math.isfinite(lo):  # (a NaN or -inf pixel: refused elsewhere; blocks holding one are not
+        return                                # counted)
+    negative, positive = signed_blocks(img, blobs.footprints, blobs.noise_sigma)
     if min(negative, positive) >= max(MIN_SIGNED_BLOCKS, MIN_SIGNED_SHARE * (negative + positive)):
         raise NoLock(f"{source}: the image is signed, not a magnitude image: its background averages below zero in "
                      f"{negative} blocks of {BLOCK_PX} px and above zero in {positive} (the real part of a complex "

@@ -300,7 +300,7 @@ def register(slices: list[Slice], geom: FiducialGeometry, *, options: SolveOptio
     blob_sets, xys = [], []
     for sl, lo in zip(slices, lows):
         b = detect_blobs(sl.pixels, sl.pixel_spacing_mm, model.diameter_mm, **(detect_options or {}))
-        refuse_signed(sl.pixels, b.threshold, b.noise_sigma, sl.source, lo)
+        refuse_signed(sl.pixels, b, sl.source, lo)
         blob_sets.append(b)
         xys.append(_to_xy_mm(b, sl))
     t1 = time.perf_counter()

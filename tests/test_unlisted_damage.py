@@ -145,7 +145,7 @@ def test_a_magnitude_image_with_an_offset_or_shading_is_not_signed():
     xx = np.mgrid[0:128, 0:128][1] / 128.0
     masked = np.where(np.hypot(*(np.mgrid[0:128, 0:128] - 64.0)) < 50, noise, 0.0)  # zero outside the field
     for img in (noise, noise - 1.2, noise - 3.0, noise * (0.3 + 1.5 * xx), masked - 0.5):
-        assert min(signed_blocks(img, np.inf, noise_sigma=1.0)) < MIN_SIGNED_BLOCKS
-    assert min(signed_blocks(masked - 0.5, np.inf)) >= MIN_SIGNED_BLOCKS  # its constant blocks, if counted
-    negative, positive = signed_blocks(noise * np.cos(2 * np.pi * 0.8 * xx + 0.3), np.inf)
+        assert min(signed_blocks(img, (), noise_sigma=1.0)) < MIN_SIGNED_BLOCKS
+    assert min(signed_blocks(masked - 0.5, ())) >= MIN_SIGNED_BLOCKS  # its constant blocks, if counted
+    negative, positive = signed_blocks(noise * np.cos(2 * np.pi * 0.8 * xx + 0.3), ())
     assert min(negative, positive) >= MIN_SIGNED_BLOCKS
