@@ -19,7 +19,7 @@ import numpy as np
 from .detect import _dilate, median
 from .errors import NoLock
 from .pose import invert
-from .refine import _Fit, refine
+from .refine import _Fit, refine, whitened_residuals
 from .trust import _pixel_mm
 from .tube_model import TubeModel, _section_extent, plane_crossings
 
@@ -357,13 +357,11 @@ def section_chi2(model: TubeModel, fit: _Fit, assign, Ss) -> list[np.ndarray]:
     information (``fit.measurements``); NaN for unmatched tubes."""
     out = []
     for j, S in enumerate(Ss):
-        xy, L, _ = fit.measurements[j]
         a = assign[j]
         k = np.flatnonzero(a >= 0)
         q = plane_crossings(model, fit.T_F_from_scanner @ S, margin_mm=1e-9)[0]
         chi2 = np.full(a.size, np.nan)
-        r = q[k] - xy[a[k]]
-        w = np.einsum("kij,kj->ki", L[k], r)
+        w = whitened_residuals(fit.measurements[j], q, a, k)
         chi2[k] = np.einsum("ki,ki->k", w, w)
         out.append(chi2)
     return out
@@ -376,6 +374,8 @@ def drop_section_outliers(model: TubeModel, fit: _Fit, Ss, opts) -> _Fit:
     if fit.measurements is None:
         return fit
     assign = fit.assignments
+    xys = [m[0] for m in fit.measurements]  # the fitted positions and weights stay; only the tubes used change
+    Ls = [m[1] for m in fit.measurements]
     for _ in range(MAX_SECTION_OUTLIERS):
         chi2 = section_chi2(model, fit, assign, Ss)
         flat = np.concatenate(chi2)
@@ -393,8 +393,6 @@ def drop_section_outliers(model: TubeModel, fit: _Fit, Ss, opts) -> _Fit:
             break
         assign = [a.copy() for a in assign]
         assign[j][k] = -1
-        xys = [m[0] for m in fit.measurements]
-        Ls = [m[1] for m in fit.measurements]
         refit = refine(model, xys, Ss, fit.T_F_from_scanner, gates_mm=(), final_iters=6, assign0=assign,
                        strict_ends=False, weights=Ls, tol=1e-5)
         fit = dataclasses.replace(refit, measurements=fit.measurements)

@@ -112,14 +112,13 @@ def _changed(before: np.ndarray, after: np.ndarray) -> np.ndarray:
     return ~(np.asarray(before) == np.asarray(after))
 
 
-def _fill_non_finite(pixels: np.ndarray, lo: float = math.nan, hi: float = math.nan) -> tuple[np.ndarray, int]:
+def _fill_non_finite(pixels: np.ndarray, lo: float, hi: float) -> tuple[np.ndarray, int]:
     """NaN or infinite pixels (a processing step's holes) filled from their finite neighbours, or with the median of
-    the finite pixels where they have none. ``lo``, ``hi``: the pixels' range when known (NaN: not known)."""
+    the finite pixels where they have none. ``lo``, ``hi``: the pixels' range (NaN or an infinity anywhere shows in
+    one of them; NaN too for an empty image)."""
     img = np.asarray(pixels)
     if img.dtype.kind != "f":  # (np.issubdtype(dtype, np.floating), less its overhead)
         return pixels, 0
-    if math.isnan(lo) or math.isnan(hi):  # (not known, or NaN pixels: the check in full)
-        lo, hi = img.min(initial=0.0), img.max(initial=0.0)  # NaN or an infinity anywhere shows in one of them
     if math.isfinite(lo) and math.isfinite(hi):
         return pixels, 0
     finite = np.isfinite(img)
@@ -273,7 +272,8 @@ def fill_slice_dropouts(slices: list) -> tuple[list, dict]:
                 raise ValueError(f"{sl.source}: Slice.lost has shape {given.shape}; the pixels have shape "
                                  f"{np.shape(sl.pixels)}")
         pixels, n, lost = lost_pixels(sl.pixels)
-        lost = given if lost is None else lost if given is None else lost | given
+        if given is not None:
+            lost = given if lost is None else lost | given
         if n or lost is not sl.lost:
             sl = dataclasses.replace(sl, pixels=pixels, lost=lost)
         if n:

@@ -14,6 +14,7 @@ from dataclasses import dataclass
 
 import numpy as np
 
+from .quantiles import _unique_ints
 from .tube_model import _section_box, _section_extent
 
 
@@ -188,7 +189,7 @@ def _drop_foreign_blobs(keep, rr, cc, own, assignment, footprints) -> None:
         inside = (rr >= r0) & (rr < r0 + h) & (cc >= c0) & (cc < c0 + w)
         if not inside.any():
             continue
-        for k in np.unique(own[inside]).tolist():
+        for k in _unique_ints(own[inside]).tolist():
             R0, C0, M = footprints[int(assignment[k])]
             a0, b0 = max(r0, R0), max(c0, C0)
             a1, b1 = min(r0 + h, R0 + M.shape[0]), min(c0 + w, C0 + M.shape[1])

@@ -82,7 +82,6 @@ def initial_hypotheses(model: TubeModel, xy_mm: np.ndarray, ell: Ellipse, *,
     u = rel @ np.array([c, s_])
     w = rel @ np.array([-s_, c])
     Kl = line_ang.size
-    hel = model.helix_idx
     tol = math.radians(angle_tol_deg)
     signs = [(1.0, 1.0), (1.0, -1.0), (-1.0, 1.0), (-1.0, -1.0)] if sin_t > 0.02 else [(1.0, 1.0), (1.0, -1.0)]
     per_h = {}
@@ -121,7 +120,7 @@ def initial_hypotheses(model: TubeModel, xy_mm: np.ndarray, ell: Ellipse, *,
         for k in ks:
             cand = cands.get((h, k))
             if cand is None:
-                cand = cands[h, k] = _helix_candidates(model, hel, th + b[k], tol)
+                cand = cands[h, k] = _helix_candidates(model, th + b[k], tol)
             for depth, n_hel in _depths_from(model, cand, zr):
                 rows.append((int(nl[k]) + n_hel, n_hel, s, h, float(b[k]), depth))
     rows.sort(key=lambda t: (-t[0], -t[1]))
@@ -146,12 +145,12 @@ def _line_angles(model: TubeModel) -> tuple[np.ndarray, np.ndarray]:
     return line_ang, diff
 
 
-def _helix_candidates(model: TubeModel, hel: np.ndarray, theta_F: np.ndarray, tol: float):
+def _helix_candidates(model: TubeModel, theta_F: np.ndarray, tol: float):
     """Candidate depths of the ellipse centre, first part: from blob angles in F ``theta_F`` (N,), every (blob,
-    helix) pair's height ``z`` of the helix at the blob's angle, within the helix's extent: ``(z (M,), blob (M,),
-    helix (M,), depth tolerance (1, M), helix one-hot (M, H))``, or None for no helices or no pair. (It does not
+    helix) pair's height ``z`` of the model's helices at the blob's angle, within the helix's extent: ``(z (M,),
+    blob (M,), depth tolerance (1, M), helix one-hot (M, H))``, or None for no helices or no pair. (It does not
     depend on the blobs' heights: :func:`initial_hypotheses` shares it between the two ends of the major axis.)"""
-    if hel.size == 0:
+    if model.helix_idx.size == 0:
         return None
     th0, om, z0, period, zmid, z_above, z_below, dtol, ids = _helix_terms(model, tol)
     # z = z0 + (theta - th0 + 2 pi m) / om, pick m nearest to the middle of the tube
@@ -162,7 +161,7 @@ def _helix_candidates(model: TubeModel, hel: np.ndarray, theta_F: np.ndarray, to
     bv, hv = np.nonzero(inside)  # the blob and helix of each (in the mask's order)
     if hv.size == 0:
         return None
-    return z[inside], bv, hv, dtol[hv][None, :], hv[:, None] == ids
+    return z[inside], bv, dtol[hv][None, :], hv[:, None] == ids
 
 
 def _depths_from(model: TubeModel, cand, zr: np.ndarray, n_best: int = 2):
@@ -175,7 +174,7 @@ def _depths_from(model: TubeModel, cand, zr: np.ndarray, n_best: int = 2):
     """
     if cand is None:
         return [(model.length_mm / 2, 0)]
-    zv, bv, _, dtol, onehot = cand
+    zv, bv, dtol, onehot = cand
     dv = zv - zr[bv]  # each pair's depth
     diff = np.abs(dv[:, None] - dv[None, :])
     close = diff < dtol

@@ -40,6 +40,13 @@ class _Fit:
     measurements: list | None = None
 
 
+def whitened_residuals(measurement, q: np.ndarray, a: np.ndarray, k: np.ndarray) -> np.ndarray:
+    """(len(k), 2): tubes ``k``'s ``L (predicted - measured)`` in one slice's ``measurement`` (an entry of
+    ``_Fit.measurements``), ``q`` (K, 2) the predicted crossings and ``a`` (K,) the blob index per tube."""
+    xy, L, _ = measurement
+    return np.einsum("kij,kj->ki", L[k], q[k] - xy[a[k]])
+
+
 def _assign(pred: np.ndarray, ok: np.ndarray, blobs_xy: np.ndarray, gate_mm: float) -> np.ndarray:
     """Blob index per tube (K,), -1 for none: minimum-cost matching within ``gate_mm``."""
     K, N = pred.shape[0], blobs_xy.shape[0]

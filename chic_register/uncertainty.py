@@ -348,6 +348,7 @@ def registration_uncertainty(model, fit, xys, Ss, slices, blob_sets, target_F_mm
     centroids (image mm) per slice, ``Ss`` the slices' ``T_scanner_from_image``.
     """
     from .pose import invert
+    from .refine import whitened_residuals
     from .tube_model import _adjoint, _crossing_jacobian, plane_crossings
 
     X = fit.T_F_from_scanner
@@ -365,10 +366,9 @@ def registration_uncertainty(model, fit, xys, Ss, slices, blob_sets, target_F_mm
         J_s = _crossing_jacobian(q[k], tan[k]) @ _adjoint(invert(S))  # d/d(xi) of X @ exp(xi), xi in the scanner
         J_F = -J_s @ Ad_sf  # the same motion as delta in F: xi = -Ad(T_sf) delta
         if meas is not None:  # an information-weighted fit of fitted section positions (the default mode)
-            xy, L, sigma_used = meas[j]
-            Lk = L[k]
-            Js.append(np.einsum("kij,kjl->kil", Lk, J_F).reshape(-1, 6))
-            rs.append(np.einsum("kij,kj->ki", Lk, q[k] - xy[a[k]]).ravel())
+            _, L, sigma_used = meas[j]
+            Js.append(np.einsum("kij,kjl->kil", L[k], J_F).reshape(-1, 6))
+            rs.append(whitened_residuals(meas[j], q, a, k).ravel())
             # L whitens the positions for the noise sigma it assumed; the image's own sigma rescales that
             scale = (noise.sigma / sigma_used) ** 2 if sigma_used > 0 else 1.0
             blocks += [scale * np.eye(2)] * k.size
