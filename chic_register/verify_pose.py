@@ -37,8 +37,8 @@ slice (:func:`verify_fit`):
 5. **Pixel spacing**: the sections seen must have the size and aspect the
    pose predicts; a stretch of the image along rows or columns (a wrong
    ``--pixel-spacing``) shows as an anisotropic scale of every section
-   (:data:`SPACING_TOL`, or three standard errors of its estimate over the
-   tubes if larger). The section positions are asked the same question
+   (:data:`SPACING_TOL`, or three standard errors of its estimate if larger:
+   from the tubes' scatter or from their pixel noise, whichever is larger). The section positions are asked the same question
    (:func:`stretch_test`): a pose tilted to absorb a stretch leaves a
    residual pattern that a stretch explains and noise does not; a
    significant one is refused above 2 %, or when fitting it moves the pose
@@ -86,7 +86,7 @@ from .trust import _to_xy_mm
 from .tube_model import _section_extent, plane_crossings
 from .noise import correlation_inflation, noise_correlation_axes
 from .window_stats import (  # noqa: F401  (_TubeWindow: the windows' type, for tests)
-    _TubeWindow, _fit_window, _shape_excess, _spread, _windows, section_shift)
+    _TubeWindow, _aspect_se, _fit_window, _shape_excess, _spread, _windows, section_shift)
 
 #: A present tube's fitted fluid level, as a share of the median of the tubes the solver matched. A correctly
 #: placed section (partial volume and slab smear are in the model) gives ~1 at any SNR above a few; a section
@@ -110,6 +110,9 @@ MODEL_FLOOR = 0.03
 #: A 3 mm tube is 6 px across at 0.5 mm: the moment estimate of its width is good to ~1 %; 4 % leaves room for
 #: the rendered model's error and slab smear and still catches a 5 % spacing error.
 SPACING_TOL = 0.04
+#: Standard error of the median of the tubes' aspects against that of their inverse-variance mean (the median's
+#: asymptotic sqrt(pi / 2)): the spacing test's tolerance from the sections' pixel noise.
+MEDIAN_SE = math.sqrt(math.pi / 2)
 #: Sections farther than this from an end face (in section lengths) are "well inside the body": a tube missing
 #: there is an unfilled channel, not a sign of a wrong pose.
 END_CLEARANCE_SECTIONS = 1.0
@@ -196,7 +199,7 @@ def verify_slice(geom, model, T_F_from_I: np.ndarray, pixels: np.ndarray, spacin
                          f"tubes it was fitted to", {"n_tubes": len(matched)})
         level = median(gains)
         present, missing, cut_missing = [], [], []
-        scales = []
+        scales, aspect_se = [], []
         for k, (w, coef, y, fit) in fits.items():
             own = w.own.ravel()
             a = float(coef[1])
@@ -230,6 +233,7 @@ def verify_slice(geom, model, T_F_from_I: np.ndarray, pixels: np.ndarray, spacin
                 so, sm = _spread(obs), _spread(mod)
                 if so is not None and sm is not None:
                     scales.append(np.sqrt(so / sm))
+                    aspect_se.append(_aspect_se(obs, sup.reshape(hh, ww), so, sigma))
         if cut_missing:
             raise NoLock(f"{source}: tube(s) {', '.join(cut_missing)} predicted near an end face at the pose ({where}) "
                          f"are not in the image: a cut tube and a wrong pose look alike there",
@@ -239,7 +243,8 @@ def verify_slice(geom, model, T_F_from_I: np.ndarray, pixels: np.ndarray, spacin
             s = np.array(scales)  # (n, 2): row, col scale seen / predicted
             ratio = s[:, 1] / s[:, 0]
             mean = median(ratio)
-            se = float(np.std(ratio) / math.sqrt(len(ratio)))
+            se = max(float(np.std(ratio) / math.sqrt(len(ratio))),  # the tubes' scatter, or their pixel noise
+                     MEDIAN_SE * float(np.sum(np.asarray(aspect_se) ** -2.0)) ** -0.5)
             tol = max(SPACING_TOL, 3 * se)
             scale = (median(s[:, 0]), median(s[:, 1]))
             if abs(mean - 1.0) > tol:

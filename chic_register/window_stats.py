@@ -181,3 +181,15 @@ def _spread(w: np.ndarray):
     if not (vr > 0 and vc > 0):
         return None
     return np.array([vr, vc])
+
+
+def _aspect_se(w: np.ndarray, noisy: np.ndarray, spread: np.ndarray, sigma: float) -> float:
+    """Standard error of ``sqrt(vc / vr)`` (the aspect of :func:`_spread`'s variances ``spread``) of weights
+    ``w`` (h, w) when each pixel of ``noisy`` (h, w, bool) carries noise ``sigma``, to first order (relative):
+    ``d vr / d w_i = ((r_i - m_r)^2 - vr) / sum w``, and likewise along the columns."""
+    total = float(w.sum())
+    r = np.arange(w.shape[0], dtype=float)[:, None]
+    c = np.arange(w.shape[1], dtype=float)[None, :]
+    mr, mc = float(w.sum(axis=1) @ r[:, 0]) / total, float(w.sum(axis=0) @ c[0]) / total
+    g = 0.5 * (((c - mc) ** 2 - spread[1]) / spread[1] - ((r - mr) ** 2 - spread[0]) / spread[0]) / total
+    return sigma * float(np.sqrt(np.sum(g[noisy] ** 2)))

@@ -266,3 +266,38 @@ def test_window_least_squares_are_numpys():
         assert got_rank == rank
     y[0] = np.nan
     np.testing.assert_array_equal(_lstsq(A, y)[0], np.linalg.lstsq(A, y, rcond=None)[0])
+
+
+def test_aspect_standard_error_matches_the_scatter_of_noisy_sections():
+    """A tilted section's spread aspect (column over row, :func:`_spread`) measured in 2000 noisy draws scatters as
+    :func:`_aspect_se` predicts from the pixel noise (within 15 %), at a low and a moderate SNR."""
+    from chic_register.window_stats import _aspect_se, _spread
+
+    r, c = np.mgrid[0:15, 0:19].astype(float)
+    section = np.clip(1.0 - np.hypot((r - 7.0) / 3.0, (c - 9.0) / 4.5), 0.0, 0.3) / 0.3  # an ellipse, 3 x 4.5 px
+    support = section > 0.0
+    rng = np.random.default_rng(4)
+    for sigma in (0.12, 0.04):
+        aspects, predicted = [], []
+        for _ in range(2000):
+            w = (section + rng.normal(0.0, sigma, section.shape)) * support
+            v = _spread(w)
+            aspects.append(math.sqrt(v[1] / v[0]))
+            predicted.append(_aspect_se(w, support, v, sigma))
+        rel = np.std(aspects) / np.mean(aspects)
+        assert abs(np.median(predicted) / rel - 1.0) < 0.15, (sigma, rel, np.median(predicted))
+
+
+@pytest.mark.parametrize("case", [1088, 3546])
+def test_hunt_low_snr_sections_with_the_right_spacing_are_not_called_stretched(case):
+    """Hunt seed 0, low SNR (7.6 and 9.6) at 54-67 deg tilt: three tubes' aspects read 4-5 % off one by their noise
+    alone (a per-tube standard error of 3-5 %); the spacing test's tolerance now holds that noise, and both lock."""
+    geoms = hunt.load_geometries()
+    out = hunt.run_case(hunt.make_case(case, 0, geoms), geoms)
+    assert out["outcome"] == "ok" and out["rot_deg"] < 0.2, out
+
+
+@pytest.mark.parametrize("spacing", [(0.5, 0.56), (0.45, 0.5)])
+def test_a_wrong_pixel_spacing_is_refused_at_low_snr(neuro_geometry, spacing):
+    sim = _sim(neuro_geometry, 25, 45, 40, 10, noise="rician", snr=8, seed=5)
+    assert _outcome(neuro_geometry, sim, spacing=spacing) == "no_lock"
