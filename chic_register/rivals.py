@@ -28,6 +28,11 @@ from .trust import _distinct, _near_prior
 #: A rival pose must explain the pixels worse by this many noise variances (a log-likelihood margin of half of
 #: it) plus the model's own error, else the slice is ambiguous.
 RIVAL_MARGIN = 50.0
+#: The model error the margin allows is the pose's own residual beyond the noise (an upper bound at this many
+#: standard deviations of the noise's share) ...
+EXCESS_SIGMAS = 3.0
+#: ... but at least this share of the signal energy, and at most MODEL_FLOOR's.
+MODEL_FLOOR_MIN = 0.005
 #: Straight tubes this close in angle after a turn about the axis count as mapped onto each other (the turn is a
 #: near-symmetry whose pose is tried as a rival).
 SYMMETRY_TOL_DEG = 3.0
@@ -148,7 +153,12 @@ def _compare_rival(geom, model, check, T_F_from_I_rival: np.ndarray, sl) -> tupl
     pixels over the union of their sections grown by a pixel (``b + a model``);
     ``gap`` is the rival's residual sum of squares less the pose's, and
     ``margin`` what it must exceed: :data:`RIVAL_MARGIN` noise variances plus
-    the model error (:data:`MODEL_FLOOR` of the signal energy).
+    the model error. That is the pose's own residual beyond the noise (an
+    upper bound), kept between :data:`MODEL_FLOOR_MIN` and
+    :data:`~chic_register.verify_pose.MODEL_FLOOR` of the signal energy: a
+    rival must be worse by more than the pose's own misfit, so where the
+    model explains the pixels well, a smaller difference decides, and where
+    it does not (a real print, a blurred or ghosted image), the full floor.
     """
     from .verify_pose import MODEL_FLOOR  # (the verification imports this module)
     from .window_stats import _lstsq, _windows
@@ -166,4 +176,7 @@ def _compare_rival(geom, model, check, T_F_from_I_rival: np.ndarray, sl) -> tupl
         r = y - A @ coef
         sse.append(float(r @ r))
     signal = check.level ** 2 * float(np.sum(check.canvas[region] ** 2))
-    return sse[1] - sse[0], RIVAL_MARGIN * check.noise_sigma ** 2 + MODEL_FLOOR * signal
+    var = check.noise_sigma ** 2
+    excess = sse[0] - y.size * var + EXCESS_SIGMAS * math.sqrt(2.0 * y.size) * var
+    floor = min(MODEL_FLOOR * signal, max(MODEL_FLOOR_MIN * signal, excess))
+    return sse[1] - sse[0], RIVAL_MARGIN * var + floor

@@ -38,15 +38,17 @@ slice (:func:`verify_fit`):
    pose predicts; a stretch of the image along rows or columns (a wrong
    ``--pixel-spacing``) shows as an anisotropic scale of every section
    (:data:`SPACING_TOL`, or three standard errors of its estimate if larger:
-   from the tubes' scatter or from their pixel noise, whichever is larger). The section positions are asked the same question
-   (:func:`stretch_test`): a pose tilted to absorb a stretch leaves a
+   from the tubes' scatter or from their pixel noise, whichever is larger).
+   The section positions are asked the same question (:func:`stretch_test`): a pose tilted to absorb a stretch leaves a
    residual pattern that a stretch explains and noise does not; a
    significant one is refused above 2 %, or when fitting it moves the pose
    by more than a third of the trust limits (a small isotropic stretch turns
    a tilted slice by about ``s cot(tilt)``).
 6. **Rivals**: a distinct rival pose (the solver's other hypotheses, and the
    pose turned about the axis by each near-symmetry of the straight tubes)
-   that explains the pixels nearly as well makes the slice ambiguous.
+   that explains the pixels nearly as well makes the slice ambiguous:
+   "nearly" is within the noise and the pose's own misfit beyond it (the
+   model error this image shows, 0.5-3 % of the sections' energy).
 7. **Precision**: the predicted 3-sigma error must be within the trust
    limits (:func:`pose_precision`). Its estimate comes from the fit's own
    residual scatter, not from the noise model, so a damaged image whose
