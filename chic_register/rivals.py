@@ -23,6 +23,7 @@ from .errors import NoLock
 from .pose import slice_angles
 from .psf import gaussian_blur
 from .refine import refine
+from .rician import RAYLEIGH_SD
 from .trust import _distinct, _near_prior
 
 #: A rival pose must explain the pixels worse by this many noise variances (a log-likelihood margin of half of
@@ -177,6 +178,8 @@ def _compare_rival(geom, model, check, T_F_from_I_rival: np.ndarray, sl) -> tupl
         sse.append(float(r @ r))
     signal = check.level ** 2 * float(np.sum(check.canvas[region] ** 2))
     var = check.noise_sigma ** 2
-    excess = sse[0] - y.size * var + EXCESS_SIGMAS * math.sqrt(2.0 * y.size) * var
+    # the noise's share taken at its least (a magnitude image's background pixels vary as a Rayleigh's 0.43 var,
+    # and a background structure inflates the estimated sigma): the model error is never underestimated
+    excess = sse[0] - y.size * RAYLEIGH_SD ** 2 * var + EXCESS_SIGMAS * math.sqrt(2.0 * y.size) * var
     floor = min(MODEL_FLOOR * signal, max(MODEL_FLOOR_MIN * signal, excess))
     return sse[1] - sse[0], RIVAL_MARGIN * var + floor
