@@ -346,6 +346,11 @@ def _read_dicom(path, has_preamble: bool) -> list[Slice]:
             warnings.simplefilter("ignore")
             arr = ds.pixel_array
     except Exception as exc:
+        syntax = ds.file_meta.TransferSyntaxUID
+        if syntax.is_compressed:  # a decoder plugin missing or failing, or damaged compressed data
+            raise ImageReadError(path, f"DICOM pixel data compressed as {syntax.name} cannot be decoded "
+                                       f"({_reason(exc)}); the file may be damaged, or decompress it first "
+                                       f"(dcmdjpeg, gdcmconv --raw)") from None
         raise ImageReadError(path, f"DICOM pixel data cannot be decoded; the file may be truncated ({_reason(exc)})") from None
     frames = int(ds.get("NumberOfFrames", 1) or 1)
     spp = int(ds.get("SamplesPerPixel", 1) or 1)

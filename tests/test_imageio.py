@@ -267,3 +267,33 @@ def test_read_slices_stops_at_the_first_bad_file(tmp_path, dicom_file):
     with pytest.raises(ImageReadError, match="missing.dcm"):
         read_slices([dicom_file, tmp_path / "missing.dcm"])
     assert len(read_slices([dicom_file, dicom_file])) == 2
+
+
+@pytest.mark.parametrize("syntax", ["RLELossless", "JPEG2000Lossless", "JPEGLSLossless"])
+def test_compressed_dicom_reads_as_the_uncompressed_file(dicom_file, tmp_path, syntax):
+    """Scanners and PACS export compressed DICOM: the decoders installed with chic read it pixel for pixel."""
+    ds = pydicom.dcmread(dicom_file)
+    ds.compress(getattr(pydicom.uid, syntax))
+    ds.save_as(tmp_path / "c.dcm")
+    assert pydicom.dcmread(tmp_path / "c.dcm").file_meta.TransferSyntaxUID.is_compressed
+    (plain,), (packed,) = read_slices([dicom_file]), read_slices([tmp_path / "c.dcm"])
+    np.testing.assert_array_equal(packed.pixels, plain.pixels)
+    assert packed.pixel_spacing_mm == plain.pixel_spacing_mm
+
+
+def test_damaged_compressed_dicom_names_its_compression(dicom_file, tmp_path):
+    ds = pydicom.dcmread(dicom_file)
+    ds.compress(pydicom.uid.JPEG2000Lossless)
+    ds.PixelData = ds.PixelData[:40] + b"\x00" * 64  # the codestream cut short
+    ds.save_as(tmp_path / "bad.dcm")
+    with pytest.raises(ImageReadError, match="compressed as JPEG 2000 .* cannot be decoded"):
+        read_slices([tmp_path / "bad.dcm"])
+
+
+@pytest.mark.skipif(shutil.which("dcmcjpeg") is None, reason="dcmcjpeg (dcmtk) is not installed")
+def test_jpeg_lossless_dicom_from_dcmtk_reads_as_the_uncompressed_file(dicom_file, tmp_path):
+    """JPEG Lossless, first-order prediction (the syntax most PACS exports use), written by dcmtk's encoder."""
+    out = tmp_path / "jpeg.dcm"
+    subprocess.run(["dcmcjpeg", "+e1", str(dicom_file), str(out)], check=True, capture_output=True, timeout=60)
+    assert pydicom.dcmread(out).file_meta.TransferSyntaxUID == pydicom.uid.JPEGLosslessSV1
+    np.testing.assert_array_equal(read_slices([out])[0].pixels, read_slices([dicom_file])[0].pixels)
