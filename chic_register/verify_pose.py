@@ -115,6 +115,9 @@ SPACING_TOL = 0.04
 #: Standard error of the median of the tubes' aspects against that of their inverse-variance mean (the median's
 #: asymptotic sqrt(pi / 2)): the spacing test's tolerance from the sections' pixel noise.
 MEDIAN_SE = math.sqrt(math.pi / 2)
+#: A stretch whose smaller axis is at least this share of its larger, with the same sign, is a scale of the whole
+#: image (or of the print) rather than a wrong spacing along one axis: the refusal says so.
+ISOTROPIC_SHARE = 0.5
 #: Sections farther than this from an end face (in section lengths) are "well inside the body": a tube missing
 #: there is an unfilled channel, not a sign of a wrong pose.
 END_CLEARANCE_SECTIONS = 1.0
@@ -331,18 +334,36 @@ def _unexplained(model, T_F_from_I, blobs: Blobs, assignment, canvas, spacing) -
     return out
 
 
-def _check_stretch(model, fit, xys, Ss, opts) -> None:
+def _check_stretch(model, fit, xys, Ss, opts, slices) -> None:
     """:class:`NoLock` naming the axis when the tube positions fit a stretch of the image (a wrong pixel spacing,
-    :func:`stretch_test`) of over 2 % or one that moves the pose by more than a third of the trust limits."""
+    :func:`stretch_test`) of over 2 % or one that moves the pose by more than a third of the trust limits.
+
+    A stretch alike along both axes (:data:`ISOTROPIC_SHARE`) is a scale: a
+    wrong spacing, a scanner's gradient calibration or a print that shrank
+    look the same; the reason says so, and which spacing would register
+    that scale."""
     scale, _, p, (moved_mm, moved_deg) = stretch_test(model, fit, xys, Ss)
     moves = moved_mm > STRETCH_MOVE_SHARE * opts.trust_tre_mm or moved_deg > STRETCH_MOVE_SHARE * opts.trust_rot_deg
-    if p < STRETCH_P and (float(np.max(np.abs(scale))) > STRETCH_MIN or moves):
-        axis = "columns (x)" if abs(scale[0]) >= abs(scale[1]) else "rows (y)"
-        worst = float(scale[0] if abs(scale[0]) >= abs(scale[1]) else scale[1])
-        raise NoLock(f"the tube positions fit best with the image stretched {100 * worst:+.1f} % along its {axis} "
-                     f"(F test p = {p:.1g}; it moves the pose by {moved_mm:.2f} mm, {moved_deg:.2f} deg): the pixel "
-                     f"spacing looks wrong; check --pixel-spacing or the file's PixelSpacing",
-                     {"stretch": [round(float(v), 4) for v in scale], "stretch_p": float(p)})
+    if not (p < STRETCH_P and (float(np.max(np.abs(scale))) > STRETCH_MIN or moves)):
+        return
+    sx, sy = (float(v) for v in scale)
+    detail = {"stretch": [round(sx, 4), round(sy, 4)], "stretch_p": float(p)}
+    test = f"F test p = {p:.1g}; it moves the pose by {moved_mm:.2f} mm, {moved_deg:.2f} deg"
+    if sx * sy > 0 and min(abs(sx), abs(sy)) >= ISOTROPIC_SHARE * max(abs(sx), abs(sy)):
+        s = 0.5 * (sx + sy)
+        spacings = {tuple(float(v) for v in sl.pixel_spacing_mm) for sl in slices}
+        hint = ""
+        if len(spacings) == 1:  # x scales the columns' spacing, y the rows' (xy = (col, row) * spacing)
+            rs, cs = spacings.pop()
+            hint = f"; declared as --pixel-spacing {rs * (1 + sy):.5g} {cs * (1 + sx):.5g}, that scale registers"
+        raise NoLock(f"the tube positions fit best with the image scaled {100 * s:+.2f} % along both axes ({test}): "
+                     f"the pixel spacing, the scanner's gradient calibration or the printed fiducial's size "
+                     f"(shrinkage) is off by that much; check --pixel-spacing or the file's PixelSpacing and the "
+                     f"print{hint}", detail)
+    axis = "columns (x)" if abs(sx) >= abs(sy) else "rows (y)"
+    worst = sx if abs(sx) >= abs(sy) else sy
+    raise NoLock(f"the tube positions fit best with the image stretched {100 * worst:+.1f} % along its {axis} "
+                 f"({test}): the pixel spacing looks wrong; check --pixel-spacing or the file's PixelSpacing", detail)
 
 
 def verify_fit(geom, model, fit, rivals, slices, Ss, blob_sets, opts, precision=None,
@@ -369,7 +390,7 @@ def verify_fit(geom, model, fit, rivals, slices, Ss, blob_sets, opts, precision=
                                  float(sl.slice_thickness_mm), b, fit.assignments[j], sl.source, psf_px=psf_px)
         except NoLock as exc:
             if "shift_px" in exc.detail:  # sections off where the pose puts them: a wrong spacing says why, if it is one
-                _check_stretch(model, fit, xys, Ss, opts)
+                _check_stretch(model, fit, xys, Ss, opts, slices)
             if not name_slice or len(slices) < 2:
                 raise
             refused.append((j, exc.reason))
@@ -388,7 +409,7 @@ def verify_fit(geom, model, fit, rivals, slices, Ss, blob_sets, opts, precision=
             raise SliceRefused(outside[0][1], {"n_refused": len(outside)}, outside)
         if outside:
             raise NoLock(outside[0][1], {"envelope": out[outside[0][0]].envelope})
-    _check_stretch(model, fit, xys, Ss, opts)
+    _check_stretch(model, fit, xys, Ss, opts, slices)
     px = min(max(sl.pixel_spacing_mm) for sl in slices)
     tre, rot = precision or pose_precision(model, fit, Ss, px, exclude=[c.merged for c in out])
     # noise shared between neighbouring pixels (an interpolated or smoothed image) makes every estimate that takes
