@@ -39,8 +39,10 @@ slice (:func:`verify_fit`):
    ``--pixel-spacing``) shows as an anisotropic scale of every section
    (:data:`SPACING_TOL`, or three standard errors of its estimate if larger:
    from the tubes' scatter or from their pixel noise, whichever is larger).
-   The section positions are asked the same question (:func:`stretch_test`): a pose tilted to absorb a stretch leaves a
-   residual pattern that a stretch explains and noise does not; a
+   The section positions are asked the same question (:func:`stretch_test`):
+   a pose tilted to absorb a stretch leaves a residual pattern that a
+   stretch explains and noise does not (alike along both axes, a scale: a
+   print that shrank looks the same, and the refusal says so); a
    significant one is refused above 2 %, or when fitting it moves the pose
    by more than a third of the trust limits (a small isotropic stretch turns
    a tilted slice by about ``s cot(tilt)``).
@@ -248,8 +250,9 @@ def verify_slice(geom, model, T_F_from_I: np.ndarray, pixels: np.ndarray, spacin
             s = np.array(scales)  # (n, 2): row, col scale seen / predicted
             ratio = s[:, 1] / s[:, 0]
             mean = median(ratio)
-            se = max(float(np.std(ratio) / math.sqrt(len(ratio))),  # the tubes' scatter, or their pixel noise
-                     MEDIAN_SE * float(np.sum(np.asarray(aspect_se) ** -2.0)) ** -0.5)
+            each = np.asarray(aspect_se)  # (n,) each tube's aspect error from its pixel noise
+            noise_se = MEDIAN_SE * float(np.sum(each ** -2.0)) ** -0.5 if np.all(each > 0) else 0.0
+            se = max(float(np.std(ratio) / math.sqrt(len(ratio))), noise_se)  # the tubes' scatter, or their noise
             tol = max(SPACING_TOL, 3 * se)
             scale = (median(s[:, 0]), median(s[:, 1]))
             if abs(mean - 1.0) > tol:
