@@ -16,7 +16,9 @@ variant: Rician noise, no other damage), changed by one ``KIND``:
 - ``helix_offset``: solved with a geometry file built from the same design
   with ``helix.offset_deg`` ``--amount`` degrees larger (default 0.5): a stale
   file after a design change, or helices printed turned against the straight
-  tubes.
+  tubes;
+- ``other_design``: solved with the other design's geometry file (neuro's
+  slices with the needle guide's, and the reverse).
 
 Reports ok / false lock (more than 0.5 mm or 0.5 deg from the truth, as
 hunt.py) / no_lock / crash, and lists the false locks. Exit status 1 on a crash.
@@ -45,7 +47,7 @@ sys.path.insert(0, str(Path(__file__).resolve().parent))
 import hunt  # noqa: E402
 from hunt_unlisted import true_centres_rc  # noqa: E402
 
-KINDS = ("bubble", "water_bath", "dim_tube", "scale", "helix_offset")
+KINDS = ("bubble", "water_bath", "dim_tube", "scale", "helix_offset", "other_design")
 DEFAULT_AMOUNT = {"scale": 0.002, "helix_offset": 0.5}
 #: A section's neighbourhood (tube radii) that a bubble or a dim fill reaches.
 REACH_RADII = 2.5
@@ -63,7 +65,7 @@ def offset_geometry(name: str, change_deg: float):
 
 
 def change(kind: str, img: np.ndarray, sl, geom, T_true: np.ndarray, rng: np.random.Generator) -> np.ndarray:
-    """The slice's pixels after ``kind`` (``scale`` and ``helix_offset`` leave them alone)."""
+    """The slice's pixels after ``kind`` (``scale``, ``helix_offset`` and ``other_design`` leave them alone)."""
     from chic_register.pose import invert
 
     img = np.array(img, float)
@@ -104,6 +106,9 @@ def _init(kind: str, amount: float) -> None:
     _WRONG.clear()
     if kind == "helix_offset":
         _WRONG.update({name: offset_geometry(name, amount) for name in hunt._GEOMS})
+    elif kind == "other_design":
+        names = sorted(hunt._GEOMS)
+        _WRONG.update({name: hunt._GEOMS[names[(i + 1) % len(names)]] for i, name in enumerate(names)})
 
 
 def run_case(index: int, seed: int, kind: str, amount: float) -> dict:

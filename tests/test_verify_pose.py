@@ -340,3 +340,23 @@ def test_an_isotropic_scale_is_named_with_the_spacing_that_registers_it(neuro_ge
     reg = register([Slice(sim.slice.pixels, (rs, cs), slice_thickness_mm=2.0, source="rescaled")], neuro_geometry)
     tre, rot = hunt.pose_error(reg.T_scanner_from_fiducial, sim.truth.T_scanner_from_fiducial, neuro_geometry.body.length)
     assert tre < 0.2 and rot < 0.3
+
+
+@pytest.mark.parametrize("kind, cases", [("other_design", 12), ("water_bath", 12)])
+def test_print_hunt_short(kind, cases):
+    """benchmarks/hunt_print.py in-process: slices solved with the other design's geometry file never lock, and
+    fiducials in a water bath lock without a false lock (seed 5; the full runs are in the README)."""
+    spec = importlib.util.spec_from_file_location("hunt_print", ROOT / "benchmarks" / "hunt_print.py")
+    hp = importlib.util.module_from_spec(spec)
+    sys.path.insert(0, str(ROOT / "benchmarks"))
+    try:
+        spec.loader.exec_module(hp)
+    finally:
+        sys.path.remove(str(ROOT / "benchmarks"))
+    hp._init(kind, 0.0)
+    out = [hp.run_case(i, 5, kind, 0.0)["outcome"] for i in range(cases)]
+    assert "crash" not in out and "false_lock" not in out, out
+    if kind == "other_design":
+        assert set(out) == {"no_lock"}
+    else:
+        assert "ok" in out
