@@ -71,6 +71,23 @@ def background_noise(pixels: np.ndarray, footprints, guard_px: int = 3) -> Noise
     return NoiseEstimate(max(q75 - q25, 0.0) / 1.349, "gaussian", int(bg.size))
 
 
+#: Median absolute difference of two neighbouring pixels of independent Gaussian noise, in its sigma:
+#: ``sqrt(2) * 0.6745``.
+DIFFERENCE_MAD = math.sqrt(2.0) * 0.6745
+
+
+def difference_sigma(pixels: np.ndarray) -> float:
+    """Noise scale of an image from the differences of horizontally neighbouring pixels (their median absolute
+    value over :data:`DIFFERENCE_MAD`): objects larger than a pixel (water around the body, tissue) only reach it
+    along their edges, so it holds where the detector's background, mixing a dark and a bright region, does not."""
+    img = np.asarray(pixels, dtype=float)
+    if img.ndim != 2 or img.shape[1] < 2:
+        return math.nan
+    d = np.abs(np.diff(img, axis=1)).ravel()
+    d = d[np.isfinite(d)]
+    return float(np.median(d)) / DIFFERENCE_MAD if d.size else math.nan
+
+
 #: The lag-1 correlation is clipped here (a near-1 value is a smooth image, not a noise estimate).
 MAX_NOISE_CORRELATION = 0.8
 

@@ -327,7 +327,8 @@ def register(slices: list[Slice], geom: FiducialGeometry, *, options: SolveOptio
                     raise
                 undecided.append(j)  # fits[0] and its rivals are all kept: the joint fit tries each
             except NoLock as first:
-                if (detect_options or {}).get("flatten_background") or not _worth_flattening(blob_sets[j], model):
+                if ((detect_options or {}).get("flatten_background")
+                        or not _worth_flattening(blob_sets[j], model, sl.pixels)):
                     raise
                 # tissue touching the tubes or a dim side of the image: once more on the flattened image
                 b = detect_blobs(sl.pixels, sl.pixel_spacing_mm, model.diameter_mm, flatten_background=True,
@@ -557,7 +558,15 @@ def _check_pixel_range(slices) -> list[float]:
     return lows
 
 
-def _worth_flattening(blobs: Blobs, model: TubeModel) -> bool:
-    """A slice whose detection may have lost tubes to their surroundings: something bright, but not a blank image."""
-    bright = blobs.threshold - blobs.background > 4 * blobs.noise_sigma  # Otsu split more than noise
-    return math.isfinite(blobs.threshold) and blobs.noise_sigma > 0 and bright and len(blobs) < 3 * len(model.ids)
+def _worth_flattening(blobs: Blobs, model: TubeModel, pixels: np.ndarray) -> bool:
+    """A slice whose detection may have lost tubes to their surroundings: something bright, but not a blank image.
+
+    "Bright" is Otsu's split beyond four noise sigmas: the detector's own, or, where its background mixes a dark
+    and a bright region (a fiducial in a water bath: the median is the water's, the tubes sit in dark plastic),
+    the pixels' neighbour differences' (:func:`chic_register.noise.difference_sigma`)."""
+    from .noise import difference_sigma
+
+    if not (math.isfinite(blobs.threshold) and blobs.noise_sigma > 0 and len(blobs) < 3 * len(model.ids)):
+        return False
+    split = blobs.threshold - blobs.background
+    return split > 4 * blobs.noise_sigma or split > 4 * difference_sigma(pixels)
