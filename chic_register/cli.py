@@ -37,6 +37,8 @@ def _parser() -> argparse.ArgumentParser:
     s.add_argument("--pixel-spacing", nargs=2, type=float, metavar=("ROW", "COL"),
                    help="pixel spacing (mm) for PNG/TIFF/NPY images")
     s.add_argument("--overlay", metavar="PNG", help="draw the slice with detections, ellipse and labels")
+    s.add_argument("--series", metavar="ID", default=None,
+                   help="the DICOM series to read from a folder holding several (its SeriesNumber or SeriesInstanceUID)")
     s.add_argument("--slices", nargs="+", metavar="K",
                    help="for a volume IMAGE (.nii, .nii.gz, .nrrd, .mha or a DICOM series folder): "
                         "indices (5) or ranges (5-11) of its slices to register jointly; each must lock. "
@@ -136,6 +138,8 @@ def _parser() -> argparse.ArgumentParser:
     r = sub.add_parser("reslice", help="reformat a volume into oblique slices at known poses, register each "
                        "(the paper's Table II)")
     r.add_argument("volume", metavar="VOLUME", help=".nii, .nii.gz, .nrrd, .mha or a DICOM series folder")
+    r.add_argument("--series", metavar="ID", default=None,
+                   help="the DICOM series to read from a folder holding several (its SeriesNumber or SeriesInstanceUID)")
     r.add_argument("--geometry", required=True, help="geometry.yaml")
     r.add_argument("--reference", required=True, metavar="FILE",
                    help="the fiducial's pose in the volume: a JSON file with T_scanner_from_fiducial "

@@ -7,6 +7,7 @@ output (``--tfm``, ``--scene``, ``--overlay``, OpenIGTLink) failed after the pos
 from __future__ import annotations
 
 import json
+from pathlib import Path
 import math
 import sys
 
@@ -117,7 +118,6 @@ def _print_pose(args, reg, geom) -> None:
 def _series_hint(args, slices, skip: bool) -> str:
     """What to do when the files of one series were given one by one and one of them does not show the frame:
     every slice given as a file must lock; a volume's slices that do not are skipped."""
-    from pathlib import Path
 
     files = [p for p in args.images if Path(p).is_file()]
     if skip or len(slices) < 3 or len(files) < 3:
@@ -142,13 +142,15 @@ def _read_solve_inputs(args) -> tuple[list, bool]:
     volumes = [p for p in args.images if is_volume_path(p)]
     if args.slices and not volumes:
         raise ChicRegisterError("--slices applies to volume inputs (.nii, .nii.gz, .nrrd, .mha, DICOM series folder)")
+    if getattr(args, "series", None) is not None and not any(Path(p).is_dir() for p in args.images):
+        raise ChicRegisterError("--series applies to a folder of DICOM files (the series to read from it)")
     slices = []
     for path in args.images:
         if is_volume_path(path):
             from .volume import read_volume
             from .volume_register import parse_slice_indices
 
-            vol = read_volume(path)
+            vol = read_volume(path, args.series)
             nk = vol.shape[0]
             ks = parse_slice_indices(args.slices, nk) if args.slices else range(nk)
             slices.extend(vol.native_slice(k) for k in ks)

@@ -75,7 +75,7 @@ def run_reslice(args) -> int:
             raise ChicRegisterError(message)
     geom = load_geometry(args.geometry)
     T_ref = load_reference(args.reference)
-    vol = read_volume(args.volume)
+    vol = read_volume(args.volume, args.series)
     depths = args.depths if args.depths else default_depths(geom, args.tilt, args.depth_step)
     study = reslice_study(vol, geom, T_ref, depths_mm=depths, tilt_deg=args.tilt, azimuth_deg=args.azimuth,
                           twist_deg=args.twist, shape=(args.size, args.size),

@@ -182,7 +182,8 @@ def read_volume(path, series_id: str | None = None) -> Volume:
 
     Raises :class:`ImageReadError` naming the path for a missing, unreadable
     or non-3-D input, or a folder with no or several DICOM series (pass
-    ``series_id`` to pick one).
+    ``series_id``, a SeriesInstanceUID or a SeriesNumber, to pick one; the
+    message lists them).
     """
     import SimpleITK as sitk
 
@@ -194,12 +195,20 @@ def read_volume(path, series_id: str | None = None) -> Volume:
         ids = list(reader.GetGDCMSeriesIDs(str(path)))
         if not ids:
             raise ImageReadError(path, "folder holds no DICOM series")
+        if series_id is None and len(ids) > 1:
+            raise ImageReadError(path, f"folder holds {len(ids)} DICOM series: {_series_list(reader, path, ids)}; "
+                                       f"pick one with --series (its number or UID)")
         if series_id is None:
-            if len(ids) > 1:
-                raise ImageReadError(path, f"folder holds {len(ids)} DICOM series ({', '.join(ids)}); keep one per folder")
             series_id = ids[0]
         elif series_id not in ids:
-            raise ImageReadError(path, f"no DICOM series {series_id!r}; found: {', '.join(ids)}")
+            by_number = [i for i in ids if _series_tags(reader, path, i)[0] == str(series_id).strip()]
+            if len(by_number) > 1:
+                raise ImageReadError(path, f"SeriesNumber {series_id} names {len(by_number)} DICOM series here; give "
+                                           f"the SeriesInstanceUID: {_series_list(reader, path, by_number)}")
+            if not by_number:
+                raise ImageReadError(path, f"no DICOM series {series_id!r} (a SeriesNumber or SeriesInstanceUID); "
+                                           f"found: {_series_list(reader, path, ids)}")
+            series_id = by_number[0]
         files = reader.GetGDCMSeriesFileNames(str(path), series_id)
         if len(files) < 2:
             raise ImageReadError(path, "DICOM series has a single slice: read it as a slice, not a volume")
@@ -235,6 +244,37 @@ def read_volume(path, series_id: str | None = None) -> Volume:
     if img.GetDimension() == 4 and img.GetSize()[3] == 1:
         img = img[:, :, :, 0]
     return volume_from_sitk(img, source=str(path))
+
+
+#: A refusal lists at most this many of a folder's series (an export folder may hold dozens).
+LISTED_SERIES = 8
+
+
+def _series_tags(reader, folder: Path, series_id: str) -> tuple[str, str, int]:
+    """``(SeriesNumber, SeriesDescription, file count)`` of one DICOM series in ``folder`` (from its first file's
+    header; empty strings where it has none)."""
+    import SimpleITK as sitk
+
+    files = reader.GetGDCMSeriesFileNames(str(folder), series_id)
+    first = sitk.ImageFileReader()
+    first.SetFileName(files[0])
+    try:
+        first.ReadImageInformation()
+    except RuntimeError:
+        return "", "", len(files)
+    tag = lambda key: first.GetMetaData(key).strip() if first.HasMetaDataKey(key) else ""  # noqa: E731
+    return tag("0020|0011"), tag("0008|103e"), len(files)
+
+
+def _series_list(reader, folder: Path, ids) -> str:
+    """One line naming each series (the first :data:`LISTED_SERIES`): number, description, file count and UID."""
+    out = []
+    for i in list(ids)[:LISTED_SERIES]:
+        number, description, n = _series_tags(reader, folder, i)
+        name = " ".join(v for v in (f"#{number}" if number else "", f"'{description}'" if description else "") if v)
+        out.append(f"{name + ' ' if name else ''}({n} file{'s' if n != 1 else ''}, {i})")
+    more = len(ids) - LISTED_SERIES
+    return "; ".join(out) + (f"; and {more} more" if more > 0 else "")
 
 
 def _replace_dir(tmp: Path, path: Path) -> None:

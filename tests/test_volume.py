@@ -337,3 +337,37 @@ def test_neuro_volume_registers_without_slices_leaving_out_the_slices_that_fail_
     assert np.linalg.norm(apply(reg.T_scanner_from_fiducial, centre) - apply(T, centre)) < 0.05
     assert len(reg.slices) >= 40
     assert any("end face" in s.reason for s in reg.skipped)  # skipped by the verification, not the solve
+
+
+def test_a_folder_of_several_series_lists_them_and_solves_the_one_named(tmp_path, neuro_geometry_file, capsys):
+    """A scanner export puts a localiser and the scan in one folder: the refusal lists both (number, description,
+    file count, UID); --series picks one by its SeriesNumber (or UID), and it registers."""
+    import json
+
+    import pydicom
+
+    from chic_register.cli import main
+
+    g = str(neuro_geometry_file)
+    for name, depth in (("scan", "25"), ("other", "20")):
+        assert main(["simulate", "--geometry", g, "--depth", depth, "--tilt", "5", "--azimuth", "30",
+                     "--volume-shape", "96", "96", "24", "--voxel-size", "0.5", "0.5", "2", "--noise", "rician",
+                     "--snr", "25", "--seed", "2", "--out", str(tmp_path / name)]) == 0
+    both = tmp_path / "both"
+    both.mkdir()
+    for number, name in ((7, "scan"), (2, "other")):
+        for k, f in enumerate(sorted((tmp_path / name).glob("*.dcm"))):
+            ds = pydicom.dcmread(f)
+            ds.SeriesNumber, ds.SeriesDescription = number, f"{name} series"
+            ds.save_as(both / f"{name}-{k:03d}.dcm")
+    capsys.readouterr()
+    assert main(["solve", str(both), "--geometry", g, "--json"]) == 2
+    err = capsys.readouterr().err
+    assert "holds 2 DICOM series" in err and "#7 'scan series' (24 files" in err and "--series" in err
+    assert main(["solve", str(both), "--geometry", g, "--series", "7", "--json"]) == 0
+    out = json.loads(capsys.readouterr().out)
+    truth = json.loads((tmp_path / "scan.truth.json").read_text())
+    tre = np.linalg.norm(np.array(out["T_scanner_from_fiducial"])[:3, 3] - np.array(truth["T_scanner_from_fiducial"])[:3, 3])
+    assert out["status"] == "ok" and tre < 0.5
+    assert main(["solve", str(both), "--geometry", g, "--series", "9"]) == 2
+    assert "no DICOM series '9'" in capsys.readouterr().err
