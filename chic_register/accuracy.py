@@ -370,30 +370,35 @@ def section_chi2(model: TubeModel, fit: _Fit, assign, Ss) -> list[np.ndarray]:
 def drop_section_outliers(model: TubeModel, fit: _Fit, Ss, opts) -> _Fit:
     """``fit`` (a :func:`_section_refine` result) refitted without the sections that alone disagree with the
     others' pose (:data:`SECTION_OUTLIER_CHI2`, :data:`SECTION_OUTLIER_RATIO`), one at a time, up to
-    :data:`MAX_SECTION_OUTLIERS`; never below ``min_tubes`` / ``min_depth_tubes``. ``fit`` itself when none does."""
+    :data:`MAX_SECTION_OUTLIERS`; never below ``min_tubes`` / ``min_depth_tubes``. ``fit`` itself when none does.
+
+    Each time the section with the largest residual is the candidate, judged by its deleted residual: its
+    chi-square against the pose refitted without it, over the median of the others' in that refit."""
     if fit.measurements is None:
         return fit
     assign = fit.assignments
     xys = [m[0] for m in fit.measurements]  # the fitted positions and weights stay; only the tubes used change
     Ls = [m[1] for m in fit.measurements]
     for _ in range(MAX_SECTION_OUTLIERS):
-        chi2 = section_chi2(model, fit, assign, Ss)
-        flat = np.concatenate(chi2)
-        ok = np.isfinite(flat)
-        if ok.sum() <= opts.min_tubes:
+        flat = np.concatenate(section_chi2(model, fit, assign, Ss))
+        if np.isfinite(flat).sum() <= opts.min_tubes:
             break
         worst = int(np.nanargmax(flat))
-        rest = np.delete(flat, worst)
-        rest = rest[np.isfinite(rest)]
-        if not (flat[worst] > SECTION_OUTLIER_CHI2 and flat[worst] > SECTION_OUTLIER_RATIO * median(rest)):
-            break
         j, k = divmod(worst, len(model.ids))
         n_depth = sum(int(((a >= 0) & model.depth_coding).sum()) for a in assign)
         if model.depth_coding[k] and n_depth <= opts.min_depth_tubes:
             break
-        assign = [a.copy() for a in assign]
-        assign[j][k] = -1
-        refit = refine(model, xys, Ss, fit.T_F_from_scanner, gates_mm=(), final_iters=6, assign0=assign,
+        without = [a.copy() for a in assign]
+        without[j][k] = -1
+        refit = refine(model, xys, Ss, fit.T_F_from_scanner, gates_mm=(), final_iters=6, assign0=without,
                        strict_ends=False, weights=Ls, tol=1e-5)
-        fit = dataclasses.replace(refit, measurements=fit.measurements)
+        refit = dataclasses.replace(refit, measurements=fit.measurements)
+        # judged against the pose the others give: a section that pulled the whole fit towards itself (a blob matched
+        # in a tube's place) hides among raised residuals, and stands out once the fit no longer follows it
+        deleted = np.concatenate(section_chi2(model, refit, assign, Ss))
+        rest = np.delete(deleted, worst)
+        rest = rest[np.isfinite(rest)]
+        if not (deleted[worst] > SECTION_OUTLIER_CHI2 and deleted[worst] > SECTION_OUTLIER_RATIO * median(rest)):
+            break
+        assign, fit = without, refit
     return fit
