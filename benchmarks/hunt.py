@@ -255,8 +255,6 @@ def _init(paths):
 
 def run_case(case: Case, geometries: dict | None = None) -> dict:
     """Solve one case; its outcome (``ok`` / ``no_lock`` / ``crash``), errors and CPU time."""
-    from chic_register.errors import NoLock
-    from chic_register.solve import register
 
     geoms = geometries or _GEOMS
     geom = geoms[case.geometry]
@@ -268,18 +266,29 @@ def run_case(case: Case, geometries: dict | None = None) -> dict:
         out.update(outcome="setup_error", error=traceback.format_exc(limit=3))
         return out
     out["in_envelope"] = bool(in_env)
-    try:
-        reg = register([sl], geom)
-    except NoLock as exc:
-        out.update(outcome="no_lock", reason=exc.reason)
-    except Exception as exc:  # noqa: BLE001 - every other exception is a crash to report
-        out.update(outcome="crash", error=f"{type(exc).__name__}: {exc}", trace=traceback.format_exc(limit=4))
-    else:
-        tre, rot = pose_error(reg.T_scanner_from_fiducial, T_true, geom.body.length)
-        false = tre > FALSE_LOCK_MM or rot > FALSE_LOCK_DEG
-        out.update(outcome="false_lock" if false else "ok", tre_mm=tre, rot_deg=rot)
+    out.update(solve_and_judge(sl, geom, T_true))
     out["cpu_s"] = time.process_time() - c0
     return out
+
+
+def solve_and_judge(sl, geom, T_true, ndigits: int | None = None, solve_geom=None) -> dict:
+    """Register one slice (with ``solve_geom``, default ``geom``) and judge it against the truth: ``outcome``
+    (``ok`` / ``false_lock``, beyond FALSE_LOCK_MM or FALSE_LOCK_DEG / ``no_lock`` with its ``reason`` / ``crash``
+    with ``error`` and ``trace``) and the errors ``tre_mm``, ``rot_deg`` (rounded to ``ndigits`` when given)."""
+    from chic_register.errors import NoLock
+    from chic_register.solve import register
+
+    try:
+        reg = register([sl], solve_geom or geom)
+    except NoLock as exc:
+        return {"outcome": "no_lock", "reason": exc.reason}
+    except Exception as exc:  # noqa: BLE001 - every other exception is a crash to report
+        return {"outcome": "crash", "error": f"{type(exc).__name__}: {exc}", "trace": traceback.format_exc(limit=4)}
+    tre, rot = pose_error(reg.T_scanner_from_fiducial, T_true, geom.body.length)
+    false = tre > FALSE_LOCK_MM or rot > FALSE_LOCK_DEG
+    if ndigits is not None:
+        tre, rot = round(tre, ndigits), round(rot, ndigits)
+    return {"outcome": "false_lock" if false else "ok", "tre_mm": tre, "rot_deg": rot}
 
 
 def hunt(n_cases: int, seed: int = 0, workers: int = 2, paths=None, start: int = 0,

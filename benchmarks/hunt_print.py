@@ -37,7 +37,6 @@ import dataclasses  # noqa: E402
 import math  # noqa: E402
 import sys  # noqa: E402
 import time  # noqa: E402
-import traceback  # noqa: E402
 from concurrent.futures import ProcessPoolExecutor  # noqa: E402
 from pathlib import Path  # noqa: E402
 
@@ -113,9 +112,7 @@ def _init(kind: str, amount: float) -> None:
 
 def run_case(index: int, seed: int, kind: str, amount: float) -> dict:
     """One case: outcome, errors."""
-    from chic_register.errors import NoLock
     from chic_register.slices import Slice
-    from chic_register.solve import register
 
     case = dataclasses.replace(hunt.make_case(index, seed, hunt._GEOMS), mutation="noisy")
     geom = hunt._GEOMS[case.geometry]
@@ -123,19 +120,10 @@ def run_case(index: int, seed: int, kind: str, amount: float) -> dict:
     sl, T_true, in_env = hunt.build_case(case, geom)
     img = change(kind, sl.pixels, sl, geom, T_true, np.random.default_rng([seed, index, 7]))
     spacing = tuple(v * (1 + amount) for v in sl.pixel_spacing_mm) if kind == "scale" else sl.pixel_spacing_mm
-    try:
-        reg = register([Slice(img, spacing, slice_thickness_mm=sl.slice_thickness_mm, source=f"case{index}")],
-                       _WRONG.get(case.geometry, geom))
-    except NoLock as exc:
-        out.update(outcome="no_lock", reason=exc.reason)
-    except Exception as exc:  # noqa: BLE001 - every other exception is a crash to report
-        out.update(outcome="crash", error=f"{type(exc).__name__}: {exc}", trace=traceback.format_exc(limit=4))
-    else:
-        tre, rot = hunt.pose_error(reg.T_scanner_from_fiducial, T_true, geom.body.length)
-        false = tre > hunt.FALSE_LOCK_MM or rot > hunt.FALSE_LOCK_DEG
-        out.update(outcome="false_lock" if false else "ok", tre_mm=round(tre, 4), rot_deg=round(rot, 4),
-                   tilt_deg=round(case.tilt_deg, 1))
-    out["in_envelope"] = bool(in_env)
+    out.update(hunt.solve_and_judge(Slice(img, spacing, slice_thickness_mm=sl.slice_thickness_mm,
+                                          source=f"case{index}"), geom, T_true, ndigits=4,
+                                    solve_geom=_WRONG.get(case.geometry)))
+    out.update(tilt_deg=round(case.tilt_deg, 1), in_envelope=bool(in_env))
     return out
 
 

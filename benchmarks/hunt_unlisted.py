@@ -40,7 +40,6 @@ import dataclasses  # noqa: E402
 import math  # noqa: E402
 import sys  # noqa: E402
 import time  # noqa: E402
-import traceback  # noqa: E402
 from concurrent.futures import ProcessPoolExecutor  # noqa: E402
 from pathlib import Path  # noqa: E402
 
@@ -188,10 +187,8 @@ def true_centres_rc(geom, T_scanner_from_fiducial, spacing) -> np.ndarray:
 
 def run_case(index: int, seed: int) -> dict:
     """One case: its damage kind, outcome, errors and wall time."""
-    from chic_register.errors import NoLock
     from chic_register.pose import invert
     from chic_register.slices import Slice
-    from chic_register.solve import register
 
     geoms = hunt._GEOMS
     case = dataclasses.replace(hunt.make_case(index, seed, geoms), mutation="noisy")
@@ -204,16 +201,8 @@ def run_case(index: int, seed: int) -> dict:
     if T_on is not None:
         T_true = invert(T_on) @ T_true
     t0 = time.perf_counter()
-    try:
-        reg = register([Slice(img, spacing, slice_thickness_mm=sl.slice_thickness_mm, source=f"case{index}")], geom)
-    except NoLock as exc:
-        out.update(outcome="no_lock", reason=exc.reason)
-    except Exception as exc:  # noqa: BLE001 - every other exception is a crash to report
-        out.update(outcome="crash", error=f"{type(exc).__name__}: {exc}", trace=traceback.format_exc(limit=4))
-    else:
-        tre, rot = hunt.pose_error(reg.T_scanner_from_fiducial, T_true, geom.body.length)
-        false = tre > hunt.FALSE_LOCK_MM or rot > hunt.FALSE_LOCK_DEG
-        out.update(outcome="false_lock" if false else "ok", tre_mm=round(tre, 4), rot_deg=round(rot, 4))
+    out.update(hunt.solve_and_judge(Slice(img, spacing, slice_thickness_mm=sl.slice_thickness_mm,
+                                          source=f"case{index}"), geom, T_true, ndigits=4))
     out.update(in_envelope=bool(in_env), wall_s=round(time.perf_counter() - t0, 3))
     return out
 
