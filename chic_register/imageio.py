@@ -317,6 +317,29 @@ def _guess_transfer_syntax(ds) -> None:
     )
 
 
+def _decode_with_gdcm(path, ds, frames: int, syntax: str, why: str) -> np.ndarray:
+    """The stored pixel values of a single-frame compressed DICOM file that pydicom's own decoders cannot read
+    (JPEG lossless, JPEG-LS and JPEG 2000 need plugins it does not carry), decoded by GDCM through SimpleITK,
+    which returns them rescaled: the rescale is undone, as :func:`_read_dicom` applies it."""
+    fault = (f"DICOM pixel data compressed as {syntax} cannot be decoded ({why}); the file may be damaged, or "
+             f"decompress it first (dcmdjpeg, gdcmconv --raw)")
+    if frames != 1:
+        raise ImageReadError(path, fault)
+    import SimpleITK as sitk
+
+    try:
+        img = sitk.ReadImage(str(path))
+    except RuntimeError:
+        raise ImageReadError(path, fault) from None
+    arr = sitk.GetArrayFromImage(img)
+    if arr.ndim == 3 and arr.shape[0] == 1:
+        arr = arr[0]
+    if arr.shape[:2] != (int(ds.Rows), int(ds.Columns)):
+        raise ImageReadError(path, fault)
+    slope, intercept = _rescale(path, ds, None)
+    return (arr.astype(float) - intercept) / slope
+
+
 def _read_dicom(path, has_preamble: bool) -> list[Slice]:
     import pydicom
     from pydicom.errors import InvalidDicomError
@@ -341,18 +364,17 @@ def _read_dicom(path, has_preamble: bool) -> list[Slice]:
                            int(ds.get("Columns", 0) or 0), int(ds.get("SamplesPerPixel", 1) or 1)), "DICOM image")
     except (TypeError, ValueError):
         raise ImageReadError(path, "DICOM Rows/Columns/NumberOfFrames are not integers") from None
+    frames = int(ds.get("NumberOfFrames", 1) or 1)
     try:
         with warnings.catch_warnings():
             warnings.simplefilter("ignore")
             arr = ds.pixel_array
     except Exception as exc:
         syntax = ds.file_meta.TransferSyntaxUID
-        if syntax.is_compressed:  # a decoder plugin missing or failing, or damaged compressed data
-            raise ImageReadError(path, f"DICOM pixel data compressed as {syntax.name} cannot be decoded "
-                                       f"({_reason(exc)}); the file may be damaged, or decompress it first "
-                                       f"(dcmdjpeg, gdcmconv --raw)") from None
-        raise ImageReadError(path, f"DICOM pixel data cannot be decoded; the file may be truncated ({_reason(exc)})") from None
-    frames = int(ds.get("NumberOfFrames", 1) or 1)
+        if not (syntax.is_transfer_syntax and syntax.is_compressed):
+            raise ImageReadError(path, f"DICOM pixel data cannot be decoded; the file may be truncated "
+                                       f"({_reason(exc)})") from None
+        arr = _decode_with_gdcm(path, ds, frames, syntax.name, _reason(exc))
     spp = int(ds.get("SamplesPerPixel", 1) or 1)
     if frames == 1:
         arr = arr[None]

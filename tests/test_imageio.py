@@ -271,7 +271,7 @@ def test_read_slices_stops_at_the_first_bad_file(tmp_path, dicom_file):
 
 @pytest.mark.parametrize("syntax", ["RLELossless", "JPEG2000Lossless", "JPEGLSLossless"])
 def test_compressed_dicom_reads_as_the_uncompressed_file(dicom_file, tmp_path, syntax):
-    """Scanners and PACS export compressed DICOM: the decoders installed with chic read it pixel for pixel."""
+    """Scanners and PACS export compressed DICOM: it reads pixel for pixel as the uncompressed file."""
     ds = pydicom.dcmread(dicom_file)
     ds.compress(getattr(pydicom.uid, syntax))
     ds.save_as(tmp_path / "c.dcm")
@@ -279,6 +279,29 @@ def test_compressed_dicom_reads_as_the_uncompressed_file(dicom_file, tmp_path, s
     (plain,), (packed,) = read_slices([dicom_file]), read_slices([tmp_path / "c.dcm"])
     np.testing.assert_array_equal(packed.pixels, plain.pixels)
     assert packed.pixel_spacing_mm == plain.pixel_spacing_mm
+
+
+def test_compressed_dicom_without_a_pydicom_decoder_is_decoded_by_gdcm(dicom_file, tmp_path, monkeypatch):
+    """JPEG lossless and the other syntaxes pydicom has no decoder for without GPL plugins: SimpleITK's GDCM decodes
+    them (it rescales; the reader undoes that and applies the file's rescale as for every DICOM)."""
+    ds = pydicom.dcmread(dicom_file)
+    ds.compress(pydicom.uid.JPEG2000Lossless)
+    ds.save_as(tmp_path / "c.dcm")
+    plain = read_slices([dicom_file])[0].pixels
+
+    def no_decoder(self):
+        raise RuntimeError("no decoder plugin")
+
+    monkeypatch.setattr(pydicom.dataset.Dataset, "pixel_array", property(no_decoder))
+    np.testing.assert_allclose(read_slices([tmp_path / "c.dcm"])[0].pixels, plain, rtol=1e-12, atol=1e-9)
+
+
+def test_a_private_transfer_syntax_is_a_one_line_error(dicom_file, tmp_path):
+    ds = pydicom.dcmread(dicom_file)
+    ds.file_meta.TransferSyntaxUID = "1.2.3.4.5"
+    ds.save_as(tmp_path / "p.dcm")
+    with pytest.raises(ImageReadError, match="cannot be decoded"):
+        read_slices([tmp_path / "p.dcm"])
 
 
 def test_damaged_compressed_dicom_names_its_compression(dicom_file, tmp_path):
@@ -292,7 +315,8 @@ def test_damaged_compressed_dicom_names_its_compression(dicom_file, tmp_path):
 
 @pytest.mark.skipif(shutil.which("dcmcjpeg") is None, reason="dcmcjpeg (dcmtk) is not installed")
 def test_jpeg_lossless_dicom_from_dcmtk_reads_as_the_uncompressed_file(dicom_file, tmp_path):
-    """JPEG Lossless, first-order prediction (the syntax most PACS exports use), written by dcmtk's encoder."""
+    """JPEG Lossless, first-order prediction (the syntax most PACS exports use), written by dcmtk's encoder (pydicom
+    has no decoder for it without a GPL plugin: GDCM reads it)."""
     out = tmp_path / "jpeg.dcm"
     subprocess.run(["dcmcjpeg", "+e1", str(dicom_file), str(out)], check=True, capture_output=True, timeout=60)
     assert pydicom.dcmread(out).file_meta.TransferSyntaxUID == pydicom.uid.JPEGLosslessSV1
