@@ -254,8 +254,8 @@ def _init(paths):
 
 
 def run_case(case: Case, geometries: dict | None = None) -> dict:
-    """Solve one case; its outcome (``ok`` / ``no_lock`` / ``crash``), errors and CPU time."""
-
+    """Solve one case; its outcome (``ok`` / ``false_lock`` / ``no_lock`` / ``crash``, or ``setup_error`` when the
+    case itself could not be built), errors and CPU time."""
     geoms = geometries or _GEOMS
     geom = geoms[case.geometry]
     c0 = time.process_time()

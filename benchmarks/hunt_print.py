@@ -12,7 +12,7 @@ variant: Rician noise, no other damage), changed by one ``KIND``:
 - ``dim_tube``: one tube at 20-60 % of the others' signal (a weaker fill);
 - ``scale``: the pixel spacing declared ``--amount`` (a fraction, default
   0.002) too large along both axes, which is what a print that much too
-  small looks like (or a gradient calibration off by as much);
+  large looks like (or a gradient calibration off by as much);
 - ``helix_offset``: solved with a geometry file built from the same design
   with ``helix.offset_deg`` ``--amount`` degrees larger (default 0.5): a stale
   file after a design change, or helices printed turned against the straight
@@ -37,6 +37,7 @@ import dataclasses  # noqa: E402
 import math  # noqa: E402
 import sys  # noqa: E402
 import time  # noqa: E402
+import traceback  # noqa: E402
 from concurrent.futures import ProcessPoolExecutor  # noqa: E402
 from pathlib import Path  # noqa: E402
 
@@ -117,8 +118,12 @@ def run_case(index: int, seed: int, kind: str, amount: float) -> dict:
     case = dataclasses.replace(hunt.make_case(index, seed, hunt._GEOMS), mutation="noisy")
     geom = hunt._GEOMS[case.geometry]
     out = {"index": index, "geometry": case.geometry}
-    sl, T_true, in_env = hunt.build_case(case, geom)
-    img = change(kind, sl.pixels, sl, geom, T_true, np.random.default_rng([seed, index, 7]))
+    try:
+        sl, T_true, in_env = hunt.build_case(case, geom)
+        img = change(kind, sl.pixels, sl, geom, T_true, np.random.default_rng([seed, index, 7]))
+    except Exception:  # the hunt's own fault, not the solver's: reported apart
+        out.update(outcome="setup_error", error=traceback.format_exc(limit=3), in_envelope=False)
+        return out
     spacing = tuple(v * (1 + amount) for v in sl.pixel_spacing_mm) if kind == "scale" else sl.pixel_spacing_mm
     out.update(hunt.solve_and_judge(Slice(img, spacing, slice_thickness_mm=sl.slice_thickness_mm,
                                           source=f"case{index}"), geom, T_true, ndigits=4,
@@ -143,14 +148,14 @@ def main(argv=None) -> int:
     total = collections.Counter(r["outcome"] for r in results)
     inside = collections.Counter(r["outcome"] for r in results if r["in_envelope"])
     print(f"{args.kind} (amount {amount:g}), cases {n}: ok {total['ok']}, FALSE LOCKS {total['false_lock']}, "
-          f"no_lock {total['no_lock']}, crashes {total['crash']}; in the envelope {sum(inside.values())}: "
+          f"no_lock {total['no_lock']}, crashes {total['crash']}, setup errors {total['setup_error']}; in the envelope {sum(inside.values())}: "
           f"ok {inside['ok']}, false {inside['false_lock']}")
     for r in results:
-        if r["outcome"] in ("false_lock", "crash"):
+        if r["outcome"] in ("false_lock", "crash", "setup_error"):
             print({k: v for k, v in r.items() if k not in ("trace", "reason")})
     print(f"wall {time.perf_counter() - t0:.0f} s, {args.workers} workers; load average {load0:.2f} at start, "
           f"{os.getloadavg()[0]:.2f} at end; seed {args.seed}")
-    return 1 if total["crash"] else 0
+    return 1 if total["crash"] or total["setup_error"] else 0
 
 
 if __name__ == "__main__":

@@ -7,9 +7,9 @@ output (``--tfm``, ``--scene``, ``--overlay``, OpenIGTLink) failed after the pos
 from __future__ import annotations
 
 import json
-from pathlib import Path
 import math
 import sys
+from pathlib import Path
 
 from .cli_inputs import check_spacing_flag, load_prior
 from .errors import ChicRegisterError, NoLock
@@ -142,7 +142,7 @@ def _read_solve_inputs(args) -> tuple[list, bool]:
     volumes = [p for p in args.images if is_volume_path(p)]
     if args.slices and not volumes:
         raise ChicRegisterError("--slices applies to volume inputs (.nii, .nii.gz, .nrrd, .mha, DICOM series folder)")
-    if getattr(args, "series", None) is not None and not any(Path(p).is_dir() for p in args.images):
+    if args.series is not None and not any(Path(p).is_dir() for p in args.images):
         raise ChicRegisterError("--series applies to a folder of DICOM files (the series to read from it)")
     slices = []
     for path in args.images:

@@ -79,12 +79,14 @@ DIFFERENCE_MAD = math.sqrt(2.0) * 0.6745
 def difference_sigma(pixels: np.ndarray) -> float:
     """Noise scale of an image from the differences of horizontally neighbouring pixels (their median absolute
     value over :data:`DIFFERENCE_MAD`): objects larger than a pixel (water around the body, tissue) only reach it
-    along their edges, so it holds where the detector's background, mixing a dark and a bright region, does not."""
+    along their edges, so it holds where the detector's background, mixing a dark and a bright region, does not.
+    Equal neighbours (a zero-filled mask, coarse quantisation) are no noise sample and are left out; NaN when
+    nothing is left. On a Rayleigh background it reads about 0.64 of the Rayleigh scale."""
     img = np.asarray(pixels, dtype=float)
     if img.ndim != 2 or img.shape[1] < 2:
         return math.nan
     d = np.abs(np.diff(img, axis=1)).ravel()
-    d = d[np.isfinite(d)]
+    d = d[np.isfinite(d) & (d > 0)]
     return float(np.median(d)) / DIFFERENCE_MAD if d.size else math.nan
 
 

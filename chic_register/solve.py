@@ -561,9 +561,10 @@ def _check_pixel_range(slices) -> list[float]:
 def _worth_flattening(blobs: Blobs, model: TubeModel, pixels: np.ndarray) -> bool:
     """A slice whose detection may have lost tubes to their surroundings: something bright, but not a blank image.
 
-    "Bright" is Otsu's split beyond four noise sigmas: the detector's own, or, where its background mixes a dark
-    and a bright region (a fiducial in a water bath: the median is the water's, the tubes sit in dark plastic),
-    the pixels' neighbour differences' (:func:`chic_register.noise.difference_sigma`)."""
+    "Bright" is Otsu's split beyond four noise sigmas, as the detector measures the noise, or as the differences
+    of neighbouring pixels do (:func:`chic_register.noise.difference_sigma`): the detector's background mixes a
+    dark and a bright region when a fiducial lies in a water bath (the median is the water, the tubes sit in dark
+    plastic), and its noise then reads ten times too large. (A NaN estimate compares false.)"""
     from .noise import difference_sigma
 
     if not (math.isfinite(blobs.threshold) and blobs.noise_sigma > 0 and len(blobs) < 3 * len(model.ids)):

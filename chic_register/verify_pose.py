@@ -342,9 +342,10 @@ def _check_stretch(model, fit, xys, Ss, opts, slices) -> None:
     :func:`stretch_test`) of over 2 % or one that moves the pose by more than a third of the trust limits.
 
     A stretch alike along both axes (:data:`ISOTROPIC_SHARE`) is a scale: a
-    wrong spacing, a scanner's gradient calibration or a print that shrank
-    look the same; the reason says so, and which spacing would register
-    that scale."""
+    wrong spacing, a scanner's gradient calibration or a print of another
+    size than its file (a print that shrank looks like a spacing declared
+    too small) look the same; the reason says so, and which spacing would
+    register that scale."""
     scale, _, p, (moved_mm, moved_deg) = stretch_test(model, fit, xys, Ss)
     moves = moved_mm > STRETCH_MOVE_SHARE * opts.trust_tre_mm or moved_deg > STRETCH_MOVE_SHARE * opts.trust_rot_deg
     if not (p < STRETCH_P and (float(np.max(np.abs(scale))) > STRETCH_MIN or moves)):
@@ -358,11 +359,13 @@ def _check_stretch(model, fit, xys, Ss, opts, slices) -> None:
         hint = ""
         if len(spacings) == 1:  # x scales the columns' spacing, y the rows' (xy = (col, row) * spacing)
             rs, cs = spacings.pop()
-            hint = f"; declared as --pixel-spacing {rs * (1 + sy):.5g} {cs * (1 + sx):.5g}, that scale registers"
+            hint = (f"; a pixel spacing of {rs * (1 + sy):.5g} x {cs * (1 + sx):.5g} mm (row, col) registers that "
+                    f"scale (--pixel-spacing for a plain image)")
+        size = "smaller" if s > 0 else "larger"  # positions that fit better scaled up: the fiducial seen is smaller
         raise NoLock(f"the tube positions fit best with the image scaled {100 * s:+.2f} % along both axes ({test}): "
-                     f"the pixel spacing, the scanner's gradient calibration or the printed fiducial's size "
-                     f"(shrinkage) is off by that much; check --pixel-spacing or the file's PixelSpacing and the "
-                     f"print{hint}", detail)
+                     f"the pixel spacing or the scanner's gradient calibration is off by that much, or the printed "
+                     f"fiducial is that much {size} than its geometry file says; check the spacing and the print"
+                     f"{hint}", detail)
     axis = "columns (x)" if abs(sx) >= abs(sy) else "rows (y)"
     worst = sx if abs(sx) >= abs(sy) else sy
     raise NoLock(f"the tube positions fit best with the image stretched {100 * worst:+.1f} % along its {axis} "

@@ -201,7 +201,7 @@ def read_volume(path, series_id: str | None = None) -> Volume:
         if series_id is None:
             series_id = ids[0]
         elif series_id not in ids:
-            by_number = [i for i in ids if _series_tags(reader, path, i)[0] == str(series_id).strip()]
+            by_number = [i for i in ids if _same_number(_series_tags(reader, path, i)[0], series_id)]
             if len(by_number) > 1:
                 raise ImageReadError(path, f"SeriesNumber {series_id} names {len(by_number)} DICOM series here; give "
                                            f"the SeriesInstanceUID: {_series_list(reader, path, by_number)}")
@@ -225,6 +225,8 @@ def read_volume(path, series_id: str | None = None) -> Volume:
             return volume_from_sitk(img, source=str(path),
                                     slice_thickness_mm=_dicom_thickness_mm(first, float(img.GetSpacing()[2])))
     else:
+        if series_id is not None:
+            raise ImageReadError(path, "--series applies to a folder of DICOM files, not a volume file")
         if _suffix(path) not in FILE_SUFFIXES:
             raise ImageReadError(path, f"not a volume file; allowed: {', '.join(FILE_SUFFIXES)} or a DICOM series folder")
         from .safeload import open_regular_file
@@ -264,6 +266,14 @@ def _series_tags(reader, folder: Path, series_id: str) -> tuple[str, str, int]:
         return "", "", len(files)
     tag = lambda key: first.GetMetaData(key).strip() if first.HasMetaDataKey(key) else ""  # noqa: E731
     return tag("0020|0011"), tag("0008|103e"), len(files)
+
+
+def _same_number(number: str, wanted) -> bool:
+    """A SeriesNumber read from a header against the one a user gave ("05" is 5)."""
+    try:
+        return int(str(number).strip()) == int(str(wanted).strip())
+    except ValueError:
+        return False
 
 
 def _series_list(reader, folder: Path, ids) -> str:

@@ -332,15 +332,16 @@ def test_rival_margin_allows_the_model_error_the_pose_itself_shows(monkeypatch):
 
 
 def test_an_isotropic_scale_is_named_with_the_spacing_that_registers_it(neuro_geometry):
-    """A slice declared 1 % too coarse along both axes (as a print 1 % small, or a gradient calibration off by that
-    much, looks): refused as a scale of the whole image, naming the spacing that would register it; declared so, the
+    """A slice declared 1 % too coarse along both axes (as a print 1 % too large, or a gradient calibration off by
+    that much, looks): refused as a scale of the whole image, naming the spacing that would register it; declared so, the
     slice locks on the true pose."""
     import re
 
     sim = _sim(neuro_geometry, 25, 30, 40, 10, noise="rician", snr=30, seed=5)
     with pytest.raises(NoLock, match="scaled -\\d\\.\\d\\d % along both axes") as info:
         register([Slice(sim.slice.pixels, (0.505, 0.505), slice_thickness_mm=2.0, source="scaled")], neuro_geometry)
-    rs, cs = map(float, re.search(r"--pixel-spacing (\S+) (\S+),", info.value.reason).groups())
+    assert "fiducial is that much larger than its geometry file says" in info.value.reason
+    rs, cs = map(float, re.search(r"pixel spacing of (\S+) x (\S+) mm \(row, col\)", info.value.reason).groups())
     assert rs == pytest.approx(0.5, rel=0.003) and cs == pytest.approx(0.5, rel=0.003)
     reg = register([Slice(sim.slice.pixels, (rs, cs), slice_thickness_mm=2.0, source="rescaled")], neuro_geometry)
     tre, rot = hunt.pose_error(reg.T_scanner_from_fiducial, sim.truth.T_scanner_from_fiducial, neuro_geometry.body.length)

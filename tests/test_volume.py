@@ -369,5 +369,9 @@ def test_a_folder_of_several_series_lists_them_and_solves_the_one_named(tmp_path
     truth = json.loads((tmp_path / "scan.truth.json").read_text())
     tre = np.linalg.norm(np.array(out["T_scanner_from_fiducial"])[:3, 3] - np.array(truth["T_scanner_from_fiducial"])[:3, 3])
     assert out["status"] == "ok" and tre < 0.5
+    assert main(["solve", str(both), "--geometry", g, "--series", "07"]) == 0  # a number as the scanner shows it
+    capsys.readouterr()
     assert main(["solve", str(both), "--geometry", g, "--series", "9"]) == 2
     assert "no DICOM series '9'" in capsys.readouterr().err
+    assert main(["reslice", str(tmp_path / "scan.truth.json"), "--geometry", g, "--reference",
+                 str(tmp_path / "scan.truth.json"), "--series", "7"]) == 2
