@@ -21,7 +21,7 @@ from .errors import NoLock
 from .pose import invert
 from .refine import _Fit, refine, whitened_residuals
 from .trust import _pixel_mm
-from .tube_model import TubeModel, _section_extent, plane_crossings
+from .tube_model import TubeModel, _adjoint, _crossing_jacobian, _section_extent, plane_crossings
 
 #: A fitted section disagrees with the pose the other sections give when its whitened residual (chi-square, 2 degrees
 #: of freedom, under its own information) exceeds this (a 4e-6 tail) ...
@@ -373,7 +373,8 @@ def drop_section_outliers(model: TubeModel, fit: _Fit, Ss, opts) -> _Fit:
     :data:`MAX_SECTION_OUTLIERS`; never below ``min_tubes`` / ``min_depth_tubes``. ``fit`` itself when none does.
 
     Each time the section with the largest residual is the candidate, judged by its deleted residual: its
-    chi-square against the pose refitted without it, over the median of the others' in that refit."""
+    chi-square against the pose refitted without it, over the median of the others' in that refit, both
+    studentized (:func:`studentized_chi2`)."""
     if fit.measurements is None:
         return fit
     assign = fit.assignments
@@ -395,10 +396,44 @@ def drop_section_outliers(model: TubeModel, fit: _Fit, Ss, opts) -> _Fit:
         refit = dataclasses.replace(refit, measurements=fit.measurements)
         # judged against the pose the others give: a section that pulled the whole fit towards itself (a blob matched
         # in a tube's place) hides among raised residuals, and stands out once the fit no longer follows it
-        deleted = np.concatenate(section_chi2(model, refit, assign, Ss))
+        deleted = studentized_chi2(model, refit, assign, Ss, worst)
         rest = np.delete(deleted, worst)
         rest = rest[np.isfinite(rest)]
         if not (deleted[worst] > SECTION_OUTLIER_CHI2 and deleted[worst] > SECTION_OUTLIER_RATIO * median(rest)):
             break
         assign, fit = without, refit
     return fit
+
+
+def studentized_chi2(model: TubeModel, fit: _Fit, assign, Ss, left_out: int) -> np.ndarray:
+    """Each matched section's whitened residual at ``fit`` (a fit without section ``left_out``, an index into the
+    slices' tubes laid end to end), as a chi-square with 2 degrees of freedom under the sections' own information:
+    ``r^T (I - H)^-1 r`` for the sections the fit used (``H`` the 2x2 block of the hat matrix: a fitted section's
+    residual is smaller than its noise, the more the fit leans on it) and ``e^T (I + P)^-1 e`` for the one left out
+    (``P`` the pose's covariance through its Jacobian: its prediction carries the pose's error too). So the one left
+    out and the rest are on the same footing. NaN for tubes not matched."""
+    K = len(model.ids)
+    Js, rs, keys = [], [], []
+    for j, S in enumerate(Ss):
+        a = assign[j]
+        k = np.flatnonzero(a >= 0)
+        if k.size == 0:
+            continue
+        q, tan, _, _ = plane_crossings(model, fit.T_F_from_scanner @ S, margin_mm=1e-9)
+        L = fit.measurements[j][1][k]
+        J = (_crossing_jacobian(q[k], tan[k]) @ _adjoint(invert(S))).reshape(k.size, 2, 6)
+        Js.append(np.einsum("kij,kjl->kil", L, J))
+        rs.append(whitened_residuals(fit.measurements[j], q, a, k))
+        keys.extend(j * K + k)
+    J, r, keys = np.concatenate(Js), np.concatenate(rs), np.asarray(keys)
+    used = keys != left_out
+    A = np.einsum("kil,kim->lm", J[used], J[used])
+    C = np.linalg.pinv(A)
+    out = np.full(len(Ss) * K, np.nan)
+    for n, key in enumerate(keys):
+        H = J[n] @ C @ J[n].T
+        M = np.eye(2) + H if key == left_out else np.eye(2) - H
+        vals, vecs = np.linalg.eigh(M)
+        w = vecs.T @ r[n]
+        out[key] = float(np.sum(w * w / np.maximum(vals, 1e-6)))
+    return out

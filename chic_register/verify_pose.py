@@ -114,8 +114,8 @@ MODEL_FLOOR = 0.03
 #: A 3 mm tube is 6 px across at 0.5 mm: the moment estimate of its width is good to ~1 %; 4 % leaves room for
 #: the rendered model's error and slab smear and still catches a 5 % spacing error.
 SPACING_TOL = 0.04
-#: Standard error of the median of the tubes' aspects against that of their inverse-variance mean (the median's
-#: asymptotic sqrt(pi / 2)): the spacing test's tolerance from the sections' pixel noise.
+#: Standard error of the median of the tubes' aspects against that of their plain mean (the median's asymptotic
+#: sqrt(pi / 2)): the spacing test's tolerance from the sections' pixel noise.
 MEDIAN_SE = math.sqrt(math.pi / 2)
 #: A stretch whose smaller axis is at least this share of its larger, with the same sign, is a scale of the whole
 #: image (or of the print) rather than a wrong spacing along one axis: the refusal says so.
@@ -240,6 +240,9 @@ def verify_slice(geom, model, T_F_from_I: np.ndarray, pixels: np.ndarray, spacin
                 so, sm = _spread(obs), _spread(mod)
                 if so is not None and sm is not None:
                     scales.append(np.sqrt(so / sm))
+                    # (every pixel of the support counts as noisy, those clipped at zero too: at low SNR the clip
+                    # biases the aspect along an elongated support, and counting them covers that bias; with only
+                    # the unclipped ones, hunt slices with the right spacing read 4-6 % stretched)
                     aspect_se.append(_aspect_se(obs, sup.reshape(hh, ww), so, sigma))
         if cut_missing:
             raise NoLock(f"{source}: tube(s) {', '.join(cut_missing)} predicted near an end face at the pose ({where}) "
@@ -251,7 +254,7 @@ def verify_slice(geom, model, T_F_from_I: np.ndarray, pixels: np.ndarray, spacin
             ratio = s[:, 1] / s[:, 0]
             mean = median(ratio)
             each = np.asarray(aspect_se)  # (n,) each tube's aspect error from its pixel noise
-            noise_se = MEDIAN_SE * float(np.sum(each ** -2.0)) ** -0.5 if np.all(each > 0) else 0.0
+            noise_se = MEDIAN_SE * math.sqrt(float(np.sum(each ** 2))) / len(each)  # of their (unweighted) median
             se = max(float(np.std(ratio) / math.sqrt(len(ratio))), noise_se)  # the tubes' scatter, or their noise
             tol = max(SPACING_TOL, 3 * se)
             scale = (median(s[:, 0]), median(s[:, 1]))
