@@ -49,8 +49,7 @@ slice (:func:`verify_fit`):
 6. **Rivals**: a distinct rival pose (the solver's other hypotheses, and the
    pose turned about the axis by each near-symmetry of the straight tubes)
    that explains the pixels nearly as well makes the slice ambiguous:
-   "nearly" is within the noise and the pose's own misfit beyond it (the
-   model error this image shows, 0.5-3 % of the sections' energy).
+   "nearly" is within the noise and the model error (:data:`MODEL_FLOOR`).
 7. **Precision**: the predicted 3-sigma error must be within the trust
    limits (:func:`pose_precision`). Its estimate comes from the fit's own
    residual scatter, not from the noise model, so a damaged image whose
