@@ -108,6 +108,8 @@ def _init(kind: str, amount: float) -> None:
         _WRONG.update({name: offset_geometry(name, amount) for name in hunt._GEOMS})
     elif kind == "other_design":
         names = sorted(hunt._GEOMS)
+        if len(names) < 2:
+            raise SystemExit("hunt_print: other_design needs two designs (hunt.DESIGNS)")
         _WRONG.update({name: hunt._GEOMS[names[(i + 1) % len(names)]] for i, name in enumerate(names)})
 
 
