@@ -352,18 +352,34 @@ def _section_refine(model: TubeModel, fit: _Fit, xys, Ss, slices, blob_sets, opt
     return fit
 
 
-def section_chi2(model: TubeModel, fit: _Fit, assign, Ss) -> list[np.ndarray]:
-    """Per slice, each matched tube's whitened residual ``|L (predicted - fitted)|^2`` (K,) under its section fit's
-    information (``fit.measurements``); NaN for unmatched tubes."""
-    out = []
+def _whitened_sections(model: TubeModel, fit: _Fit, assign, Ss, jacobian: bool = False):
+    """``(keys, r, J)`` of every matched section at ``fit``: ``keys`` (n,) its index among the slices' tubes laid
+    end to end, ``r`` (n, 2) its whitened residual ``L (predicted - fitted)`` under its section fit's information
+    (``fit.measurements``), ``J`` (n, 2, 6) the whitened Jacobian of its crossing in the pose's scanner twist (None
+    unless ``jacobian``)."""
+    K = len(model.ids)
+    keys, rs, Js = [], [], []
     for j, S in enumerate(Ss):
         a = assign[j]
         k = np.flatnonzero(a >= 0)
-        q = plane_crossings(model, fit.T_F_from_scanner @ S, margin_mm=1e-9)[0]
-        chi2 = np.full(a.size, np.nan)
-        w = whitened_residuals(fit.measurements[j], q, a, k)
-        chi2[k] = np.einsum("ki,ki->k", w, w)
-        out.append(chi2)
+        if k.size == 0:
+            continue
+        q, tan, _, _ = plane_crossings(model, fit.T_F_from_scanner @ S, margin_mm=1e-9)
+        rs.append(whitened_residuals(fit.measurements[j], q, a, k))
+        keys.extend(j * K + k)
+        if jacobian:
+            J = (_crossing_jacobian(q[k], tan[k]) @ _adjoint(invert(S))).reshape(k.size, 2, 6)
+            Js.append(np.einsum("kij,kjl->kil", fit.measurements[j][1][k], J))
+    r = np.concatenate(rs) if rs else np.zeros((0, 2))
+    return np.asarray(keys, dtype=int), r, (np.concatenate(Js) if Js else None)
+
+
+def section_chi2(model: TubeModel, fit: _Fit, assign, Ss) -> np.ndarray:
+    """Each matched tube's whitened residual ``|L (predicted - fitted)|^2`` under its section fit's information
+    (``fit.measurements``), the slices' tubes laid end to end (``len(Ss) * K``); NaN for unmatched tubes."""
+    keys, r, _ = _whitened_sections(model, fit, assign, Ss)
+    out = np.full(len(Ss) * len(model.ids), np.nan)
+    out[keys] = np.einsum("ki,ki->k", r, r)
     return out
 
 
@@ -381,7 +397,7 @@ def drop_section_outliers(model: TubeModel, fit: _Fit, Ss, opts) -> _Fit:
     xys = [m[0] for m in fit.measurements]  # the fitted positions and weights stay; only the tubes used change
     Ls = [m[1] for m in fit.measurements]
     for _ in range(MAX_SECTION_OUTLIERS):
-        flat = np.concatenate(section_chi2(model, fit, assign, Ss))
+        flat = section_chi2(model, fit, assign, Ss)
         if np.isfinite(flat).sum() <= opts.min_tubes:
             break
         worst = int(np.nanargmax(flat))
@@ -412,25 +428,12 @@ def studentized_chi2(model: TubeModel, fit: _Fit, assign, Ss, left_out: int) -> 
     residual is smaller than its noise, the more the fit leans on it) and ``e^T (I + P)^-1 e`` for the one left out
     (``P`` the pose's covariance through its Jacobian: its prediction carries the pose's error too). So the one left
     out and the rest are on the same footing. NaN for tubes not matched."""
-    K = len(model.ids)
-    Js, rs, keys = [], [], []
-    for j, S in enumerate(Ss):
-        a = assign[j]
-        k = np.flatnonzero(a >= 0)
-        if k.size == 0:
-            continue
-        q, tan, _, _ = plane_crossings(model, fit.T_F_from_scanner @ S, margin_mm=1e-9)
-        L = fit.measurements[j][1][k]
-        J = (_crossing_jacobian(q[k], tan[k]) @ _adjoint(invert(S))).reshape(k.size, 2, 6)
-        Js.append(np.einsum("kij,kjl->kil", L, J))
-        rs.append(whitened_residuals(fit.measurements[j], q, a, k))
-        keys.extend(j * K + k)
-    J, r, keys = np.concatenate(Js), np.concatenate(rs), np.asarray(keys)
+    keys, r, J = _whitened_sections(model, fit, assign, Ss, jacobian=True)
     used = keys != left_out
     A = np.einsum("kil,kim->lm", J[used], J[used])
     C = np.linalg.pinv(A)
-    out = np.full(len(Ss) * K, np.nan)
-    for n, key in enumerate(keys):
+    out = np.full(len(Ss) * len(model.ids), np.nan)
+    for n, key in enumerate(keys.tolist()):
         H = J[n] @ C @ J[n].T
         M = np.eye(2) + H if key == left_out else np.eye(2) - H
         vals, vecs = np.linalg.eigh(M)

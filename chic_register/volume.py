@@ -196,18 +196,20 @@ def read_volume(path, series_id: str | None = None) -> Volume:
         if not ids:
             raise ImageReadError(path, "folder holds no DICOM series")
         if series_id is None and len(ids) > 1:
-            raise ImageReadError(path, f"folder holds {len(ids)} DICOM series: {_series_list(reader, path, ids)}; "
+            tags = {i: _series_tags(reader, path, i) for i in ids[:LISTED_SERIES]}
+            raise ImageReadError(path, f"folder holds {len(ids)} DICOM series: {_series_list(tags, ids)}; "
                                        f"pick one with --series (its number or UID)")
         if series_id is None:
             series_id = ids[0]
         elif series_id not in ids:
-            by_number = [i for i in ids if _same_number(_series_tags(reader, path, i)[0], series_id)]
+            tags = {i: _series_tags(reader, path, i) for i in ids}  # each series' first header, read once
+            by_number = [i for i in ids if _same_number(tags[i][0], series_id)]
             if len(by_number) > 1:
                 raise ImageReadError(path, f"SeriesNumber {series_id} names {len(by_number)} DICOM series here; give "
-                                           f"the SeriesInstanceUID: {_series_list(reader, path, by_number)}")
+                                           f"the SeriesInstanceUID: {_series_list(tags, by_number)}")
             if not by_number:
                 raise ImageReadError(path, f"no DICOM series {series_id!r} (a SeriesNumber or SeriesInstanceUID); "
-                                           f"found: {_series_list(reader, path, ids)}")
+                                           f"found: {_series_list(tags, ids)}")
             series_id = by_number[0]
         files = reader.GetGDCMSeriesFileNames(str(path), series_id)
         if len(files) < 2:
@@ -276,11 +278,12 @@ def _same_number(number: str, wanted) -> bool:
         return False
 
 
-def _series_list(reader, folder: Path, ids) -> str:
-    """One line naming each series (the first :data:`LISTED_SERIES`): number, description, file count and UID."""
+def _series_list(tags: dict, ids) -> str:
+    """One line naming each series (the first :data:`LISTED_SERIES`): number, description, file count and UID, from
+    ``tags`` (:func:`_series_tags` by series UID)."""
     out = []
     for i in list(ids)[:LISTED_SERIES]:
-        number, description, n = _series_tags(reader, folder, i)
+        number, description, n = tags[i]
         name = " ".join(v for v in (f"#{number}" if number else "", f"'{description}'" if description else "") if v)
         out.append(f"{name + ' ' if name else ''}({n} file{'s' if n != 1 else ''}, {i})")
     more = len(ids) - LISTED_SERIES
