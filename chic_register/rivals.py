@@ -8,7 +8,10 @@ straight tubes (:func:`_turned_rivals`), and, when a bright blob on the
 tubes' circle is left unexplained, the slice solved again without each
 blob the pose matched (:func:`_stray_rivals`). In a series a rival is
 refined on all slices' blobs, each distinct one compared once, and the
-evidence of all slices adds up (:func:`check_rivals`).
+evidence of all slices adds up (:func:`check_rivals`). A rival that the
+pixels do not reject gets the pose's own refinement, the section fit,
+before it is called one: started there, it may fall back onto the pose
+(:func:`_falls_onto_pose`).
 """
 
 from __future__ import annotations
@@ -18,6 +21,7 @@ import math
 
 import numpy as np
 
+from .accuracy import _section_refine
 from .detect import _dilate
 from .errors import NoLock
 from .pose import slice_angles
@@ -31,6 +35,9 @@ RIVAL_MARGIN = 50.0
 #: Straight tubes this close in angle after a turn about the axis count as mapped onto each other (the turn is a
 #: near-symmetry whose pose is tried as a rival).
 SYMMETRY_TOL_DEG = 3.0
+#: A rival whose section fit ends within this share of the trust limits of the pose (their 1 sigma, as
+#: fit_checks.STRETCH_MOVE_SHARE) has fallen back onto the pose: the same answer, not a rival.
+FALLBACK_SHARE = 1.0 / 3.0
 
 def slice_contenders(model, fit, rivals, strays, xy: np.ndarray, S: np.ndarray, j: int, sl, opts) -> list:
     """The distinct rival poses (``T_F_from_scanner``) of slice ``j`` that fit its blobs within the solver's limits.
@@ -52,12 +59,15 @@ def slice_contenders(model, fit, rivals, strays, xy: np.ndarray, S: np.ndarray, 
     return out
 
 
-def check_rivals(geom, model, fit, contenders, checks, slices, xys, Ss, opts) -> None:
+def check_rivals(geom, model, fit, contenders, checks, slices, xys, Ss, opts, blob_sets=None) -> None:
     """:class:`NoLock` ("ambiguous") when a distinct rival explains the pixels of the slices nearly as well.
 
     A rival pose must explain every slice of a series nearly as well: the
     evidence of all slices adds up; a rival one slice offered is first
     refined on the blobs of all of them (it may fall back onto the pose).
+    ``blob_sets``: the slices' blobs when ``fit`` is the section fit's pose;
+    a rival that explains the pixels nearly as well is then section-fitted
+    too, and is no rival when that lands on the pose.
     """
     if len(slices) > 1 and contenders:
         gate = max(float(model.diameter_mm.max()), 2 * max(float(max(sl.pixel_spacing_mm)) for sl in slices))
@@ -76,12 +86,32 @@ def check_rivals(geom, model, fit, contenders, checks, slices, xys, Ss, opts) ->
     for T_rival in unique:
         scores = [_compare_rival(geom, model, check, T_rival @ S, sl) for check, S, sl in zip(checks, Ss, slices)]
         gap, margin = sum(g for g, _ in scores), sum(m for _, m in scores)
-        if gap < margin:
+        if gap < margin and not (blob_sets is not None
+                                 and _falls_onto_pose(model, fit, T_rival, xys, Ss, slices, blob_sets, opts)):
             a = slice_angles(T_rival @ Ss[0])
             where = slices[0].source if len(slices) == 1 else f"{len(slices)} slices"
             raise NoLock(f"{where}: ambiguous: a distinct pose (depth {a.depth_mm:.1f} mm, tilt {a.tilt_deg:.1f} deg) "
                          f"explains the image{'s' if len(slices) > 1 else ''} nearly as well (residual larger by "
                          f"{gap:.3g}; margin needed {margin:.3g})", {"n_tubes": int(fit.n_matched)})
+
+
+def _falls_onto_pose(model, fit, T_rival: np.ndarray, xys, Ss, slices, blob_sets, opts) -> bool:
+    """Does the section fit started at a rival pose (``T_F_from_scanner``) end on the pose ``fit``?
+
+    The pose was refined on the tube sections themselves
+    (:func:`~chic_register.accuracy._section_refine`), a rival only on the
+    blob centres; the pixels may tell the two apart only by a few per cent of
+    their energy (a slice near normal to the axis, its tilt mirrored). Given
+    the same refinement, a rival in the pose's basin (1-10 deg away in the
+    hunt) falls back within :data:`FALLBACK_SHARE` of the trust limits, and
+    was never a second answer; one that stays away is (a distinct rival that
+    verifies by every check of the pose, as the hunt's mirrored tilts do).
+    """
+    gate = max(float(model.diameter_mm.max()), 2 * min(float(max(sl.pixel_spacing_mm)) for sl in slices))
+    start = refine(model, xys, Ss, T_rival, gates_mm=(gate, 0.6 * gate))
+    fine = _section_refine(model, start, xys, Ss, slices, blob_sets, opts)
+    return fine is not None and not _distinct(fine.T_F_from_scanner, fit.T_F_from_scanner, model,
+                                              FALLBACK_SHARE * opts.trust_tre_mm, FALLBACK_SHARE * opts.trust_rot_deg)
 
 
 def _stray_rivals(model, xy: np.ndarray, S: np.ndarray, assignment: np.ndarray, opts, pixel_mm: float) -> list:

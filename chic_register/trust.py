@@ -47,15 +47,15 @@ def _resolution_mm(sl: Slice, blobs: Blobs) -> float:
     return max(_pixel_mm(sl), w / 7.5, float(sl.slice_thickness_mm) / 6.0)
 
 
-def _distinct(T1: np.ndarray, T2: np.ndarray, model: TubeModel) -> bool:
-    """Two fiducial poses differ by more than 1 mm at any tube end or by more than 1 degree."""
+def _distinct(T1: np.ndarray, T2: np.ndarray, model: TubeModel, mm: float = 1.0, deg: float = 1.0) -> bool:
+    """Two fiducial poses differ by more than ``mm`` at any tube end or by more than ``deg`` (1 mm, 1 degree)."""
     dR = T1[:3, :3].T @ T2[:3, :3]
     ang = math.degrees(math.acos(min(1.0, max(-1.0, (np.trace(dR) - 1) / 2))))
-    if ang > 1.0:
+    if ang > deg:
         return True
     pts = model.probe_points_mm  # tube ends on the axis circle, the axis ends
     d = (pts @ T1[:3, :3].T + T1[:3, 3]) - (pts @ T2[:3, :3].T + T2[:3, 3])
-    return float(np.sqrt(np.add.reduce(d * d, axis=1)).max()) > 1.0  # (np.linalg.norm's formula, less its checks)
+    return float(np.sqrt(np.add.reduce(d * d, axis=1)).max()) > mm  # (np.linalg.norm's formula, less its checks)
 
 
 def _rotation_deg(R1: np.ndarray, R2: np.ndarray) -> float:

@@ -408,7 +408,9 @@ def verify_fit(geom, model, fit, rivals, slices, Ss, blob_sets, opts, precision=
         out.append(check)
     if refused:
         raise SliceRefused(refused[0][1], {"n_refused": len(refused)}, refused)
-    check_rivals(geom, model, fit, contenders, out, slices, xys, Ss, opts)
+    # a rival gets the section fit when the pose had it (not one fitted through a blurred or a centroid model)
+    section_pose = precision is None and opts.section_fit and not opts.centroid_model
+    check_rivals(geom, model, fit, contenders, out, slices, xys, Ss, opts, blob_sets if section_pose else None)
     if precision is not None:  # a pose fitted through a blurred model is weaker evidence: only inside the envelope
         outside = [(j, f"{sl.source}: the pose fitted to the blurred sections lies outside the design's usable "
                        f"envelope ({c.envelope}): wide blobs there cannot be told apart")

@@ -302,6 +302,26 @@ def test_hunt_low_snr_sections_with_the_right_spacing_are_not_called_stretched(c
     assert out["outcome"] == "ok" and out["rot_deg"] < 0.2, out
 
 
+def test_a_rival_that_falls_back_onto_the_pose_under_the_section_fit_is_no_rival(monkeypatch):
+    """Hunt seed 0, clean needle-guide slices 9 deg from normal: a rival 1.4 deg (case 3423) or 10 deg (case 3968)
+    off, fitted to the blob centres only, explains the pixels within the 3 % model floor of the section-fitted
+    pose; given the section fit too, it lands on the pose, so both lock on the truth. Without that refit both are
+    refused as ambiguous. Case 4340 (its tilt mirrored: a rival 18 deg off that stays there and verifies) is
+    refused all the same."""
+    import chic_register.rivals as rv
+
+    geoms = hunt.load_geometries()
+    for case in (3423, 3968):
+        out = hunt.run_case(hunt.make_case(case, 0, geoms), geoms)
+        assert out["outcome"] == "ok" and out["rot_deg"] < 0.1 and out["tre_mm"] < 0.05, out
+    out = hunt.run_case(hunt.make_case(4340, 0, geoms), geoms)
+    assert out["outcome"] == "no_lock" and "ambiguous" in out["reason"], out
+    monkeypatch.setattr(rv, "_falls_onto_pose", lambda *a: False)
+    for case in (3423, 3968):
+        out = hunt.run_case(hunt.make_case(case, 0, geoms), geoms)
+        assert out["outcome"] == "no_lock" and "ambiguous" in out["reason"], out
+
+
 @pytest.mark.parametrize("spacing", [(0.5, 0.56), (0.45, 0.5)])
 def test_a_wrong_pixel_spacing_is_refused_at_low_snr(neuro_geometry, spacing):
     sim = _sim(neuro_geometry, 25, 45, 40, 10, noise="rician", snr=8, seed=5)
