@@ -49,6 +49,7 @@ def slice_contenders(model, fit, rivals, strays, xy: np.ndarray, S: np.ndarray, 
     turned = _turned_rivals(model, fit.T_F_from_scanner, xy, S, px)
     if strays:
         turned += _stray_rivals(model, xy, S, fit.assignments[j], opts, px)
+    turned += _second_copy_rivals(model, xy, S, fit.assignments[j], opts, px)
     out = []
     for other in list(rivals) + turned:
         if (other.n_matched < opts.min_tubes or other.rms_mm > opts.max_rms_px * px
@@ -133,6 +134,30 @@ def _stray_rivals(model, xy: np.ndarray, S: np.ndarray, assignment: np.ndarray, 
             continue
         out.extend(fits)
     return out
+
+
+def _second_copy_rivals(model, xy: np.ndarray, S: np.ndarray, assignment: np.ndarray, opts,
+                        pixel_mm: float) -> list:
+    """Poses fitted to the blobs the pose leaves unmatched: a second copy of the whole pattern.
+
+    A motion ghost (the object repeated along the phase-encoding direction,
+    dimmer) or a second fiducial in the field of view shows every tube
+    twice; the first-guess stage fits one copy, and which one is not the
+    brightest by design. With :data:`~chic_register.solve.SolveOptions.min_tubes`
+    or more blobs left over, the slice is solved again on them alone; each
+    such fit is a rival for :func:`_compare_rival`, where the copy that
+    explains less of the pixels (the ghost) loses.
+    """
+    from .single_slice import _solve_one  # (as in _stray_rivals)
+
+    rest = np.setdiff1d(np.arange(len(xy)), assignment[assignment >= 0])
+    if rest.size < opts.min_tubes:
+        return []
+    try:
+        fits, _ = _solve_one(model, xy[rest], S, opts, pixel_mm)
+    except NoLock:
+        return []
+    return fits
 
 
 def _turned_rivals(model, T_F_from_scanner: np.ndarray, xy: np.ndarray, S: np.ndarray, pixel_mm: float) -> list:

@@ -323,9 +323,12 @@ def register(slices: list[Slice], geom: FiducialGeometry, *, options: SolveOptio
                 fits, ell = _solve_one(model, xy, S, opts, res_mm[j])
                 _check_trust(fits[0], fits[1:], model, [sl], opts, [S], [res_mm[j]])
             except AmbiguousFit:
-                if len(slices) == 1 or skip_failed:
+                if len(slices) == 1 and opts.verify and not skip_failed:
+                    _check_trust(fits[0], [], model, [sl], opts, [S], [res_mm[j]])
+                elif len(slices) == 1 or skip_failed:
                     raise
-                undecided.append(j)  # fits[0] and its rivals are all kept: the joint fit tries each
+                else:
+                    undecided.append(j)  # fits[0] and its rivals are all kept: the joint fit tries each
             except NoLock as first:
                 if ((detect_options or {}).get("flatten_background")
                         or not _worth_flattening(blob_sets[j], model, sl.pixels)):
@@ -384,8 +387,11 @@ def register(slices: list[Slice], geom: FiducialGeometry, *, options: SolveOptio
         if fine is not None:
             _check_trust(fine, [], model, slices, opts, Ss, res_mm)
             if _distinct(fine.T_F_from_scanner, best.T_F_from_scanner, model):
-                raise NoLock("the section fit moved the pose by more than 1 mm or 1 degree: the fit is not stable",
-                             {"n_tubes": fine.n_matched})
+                if not (opts.verify and len(slices) == 1):
+                    raise NoLock("the section fit moved the pose by more than 1 mm or 1 degree: the fit is not stable",
+                                 {"n_tubes": fine.n_matched})
+                rivals[0] = [*rivals[0], best]
+                locked = fine
             best = fine
     if opts.centroid_model:
         corrected = _centroid_refine(model, geom.tubes, best, xys, Ss, slices, blob_sets, opts)
