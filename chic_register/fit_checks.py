@@ -91,6 +91,28 @@ def pose_precision(model, fit, Ss, pixel_mm: float, exclude=None):
     return worst_errors(C, _frame_centre_scanner(model, fit))
 
 
+def check_noise_precision(unc, model, opts, sigmas: float = PRECISION_SIGMAS) -> None:
+    """:class:`~chic_register.errors.ImprecisePose` unless the pose's covariance from the pixel noise (``unc``, a
+    :class:`~chic_register.uncertainty.PoseUncertainty`) keeps ``sigmas`` of its error within the trust limits.
+
+    The verification's precision test (:func:`pose_precision`) reads the
+    scatter of the fit's own residuals; with 6-9 sections a lucky small
+    scatter makes a pose look more precise than its pixels allow (hunt seed
+    2: a ghosted slice 0.61 deg off, and a thick slab 0.52 deg off, passed on
+    residuals at a third of their noise). The pose must pass both.
+    """
+    from .errors import ImprecisePose
+
+    to_rad = np.array([math.radians(1.0)] * 3 + [1.0] * 3)  # the covariance's (deg, mm) as the twist's (rad, mm)
+    tre, rot = worst_errors(unc.covariance * np.outer(to_rad, to_rad), np.array([0.0, 0.0, 0.5 * model.length_mm]))
+    if sigmas * tre > opts.trust_tre_mm or sigmas * rot > opts.trust_rot_deg:
+        raise ImprecisePose(f"the pose is not precise enough to trust: {sigmas:g} sigma of its error predicted from "
+                            f"the pixel noise is {sigmas * tre:.2f} mm at the frame centre and {sigmas * rot:.2f} deg "
+                            f"(limits {opts.trust_tre_mm:g} mm, {opts.trust_rot_deg:g} deg; a tilted slice or several "
+                            f"parallel slices are more precise; --trust MM DEG sets the limits)",
+                            {"sigma_tre_mm": round(tre, 4), "sigma_rot_deg": round(rot, 4)})
+
+
 def _frame_centre_scanner(model, fit) -> np.ndarray:
     """(3,) the frame centre (0, 0, L/2) of F in the scanner frame at the fit's pose (mm)."""
     from .pose import invert

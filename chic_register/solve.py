@@ -50,7 +50,7 @@ from .wide_blobs import blobs_wide
 from .detect import Blobs, detect_blobs
 from .dropout import fill_slice_dropouts
 from .errors import AmbiguousFit, ImprecisePose, NoLock, SliceRefused
-from .fit_checks import ROT_TOL_DEG, TRE_TOL_MM
+from .fit_checks import ROT_TOL_DEG, TRE_TOL_MM, check_noise_precision
 from .geometry import FiducialGeometry
 from .hypotheses import (  # noqa: F401  (the first-guess stage; its public names stay importable from here)
     Ellipse,
@@ -492,7 +492,7 @@ def _registration(geom: FiducialGeometry, model: TubeModel, geom_sha: str, best,
         ))
     t3 = time.perf_counter()
     unc = None
-    if opts.uncertainty or math.isfinite(opts.max_tre_mm):
+    if opts.uncertainty or opts.verify or math.isfinite(opts.max_tre_mm):
         from .uncertainty import pixel_fit_uncertainty, registration_uncertainty, target_point
 
         target = target_point(geom, target_F_mm)
@@ -501,6 +501,8 @@ def _registration(geom: FiducialGeometry, model: TubeModel, geom_sha: str, best,
         else:
             unc = registration_uncertainty(model, best, xys, Ss, slices, blob_sets, target,
                                            "centroid" if not opts.centroid_model else "template (centroid covariance)")
+            if opts.verify:
+                check_noise_precision(unc, model, opts)
         if unc.predicted_tre_mm > opts.max_tre_mm:
             raise NoLock(f"imprecise: predicted TRE {unc.predicted_tre_mm:.3f} mm at "
                          f"({', '.join(f'{v:g}' for v in unc.target_F_mm)}) exceeds {opts.max_tre_mm:g} mm",
@@ -509,7 +511,8 @@ def _registration(geom: FiducialGeometry, model: TubeModel, geom_sha: str, best,
     t4 = time.perf_counter()
     timing = {"detect": (t1 - t0) * 1e3, "pose": (t2 - t1) * 1e3, "uncertainty": (t4 - t3) * 1e3,
               "total": (t4 - t0) * 1e3}
-    return Registration("ok", T_sf, tuple(results), timing, geom.name, geom_sha, tuple(skipped), unc)
+    return Registration("ok", T_sf, tuple(results), timing, geom.name, geom_sha, tuple(skipped),
+                        unc if opts.uncertainty or math.isfinite(opts.max_tre_mm) else None)
 
 
 def _only_slices(model: TubeModel, fit, keep: list[int], xys, Ss):

@@ -322,6 +322,59 @@ def test_a_rival_that_falls_back_onto_the_pose_under_the_section_fit_is_no_rival
         assert out["outcome"] == "no_lock" and "ambiguous" in out["reason"], out
 
 
+def test_the_section_fit_that_moves_off_the_blob_fit_is_taken_when_the_pixels_reject_the_blob_pose(monkeypatch):
+    """Hunt seed 0, 10-40 % of the pixels zeroed: the blob centres put cases 269 and 767 1.9 and 1.0 deg off; the
+    section fit moves 1-2 deg from there, onto the truth (0.05 and 0.11 deg). That move used to be a refusal; now
+    the section fit's pose is verified with the blob pose as a rival, and both lock. The blob pose is offered as
+    that rival (it falls back onto the section fit's pose when refitted as it was)."""
+    import chic_register.rivals as rv
+
+    geoms = hunt.load_geometries()
+    offered = []
+    real = rv._falls_onto_pose
+    monkeypatch.setattr(rv, "_falls_onto_pose", lambda *a: offered.append(1) or real(*a))
+    for case in (269, 767):
+        out = hunt.run_case(hunt.make_case(case, 0, geoms), geoms)
+        assert out["outcome"] == "ok" and out["rot_deg"] < 0.15 and out["tre_mm"] < 0.1, out
+    assert len(offered) >= 2
+
+
+def test_blob_level_ambiguity_is_left_to_the_pixels():
+    """Hunt seed 0, cases 614 (a blob on the tubes' circle) and 4045 (zeroed pixels): two distinct poses fit the
+    blob centres about as well, which used to be a refusal ("ambiguous fit"); the pixels tell them apart (the
+    rival test), and both lock on the truth."""
+    geoms = hunt.load_geometries()
+    for case in (614, 4045):
+        out = hunt.run_case(hunt.make_case(case, 0, geoms), geoms)
+        assert out["outcome"] == "ok" and out["rot_deg"] < 0.1, out
+
+
+def test_a_motion_ghost_of_the_whole_pattern_is_a_rival(monkeypatch):
+    """Hunt seed 2, case 476: a motion ghost at 45 % repeats all nine sections 22 mm away and the first guess fits
+    the ghost; the slice solved again on the blobs the pose leaves unmatched finds the real copy, which explains
+    the pixels far better: refused as ambiguous, not locked 22 mm off. Without that rival it false-locks."""
+    import chic_register.rivals as rv
+
+    geoms = hunt.load_geometries()
+    out = hunt.run_case(hunt.make_case(476, 2, geoms), geoms)
+    assert out["outcome"] == "no_lock" and "ambiguous" in out["reason"], out
+    monkeypatch.setattr(rv, "_second_copy_rivals", lambda *a: [])
+    assert hunt.run_case(hunt.make_case(476, 2, geoms), geoms)["outcome"] == "false_lock"
+
+
+def test_the_pose_is_never_more_precise_than_its_pixel_noise_allows(monkeypatch):
+    """Hunt seed 2, case 146 (a ghosted needle-guide slice, 0.61 deg off): its nine residuals scatter at a third
+    of their noise, so the scatter-based precision passed; the covariance from the pixel noise puts 3 sigma at
+    0.82 deg and the pose is refused as imprecise. Without that test it false-locks."""
+    import chic_register.solve as so
+
+    geoms = hunt.load_geometries()
+    out = hunt.run_case(hunt.make_case(146, 2, geoms), geoms)
+    assert out["outcome"] == "no_lock" and "predicted from the pixel noise" in out["reason"], out
+    monkeypatch.setattr(so, "check_noise_precision", lambda *a: None)
+    assert hunt.run_case(hunt.make_case(146, 2, geoms), geoms)["outcome"] == "false_lock"
+
+
 @pytest.mark.parametrize("spacing", [(0.5, 0.56), (0.45, 0.5)])
 def test_a_wrong_pixel_spacing_is_refused_at_low_snr(neuro_geometry, spacing):
     sim = _sim(neuro_geometry, 25, 45, 40, 10, noise="rician", snr=8, seed=5)
