@@ -324,6 +324,8 @@ def register(slices: list[Slice], geom: FiducialGeometry, *, options: SolveOptio
                 _check_trust(fits[0], fits[1:], model, [sl], opts, [S], [res_mm[j]])
             except AmbiguousFit:
                 if len(slices) == 1 and opts.verify and not skip_failed:
+                    # two poses fit the blob centres about as well: the pixels decide (the verification's rival
+                    # test, to which fits[1:] go), the best held to the rest of the trust checks
                     _check_trust(fits[0], [], model, [sl], opts, [S], [res_mm[j]])
                 elif len(slices) == 1 or skip_failed:
                     raise
@@ -390,6 +392,9 @@ def register(slices: list[Slice], geom: FiducialGeometry, *, options: SolveOptio
                 if not (opts.verify and len(slices) == 1):
                     raise NoLock("the section fit moved the pose by more than 1 mm or 1 degree: the fit is not stable",
                                  {"n_tubes": fine.n_matched})
+                # blob centres pulled by damage (lost pixels, a blob beside a section) can put the blob fit 1-3 deg
+                # off where the sections themselves are right: the section fit's pose is verified, the blob pose
+                # its rival (which the pixels must reject), and never fallen back on
                 rivals[0] = [*rivals[0], best]
                 locked = fine
             best = fine

@@ -46,15 +46,21 @@ slice (:func:`verify_fit`):
    significant one is refused above 2 %, or when fitting it moves the pose
    by more than a third of the trust limits (a small isotropic stretch turns
    a tilted slice by about ``s cot(tilt)``).
-6. **Rivals**: a distinct rival pose (the solver's other hypotheses, and the
-   pose turned about the axis by each near-symmetry of the straight tubes)
-   that explains the pixels nearly as well makes the slice ambiguous:
-   "nearly" is within the noise and the model error (:data:`MODEL_FLOOR`).
+6. **Rivals**: a distinct rival pose (the solver's other hypotheses, the
+   pose turned about the axis by each near-symmetry of the straight tubes,
+   and a second copy of the pattern in the blobs the pose leaves over, a
+   motion ghost) that explains the pixels nearly as well makes the slice
+   ambiguous: "nearly" is within the noise and the model error
+   (:data:`MODEL_FLOOR`); a rival that falls back onto the pose when given
+   the pose's own section fit is none (:mod:`chic_register.rivals`).
 7. **Precision**: the predicted 3-sigma error must be within the trust
    limits (:func:`pose_precision`). Its estimate comes from the fit's own
-   residual scatter, not from the noise model, so a damaged image whose
-   tubes fit worse than its noise predicts widens it: it is the last net
-   for a wrong pose that passed the tests above.
+   residual scatter, so a damaged image whose tubes fit worse than its
+   noise predicts widens it: it is the last net for a wrong pose that
+   passed the tests above. The covariance from the pixel noise is held to
+   the same limits once the pose is found
+   (:func:`~chic_register.fit_checks.check_noise_precision`): a lucky small
+   scatter does not make a pose more precise than its pixels allow.
 
 Every threshold is in units of what the image resolves (pixels, noise sigma,
 the section's own size); each has its reason beside it.
