@@ -6,7 +6,9 @@ pixels nearly as well. The rivals are the first-guess stage's other refined
 hypotheses, the pose turned about the axis by each near-symmetry of the
 straight tubes (:func:`_turned_rivals`), and, when a bright blob on the
 tubes' circle is left unexplained, the slice solved again without each
-blob the pose matched (:func:`_stray_rivals`). In a series a rival is
+blob the pose matched (:func:`_stray_rivals`), and the slice solved again
+on the blobs the pose leaves over (a second copy of the pattern, a motion
+ghost: :func:`_second_copy_rivals`). In a series a rival is
 refined on all slices' blobs, each distinct one compared once, and the
 evidence of all slices adds up (:func:`check_rivals`). A rival that the
 pixels do not reject gets the pose's own refinement, the section fit,
