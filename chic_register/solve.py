@@ -538,7 +538,6 @@ def _without_outlier_sections(geom, model: TubeModel, fit, rivals, slices, Ss, b
     :data:`~chic_register.fit_checks.OUTLIER_PRECISION_SIGMAS` and lies within 1 mm and 1 deg of ``fit``
     (:func:`~chic_register.trust._distinct`); else ``(None, fit)``."""
     from .accuracy import drop_section_outliers
-    from .fit_checks import OUTLIER_PRECISION_SIGMAS
     from .verify_pose import verify_fit
 
     dropped = drop_section_outliers(model, fit, Ss, opts)
