@@ -33,6 +33,12 @@ def _hunt():
 hunt = _hunt()
 
 
+def _run_hunt_case(index: int, seed: int = 0) -> dict:
+    """The hunt's judged outcome of one of its cases (benchmarks/hunt.py --seed SEED --case INDEX)."""
+    geoms = hunt.load_geometries()
+    return hunt.run_case(hunt.make_case(index, seed, geoms), geoms)
+
+
 def _sim(geom, depth, tilt, az, tw, px=0.5, size=256, thick=2.0, noise="none", snr=20.0, seed=None, **kw):
     return simulate_slice(geom, depth, tilt, az, tw, shape=(size, size), pixel_spacing_mm=(px, px),
                           slice_thickness_mm=thick, noise=noise, snr=snr, image_position=(0.0, 0.0, 0.0),
@@ -150,8 +156,7 @@ def test_a_stretch_the_pose_absorbs_is_seen_in_the_positions(neuro_geometry, til
 def test_hunt_case_223_wrong_spacing_at_high_tilt_is_refused():
     """The last false lock of the 5000-case hunt (seed 0): a 12.6 % row-spacing error at 58.5 deg tilt, locked 5.4 mm
     off with a 0.05 mm residual by the section fit, is now refused by the stretch test."""
-    geoms = hunt.load_geometries()
-    out = hunt.run_case(hunt.make_case(223, 0, geoms), geoms)
+    out = _run_hunt_case(223)
     assert out["outcome"] == "no_lock" and "stretched" in out["reason"], out
 
 
@@ -200,8 +205,7 @@ def test_hunt_cases_with_one_section_pulled_off(case, locks):
     and the slice locks 0.06 deg off. Case 945 (stripes over several sections at 7 deg tilt): the largest residual
     is not alone, none is dropped and the slice stays refused (dropping the two that best cleaned the rest locked
     it 0.53 deg off)."""
-    geoms = hunt.load_geometries()
-    out = hunt.run_case(hunt.make_case(case, 0, geoms), geoms)
+    out = _run_hunt_case(case)
     if locks:
         assert out["outcome"] == "ok" and out["rot_deg"] < 0.1, out
     else:
@@ -297,8 +301,7 @@ def test_aspect_standard_error_matches_the_scatter_of_noisy_sections():
 def test_hunt_low_snr_sections_with_the_right_spacing_are_not_called_stretched(case):
     """Hunt seed 0, low SNR (7.6 and 9.6) at 54-67 deg tilt: three tubes' aspects read 4-5 % off one by their noise
     alone (a per-tube standard error of 3-5 %); the spacing test's tolerance now holds that noise, and both lock."""
-    geoms = hunt.load_geometries()
-    out = hunt.run_case(hunt.make_case(case, 0, geoms), geoms)
+    out = _run_hunt_case(case)
     assert out["outcome"] == "ok" and out["rot_deg"] < 0.2, out
 
 
@@ -310,15 +313,14 @@ def test_a_rival_that_falls_back_onto_the_pose_under_the_section_fit_is_no_rival
     refused all the same."""
     import chic_register.rivals as rv
 
-    geoms = hunt.load_geometries()
     for case in (3423, 3968):
-        out = hunt.run_case(hunt.make_case(case, 0, geoms), geoms)
+        out = _run_hunt_case(case)
         assert out["outcome"] == "ok" and out["rot_deg"] < 0.1 and out["tre_mm"] < 0.05, out
-    out = hunt.run_case(hunt.make_case(4340, 0, geoms), geoms)
+    out = _run_hunt_case(4340)
     assert out["outcome"] == "no_lock" and "ambiguous" in out["reason"], out
     monkeypatch.setattr(rv, "_falls_onto_pose", lambda *a: False)
     for case in (3423, 3968):
-        out = hunt.run_case(hunt.make_case(case, 0, geoms), geoms)
+        out = _run_hunt_case(case)
         assert out["outcome"] == "no_lock" and "ambiguous" in out["reason"], out
 
 
@@ -327,11 +329,10 @@ def test_the_section_fit_that_moves_off_the_blob_fit_is_verified_at_a_stricter_p
     section fit moves 1-2 deg from there, onto the truth (0.05 and 0.11 deg). That move used to be a refusal; now
     the section fit's pose is verified, at 4.5 sigma, and both lock. Seed 5 case 2175 (a thick slab beyond the
     envelope) locked 1.49 deg off that way at 3 sigma and is refused at 4.5."""
-    geoms = hunt.load_geometries()
     for case in (269, 767):
-        out = hunt.run_case(hunt.make_case(case, 0, geoms), geoms)
+        out = _run_hunt_case(case)
         assert out["outcome"] == "ok" and out["rot_deg"] < 0.15 and out["tre_mm"] < 0.1, out
-    out = hunt.run_case(hunt.make_case(2175, 5, geoms), geoms)
+    out = _run_hunt_case(2175, 5)
     assert out["outcome"] == "no_lock" and "not precise enough" in out["reason"], out
 
 
@@ -339,9 +340,8 @@ def test_blob_level_ambiguity_is_left_to_the_pixels():
     """Hunt seed 0, cases 614 (a blob on the tubes' circle) and 4045 (zeroed pixels): two distinct poses fit the
     blob centres about as well, which used to be a refusal ("ambiguous fit"); the pixels tell them apart (the
     rival test), and both lock on the truth."""
-    geoms = hunt.load_geometries()
     for case in (614, 4045):
-        out = hunt.run_case(hunt.make_case(case, 0, geoms), geoms)
+        out = _run_hunt_case(case)
         assert out["outcome"] == "ok" and out["rot_deg"] < 0.1, out
 
 
@@ -351,11 +351,10 @@ def test_a_motion_ghost_of_the_whole_pattern_is_a_rival(monkeypatch):
     the pixels far better: refused as ambiguous, not locked 22 mm off. Without that rival it false-locks."""
     import chic_register.rivals as rv
 
-    geoms = hunt.load_geometries()
-    out = hunt.run_case(hunt.make_case(476, 2, geoms), geoms)
+    out = _run_hunt_case(476, 2)
     assert out["outcome"] == "no_lock" and "ambiguous" in out["reason"], out
     monkeypatch.setattr(rv, "_second_copy_rivals", lambda *a: [])
-    assert hunt.run_case(hunt.make_case(476, 2, geoms), geoms)["outcome"] == "false_lock"
+    assert _run_hunt_case(476, 2)["outcome"] == "false_lock"
 
 
 def test_the_pose_is_never_more_precise_than_its_pixel_noise_allows(monkeypatch):
@@ -364,11 +363,10 @@ def test_the_pose_is_never_more_precise_than_its_pixel_noise_allows(monkeypatch)
     0.82 deg and the pose is refused as imprecise. Without that test it false-locks."""
     import chic_register.solve as so
 
-    geoms = hunt.load_geometries()
-    out = hunt.run_case(hunt.make_case(146, 2, geoms), geoms)
+    out = _run_hunt_case(146, 2)
     assert out["outcome"] == "no_lock" and "predicted from the pixel noise" in out["reason"], out
     monkeypatch.setattr(so, "check_noise_precision", lambda *a: None)
-    assert hunt.run_case(hunt.make_case(146, 2, geoms), geoms)["outcome"] == "false_lock"
+    assert _run_hunt_case(146, 2)["outcome"] == "false_lock"
 
 
 @pytest.mark.parametrize("spacing", [(0.5, 0.56), (0.45, 0.5)])
