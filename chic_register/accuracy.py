@@ -19,9 +19,9 @@ import numpy as np
 from .detect import _dilate, median
 from .errors import NoLock
 from .pose import invert
-from .refine import _Fit, refine, whitened_residuals
+from .refine import _Fit, refine, scanner_crossing_jacobian, whitened_residuals
 from .trust import _pixel_mm
-from .tube_model import TubeModel, _adjoint, _crossing_jacobian, _section_extent, plane_crossings
+from .tube_model import TubeModel, _section_extent, plane_crossings
 
 #: A fitted section disagrees with the pose the other sections give when its whitened residual (chi-square, 2 degrees
 #: of freedom, under its own information) exceeds this (a 4e-6 tail) ...
@@ -368,7 +368,7 @@ def _whitened_sections(model: TubeModel, fit: _Fit, assign, Ss, jacobian: bool =
         rs.append(whitened_residuals(fit.measurements[j], q, a, k))
         keys.extend(j * K + k)
         if jacobian:
-            J = (_crossing_jacobian(q[k], tan[k]) @ _adjoint(invert(S))).reshape(k.size, 2, 6)
+            J = scanner_crossing_jacobian(q[k], tan[k], S)
             Js.append(np.einsum("kij,kjl->kil", fit.measurements[j][1][k], J))
     r = np.concatenate(rs) if rs else np.zeros((0, 2))
     return np.asarray(keys, dtype=int), r, (np.concatenate(Js) if Js else None)

@@ -16,7 +16,8 @@ import math
 import numpy as np
 
 from .roots import bracketed_root
-from .tube_model import _adjoint, _crossing_jacobian, _skew, plane_crossings
+from .refine import scanner_crossing_jacobian
+from .tube_model import _skew, plane_crossings
 
 #: Default trust limits (SolveOptions.trust_tre_mm / trust_rot_deg): the predicted error (TRE at the frame centre,
 #: rotation) ...
@@ -64,7 +65,6 @@ def pose_precision(model, fit, Ss, pixel_mm: float, exclude=None):
     eigenvalue of each block is the worst direction. ``exclude``: per slice,
     tube ids that are no evidence (merged sections).
     """
-    from .pose import invert
     Js, n, sq = [], 0, 0.0
     for j, S in enumerate(Ss):
         q, tan, _, _ = plane_crossings(model, fit.T_F_from_scanner @ S, margin_mm=1e-9)
@@ -74,7 +74,7 @@ def pose_precision(model, fit, Ss, pixel_mm: float, exclude=None):
         k = np.flatnonzero(use)
         if k.size == 0:
             continue
-        Js.append((_crossing_jacobian(q[k], tan[k]) @ _adjoint(invert(S))).reshape(-1, 6))
+        Js.append(scanner_crossing_jacobian(q[k], tan[k], S).reshape(-1, 6))
         r = fit.residuals[j][k]
         n += k.size
         sq += float(np.sum(r[np.isfinite(r)] ** 2))
@@ -194,7 +194,6 @@ def stretch_test(model, fit, xys, Ss):
     :data:`STRETCH_P`). Returns ``(scale, F, p, moved)``. The
     residuals are whitened as the fit weighed them (``fit.measurements``).
     """
-    from .pose import invert
     meas = getattr(fit, "measurements", None)
     Jp, Js, rs = [], [], []
     for j, S in enumerate(Ss):
@@ -205,7 +204,7 @@ def stretch_test(model, fit, xys, Ss):
             continue
         xy = np.asarray(meas[j][0] if meas is not None else xys[j], float)[a[k]]
         L = meas[j][1][k] if meas is not None else np.broadcast_to(np.eye(2), (k.size, 2, 2))
-        J = _crossing_jacobian(q[k], tan[k]) @ _adjoint(invert(S))
+        J = scanner_crossing_jacobian(q[k], tan[k], S)
         D = np.zeros((k.size, 2, 2))
         D[:, 0, 0], D[:, 1, 1] = -xy[:, 0], -xy[:, 1]  # d(q - (1 + s) xy) / ds
         Jp.append(np.einsum("kij,kjl->kil", L, J).reshape(-1, 6))

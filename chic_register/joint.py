@@ -14,7 +14,7 @@ from typing import TYPE_CHECKING
 import numpy as np
 
 from .errors import AmbiguousFit, NoLock
-from .refine import _reject_outliers, refine
+from .refine import _reject_outliers, match_gate_mm, refine
 from .slices import Slice
 from .trust import _check_trust, _distinct
 from .tube_model import TubeModel, plane_crossings
@@ -34,7 +34,7 @@ def _solve_order(xys: list, model: TubeModel, skip_failed: bool) -> list[int]:
 def _track(model: TubeModel, xy: np.ndarray, S: np.ndarray, T_F_from_scanner: np.ndarray, sl: Slice,
            opts: SolveOptions, res_mm: float):
     """A slice's fit refined from a pose found in another slice of the same volume, if trustworthy; else None."""
-    gate = max(float(model.diameter_mm.max()), 2 * res_mm)
+    gate = match_gate_mm(model, res_mm)
     fit = refine(model, [xy], [S], T_F_from_scanner, gates_mm=(gate, 0.6 * gate), iters_per_gate=3, final_iters=2)
     fit = _reject_outliers(model, [xy], [S], fit, [res_mm], opts)
     try:

@@ -19,7 +19,7 @@ import numpy as np
 from .lapack import solve_vector as _solve
 from .matching import matched_pairs
 from .pose import invert
-from .tube_model import TubeModel, _adjoint, _crossings_memo, _exp_se3, _inside_list
+from .tube_model import TubeModel, _adjoint, _crossing_jacobian, _crossings_memo, _exp_se3, _inside_list
 
 if TYPE_CHECKING:
     from .solve import SolveOptions
@@ -72,6 +72,17 @@ def _image_adjoint(S: np.ndarray) -> np.ndarray:
     if S.shape != (4, 4) or S.dtype != np.float64:
         return _adjoint(invert(S))
     return _adjoint_of_inverse(S.tobytes())
+
+
+def scanner_crossing_jacobian(q: np.ndarray, tan_I: np.ndarray, S: np.ndarray) -> np.ndarray:
+    """(M, 2, 6) d(crossing xy)/d(xi) of crossings ``q`` (M, 2) with image-frame tangents ``tan_I`` (M, 3) for a
+    twist xi of ``T_F_from_scanner`` in the scanner frame, on the slice ``S`` (its ``T_scanner_from_image``)."""
+    return _crossing_jacobian(q, tan_I) @ _image_adjoint(S)
+
+
+def match_gate_mm(model: TubeModel, pixel_mm: float) -> float:
+    """The widest blob-tube assignment gate of a refinement (mm): the widest tube, or two pixels if larger."""
+    return max(float(model.diameter_mm.max()), 2 * pixel_mm)
 
 
 @functools.lru_cache(maxsize=64)
@@ -229,7 +240,7 @@ def _reject_outliers(model: TubeModel, xys, Ss, fit: _Fit, px_mm: list[float], o
     """
     K = len(model.ids)
     excl = [np.zeros(K, bool) for _ in xys]
-    gate = max(float(model.diameter_mm.max()), 2 * max(px_mm))
+    gate = match_gate_mm(model, max(px_mm))
     for _ in range(max(0, fit.n_matched - opts.min_tubes)):
         res = [np.where(np.isfinite(r), r / px, -1.0) for r, px in zip(fit.residuals, px_mm)]
         worst = [float(r.max()) for r in res]

@@ -28,7 +28,7 @@ from .detect import _dilate
 from .errors import NoLock
 from .pose import slice_angles
 from .psf import gaussian_blur
-from .refine import refine
+from .refine import match_gate_mm, refine
 from .trust import _distinct, _near_prior
 
 #: A rival pose must explain the pixels worse by this many noise variances (a log-likelihood margin of half of
@@ -73,7 +73,7 @@ def check_rivals(geom, model, fit, contenders, checks, slices, xys, Ss, opts, bl
     too, and is no rival when that lands on the pose.
     """
     if len(slices) > 1 and contenders:
-        gate = max(float(model.diameter_mm.max()), 2 * max(float(max(sl.pixel_spacing_mm)) for sl in slices))
+        gate = match_gate_mm(model, max(float(max(sl.pixel_spacing_mm)) for sl in slices))
         refined = [refine(model, xys, Ss, T, gates_mm=(gate, 0.6 * gate)) for T in contenders]
         # (on all slices' blobs a rival must still fit within the solver's own RMS limit, as a single slice's must)
         px_min = min(float(max(sl.pixel_spacing_mm)) for sl in slices)
@@ -110,7 +110,7 @@ def _falls_onto_pose(model, fit, T_rival: np.ndarray, xys, Ss, slices, blob_sets
     was never a second answer; one that stays away is (a distinct rival that
     verifies by every check of the pose, as the hunt's mirrored tilts do).
     """
-    gate = max(float(model.diameter_mm.max()), 2 * min(float(max(sl.pixel_spacing_mm)) for sl in slices))
+    gate = match_gate_mm(model, min(float(max(sl.pixel_spacing_mm)) for sl in slices))
     start = refine(model, xys, Ss, T_rival, gates_mm=(gate, 0.6 * gate))
     fine = _section_refine(model, start, xys, Ss, slices, blob_sets, opts)
     return fine is not None and not _distinct(fine.T_F_from_scanner, fit.T_F_from_scanner, model,
@@ -172,7 +172,7 @@ def _turned_rivals(model, T_F_from_scanner: np.ndarray, xy: np.ndarray, S: np.nd
     offered (the 90 deg turns of four diametric tubes, say); refined against
     the same blobs, it is a rival for :func:`_compare_rival`.
     """
-    gate = max(float(model.diameter_mm.max()), 2 * pixel_mm)
+    gate = match_gate_mm(model, pixel_mm)
     out = []
     for d in _symmetry_turns(model):
         c, s_ = math.cos(d), math.sin(d)

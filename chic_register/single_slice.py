@@ -15,7 +15,7 @@ from .detect import median
 from .errors import NoLock
 from .hypotheses import ellipse_layout, family_hypotheses, fit_ellipse_robust, initial_hypotheses, parallel_family
 from .pose import invert
-from .refine import _assign, _rank, _reject_outliers, _unexplained, refine
+from .refine import _assign, _rank, _reject_outliers, _unexplained, match_gate_mm, refine
 from .trust import _distinct, _near_prior
 from .tube_model import TubeModel, _crossings_memo, _inside
 
@@ -37,7 +37,7 @@ def _solve_one(model: TubeModel, xy: np.ndarray, S: np.ndarray, opts: SolveOptio
     if xy.shape[0] < opts.min_tubes:
         raise NoLock(f"found {xy.shape[0]} candidate tube cross-sections; need at least {opts.min_tubes}",
                      {"n_candidates": int(xy.shape[0])})
-    gate = max(float(model.diameter_mm.max()), 2 * pixel_mm)
+    gate = match_gate_mm(model, pixel_mm)
     limit = opts.max_rms_px * pixel_mm
     fits, ell = [], None
     if ellipse_layout(model):

@@ -348,8 +348,8 @@ def registration_uncertainty(model, fit, xys, Ss, slices, blob_sets, target_F_mm
     centroids (image mm) per slice, ``Ss`` the slices' ``T_scanner_from_image``.
     """
     from .pose import invert
-    from .refine import whitened_residuals
-    from .tube_model import _adjoint, _crossing_jacobian, plane_crossings
+    from .refine import scanner_crossing_jacobian, whitened_residuals
+    from .tube_model import _adjoint, plane_crossings
 
     X = fit.T_F_from_scanner
     Ad_sf = _adjoint(invert(X))
@@ -363,7 +363,7 @@ def registration_uncertainty(model, fit, xys, Ss, slices, blob_sets, target_F_mm
         k = np.flatnonzero((a >= 0) & inside)
         if k.size == 0:
             continue
-        J_s = _crossing_jacobian(q[k], tan[k]) @ _adjoint(invert(S))  # d/d(xi) of X @ exp(xi), xi in the scanner
+        J_s = scanner_crossing_jacobian(q[k], tan[k], S)  # d/d(xi) of X @ exp(xi), xi in the scanner
         J_F = -J_s @ Ad_sf  # the same motion as delta in F: xi = -Ad(T_sf) delta
         if meas is not None:  # an information-weighted fit of fitted section positions (the default mode)
             _, L, sigma_used = meas[j]
