@@ -10,8 +10,8 @@ tilted case at a fixed azimuth) and on a grid of tilts 0-45 deg x depths
 across the usable range (0.2-0.8 of the body), 2 mm slices with Rician
 noise at each ``--snr``: the RMS error of the image normal, twist, depth and
 TRE (at the body centre) over ``--draws`` noise draws, divided by the CRLB
-(:mod:`chic_register.efficiency`; of the sections of the tubes the slice plane
-crosses, :func:`chic_register.crlb.counted_tubes`: where the slab also grazes
+(:mod:`chic_register.studies.efficiency`; of the sections of the tubes the slice plane
+crosses, :func:`chic_register.precision.crlb.counted_tubes`: where the slab also grazes
 a tube beyond its end, the ratios to the bound that counts that sliver too
 follow on a second line), the noise-free error (bias), the solve
 time (detect + pose wall, and CPU of the register() call) and the machine
@@ -25,7 +25,7 @@ over the poses that locked in at least half their draws.
 
 Paper study (default):
 
-Runs :func:`chic_register.evaluate.run_study` on designs/neuro.yaml (256 x 256,
+Runs :func:`chic_register.studies.evaluate.run_study` on designs/neuro.yaml (256 x 256,
 0.5 mm pixels, thin sections) with the paper's uniform white noise at each
 amplitude of ``--levels`` (fluid = 1, noise U(-a, a)) and with Rician noise at
 ``--snr``, and prints each group's max |error| and std beside the paper's
@@ -43,8 +43,8 @@ import numpy as np
 
 from chic_design.layout import fiducial_geometry
 from chic_design.spec import load_spec
-from chic_register.efficiency import METRICS, pose_efficiency
-from chic_register.evaluate import PAPER, format_summary, paper_cases, run_study
+from chic_register.studies.efficiency import METRICS, pose_efficiency
+from chic_register.studies.evaluate import PAPER, format_summary, paper_cases, run_study
 
 ROOT = Path(__file__).resolve().parents[1]
 
@@ -124,7 +124,7 @@ def run_efficiency(args, geom) -> None:
                                "median_ms": float(np.median(ms)), "median_cpu_ms": float(np.median(cpu)),
                                "load_after": os.getloadavg()[0]})
     if args.json:
-        from chic_register.atomic import write_json
+        from chic_register.util.atomic import write_json
 
         write_json(args.json, record)
         print(f"wrote {args.json}")

@@ -6,7 +6,7 @@ one fixed pose (same tilt, azimuth and twist; depths ``d - gap``, ``d``,
 middle and the next one, and from all three. Errors are those of the middle
 slice's pose in the fiducial frame F (x, y, z of the true axis crossing
 under the estimated registration, tilt and twist; see
-:func:`chic_register.reslice.slice_errors`), so the three rows measure the
+:func:`chic_register.studies.reslice.slice_errors`), so the three rows measure the
 same quantity. Prints the mean, SD and RMS per axis, and the no-lock count.
 
     .venv/bin/python benchmarks/bench_multislice.py --draws 200 --snr 10
@@ -28,10 +28,10 @@ sys.path.insert(0, str(ROOT))
 from chic_design.layout import fiducial_geometry  # noqa: E402
 from chic_design.spec import load_spec  # noqa: E402
 from chic_register.errors import NoLock  # noqa: E402
-from chic_register.pose import rigid, rot_y, rot_z, slice_angles, slice_frame  # noqa: E402
-from chic_register.reslice import AXES, slice_errors  # noqa: E402
-from chic_register.simulate import simulate_slice  # noqa: E402
-from chic_register.solve import register  # noqa: E402
+from chic_register.model.pose import rigid, rot_y, rot_z, slice_angles, slice_frame  # noqa: E402
+from chic_register.studies.reslice import AXES, slice_errors  # noqa: E402
+from chic_register.imaging.simulate import simulate_slice  # noqa: E402
+from chic_register.pipeline.register import register  # noqa: E402
 
 SUBSETS = {1: (1,), 2: (1, 2), 3: (0, 1, 2)}  # indices into the stack (0: shallow, 1: middle, 2: deep)
 

@@ -11,11 +11,11 @@ from ``timing_ms``) and the CPU time of the whole call
 (``time.process_time``: the steadier figure on a shared machine), with the
 load average before and after. Then, unless ``--efficiency-draws 0``, the
 RMS error over that many fresh noise draws per pose divided by the
-Cramér-Rao bound (:mod:`chic_register.efficiency`). ``--mode``: ``default``
+Cramér-Rao bound (:mod:`chic_register.studies.efficiency`). ``--mode``: ``default``
 (section fit), ``fast`` (``section_fit=False``: pose from blob centroids) or
 ``centroid`` (the older template accuracy mode, ``centroid_model=True``).
 ``--verify off`` times the fit alone, without the pose verification
-(:mod:`chic_register.verify_pose`). Thread pools are pinned to one thread;
+(:mod:`chic_register.verify.pixels`). Thread pools are pinned to one thread;
 pin the process too (``taskset -c 1``).
 """
 
@@ -34,10 +34,10 @@ import numpy as np  # noqa: E402
 
 from chic_design.layout import fiducial_geometry  # noqa: E402
 from chic_design.spec import load_spec  # noqa: E402
-from chic_register.efficiency import METRICS, pose_efficiency  # noqa: E402
+from chic_register.studies.efficiency import METRICS, pose_efficiency  # noqa: E402
 from chic_register.errors import NoLock  # noqa: E402
-from chic_register.simulate import simulate_slice  # noqa: E402
-from chic_register.solve import register  # noqa: E402
+from chic_register.imaging.simulate import simulate_slice  # noqa: E402
+from chic_register.pipeline.register import register  # noqa: E402
 
 ROOT = Path(__file__).resolve().parents[1]
 MODES = {"default": {}, "fast": {"section_fit": False}, "centroid": {"centroid_model": True}}
@@ -56,7 +56,7 @@ def main() -> None:
     ap.add_argument("--snr", type=float, default=20.0, help="Rician SNR of the fluid (default 20)")
     ap.add_argument("--efficiency-draws", type=int, default=20, help="noise draws per pose for RMS / CRLB (0: skip)")
     ap.add_argument("--verify", choices=("on", "off"), default="on",
-                    help="prove each pose against the image before ok (chic_register.verify_pose; default on)")
+                    help="prove each pose against the image before ok (chic_register.verify.pixels; default on)")
     ap.add_argument("--trust-rot-deg", type=float, default=0.75,
                     help="largest predicted 3-sigma rotation error accepted (default 0.75; inf: time every slice's "
                          "verification without the precision refusal and its accuracy refinement)")

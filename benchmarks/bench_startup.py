@@ -5,7 +5,7 @@
 Builds nothing: writes the ``neuro`` geometry and one simulated DICOM slice
 to a temporary folder, compiles the package's bytecode once (as an installed
 package has it), then alternates fresh processes of
-``python -c 'import numpy, pydicom'`` and ``python -m chic_register.cli solve
+``python -c 'import numpy, pydicom'`` and ``python -m chic_register.cli.main solve
 slice.dcm --geometry geometry.yaml`` and reports the median wall and CPU time
 (user + system of the child) of each and their ratio, with the machine load
 (the target: solve <= 1.3 x the bare imports).
@@ -43,8 +43,8 @@ def main() -> None:
     args = ap.parse_args()
     from chic_design.layout import fiducial_geometry
     from chic_design.spec import load_spec
-    from chic_register.geometry import write_geometry
-    from chic_register.simulate import simulate_slice, write_simulated
+    from chic_register.model.geometry import write_geometry
+    from chic_register.imaging.simulate import simulate_slice, write_simulated
 
     compileall.compile_dir(str(ROOT / "chic_register"), quiet=1)
     with tempfile.TemporaryDirectory() as tmp:
@@ -53,7 +53,7 @@ def main() -> None:
         dcm = Path(tmp) / "slice.dcm"
         write_simulated(simulate_slice(geom, 22, 20, 30, 15, noise="rician", snr=20, rng=3), dcm)
         base_cmd = [sys.executable, "-c", "import numpy, pydicom"]
-        solve_cmd = [sys.executable, "-m", "chic_register.cli", "solve", str(dcm), "--geometry", str(gpath)]
+        solve_cmd = [sys.executable, "-m", "chic_register.cli.main", "solve", str(dcm), "--geometry", str(gpath)]
         _run(solve_cmd)  # warm the file cache
         base, solve = [], []
         load0 = os.getloadavg()[0]

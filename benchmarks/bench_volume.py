@@ -6,7 +6,7 @@ Simulates a 60-slice volume (Rician SNR 20) of designs/neuro.yaml (128 x 128
 x 0.5 mm, 1 mm slices, reaching past both ends of the body) and of the z001
 Z-frame (built here as seven line tubes; 112 x 112 x 1 mm, 1.5 mm slices; a
 prior orientation 30 degrees off, as the frame is self-symmetric), then times
-:func:`chic_register.volume_register.register_volume` (wall and CPU) and
+:func:`chic_register.pipeline.volume.register_volume` (wall and CPU) and
 reports slices used and skipped and the target error at the body's centre.
 """
 
@@ -26,10 +26,10 @@ import numpy as np  # noqa: E402
 
 from chic_design.layout import fiducial_geometry  # noqa: E402
 from chic_design.spec import load_spec  # noqa: E402
-from chic_register.geometry import Body, FiducialGeometry, LineTube  # noqa: E402
-from chic_register.pose import apply, rigid, rot_y, rot_z  # noqa: E402
-from chic_register.volume import simulate_volume  # noqa: E402
-from chic_register.volume_register import register_volume  # noqa: E402
+from chic_register.model.geometry import Body, FiducialGeometry, LineTube  # noqa: E402
+from chic_register.model.pose import apply, rigid, rot_y, rot_z  # noqa: E402
+from chic_register.io.volumes import simulate_volume  # noqa: E402
+from chic_register.pipeline.volume import register_volume  # noqa: E402
 
 ROOT = Path(__file__).resolve().parents[1]
 

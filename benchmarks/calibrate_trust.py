@@ -3,7 +3,7 @@
 The solver refuses a pose whose predicted 3-sigma error (``verify_pose.pose_precision``: the residual scatter
 at its 90 % chi-square upper bound through the crossings' Jacobian) exceeds ``SolveOptions.trust_tre_mm`` at
 the frame centre or ``trust_rot_deg``. The optimiser predicts that estimate from the Cramér-Rao bound of the
-pose (``chic_register.crlb``, worst direction, :mod:`chic_design.optimize.trust`) times a factor. This script
+pose (``chic_register.precision.crlb``, worst direction, :mod:`chic_design.optimize.trust`) times a factor. This script
 measures the ratio: for each design and pose it simulates ``--draws`` noisy slice sets (Rician, the protocol's
 pixel, thickness and SNR; ``n`` parallel slices one thickness apart), registers them with the trust limits at
 0 (so every pose that passes the other checks is refused by the precision test, which reports its sigmas),
@@ -36,9 +36,9 @@ def main(argv=None) -> int:
     from chic_design.optimize.confirm import simulate_parallel
     from chic_design.optimize.trust import solver_sds
     from chic_design.spec import load_spec
-    from chic_register.crlb import Protocol, pose_crlb
+    from chic_register.precision.crlb import Protocol, pose_crlb
     from chic_register.errors import ImprecisePose, NoLock
-    from chic_register.solve import register
+    from chic_register.pipeline.register import register
 
     p = argparse.ArgumentParser(description=__doc__.splitlines()[0])
     p.add_argument("--draws", type=int, default=6)

@@ -34,7 +34,7 @@ def _register():
     try:
         from chic_register import register
     except ImportError:
-        from chic_register.solve import register
+        from chic_register.pipeline.register import register
     from chic_register.errors import NoLock
     return register, NoLock
 
@@ -73,7 +73,7 @@ def _hunt_case(index: int) -> dict:
 def bench_records() -> list[dict]:
     from chic_design.layout import fiducial_geometry
     from chic_design.spec import load_spec
-    from chic_register.simulate import simulate_slice
+    from chic_register.imaging.simulate import simulate_slice
 
     geom = fiducial_geometry(load_spec(ROOT / "designs" / "neuro.yaml"))
     L = geom.body.length

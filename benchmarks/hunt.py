@@ -7,7 +7,7 @@ and needle-guide exports, or the same geometries built from ``designs/`` when
 they are not exported) at a random pose (depth from -15 % to 115 % of the body
 length, tilt 0-80 deg, any azimuth and twist, random pixel size, field of
 view, slice thickness, centre offset and Rician SNR), with one damage kind
-(``MUTATIONS``). It is solved with :func:`chic_register.solve.register` as
+(``MUTATIONS``). It is solved with :func:`chic_register.pipeline.register.register` as
 ``chic-register solve`` does (a plain 2-D image, its pixel spacing given) and
 the outcome compared with the truth:
 
@@ -16,7 +16,7 @@ the outcome compared with the truth:
   rotation error above 0.5 deg (``FALSE_LOCK_MM``, ``FALSE_LOCK_DEG``);
 - **crash**: any exception other than ``NoLock``;
 - **in envelope**: the true plane passes the design's plane checks
-  (:func:`chic_register.envelope.plane_status`: every tube crosses once,
+  (:func:`chic_register.model.envelope.plane_status`: every tube crosses once,
   inside the body, no two sections merge, at the slice's pixel size and
   thickness) and every tube's crossing lies in the image; the share of those
   that lock correctly is reported per damage kind.
@@ -133,11 +133,11 @@ def _T_old_from_new(A, t, spacing_old, spacing_new):
 
 def build_case(case: Case, geom):
     """``(Slice to solve, true T_scanner_from_fiducial, in_envelope)`` of a case."""
-    from chic_register.envelope import plane_status
-    from chic_register.geometry import LineTube
-    from chic_register.pose import invert, slice_frame
-    from chic_register.simulate import add_rician_noise, render_tubes, simulate_slice
-    from chic_register.slices import Slice
+    from chic_register.model.envelope import plane_status
+    from chic_register.model.geometry import LineTube
+    from chic_register.model.pose import invert, slice_frame
+    from chic_register.imaging.simulate import add_rician_noise, render_tubes, simulate_slice
+    from chic_register.model.slices import Slice
 
     rng = np.random.default_rng(case.mutation_seed)
     m = case.mutation
@@ -231,7 +231,7 @@ _GEOMS: dict = {}
 
 def load_geometries(paths=None) -> dict:
     """Geometries by name: from geometry files, or built from ``designs/`` (neuro, needle-guide)."""
-    from chic_register.geometry import load_geometry
+    from chic_register.model.geometry import load_geometry
 
     out = {}
     if paths:
@@ -276,7 +276,7 @@ def solve_and_judge(sl, geom, T_true, ndigits: int | None = None, solve_geom=Non
     (``ok`` / ``false_lock``, beyond FALSE_LOCK_MM or FALSE_LOCK_DEG / ``no_lock`` with its ``reason`` / ``crash``
     with ``error`` and ``trace``) and the errors ``tre_mm``, ``rot_deg`` (rounded to ``ndigits`` when given)."""
     from chic_register.errors import NoLock
-    from chic_register.solve import register
+    from chic_register.pipeline.register import register
 
     try:
         reg = register([sl], solve_geom or geom)

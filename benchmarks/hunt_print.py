@@ -66,7 +66,7 @@ def offset_geometry(name: str, change_deg: float):
 
 def change(kind: str, img: np.ndarray, sl, geom, T_true: np.ndarray, rng: np.random.Generator) -> np.ndarray:
     """The slice's pixels after ``kind`` (``scale``, ``helix_offset`` and ``other_design`` leave them alone)."""
-    from chic_register.pose import invert
+    from chic_register.model.pose import invert
 
     img = np.array(img, float)
     H, W = img.shape
@@ -115,7 +115,7 @@ def _init(kind: str, amount: float) -> None:
 
 def run_case(index: int, seed: int, kind: str, amount: float) -> dict:
     """One case: outcome, errors."""
-    from chic_register.slices import Slice
+    from chic_register.model.slices import Slice
 
     case = dataclasses.replace(hunt.make_case(index, seed, hunt._GEOMS), mutation="noisy")
     geom = hunt._GEOMS[case.geometry]

@@ -36,7 +36,7 @@ def main(argv=None) -> int:
     from chic_design.optimize.confirm import simulate_parallel
     from chic_design.spec import load_spec
     from chic_register.errors import NoLock
-    from chic_register.solve import register
+    from chic_register.pipeline.register import register
 
     ap = argparse.ArgumentParser(description=__doc__.splitlines()[0])
     ap.add_argument("--cases", type=int, default=300)

@@ -178,8 +178,8 @@ def _init() -> None:
 def true_centres_rc(geom, T_scanner_from_fiducial, spacing) -> np.ndarray:
     """(K, 2) pixel (row, col) of the tubes' centreline crossings with the true plane (the image frame is the
     scanner's)."""
-    from chic_register.pose import invert
-    from chic_register.tube_model import plane_crossings, prepare_geometry
+    from chic_register.model.pose import invert
+    from chic_register.model.tube_model import plane_crossings, prepare_geometry
 
     q, _, _, found = plane_crossings(prepare_geometry(geom)[0], invert(T_scanner_from_fiducial))
     return np.stack([q[found, 1] / spacing[0], q[found, 0] / spacing[1]], axis=1)
@@ -187,8 +187,8 @@ def true_centres_rc(geom, T_scanner_from_fiducial, spacing) -> np.ndarray:
 
 def run_case(index: int, seed: int) -> dict:
     """One case: its damage kind, outcome, errors and wall time."""
-    from chic_register.pose import invert
-    from chic_register.slices import Slice
+    from chic_register.model.pose import invert
+    from chic_register.model.slices import Slice
 
     geoms = hunt._GEOMS
     case = dataclasses.replace(hunt.make_case(index, seed, geoms), mutation="noisy")

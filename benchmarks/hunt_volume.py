@@ -5,7 +5,7 @@
 Each case is a simulated 128 x 128 x 40 volume (neuro 0.5 x 0.5 x 2 mm, the needle guide 0.3 x 0.3 x 1 mm; Rician SNR
 12-30) of one design at a random pose (tilt 0-30 deg, any azimuth and twist, the body's centre up to 4 mm off the
 volume's centre in each direction) with blobs ``--blob-width`` times the channels' width, registered with
-:func:`chic_register.volume_register.register_volume` without slice indices (``chic-register solve VOLUME``). A pose
+:func:`chic_register.pipeline.volume.register_volume` without slice indices (``chic-register solve VOLUME``). A pose
 reported ok more than 0.5 mm (frame centre) or 0.5 deg off is a false lock; exit status 1 when there is one or a
 crash. Complements ``hunt.py`` (single slices) and ``hunt_series.py`` (2-4 parallel slices).
 """
@@ -36,9 +36,9 @@ def main(argv=None) -> int:
     from chic_design.layout import design_geometry
     from chic_design.spec import load_spec
     from chic_register.errors import NoLock
-    from chic_register.pose import rigid, rot_y, rot_z
-    from chic_register.volume import simulate_volume
-    from chic_register.volume_register import register_volume
+    from chic_register.model.pose import rigid, rot_y, rot_z
+    from chic_register.io.volumes import simulate_volume
+    from chic_register.pipeline.volume import register_volume
 
     ap = argparse.ArgumentParser(description=__doc__.splitlines()[0])
     ap.add_argument("--cases", type=int, default=40)

@@ -26,7 +26,7 @@ what real scanner volumes do, each stress on or off at random (``STRESSES``):
   series always stores int16 with rescale).
 
 The volume is written as NRRD, NIfTI or a DICOM series with the project's
-writer, then solved with ``chic_register.cli.main(["solve", ..., "--json"])``
+writer, then solved with ``chic_register.cli.main.main(["solve", ..., "--json"])``
 twice: with ``--prior`` (a JSON pose turned up to 30 deg and shifted up to 10 mm
 from the truth) and without. Outcomes: ``ok`` (target error at the frame centre
 <= 0.5 mm and rotation error <= 0.5 deg), ``false`` (an ``ok`` beyond that),
@@ -171,9 +171,9 @@ def build_volume(geom, case: dict):
     """(Volume, T_scanner_from_fiducial) of one case."""
     from scipy.ndimage import gaussian_filter
 
-    from chic_register.blob_width import render_tubes_widened
-    from chic_register.simulate import add_rician_noise
-    from chic_register.volume import Volume, plane_frame
+    from chic_register.imaging.blob_width import render_tubes_widened
+    from chic_register.imaging.simulate import add_rician_noise
+    from chic_register.io.volumes import Volume, plane_frame
 
     rng = np.random.default_rng(case["rng_seed"])
     D = np.eye(3) if case["direction"] is None else np.asarray(case["direction"], dtype=float)
@@ -264,9 +264,9 @@ def build_volume(geom, case: dict):
 
 def usable_slices(geom, vol, T_sf, thickness_mm: float) -> int:
     """How many k-planes the design's plane checks pass (all rods visible and apart at nominal width)."""
-    from chic_register.envelope import plane_status
-    from chic_register.pose import slice_angles
-    from chic_register.volume import plane_frame
+    from chic_register.model.envelope import plane_status
+    from chic_register.model.pose import slice_angles
+    from chic_register.io.volumes import plane_frame
 
     T_fs = np.linalg.inv(T_sf)
     n = 0
@@ -287,7 +287,7 @@ def _pose_error(T_est, T_true) -> tuple[float, float]:
 
 def solve_cli(path, geometry, prior=None) -> dict:
     """Run ``chic-register solve PATH --geometry G [--prior P] --json``: (exit code, JSON or None, stderr, cpu s)."""
-    from chic_register import cli
+    from chic_register.cli import main as cli
 
     argv = ["solve", str(path), "--geometry", str(geometry), "--json"]
     if prior is not None:
@@ -323,8 +323,8 @@ def classify(res: dict, T_true) -> tuple[str, str]:
 
 
 def run_case(index: int, seed: int, geometry: Path, keep: Path | None = None) -> dict:
-    from chic_register.geometry import load_geometry
-    from chic_register.volume import write_volume
+    from chic_register.model.geometry import load_geometry
+    from chic_register.io.volumes import write_volume
 
     rng = np.random.default_rng([seed, index])
     case = draw_case(rng)

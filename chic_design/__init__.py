@@ -1,5 +1,5 @@
 """CHIC design: a parametric, printable CHIC fiducial from a YAML spec."""
 
-from chic_register import __version__
+from chic_register.version import __version__
 
 __all__ = ["__version__"]

@@ -26,7 +26,7 @@ from pathlib import Path
 
 from build123d import Mesher, export_step
 
-from chic_register.geometry import write_geometry
+from chic_register.model.geometry import write_geometry
 
 from .cad import FiducialParts, build_parts
 from .errors import InfeasibleDesign
@@ -37,7 +37,7 @@ from .preview import precision_job, preview_job, tilt_plot_job
 from .printability import HARD_CODES
 from .report import build_report
 from .spec import load_spec, spec_sha256
-from chic_register.stl import declare_space
+from chic_register.io.stl import declare_space
 from .verify import STL_ANGULAR_TOLERANCE_RAD, STL_TOLERANCE_MM, VerifyResult, verify_export
 
 TMP_PREFIX = ".{name}.tmp-"  # + "<owner pid>-<random>"

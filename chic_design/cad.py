@@ -1,7 +1,7 @@
 """The CAD model: body and caps as build123d parts, in frame F, in assembled position.
 
 Every channel is a circle swept along a tube object of
-:mod:`chic_register.tubes` (via :func:`centreline_edge`), so the printed
+:mod:`chic_register.model.tubes` (via :func:`centreline_edge`), so the printed
 channels and ``geometry.yaml`` cannot disagree.
 
 - :class:`FiducialBody`: the annulus ``inner_diameter..outer_diameter``,
@@ -40,7 +40,7 @@ from build123d import (
     sweep,
 )
 
-from chic_register.geometry import FiducialGeometry, Tube
+from chic_register.model.geometry import FiducialGeometry, Tube
 
 _BOTTOM = (Align.CENTER, Align.CENTER, Align.MIN)
 
@@ -133,7 +133,7 @@ class CapDims:
 
 
 class _EdgeBuilder:
-    """Makes the build123d edge a tube asks for in :meth:`~chic_register.tubes.Tube.sweep_path`."""
+    """Makes the build123d edge a tube asks for in :meth:`~chic_register.model.tubes.Tube.sweep_path`."""
 
     @staticmethod
     def line(p0, p1) -> Edge:

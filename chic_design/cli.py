@@ -11,7 +11,7 @@ import argparse
 import json
 import sys
 
-from chic_register import exits
+from chic_register.cli import exits
 from chic_register.errors import ChicRegisterError
 
 from . import __version__
@@ -61,7 +61,7 @@ def _precision(args, spec, report):
     """The coarse precision map of ``chic-design check --precision`` (None for ideal pixels)."""
     import math
 
-    from chic_register.precision_report import design_precision, plot_map
+    from chic_register.precision.report import design_precision, plot_map
 
     from .layout import fiducial_geometry
 
@@ -105,7 +105,7 @@ def _run(args) -> int:
         else:
             print(report.summary_text())
             if args.precision:
-                from chic_register.precision_report import format_map
+                from chic_register.precision.report import format_map
 
                 print(format_map(pm, spec.name) if pm is not None else
                       "precision: not computed (ideal 0 mm pixels have no noise model)")

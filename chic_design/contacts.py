@@ -18,7 +18,7 @@ from dataclasses import dataclass
 
 import numpy as np
 
-from chic_register.geometry import FiducialGeometry, Tube
+from chic_register.model.geometry import FiducialGeometry, Tube
 
 BOUNDARY_POINTS = 256
 

@@ -9,7 +9,7 @@ from __future__ import annotations
 
 import math
 
-from chic_register.geometry import FiducialGeometry
+from chic_register.model.geometry import FiducialGeometry
 
 from .feasibility_report import DepthSensitivity
 

@@ -62,7 +62,7 @@ others import from here:
 
 - :mod:`chic_design.feasibility_report`: the result records and the report's
   JSON, summary and markdown;
-- :mod:`chic_register.envelope`: the plane checks of item 1 (crossings, blob
+- :mod:`chic_register.model.envelope`: the plane checks of item 1 (crossings, blob
   sections, gaps), shared with the solver;
 - :mod:`chic_design.tilt_search`: items 1-2, the tilt search over depth and azimuth;
 - :mod:`chic_design.printability`: items 3-4, and the rules ``build`` refuses;
@@ -78,11 +78,11 @@ from dataclasses import replace
 
 import numpy as np
 
-from chic_register.envelope import (  # noqa: F401 - the plane checks live with the solver, re-exported here
+from chic_register.model.envelope import (  # noqa: F401 - the plane checks live with the solver, re-exported here
     OUTSIDE, _clipped_disc_distance, _pair_order, _PlaneChecker, crossing_counts, plane_crossings, plane_normals,
     section_gap,
 )
-from chic_register.geometry import FiducialGeometry
+from chic_register.model.geometry import FiducialGeometry
 
 from .depth_precision import depth_sensitivity
 from .feasibility_report import (  # noqa: F401 - re-exported: the result records

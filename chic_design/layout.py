@@ -1,15 +1,15 @@
 """From a spec to the tube centrelines in frame F: the fiducial's geometry model.
 
 The CAD channels, the geometry file and the feasibility checks are all made
-from the :class:`~chic_register.geometry.FiducialGeometry` built here.
+from the :class:`~chic_register.model.geometry.FiducialGeometry` built here.
 """
 
 from __future__ import annotations
 
 import math
 
-from chic_register import __version__
-from chic_register.geometry import Body, FiducialGeometry, HelixTube, LineTube, ToolFrame
+from chic_register.version import __version__
+from chic_register.model.geometry import Body, FiducialGeometry, HelixTube, LineTube, ToolFrame
 
 from .spec import Spec, quadrant_bounds_deg
 

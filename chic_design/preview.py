@@ -17,7 +17,7 @@ from pathlib import Path
 
 import numpy as np
 
-from chic_register.geometry import FiducialGeometry
+from chic_register.model.geometry import FiducialGeometry
 
 ROLE_COLOURS = {"diametric": "red", "helix": "blue", "orientation": "green", "other": "orange",
                 "axial": "red", "diagonal": "blue"}
@@ -95,8 +95,8 @@ def tilt_plot_job(feasibility_report, folder) -> float:
 
 def precision_job(geometry: FiducialGeometry, pixel_size_mm: float, slice_thickness_mm: float, folder) -> float:
     """Write ``folder/precision.png`` and ``folder/precision.md`` (the report's precision section); returns the wall time (s)."""
-    from chic_register.atomic import write_text
-    from chic_register.precision_report import design_precision, plot_map, report_section
+    from chic_register.util.atomic import write_text
+    from chic_register.precision.report import design_precision, plot_map, report_section
 
     t0 = time.perf_counter()
     pm = design_precision(geometry, pixel_size_mm, slice_thickness_mm)

@@ -32,8 +32,8 @@ import math
 
 import numpy as np
 
-from chic_register.envelope import _pair_order
-from chic_register.geometry import FiducialGeometry
+from chic_register.model.envelope import _pair_order
+from chic_register.model.geometry import FiducialGeometry
 
 from .depth_precision import depth_sensitivity
 from .feasibility_report import Clearance, Finding, Overhang

@@ -2,7 +2,7 @@
 
 from __future__ import annotations
 
-from chic_register.geometry import FiducialGeometry
+from chic_register.model.geometry import FiducialGeometry
 
 from .cad import CapDims, annulus_volume_mm3, channel_volume_mm3
 from .verify import touching_channels

@@ -27,7 +27,7 @@ import numpy as np
 from scipy.optimize import least_squares
 from scipy.spatial.transform import Rotation
 
-from chic_register.geometry import FiducialGeometry
+from chic_register.model.geometry import FiducialGeometry
 
 
 @dataclass(frozen=True)

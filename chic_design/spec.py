@@ -19,7 +19,7 @@ from typing import Annotated, Literal
 from pydantic import BaseModel, ConfigDict, Field, ValidationError, model_validator
 
 from chic_register.errors import InputFileError
-from chic_register.safeload import MAX_YAML_BYTES, load_yaml_file, read_regular_file
+from chic_register.util.safeload import MAX_YAML_BYTES, load_yaml_file, read_regular_file
 
 from .errors import SpecError
 

@@ -6,7 +6,7 @@ from pathlib import Path
 
 import numpy as np
 
-from chic_register.atomic import atomic_path
+from chic_register.util.atomic import atomic_path
 
 from .feasibility_report import FeasibilityReport
 

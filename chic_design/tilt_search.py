@@ -2,7 +2,7 @@
 
 Items 1 and 2 of :mod:`chic_design.feasibility`: for planes through the axis
 point ``(0, 0, z)``, the first tilt at which a plane check of
-:class:`chic_register.envelope._PlaneChecker` fails (tube outside the body,
+:class:`chic_register.model.envelope._PlaneChecker` fails (tube outside the body,
 crossed twice, sections merging), on a tilt grid then by bisection, the worst
 case over azimuths; and the depth ranges usable at given tilts.
 """
@@ -13,8 +13,8 @@ import math
 
 import numpy as np
 
-from chic_register.envelope import _PlaneChecker
-from chic_register.geometry import FiducialGeometry
+from chic_register.model.envelope import _PlaneChecker
+from chic_register.model.geometry import FiducialGeometry
 
 from .feasibility_report import TiltLimit, UsableDepth
 
@@ -77,7 +77,7 @@ def tilt_limits(geom: FiducialGeometry, pixel_size_mm: float, slice_thickness_mm
     ``merges=False`` checks visibility (tubes inside the body, crossed once) only.
     ``exact=True`` replaces the ellipse gap of pairs with a helix or a blob cut
     by an end face, where it is within ``0.1 mm`` of one pixel, by the exact
-    :func:`~chic_register.envelope.section_gap` (about 15x slower; for designs/neuro.yaml it gives the
+    :func:`~chic_register.model.envelope.section_gap` (about 15x slower; for designs/neuro.yaml it gives the
     same limits to 0.1 deg, so :func:`~chic_design.feasibility.check_geometry` uses the ellipse model).
     """
     checker = _PlaneChecker(geom, pixel_size_mm, slice_thickness_mm, merges=merges, exact=exact)

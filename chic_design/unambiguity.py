@@ -12,8 +12,8 @@ import math
 
 import numpy as np
 
-from chic_register.envelope import plane_crossings
-from chic_register.geometry import FiducialGeometry
+from chic_register.model.envelope import plane_crossings
+from chic_register.model.geometry import FiducialGeometry
 
 from .feasibility_report import Finding, Symmetry
 from .tilt_search import _runs

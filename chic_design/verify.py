@@ -24,7 +24,7 @@ from pathlib import Path
 import numpy as np
 import trimesh
 
-from chic_register.geometry import FiducialGeometry, Tube, load_geometry
+from chic_register.model.geometry import FiducialGeometry, Tube, load_geometry
 
 from .errors import BuildCheckError
 

@@ -22,7 +22,7 @@ from dataclasses import dataclass
 import numpy as np
 from build123d import Align, BasePartObject, Box, Mode
 
-from chic_register.geometry import FiducialGeometry
+from chic_register.model.geometry import FiducialGeometry
 
 from .cad import FiducialParts, assemble_parts, channel_openings_xy, channel_solid, place_cap
 

@@ -16,8 +16,8 @@ The CAD channels are swept along these same objects.
 
 from __future__ import annotations
 
-from chic_register import __version__
-from chic_register.geometry import Body, FiducialGeometry, LineTube
+from chic_register.version import __version__
+from chic_register.model.geometry import Body, FiducialGeometry, LineTube
 
 from .layout import spec_tool_frame
 from .zframe_spec import FACES, ZFrameSpec

@@ -2,7 +2,7 @@
 
 from __future__ import annotations
 
-from chic_register.geometry import FiducialGeometry
+from chic_register.model.geometry import FiducialGeometry
 
 from .zframe_cad import SquareCapDims, distinct_points
 from .cad import channel_openings_xy

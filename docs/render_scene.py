@@ -22,7 +22,7 @@ import numpy as np
 import pyvista as pv
 import SimpleITK as sitk
 
-from chic_register.transforms import LPS_TO_RAS, read_tfm, slicer_matrix
+from chic_register.io.transforms import LPS_TO_RAS, read_tfm, slicer_matrix
 
 
 def _refs(el) -> dict:

@@ -6,7 +6,7 @@ import pytest
 
 from chic_design.layout import fiducial_geometry
 from chic_design.spec import load_spec
-from chic_register.geometry import write_geometry
+from chic_register.model.geometry import write_geometry
 
 ROOT = Path(__file__).resolve().parents[1]
 NEURO = ROOT / "designs" / "neuro.yaml"

@@ -5,7 +5,7 @@ import pytest
 import os
 import stat
 
-from chic_register.atomic import atomic_path, write_json
+from chic_register.util.atomic import atomic_path, write_json
 from chic_register.errors import OutputError
 
 

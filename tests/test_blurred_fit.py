@@ -1,4 +1,4 @@
-"""Wide blobs: the pose fitted to the pixels through the blurred model of all sections (chic_register.blurred_fit)."""
+"""Wide blobs: the pose fitted to the pixels through the blurred model of all sections (chic_register.fit.blurred)."""
 
 import dataclasses
 import math
@@ -7,12 +7,12 @@ import numpy as np
 import pytest
 from scipy import ndimage as ndi
 
-from chic_register.blurred_fit import WIDE_RATIO, blob_width_ratio, blurred_fit
-from chic_register.detect import detect_blobs
+from chic_register.fit.blurred import WIDE_RATIO, blob_width_ratio, blurred_fit
+from chic_register.detect.blobs import detect_blobs
 from chic_register.errors import NoLock
-from chic_register.pose import invert
-from chic_register.simulate import add_rician_noise, simulate_slice
-from chic_register.solve import prepare_geometry, register
+from chic_register.model.pose import invert
+from chic_register.imaging.simulate import add_rician_noise, simulate_slice
+from chic_register.pipeline.register import prepare_geometry, register
 
 
 def _blurred(geom, pose, width, snr, seed):
@@ -125,7 +125,7 @@ def test_a_wrong_pixel_spacing_is_seen_by_the_blurred_fit(neuro_geometry):
 def test_covariance_in_f_by_hand():
     """A turn of the scanner-frame twist about c = (0, 0, 40) is, in F (here = the scanner), the same turn about F's
     origin plus the shift -r x c: a variance of e^2 on rx gives e^2 on rx and (40 e)^2 on ty, fully correlated."""
-    from chic_register.blurred_fit import BlurredFit
+    from chic_register.fit.blurred import BlurredFit
 
     e = 1e-3
     cov = np.zeros((6, 6))
@@ -144,10 +144,10 @@ def test_wide_volume_pose_carries_the_pixel_fits_covariance(needle_geometry):
     """A 1.3x needle-guide volume: 18 slices' blob centres alone put the pose 0.29 mm off while predicting 0.04 mm
     (merged neighbours pull every slice the same way); the pose fitted to the pixels of spread slices through the
     blurred model is within 0.1 mm, and its reported covariance (from that fit) is consistent with the error."""
-    from chic_register.pose import rigid, rot_y, rot_z
-    from chic_register.uncertainty import mahalanobis2
-    from chic_register.volume import simulate_volume
-    from chic_register.volume_register import register_volume
+    from chic_register.model.pose import rigid, rot_y, rot_z
+    from chic_register.precision.uncertainty import mahalanobis2
+    from chic_register.io.volumes import simulate_volume
+    from chic_register.pipeline.volume import register_volume
 
     L = needle_geometry.body.length
     T = rigid(rot_z(30) @ rot_y(0.0), (1.0, -2.0, -L / 2))
@@ -167,9 +167,9 @@ def test_wide_volume_pose_carries_the_pixel_fits_covariance(needle_geometry):
 def test_a_tight_field_of_view_never_crashes_the_blurred_fit(needle_geometry):
     """A 1.3x needle-guide volume in a 24 mm field of view (sections near the edges): some spread slice holds no
     section box; the fit was an IndexError there. Now a pose within 0.3 mm, or a refusal."""
-    from chic_register.pose import rigid, rot_y, rot_z
-    from chic_register.volume import simulate_volume
-    from chic_register.volume_register import register_volume
+    from chic_register.model.pose import rigid, rot_y, rot_z
+    from chic_register.io.volumes import simulate_volume
+    from chic_register.pipeline.volume import register_volume
 
     L = needle_geometry.body.length
     T = rigid(rot_z(30) @ rot_y(0.0), (1.0, -2.0, -L / 2))

@@ -28,7 +28,7 @@ from chic_design.verify import (
     section_heights,
     verify_export,
 )
-from chic_register.geometry import LineTube, load_geometry
+from chic_register.model.geometry import LineTube, load_geometry
 
 from .conftest import NEURO
 

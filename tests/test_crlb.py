@@ -6,10 +6,10 @@ import numpy as np
 import pytest
 from scipy.special import i0e, i1e
 
-from chic_register.crlb import (PARAMETER_ORDER, Protocol, image_jacobian, image_shape, model_image,
+from chic_register.precision.crlb import (PARAMETER_ORDER, Protocol, image_jacobian, image_shape, model_image,
                                 perturbation, pose_crlb, precision_map, rician_information)
-from chic_register.pose import slice_angles, slice_frame, wrap_deg
-from chic_register.simulate import add_rician_noise
+from chic_register.model.pose import slice_angles, slice_frame, wrap_deg
+from chic_register.imaging.simulate import add_rician_noise
 
 Q = "fast"  # renderer sampling of both the simulated images and the fit (3x3 samples, 3 sub-planes)
 
@@ -80,7 +80,7 @@ def test_bound_does_not_depend_on_the_difference_step(neuro_geometry, monkeypatc
     third-order term passed for tilt information (normal angle 0.133 deg at a
     1e-3 rad step, 0.21 deg at 1e-4; the Monte Carlo RMS of the solver there is
     0.22 deg)."""
-    from chic_register import crlb
+    from chic_register.precision import crlb
 
     bounds = []
     for step_rad, step_mm in ((3e-4, 0.005), (3e-3, 0.05)):
@@ -118,7 +118,7 @@ def test_design_check_precision_section(tmp_path, capsys):
     import json
 
     from chic_design.cli import main as design_main
-    from chic_register.precision_report import report_section
+    from chic_register.precision.report import report_section
 
     from .conftest import NEURO
 

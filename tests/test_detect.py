@@ -3,8 +3,8 @@
 import numpy as np
 import pytest
 
-from chic_register.detect import Blobs, detect_blobs, otsu_threshold
-from chic_register.simulate import simulate_slice
+from chic_register.detect.blobs import Blobs, detect_blobs, otsu_threshold
+from chic_register.imaging.simulate import simulate_slice
 
 
 def _nearest(blobs: Blobs, centres: dict) -> dict:
@@ -76,7 +76,7 @@ def test_pure_noise_has_no_strong_candidates():
 def test_smoothing_is_repeated_binomial_passes_with_replicated_edges():
     from scipy import ndimage as ndi
 
-    from chic_register.detect import _smooth
+    from chic_register.detect.blobs import _smooth
 
     rng = np.random.default_rng(1)
     for shape in [(64, 48), (5, 3), (1, 7), (7, 1), (2, 2)]:
@@ -92,7 +92,7 @@ def test_smoothing_is_repeated_binomial_passes_with_replicated_edges():
 
 
 def test_smoothing_scaled_at_the_end_is_the_same_to_the_bit():
-    from chic_register.detect import _smooth
+    from chic_register.detect.blobs import _smooth
 
     rng = np.random.default_rng(2)
     for lo, hi in [(1e-25, 1e-24), (0.5, 4095.0), (1.0, 1e25), (1e-20, 1e20)]:
@@ -104,7 +104,7 @@ def test_smoothing_scaled_at_the_end_is_the_same_to_the_bit():
 def test_maximum_filter_is_scipys():
     from scipy import ndimage as ndi
 
-    from chic_register.detect import _maximum_filter
+    from chic_register.detect.blobs import _maximum_filter
 
     rng = np.random.default_rng(3)
     for _ in range(300):
@@ -120,7 +120,7 @@ def test_footprints_areas_and_means_follow_the_per_blob_rules():
     the blob dilated by one pixel less the neighbours' own dilations within its box, areas and means the blob's own."""
     import cc3d
 
-    from chic_register.detect import _dilate, _smooth
+    from chic_register.detect.blobs import _dilate, _smooth
 
     rng = np.random.default_rng(4)
     yy, xx = np.mgrid[:96, :96]

@@ -3,9 +3,9 @@
 import numpy as np
 import pytest
 
-from chic_register.dropout import fill_dropouts
-from chic_register.simulate import simulate_slice
-from chic_register.solve import register
+from chic_register.detect.dropout import fill_dropouts
+from chic_register.imaging.simulate import simulate_slice
+from chic_register.pipeline.register import register
 
 
 def _disc_image(rng, size=64, level=10.0, sigma=1.0):
@@ -152,7 +152,7 @@ def test_an_image_with_no_finite_pixel_is_refused_quietly(neuro_geometry, fill):
     import warnings
 
     from chic_register.errors import NoLock
-    from chic_register.slices import Slice
+    from chic_register.model.slices import Slice
 
     with warnings.catch_warnings():
         warnings.simplefilter("error")
@@ -180,7 +180,7 @@ def test_one_extreme_pixel_in_a_noise_free_render_is_filled(neuro_geometry):
 def test_every_zero_of_an_image_with_lost_samples_is_marked_lost():
     """The mask covers the filled zeros and the background's (not filled: a section fit's surroundings must leave
     them out too), and no valid pixel; an undamaged image has no mask."""
-    from chic_register.dropout import lost_pixels
+    from chic_register.detect.dropout import lost_pixels
 
     rng = np.random.default_rng(4)
     img = _disc_image(rng)[0]
@@ -194,9 +194,9 @@ def test_lost_pixels_are_left_out_of_the_section_fit(neuro_geometry, monkeypatch
     """A tilted slice with 30 % of its pixels zeroed: the section fit leaves the lost pixels out (their filled values
     are a smoothed guess), so the pose is within a few hundredths of a degree of the truth and locks; fitted with
     the filled values as if measured, the same slice is refused as imprecise."""
-    from chic_register import dropout
+    from chic_register.detect import dropout
     from chic_register.errors import ImprecisePose
-    from chic_register.slices import Slice
+    from chic_register.model.slices import Slice
 
     sim = simulate_slice(neuro_geometry, 22.0, 20.0, 35.0, 10.0, shape=(200, 200), pixel_spacing_mm=(0.5, 0.5),
                          slice_thickness_mm=1.5, noise="rician", snr=40.0, image_position=(0.0, 0.0, 0.0),
@@ -220,7 +220,7 @@ def test_a_section_whose_window_cannot_locate_it_both_ways_is_left_out(neuro_geo
     (its Cholesky factor would raise otherwise)."""
     import dataclasses
 
-    from chic_register import section
+    from chic_register.fit import section
 
     sim = simulate_slice(neuro_geometry, 22.0, 20.0, 35.0, 10.0, shape=(200, 200), pixel_spacing_mm=(0.5, 0.5),
                          slice_thickness_mm=1.5, noise="rician", snr=40.0, rng=np.random.default_rng(7))
@@ -239,8 +239,8 @@ def test_a_section_whose_window_cannot_locate_it_both_ways_is_left_out(neuro_geo
 
 
 def test_a_callers_lost_mask_is_kept_beside_the_found_one():
-    from chic_register.dropout import fill_slice_dropouts
-    from chic_register.slices import Slice
+    from chic_register.detect.dropout import fill_slice_dropouts
+    from chic_register.model.slices import Slice
 
     rng = np.random.default_rng(6)
     img = _disc_image(rng)[0]

@@ -14,16 +14,16 @@ import numpy as np
 import pytest
 from scipy import ndimage as ndi
 
-from chic_register.cli import main
-from chic_register.detect import detect_blobs
+from chic_register.cli.main import main
+from chic_register.detect.blobs import detect_blobs
 from chic_register.errors import ChicRegisterError, NoLock
-from chic_register.geometry import Body, FiducialGeometry, LineTube, write_geometry
-from chic_register.generic_guess import _rotations_from_affine, family_hypotheses, parallel_family
-from chic_register.pose import apply, rigid, rot_y, rot_z, slice_frame
-from chic_register.simulate import add_rician_noise, simulate_slice
-from chic_register.solve import _depth_tube_name, plane_crossings, prepare_geometry, register
-from chic_register.volume import simulate_volume, write_volume
-from chic_register.volume_register import parse_slice_indices, register_volume
+from chic_register.model.geometry import Body, FiducialGeometry, LineTube, write_geometry
+from chic_register.guess.generic import _rotations_from_affine, family_hypotheses, parallel_family
+from chic_register.model.pose import apply, rigid, rot_y, rot_z, slice_frame
+from chic_register.imaging.simulate import add_rician_noise, simulate_slice
+from chic_register.pipeline.register import _depth_tube_name, plane_crossings, prepare_geometry, register
+from chic_register.io.volumes import simulate_volume, write_volume
+from chic_register.pipeline.volume import parse_slice_indices, register_volume
 
 ZF_CENTRE = np.array([0.0, 0.0, 30.0])
 ZF_LIMIT_DEG = 30.6  # chic_design.feasibility.tilt_limits at depth 30 mm (0.5 mm pixels, 2 mm slices): 30.70
@@ -51,7 +51,7 @@ def _tre_mm(T, T_true, point):
 def _right_or_refused(sl, geom, T_true, point, **options):
     """With the pixel verification on, the pose is within 0.3 mm at ``point`` or refused, never wrong.
 
-    (chic_register.verify_pose renders sections at the file's diameters: wide
+    (chic_register.verify.pixels renders sections at the file's diameters: wide
     blobs and imprecise layouts are refused there, which is its decision.)
     """
     try:
@@ -270,8 +270,8 @@ def test_no_lock_without_the_depth_tubes_or_with_the_wrong_geometry(zf, neuro_ge
 def test_first_guess_on_hundreds_of_specks_samples_its_triples(zf):
     """300 candidate blobs (an image strewn with bright specks): C(300, 3) = 4.5 million triples are sampled to the
     pair budget, not enumerated (that allocated gigabytes), and the nearest-blob search agrees with brute force."""
-    from chic_register.generic_guess import _affine_candidates, _nearest_blob_mm, parallel_family
-    from chic_register.solve import prepare_geometry
+    from chic_register.guess.generic import _affine_candidates, _nearest_blob_mm, parallel_family
+    from chic_register.pipeline.register import prepare_geometry
 
     model, _ = prepare_geometry(zf)
     fam = parallel_family(model)

@@ -7,7 +7,7 @@ import pytest
 import yaml
 
 from chic_register.errors import GeometryFileError
-from chic_register.geometry import (
+from chic_register.model.geometry import (
     HelixTube,
     LineTube,
     content_sha256,

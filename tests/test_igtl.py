@@ -14,11 +14,11 @@ import pytest
 pyigtl = pytest.importorskip("pyigtl")
 
 from chic_register.errors import ChicRegisterError  # noqa: E402
-from chic_register.igtl import (IgtlClient, IgtlError, IgtlServer, StatusMessage, check_name,  # noqa: E402
+from chic_register.io.igtl import (IgtlClient, IgtlError, IgtlServer, StatusMessage, check_name,  # noqa: E402
                                 image_to_slices, no_lock_messages, parse_address, pose_messages, read_message,
                                 send_pose, slice_to_image_message)
-from chic_register.pose import rigid, rot_y, rot_z  # noqa: E402
-from chic_register.transforms import ras_matrix, slicer_matrix  # noqa: E402
+from chic_register.model.pose import rigid, rot_y, rot_z  # noqa: E402
+from chic_register.io.transforms import ras_matrix, slicer_matrix  # noqa: E402
 
 FLIP = np.diag([-1.0, -1.0, 1.0, 1.0])
 
@@ -165,7 +165,7 @@ def test_address_default_port_and_name_length():
 
 
 def test_image_message_round_trip_keeps_the_slice_geometry(neuro_geometry):
-    from chic_register.simulate import simulate_slice
+    from chic_register.imaging.simulate import simulate_slice
 
     sim = simulate_slice(neuro_geometry, 22.0, 15.0, 30.0, 10.0, slice_thickness_mm=2.0, rng=1,
                          image_position=(-60.0, -70.0, 12.0), image_orientation=(0.0, 1.0, 0.0, 0.0, 0.0, -1.0))
@@ -193,8 +193,8 @@ def read_back(msg):
 
 
 def test_cli_solve_sends_the_pose(tmp_path, server, neuro_geometry, neuro_geometry_file, capsys):
-    from chic_register.cli import main
-    from chic_register.simulate import simulate_slice, write_simulated
+    from chic_register.cli.main import main
+    from chic_register.imaging.simulate import simulate_slice, write_simulated
 
     sim = simulate_slice(neuro_geometry, 20.0, 10.0, 45.0, 10.0, noise="rician", snr=25.0, rng=4)
     img, _ = write_simulated(sim, tmp_path / "s.dcm")
@@ -212,8 +212,8 @@ def test_cli_solve_sends_the_pose(tmp_path, server, neuro_geometry, neuro_geomet
 
 
 def test_cli_solve_listen_mode_serves_the_pose_to_a_peer(tmp_path, neuro_geometry, neuro_geometry_file, capsys):
-    from chic_register.cli import main
-    from chic_register.simulate import simulate_slice, write_simulated
+    from chic_register.cli.main import main
+    from chic_register.imaging.simulate import simulate_slice, write_simulated
 
     sim = simulate_slice(neuro_geometry, 25.0, 5.0, 0.0, 30.0, rng=2)
     img, _ = write_simulated(sim, tmp_path / "s.dcm")
@@ -245,7 +245,7 @@ def test_cli_solve_listen_mode_serves_the_pose_to_a_peer(tmp_path, neuro_geometr
 
 
 def test_cli_no_lock_is_sent_as_status_and_exits_3(tmp_path, neuro_geometry_file, capsys):
-    from chic_register.cli import main
+    from chic_register.cli.main import main
 
     blank = tmp_path / "blank.npy"
     np.save(blank, np.zeros((128, 128)))
@@ -263,8 +263,8 @@ def test_cli_no_lock_is_sent_as_status_and_exits_3(tmp_path, neuro_geometry_file
 
 
 def test_cli_unreachable_viewer_keeps_the_pose_and_exits_4(tmp_path, neuro_geometry, neuro_geometry_file, capsys):
-    from chic_register.cli import main
-    from chic_register.simulate import simulate_slice, write_simulated
+    from chic_register.cli.main import main
+    from chic_register.imaging.simulate import simulate_slice, write_simulated
 
     sim = simulate_slice(neuro_geometry, 20.0, 10.0, 45.0, 10.0, rng=4)
     img, _ = write_simulated(sim, tmp_path / "s.dcm")
@@ -280,7 +280,7 @@ def test_cli_unreachable_viewer_keeps_the_pose_and_exits_4(tmp_path, neuro_geome
 
 
 def test_bad_output_arguments_are_bad_input_before_any_work(tmp_path, neuro_geometry_file, capsys):
-    from chic_register.cli import main
+    from chic_register.cli.main import main
 
     img = tmp_path / "missing.dcm"  # never read: the outputs are checked first
     for extra, text in ((["--tfm", str(tmp_path / "nonexistent" / "dir" / "x.tfm")], "does not exist"),
@@ -294,7 +294,7 @@ def test_bad_output_arguments_are_bad_input_before_any_work(tmp_path, neuro_geom
 def test_quality_carries_predicted_tre_when_the_solver_reports_it():
     from types import SimpleNamespace
 
-    from chic_register.outputs import quality
+    from chic_register.outputs.deliver import quality
 
     sl = SimpleNamespace(residual_rms_mm=0.02, n_tubes=9)
     reg = SimpleNamespace(slices=[sl, SimpleNamespace(residual_rms_mm=0.03, n_tubes=8)],
@@ -307,9 +307,9 @@ def test_quality_carries_predicted_tre_when_the_solver_reports_it():
 def test_track_folder_serves_poses_to_peers_that_connect(tmp_path, neuro_geometry):
     import shutil
 
-    from chic_register.simulate import write_simulated
-    from chic_register.simulate import simulate_slice
-    from chic_register.track import track
+    from chic_register.imaging.simulate import write_simulated
+    from chic_register.imaging.simulate import simulate_slice
+    from chic_register.live.folder import track
 
     sims = [simulate_slice(neuro_geometry, 20.0 + 5 * k, 8.0, 30.0 * k, 10.0, rng=k) for k in range(2)]
     stage = tmp_path / "stage"

@@ -11,14 +11,14 @@ import time
 import numpy as np
 import pytest
 
-from chic_register.igtl import IgtlServer, read_message, slice_to_image_message
-from chic_register.igtl_track import track_images
-from chic_register.pose import apply
-from chic_register.simulate import simulate_slice
-from chic_register.transforms import ras_matrix
+from chic_register.io.igtl import IgtlServer, read_message, slice_to_image_message
+from chic_register.live.igtl_track import track_images
+from chic_register.model.pose import apply
+from chic_register.imaging.simulate import simulate_slice
+from chic_register.io.transforms import ras_matrix
 
 # tilted slices: a near-normal single slice knows its tilt only to ~0.3 deg, which the solver's default trust
-# limits (0.5 deg at 3 sigma, chic_register.verify_pose) refuse
+# limits (0.5 deg at 3 sigma, chic_register.verify.pixels) refuse
 POSES = [(20.0, 35.0, 30.0, 20.0), (25.0, 40.0, -60.0, 100.0), (30.0, 35.0, 150.0, -40.0)]
 
 
@@ -107,7 +107,7 @@ def test_listen_mode_waits_for_the_bridge_and_survives_a_reconnect(stream, neuro
 
 
 def test_cli_track_igtl_images(stream, neuro_geometry_file, capsys, tmp_path):
-    from chic_register.cli import main
+    from chic_register.cli.main import main
 
     bridge = Bridge()
     th = threading.Thread(target=bridge.serve, args=([slice_to_image_message(stream[1].slice, "MRI")], 6),

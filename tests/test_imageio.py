@@ -13,12 +13,12 @@ from PIL import Image
 from pydicom.dataset import Dataset
 from pydicom.sequence import Sequence
 
-from chic_register.dicomio import dicom_dataset, write_dicom
+from chic_register.io.dicom import dicom_dataset, write_dicom
 from chic_register.errors import ImageReadError
-from chic_register.imageio import read_slices, write_plain_image
-from chic_register.pose import apply
-from chic_register.simulate import simulate_slice
-from chic_register.slices import Slice
+from chic_register.io.images import read_slices, write_plain_image
+from chic_register.model.pose import apply
+from chic_register.imaging.simulate import simulate_slice
+from chic_register.model.slices import Slice
 
 
 def oblique_orientation():

@@ -18,11 +18,11 @@ import pytest
 import yaml
 
 from chic_design.cli import main as design_main
-from chic_register.cli import main as register_main
+from chic_register.cli.main import main as register_main
 from chic_register.errors import GeometryFileError, NoLock
-from chic_register.geometry import content_sha256, load_geometry
-from chic_register.simulate import simulate_slice, write_simulated
-from chic_register.track import track
+from chic_register.model.geometry import content_sha256, load_geometry
+from chic_register.imaging.simulate import simulate_slice, write_simulated
+from chic_register.live.folder import track
 
 ROOT = Path(__file__).resolve().parents[1]
 NEURO_TEXT = (ROOT / "designs" / "neuro.yaml").read_text()
@@ -154,7 +154,7 @@ def test_hostile_source_values_are_refused(tmp_path, neuro_geometry, source_yaml
 def test_non_json_source_values_from_python_callers_are_refused(neuro_geometry):
     import datetime
 
-    from chic_register.geometry import geometry_from_dict
+    from chic_register.model.geometry import geometry_from_dict
 
     for value, kind in (({1, 2}, "set"), (b"x", "bytes"), (datetime.date(2024, 1, 2), "date")):
         data = copy.deepcopy(neuro_geometry.to_dict())
@@ -254,7 +254,7 @@ def test_track_survives_a_bad_file_and_registers_the_next(tmp_path, dicom_slice,
 
 
 def test_track_reports_an_unexpected_failure_and_goes_on(tmp_path, dicom_slice, neuro_geometry):
-    from chic_register.solve import register
+    from chic_register.pipeline.register import register
 
     watch = tmp_path / "w"
     watch.mkdir()
@@ -300,7 +300,7 @@ def test_a_failing_output_does_not_lose_the_pose(tmp_path, capsys, dicom_slice, 
 
 @pytest.mark.parametrize("argv", [
     [sys.executable, "-m", "chic_design.cli", "schema"],
-    [sys.executable, "-m", "chic_register.cli", "--help"],
+    [sys.executable, "-m", "chic_register.cli.main", "--help"],
 ])
 def test_a_closed_stdout_is_no_traceback(argv):
     p = subprocess.Popen(argv, stdout=subprocess.PIPE, stderr=subprocess.PIPE, cwd=ROOT)

@@ -23,9 +23,9 @@ from chic_design.optimize.store import ResultStore
 from chic_design.cli import main
 from chic_design.feasibility import check_design
 from chic_design.spec import load_spec
-from chic_register.geometry import load_geometry
-from chic_register.simulate import simulate_slice
-from chic_register.solve import register
+from chic_register.model.geometry import load_geometry
+from chic_register.imaging.simulate import simulate_slice
+from chic_register.pipeline.register import register
 
 ROOT = Path(__file__).resolve().parents[1]
 SMALL = ROOT / "tests" / "data" / "optimize-small.yaml"

@@ -1,9 +1,9 @@
-"""chic_register.quantiles: np.percentile's values, bit for bit, from a partition of the values near them."""
+"""chic_register.util.quantiles: np.percentile's values, bit for bit, from a partition of the values near them."""
 
 import numpy as np
 import pytest
 
-from chic_register.quantiles import order_statistics, percentiles
+from chic_register.util.quantiles import order_statistics, percentiles
 
 
 def _arrays(rng):
@@ -38,7 +38,7 @@ def test_unrepresentative_sample_falls_back_to_the_whole_array():
 
 
 def test_sorted_span_is_the_sorted_values_or_a_miss():
-    from chic_register.quantiles import sorted_span
+    from chic_register.util.quantiles import sorted_span
 
     rng = np.random.default_rng(4)
     hits = 0
@@ -57,7 +57,7 @@ def test_sorted_span_is_the_sorted_values_or_a_miss():
 
 
 def test_median_is_numpys_on_both_sides_of_the_bracketed_size():
-    from chic_register.detect import MEDIAN_SPAN_MIN, median
+    from chic_register.detect.blobs import MEDIAN_SPAN_MIN, median
 
     rng = np.random.default_rng(5)
     for n in (1, 2, 9, MEDIAN_SPAN_MIN - 1, MEDIAN_SPAN_MIN, 4096, 4097, 16384):

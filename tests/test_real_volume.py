@@ -14,14 +14,14 @@ import numpy as np
 import pytest
 from scipy.spatial.transform import Rotation
 
-from chic_register.cli import main
+from chic_register.cli.main import main
 from chic_register.errors import NoLock
-from chic_register.geometry import load_geometry, write_geometry
-from chic_register.pose import rigid
-from chic_register.simulate import add_rician_noise, simulate_slice
-from chic_register.slices import Slice
-from chic_register.solve import register
-from chic_register.volume import Volume, read_volume, simulate_volume, write_volume
+from chic_register.model.geometry import load_geometry, write_geometry
+from chic_register.model.pose import rigid
+from chic_register.imaging.simulate import add_rician_noise, simulate_slice
+from chic_register.model.slices import Slice
+from chic_register.pipeline.register import register
+from chic_register.io.volumes import Volume, read_volume, simulate_volume, write_volume
 
 CENTRE = np.array([0.0, 0.0, 30.0, 1.0])
 
@@ -141,7 +141,7 @@ def test_a_near_twin_a_pixel_away_is_for_the_image_to_decide(needle_geometry):
     """The needle guide's half turn leaves its tubes 0.63 mm apart: a near-twin, not a symmetry. At 0.8 mm pixels the
     solver must not refuse it up front as a self-symmetric frame (it refused every such needle-guide series);
     z001's exact symmetry still is refused up front."""
-    from chic_register.frame_symmetry import EXACT_SHARE, frame_symmetries, prior_needed
+    from chic_register.model.symmetry import EXACT_SHARE, frame_symmetries, prior_needed
 
     d = min(t.diameter for t in needle_geometry.tubes)
     assert 0.5 < frame_symmetries(needle_geometry, 10.0)[1] < 0.8  # the near-twin's mismatch (mm)

@@ -12,12 +12,12 @@ import yaml
 from chic_design.layout import fiducial_geometry
 from chic_design.errors import SpecError
 from chic_design.spec import ToolSpec, parse_spec
-from chic_register.cli import main
-from chic_register.geometry import content_sha256, geometry_from_dict, load_geometry, write_geometry
-from chic_register.pose import rigid, rot_y
-from chic_register.simulate import simulate_slice, write_simulated
-from chic_register.stl import stl_bytes, stl_header
-from chic_register.transforms import LPS_TO_RAS, slicer_matrix
+from chic_register.cli.main import main
+from chic_register.model.geometry import content_sha256, geometry_from_dict, load_geometry, write_geometry
+from chic_register.model.pose import rigid, rot_y
+from chic_register.imaging.simulate import simulate_slice, write_simulated
+from chic_register.io.stl import stl_bytes, stl_header
+from chic_register.io.transforms import LPS_TO_RAS, slicer_matrix
 
 from .conftest import NEURO
 from .test_slicer import needs_slicer, run_probe
@@ -164,7 +164,7 @@ def test_scene_loads_in_slicer_with_the_right_nodes_hierarchy_and_positions(solv
 
 def test_scene_refuses_to_replace_a_foreign_folder(solved_scene, tool_geometry, tmp_path):
     from chic_register.errors import OutputError
-    from chic_register.scene import write_scene
+    from chic_register.outputs.scene import write_scene
 
     folder, _, _ = solved_scene
     (tmp_path / "mine").mkdir()

@@ -7,11 +7,11 @@ import math
 import numpy as np
 import pytest
 
-from chic_register.efficiency import pose_efficiency, pose_errors
-from chic_register.pose import invert
-from chic_register.section import _box_edge, _chord_m2, fit_sections
-from chic_register.simulate import simulate_slice
-from chic_register.solve import plane_crossings, prepare_geometry, register
+from chic_register.studies.efficiency import pose_efficiency, pose_errors
+from chic_register.model.pose import invert
+from chic_register.fit.section import _box_edge, _chord_m2, fit_sections
+from chic_register.imaging.simulate import simulate_slice
+from chic_register.pipeline.register import plane_crossings, prepare_geometry, register
 
 
 def test_box_edge_is_the_pixel_share_inside_a_straight_edge():

@@ -7,11 +7,11 @@ import numpy as np
 import pytest
 from scipy import ndimage
 
-from chic_register.cli import main
-from chic_register.geometry import FiducialGeometry, LineTube, load_geometry
-from chic_register.imageio import read_slices
-from chic_register.pose import apply, invert, slice_frame
-from chic_register.simulate import (
+from chic_register.cli.main import main
+from chic_register.model.geometry import FiducialGeometry, LineTube, load_geometry
+from chic_register.io.images import read_slices
+from chic_register.model.pose import apply, invert, slice_frame
+from chic_register.imaging.simulate import (
     add_rician_noise,
     add_uniform_noise,
     crossings_px,
@@ -349,8 +349,8 @@ def test_cli_simulate_bad_files_exit_2(neuro_geometry_file, tmp_path, capsys):
 def test_render_windows_draws_each_tube_as_render_tubes_does(neuro_geometry, seed):
     """The verification's batched renderer: each tube alone in its own window, as render_tubes draws it (to rounding),
     for tilted slabs of 1-3 sub-planes, windows clipped by the sections, steep planes that cross a helix twice."""
-    from chic_register.render import render_tubes, render_windows
-    from chic_register.tube_model import plane_crossings, prepare_geometry
+    from chic_register.imaging.render import render_tubes, render_windows
+    from chic_register.model.tube_model import plane_crossings, prepare_geometry
 
     rng = np.random.default_rng(seed)
     model = prepare_geometry(neuro_geometry)[0]
@@ -369,7 +369,7 @@ def test_render_windows_draws_each_tube_as_render_tubes_does(neuro_geometry, see
             drawn += ref.max() > 0
     assert drawn > 10
     # a plane along the axis meets a steep helix at several points: one large window holds more than one section
-    from chic_register.tubes import HelixTube
+    from chic_register.model.tubes import HelixTube
 
     helix = HelixTube("H", "helix", 12.5, 10.0, 12.0, 0.0, 50.0, 3.0)
     T = slice_frame(25.0, 90.0, helix.theta0_deg + 25.0 * helix.pitch_deg_per_mm, 0.0)

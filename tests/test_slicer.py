@@ -15,10 +15,10 @@ from pathlib import Path
 import numpy as np
 import pytest
 
-from chic_register.igtl import pose_messages, read_message
-from chic_register.pose import rigid, rot_y, rot_z
-from chic_register.stl import write_stl
-from chic_register.transforms import LPS_TO_RAS, slicer_matrix, write_tfm
+from chic_register.io.igtl import pose_messages, read_message
+from chic_register.model.pose import rigid, rot_y, rot_z
+from chic_register.io.stl import write_stl
+from chic_register.io.transforms import LPS_TO_RAS, slicer_matrix, write_tfm
 
 ROOT = Path(__file__).resolve().parents[1]
 PROBE = ROOT / "tests" / "slicer_probe.py"

@@ -8,7 +8,7 @@ from pathlib import Path
 import numpy as np
 import pytest
 
-from chic_register.cli import main
+from chic_register.cli.main import main
 
 ROOT = Path(__file__).resolve().parents[1]
 README = (ROOT / "README.md").read_text(encoding="utf-8")
@@ -58,7 +58,7 @@ def test_simulate_warns_when_some_tubes_are_out_of_view(tmp_path, neuro_geometry
 
 
 def test_overlay_view_shows_the_rejected_blobs_too():
-    from chic_register.overlay import view_bounds
+    from chic_register.outputs.overlay import view_bounds
 
     tubes = np.array([[120.0, 120.0], [140.0, 135.0]])
     extra = np.array([[5.0, 250.0]])
@@ -71,7 +71,7 @@ def test_overlay_view_shows_the_rejected_blobs_too():
 @pytest.mark.parametrize("ratio, text", [(3.21, "3.2x better"), (1.0, "1.0x better"), (0.7, "1.4x worse"),
                                          (0.25, "4.0x worse")])
 def test_evaluate_says_worse_when_worse(ratio, text):
-    from chic_register.evaluate import versus_paper
+    from chic_register.studies.evaluate import versus_paper
 
     assert versus_paper(ratio) == text
 
@@ -97,7 +97,7 @@ def test_a_spec_given_as_geometry_gets_a_hint(capsys, tmp_path):
     assert "looks like a design spec" in err and "chic-design build" in err and "None" not in err
 
 
-@pytest.mark.parametrize("module, argv", [("chic_register.cli", ["solve", "--help"]),
+@pytest.mark.parametrize("module, argv", [("chic_register.cli.main", ["solve", "--help"]),
                                           ("chic_design.cli", ["check", "--help"])])
 def test_help_points_at_the_projects_own_interface_document(module, argv, capsys):
     import importlib

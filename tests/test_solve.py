@@ -7,12 +7,12 @@ from pathlib import Path
 import numpy as np
 import pytest
 
-from chic_register.cli import main
+from chic_register.cli.main import main
 from chic_register.errors import NoLock
-from chic_register.geometry import content_sha256, write_geometry
-from chic_register.pose import apply, invert, rigid, slice_angles, slice_frame, wrap_deg
-from chic_register.simulate import simulate_slice
-from chic_register.solve import (
+from chic_register.model.geometry import content_sha256, write_geometry
+from chic_register.model.pose import apply, invert, rigid, slice_angles, slice_frame, wrap_deg
+from chic_register.imaging.simulate import simulate_slice
+from chic_register.pipeline.register import (
     Ellipse, TubeModel, _assign, _crossing_jacobian, _exp_se3, fit_ellipse_robust, plane_crossings,
     prepare_geometry, register,
 )
@@ -129,7 +129,7 @@ def _check(reg, sim, depth_tol=0.1, angle_tol=0.3, point_tol=0.3):
 
 # these tests check the fit's accuracy against their own tolerances, also at poses whose single-slice precision
 # the solver cannot prove to 0.5 mm / 0.5 deg (a normal section's tilt): the precision refusal is lifted, every
-# other check of the pose (chic_register.verify_pose) still applies
+# other check of the pose (chic_register.verify.pixels) still applies
 ACCURACY_TEST = {"trust_tre_mm": math.inf, "trust_rot_deg": math.inf}
 NEURO_POSES = [(25, 0, 0, 0), (10, 30, 45, 20), (40, 20, 200, -70), (25, 50, 120, 10), (30, 0, 0, 90)]
 
@@ -330,8 +330,8 @@ def test_options_are_checked_and_used(neuro_geometry):
 def test_centroid_offsets_predict_the_detected_centres_at_the_true_pose(neuro_geometry):
     # steep cut, thick slice: curved helix sections and touching blobs; at the true pose the model's
     # centroids must land on the detector's centres (the crossings alone are off by up to a pixel)
-    from chic_register.detect import detect_blobs
-    from chic_register.solve import _assign, centroid_offsets
+    from chic_register.detect.blobs import detect_blobs
+    from chic_register.pipeline.register import _assign, centroid_offsets
 
     sim = simulate_slice(neuro_geometry, 25, 60, 75, 20, slice_thickness_mm=2.0)
     b = detect_blobs(sim.slice.pixels, sim.slice.pixel_spacing_mm, 3.0)
@@ -371,7 +371,7 @@ def test_centroid_model_removes_the_bias_of_steep_sections(neuro_geometry, pose)
 
 
 def _true_setup(geom, sim):
-    from chic_register.detect import detect_blobs
+    from chic_register.detect.blobs import detect_blobs
 
     b = detect_blobs(sim.slice.pixels, sim.slice.pixel_spacing_mm, 3.0)
     xy = np.stack([b.centres_rc[:, 1] * 0.5, b.centres_rc[:, 0] * 0.5], axis=1)
@@ -384,7 +384,7 @@ def _true_setup(geom, sim):
 def test_template_shifts_find_a_known_in_plane_shift(neuro_geometry):
     # noise-free: at the true pose every template sits on its section (shift 0, gain 1); with the pose
     # moved by delta in the image plane, every template must report that the sections lie delta away
-    from chic_register.solve import template_shifts
+    from chic_register.pipeline.register import template_shifts
 
     sim = simulate_slice(neuro_geometry, 20, 30, 40, 15, slice_thickness_mm=0.0)
     model, b, _, T, _, a = _true_setup(neuro_geometry, sim)
@@ -405,7 +405,7 @@ def test_template_shifts_find_a_known_in_plane_shift(neuro_geometry):
 def test_template_fit_is_more_precise_than_the_centroid(neuro_geometry):
     # the same noisy slices (uniform +-0.05), evaluated at the true pose: the template positions scatter
     # clearly less than the centroid model's (about 0.33 vs 0.5 noise sigmas in pixels)
-    from chic_register.solve import centroid_offsets, template_shifts
+    from chic_register.pipeline.register import centroid_offsets, template_shifts
 
     rng = np.random.default_rng(7)
     tpl, cen = [], []
@@ -480,7 +480,7 @@ def test_a_series_decides_what_one_slice_cannot():
 def test_slice_depth_is_slice_angles_depth():
     """The trust check's depth alone (slice_depth_mm) is slice_angles' depth bit for bit, normals up or down,
     NaN for a plane parallel to the axis."""
-    from chic_register.pose import slice_depth_mm
+    from chic_register.model.pose import slice_depth_mm
 
     rng = np.random.default_rng(3)
     for _ in range(500):

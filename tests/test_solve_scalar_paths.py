@@ -5,10 +5,10 @@ import math
 import numpy as np
 import pytest
 
-from chic_register.matching import gated_matching, hungarian, matched_pairs
-from chic_register.pose import slice_frame
-from chic_register.refine import _residuals_jacobian
-from chic_register.tube_model import (
+from chic_register.util.matching import gated_matching, hungarian, matched_pairs
+from chic_register.model.pose import slice_frame
+from chic_register.fit.refine import _residuals_jacobian
+from chic_register.model.tube_model import (
     TubeModel,
     _crossing_jacobian,
     _crossings_memo,

@@ -5,12 +5,12 @@ from __future__ import annotations
 import numpy as np
 import pytest
 
-from chic_register import section
-from chic_register.pose import invert
-from chic_register.section import fit_sections, joint_windows, section_model, section_windows, tube_frames
-from chic_register.simulate import simulate_slice
-from chic_register.solve import plane_crossings, prepare_geometry
-from chic_register.tube_model import TubeModel, _crossing_jacobian, _exp_se3, _section_extent
+from chic_register.fit import section
+from chic_register.model.pose import invert
+from chic_register.fit.section import fit_sections, joint_windows, section_model, section_windows, tube_frames
+from chic_register.imaging.simulate import simulate_slice
+from chic_register.pipeline.register import plane_crossings, prepare_geometry
+from chic_register.model.tube_model import TubeModel, _crossing_jacobian, _exp_se3, _section_extent
 
 
 def _near_end(neuro_geometry, seed=4):
@@ -126,7 +126,7 @@ def test_geometry_key_memo_of_the_tubes_repr_is_the_repr(neuro_geometry):
     changed tube) its own, and never memoises tubes holding a value a caller could change in place."""
     import dataclasses
 
-    from chic_register.tube_model import _TUBES_REPR, _GeometryKey, _immutable_tubes, _tubes_repr
+    from chic_register.model.tube_model import _TUBES_REPR, _GeometryKey, _immutable_tubes, _tubes_repr
 
     tubes = neuro_geometry.tubes
     assert _immutable_tubes(tubes)
@@ -147,7 +147,9 @@ def test_gauss_newton_solve_without_numpys_private_gufunc_gives_the_same_steps(m
     the public wrapper gives the same step, and NaNs (not an exception) for a singular matrix, as the gufunc does."""
     import numpy as np
 
-    from chic_register import lapack, refine
+    from chic_register.util import lapack
+
+    from chic_register.fit import refine
 
     assert refine._solve is lapack.solve_vector
     rng = np.random.default_rng(5)

@@ -11,10 +11,10 @@ import sys
 import numpy as np
 import pytest
 
-from chic_register.geometry import HelixTube, bracketed_root
-from chic_register.matching import gated_matching, hungarian
-from chic_register.simulate import simulate_slice, write_simulated
-from chic_register.uncertainty import normal_quantile
+from chic_register.model.geometry import HelixTube, bracketed_root
+from chic_register.util.matching import gated_matching, hungarian
+from chic_register.imaging.simulate import simulate_slice, write_simulated
+from chic_register.precision.uncertainty import normal_quantile
 
 SLOW_IMPORTS = ("scipy.optimize", "SimpleITK", "matplotlib")
 
@@ -27,26 +27,26 @@ def _modules_after(code: str) -> set[str]:
 
 
 def test_geometry_import_does_not_pull_in_scipy_optimize():
-    mods = _modules_after("import chic_register.geometry")
-    assert "chic_register.geometry" in mods and "scipy.optimize" not in mods
+    mods = _modules_after("import chic_register.model.geometry")
+    assert "chic_register.model.geometry" in mods and "scipy.optimize" not in mods
 
 
 def test_one_shot_dicom_solve_imports_only_what_a_slice_needs(tmp_path, neuro_geometry, neuro_geometry_file):
     sim = simulate_slice(neuro_geometry, 22.0, 20.0, 30.0, 15.0, noise="rician", snr=20, rng=3)
     dcm = tmp_path / "slice.dcm"
     write_simulated(sim, dcm)
-    code = ("import sys\nfrom chic_register.cli import main\n"
+    code = ("import sys\nfrom chic_register.cli.main import main\n"
             f"rc = main(['solve', {str(dcm)!r}, '--geometry', {str(neuro_geometry_file)!r}, '--json'])\n"
             "assert rc == 0, rc")
     mods = _modules_after(code)
-    assert "chic_register.solve" in mods and "pydicom" in mods  # it did solve, from the DICOM
+    assert "chic_register.pipeline.register" in mods and "pydicom" in mods  # it did solve, from the DICOM
     assert not [m for m in mods if m.split(".")[0] in ("SimpleITK", "matplotlib", "pyigtl")
                 or m.startswith(("scipy.optimize", "scipy.ndimage", "scipy.special"))
                 or m == "numpy.ma" or m.startswith("numpy.ma.")  # np.median / np.unique import it: ~40 ms
-                or m in ("statistics", "fractions", "chic_register.volume", "chic_register.volume_register")]  # NormalDist: ~4 ms (uncertainty.normal_quantile instead)
+                or m in ("statistics", "fractions", "chic_register.io.volumes", "chic_register.pipeline.volume")]  # NormalDist: ~4 ms (uncertainty.normal_quantile instead)
     # a sharp slice needs neither the bound's renderer (pose_params holds the covariance's convention) nor the
     # blurred pixel fit (wide_blobs decides it is not needed)
-    assert "chic_register.crlb" not in mods and "chic_register.blurred_fit" not in mods
+    assert "chic_register.precision.crlb" not in mods and "chic_register.fit.blurred" not in mods
 
 
 def test_normal_quantile_matches_the_standard_library():
@@ -116,7 +116,7 @@ def test_gated_matching_maximises_allowed_pairs_first():
 def test_chi_square_quantile_without_scipy_matches_scipy():
     from scipy.special import gammainc, gammaincinv
 
-    from chic_register.verify_pose import gamma_p, gamma_p_inverse
+    from chic_register.verify.pixels import gamma_p, gamma_p_inverse
 
     for a in (1.5, 3.0, 4.5, 10.0, 27.0, 100.0):
         for p in (0.01, 0.1, 0.5, 0.9):

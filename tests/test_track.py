@@ -12,9 +12,9 @@ import time
 import numpy as np
 import pytest
 
-from chic_register.pose import apply
-from chic_register.simulate import simulate_slice, write_simulated
-from chic_register.track import track
+from chic_register.model.pose import apply
+from chic_register.imaging.simulate import simulate_slice, write_simulated
+from chic_register.live.folder import track
 
 # near-normal slices: their tilt is known to ~0.3 deg, more than the solver's default trust limit proves; these
 # tests are about tracking files, so they lift the precision refusal (every other check of the pose applies)
@@ -170,7 +170,7 @@ def test_poses_are_sent_over_openigtlink(tmp_path, neuro_geometry, staged):
 def test_cli_track_prints_json_lines(tmp_path, neuro_geometry_file, staged, capsys):
     import json
 
-    from chic_register.cli import main
+    from chic_register.cli.main import main
 
     watch = tmp_path / "w"
     watch.mkdir()

@@ -7,8 +7,8 @@ import pytest
 import SimpleITK as sitk
 
 from chic_register.errors import ChicRegisterError
-from chic_register.pose import apply, invert, rigid, rot_y, rot_z
-from chic_register.transforms import read_tfm, sitk_to_matrix, write_tfm
+from chic_register.model.pose import apply, invert, rigid, rot_y, rot_z
+from chic_register.io.transforms import read_tfm, sitk_to_matrix, write_tfm
 
 
 def _pose():
@@ -56,8 +56,8 @@ def test_read_rejects_non_transform(tmp_path):
 
 
 def test_tfm_of_a_registration_reads_back_equal(tmp_path, neuro_geometry):
-    from chic_register.simulate import simulate_slice
-    from chic_register.solve import register
+    from chic_register.imaging.simulate import simulate_slice
+    from chic_register.pipeline.register import register
 
     sim = simulate_slice(neuro_geometry, 22.0, 12.0, 40.0, -15.0, noise="rician", snr=25.0, rng=5,
                          image_position=(-70.0, -50.0, 30.0))
@@ -71,8 +71,8 @@ def test_tfm_of_a_registration_reads_back_equal(tmp_path, neuro_geometry):
 def test_cli_solve_writes_tfm_equal_to_its_json(tmp_path, neuro_geometry, neuro_geometry_file, capsys):
     import json
 
-    from chic_register.cli import main
-    from chic_register.simulate import simulate_slice, write_simulated
+    from chic_register.cli.main import main
+    from chic_register.imaging.simulate import simulate_slice, write_simulated
 
     sim = simulate_slice(neuro_geometry, 30.0, 8.0, -20.0, 60.0, noise="rician", snr=25.0, rng=2,
                          image_position=(-64.0, -64.0, 12.0))

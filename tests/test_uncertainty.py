@@ -7,8 +7,8 @@ import math
 import numpy as np
 import pytest
 
-from chic_register.calibration import run_calibration, z001_geometry
-from chic_register.cli import main
+from chic_register.studies.calibration import run_calibration, z001_geometry
+from chic_register.cli.main import main
 
 
 # tilted poses: the verification refuses single slices near tilt 0 of neuro as too imprecise to trust
@@ -93,7 +93,7 @@ def test_precision_command(tmp_path, neuro_geometry_file, capsys):
 
 
 def test_default_target_is_the_tool_tip(needle_geometry, neuro_geometry):
-    from chic_register.uncertainty import target_point
+    from chic_register.precision.uncertainty import target_point
 
     assert target_point(needle_geometry) == pytest.approx((0.0, 0.0, -50.0))  # the needle tip of the spec
     assert target_point(neuro_geometry) == (0.0, 0.0, 25.0)  # no tool: the body's centre on its axis
@@ -128,7 +128,7 @@ def test_noise_correlation_reads_an_interpolated_image_and_not_objects():
     0.7 once the image is zoomed 2x bilinearly (each new pixel half-shares its neighbour's noise)."""
     from scipy import ndimage as ndi
 
-    from chic_register.uncertainty import correlation_inflation, noise_correlation, noise_correlation_axes
+    from chic_register.precision.uncertainty import correlation_inflation, noise_correlation, noise_correlation_axes
 
     rng = np.random.default_rng(4)
     img = np.hypot(1.0 + rng.normal(0, 0.3, (160, 160)), rng.normal(0, 0.3, (160, 160)))
@@ -156,7 +156,7 @@ def test_noise_correlation_reads_an_interpolated_image_and_not_objects():
 def test_clear_blocks_are_the_blocks_wholly_clear_of_blobs_and_finite():
     """The noise correlation's blocks, found from the footprints' boxes: the blocks whose every pixel is finite and
     outside every footprint's box grown by the guard (clear_of_blobs), footprints at the image's edges included."""
-    from chic_register.uncertainty import clear_blocks, clear_of_blobs
+    from chic_register.precision.uncertainty import clear_blocks, clear_of_blobs
 
     rng = np.random.default_rng(8)
     for shape in ((96, 96), (101, 77), (64, 130)):
@@ -180,10 +180,10 @@ def test_an_interpolated_slice_is_not_trusted_as_if_its_pixels_were_independent(
 
     from scipy import ndimage as ndi
 
-    import chic_register.verify_pose as vp
+    import chic_register.verify.pixels as vp
     from chic_register.errors import NoLock
-    from chic_register.slices import Slice
-    from chic_register.solve import register
+    from chic_register.model.slices import Slice
+    from chic_register.pipeline.register import register
     from tests.test_verify_pose import hunt
 
     geoms = hunt.load_geometries()

@@ -11,11 +11,11 @@ import sys
 import numpy as np
 import pytest
 
-import chic_register.verify_pose as vp
+import chic_register.verify.pixels as vp
 from chic_register.errors import NoLock
-from chic_register.pose import invert
-from chic_register.slices import Slice
-from chic_register.solve import register
+from chic_register.model.pose import invert
+from chic_register.model.slices import Slice
+from chic_register.pipeline.register import register
 from tests.test_verify_pose import ROOT, hunt
 
 
@@ -77,7 +77,7 @@ def test_a_pose_fitted_to_half_blobs_is_refused_by_the_sections_shift(monkeypatc
 def test_a_shifted_section_is_measured():
     """section_shift reads a section rendered 1.5 px off its window's prediction as ~1.5 px, and an unshifted one as
     ~0, with a standard error that follows the noise."""
-    from chic_register.psf import gaussian_blur
+    from chic_register.imaging.psf import gaussian_blur
 
     yy, xx = np.mgrid[0:24, 0:24]
 
@@ -125,7 +125,7 @@ def test_a_signed_image_is_refused(monkeypatch, seed, index):
     """The real part of a complex image under a phase ramp (the hunt's signed_phase): its sections are shaded by
     the cosine of the phase, and the three such slices of seeds 2 and 3 locked 0.52-0.90 deg off with residuals
     like noise. The background's blocks averaging below zero in one part and above it in another refuse them."""
-    from chic_register import solve
+    from chic_register.pipeline import register as solve
 
     sl, _, geom = damaged_case(seed, index, "signed_phase")
     with pytest.raises(NoLock, match="signed"):
@@ -138,7 +138,7 @@ def test_a_magnitude_image_with_an_offset_or_shading_is_not_signed():
     """An offset subtracted from a magnitude image's noise moves every background block alike, shading scales them:
     neither gives blocks of both signs, nor do the constant blocks of a masked field (no noise samples); the same
     background under a cosine that turns negative does."""
-    from chic_register.magnitude import MIN_SIGNED_BLOCKS, signed_blocks
+    from chic_register.detect.magnitude import MIN_SIGNED_BLOCKS, signed_blocks
 
     rng = np.random.default_rng(5)
     noise = np.hypot(rng.standard_normal((128, 128)), rng.standard_normal((128, 128)))  # Rayleigh, sigma 1

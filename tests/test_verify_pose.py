@@ -11,13 +11,13 @@ from pathlib import Path
 import numpy as np
 import pytest
 
-from chic_register.envelope import plane_status
+from chic_register.model.envelope import plane_status
 from chic_register.errors import NoLock
-from chic_register.geometry import LineTube
-from chic_register.pose import invert, slice_frame
-from chic_register.simulate import add_rician_noise, render_tubes, simulate_slice
-from chic_register.slices import Slice
-from chic_register.solve import register
+from chic_register.model.geometry import LineTube
+from chic_register.model.pose import invert, slice_frame
+from chic_register.imaging.simulate import add_rician_noise, render_tubes, simulate_slice
+from chic_register.model.slices import Slice
+from chic_register.pipeline.register import register
 
 ROOT = Path(__file__).resolve().parents[1]
 
@@ -114,7 +114,7 @@ def _circle_blob_slice(neuro_geometry, missing=()):
 def test_a_blob_on_the_tube_circle_that_no_pose_uses_is_left_alone(neuro_geometry, monkeypatch):
     """Tube-sized fluid on the circle of tube centres: the slice is solved again without each matched blob (the
     rivals that might use it); none explains the pixels, so the pose stands, right."""
-    import chic_register.rivals as rv
+    import chic_register.verify.rivals as rv
 
     calls = []
     real = rv._stray_rivals
@@ -163,10 +163,10 @@ def test_hunt_case_223_wrong_spacing_at_high_tilt_is_refused():
 def test_a_section_pulled_off_alone_is_left_out_and_the_pose_refitted(neuro_geometry):
     """Hand-made section measurements at the true crossings, one moved 0.3 mm against a 0.01 mm noise: that tube is
     left out and the refit lands on the truth; with every section where it belongs, none is."""
-    from chic_register.accuracy import drop_section_outliers
-    from chic_register.refine import refine
-    from chic_register.solve import SolveOptions
-    from chic_register.tube_model import plane_crossings, prepare_geometry
+    from chic_register.fit.accuracy import drop_section_outliers
+    from chic_register.fit.refine import refine
+    from chic_register.pipeline.register import SolveOptions
+    from chic_register.model.tube_model import plane_crossings, prepare_geometry
 
     model = prepare_geometry(neuro_geometry)[0]
     T_F_from_S = slice_frame(20.0, 25.0, 40.0, 10.0)
@@ -236,7 +236,7 @@ def test_wide_blobs_are_verified_with_a_fitted_point_spread(monkeypatch):
     """Z-frame rods drawn 2.5x as wide as the file says (point spread, as real images show them) are refused by the
     sharp model's shape test; the verification then fits a Gaussian point spread and the blurred model explains
     the pixels: the pose locks within 0.3 mm. Without the point-spread fit the same slice is refused."""
-    import chic_register.verify_pose as vp
+    import chic_register.verify.pixels as vp
     from chic_design.layout import design_geometry
     from chic_design.spec import load_spec
 
@@ -259,7 +259,7 @@ def test_wide_blobs_are_verified_with_a_fitted_point_spread(monkeypatch):
 def test_window_least_squares_are_numpys():
     """The windows' least squares skip np.linalg.lstsq's wrapper: the same coefficients and rank, bit for bit, for
     full-rank, collinear and empty columns, and its answer where the call gives no finite one (NaN pixels)."""
-    from chic_register.window_stats import _lstsq
+    from chic_register.verify.windows import _lstsq
 
     rng = np.random.default_rng(0)
     for i in range(300):
@@ -280,7 +280,7 @@ def test_window_least_squares_are_numpys():
 def test_aspect_standard_error_matches_the_scatter_of_noisy_sections():
     """A tilted section's spread aspect (column over row, :func:`_spread`) measured in 2000 noisy draws scatters as
     :func:`_aspect_se` predicts from the pixel noise (within 15 %), at a low and a moderate SNR."""
-    from chic_register.window_stats import _aspect_se, _spread
+    from chic_register.verify.windows import _aspect_se, _spread
 
     r, c = np.mgrid[0:15, 0:19].astype(float)
     section = np.clip(1.0 - np.hypot((r - 7.0) / 3.0, (c - 9.0) / 4.5), 0.0, 0.3) / 0.3  # an ellipse, 3 x 4.5 px
@@ -311,7 +311,7 @@ def test_a_rival_that_falls_back_onto_the_pose_under_the_section_fit_is_no_rival
     pose; given the section fit too, it lands on the pose, so both lock on the truth. Without that refit both are
     refused as ambiguous. Case 4340 (its tilt mirrored: a rival 18 deg off that stays there and verifies) is
     refused all the same."""
-    import chic_register.rivals as rv
+    import chic_register.verify.rivals as rv
 
     for case in (3423, 3968):
         out = _run_hunt_case(case)
@@ -349,7 +349,7 @@ def test_a_motion_ghost_of_the_whole_pattern_is_a_rival(monkeypatch):
     """Hunt seed 2, case 476: a motion ghost at 45 % repeats all nine sections 22 mm away and the first guess fits
     the ghost; the slice solved again on the blobs the pose leaves unmatched finds the real copy, which explains
     the pixels far better: refused as ambiguous, not locked 22 mm off. Without that rival it false-locks."""
-    import chic_register.rivals as rv
+    import chic_register.verify.rivals as rv
 
     out = _run_hunt_case(476, 2)
     assert out["outcome"] == "no_lock" and "ambiguous" in out["reason"], out
@@ -361,7 +361,7 @@ def test_the_pose_is_never_more_precise_than_its_pixel_noise_allows(monkeypatch)
     """Hunt seed 2, case 146 (a ghosted needle-guide slice, 0.61 deg off): its nine residuals scatter at a third
     of their noise, so the scatter-based precision passed; the covariance from the pixel noise puts 3 sigma at
     0.82 deg and the pose is refused as imprecise. Without that test it false-locks."""
-    import chic_register.solve as so
+    import chic_register.pipeline.register as so
 
     out = _run_hunt_case(146, 2)
     assert out["outcome"] == "no_lock" and "predicted from the pixel noise" in out["reason"], out
@@ -431,7 +431,7 @@ def test_a_fiducial_in_a_water_bath_is_found_on_the_flattened_image(case):
 def test_difference_sigma_holds_beside_large_bright_regions():
     """Gaussian noise (sigma 2) over an image half of which is a bright slab: the neighbour-difference estimate is
     within 5 % of 2, where the pixels' own spread is twenty times that."""
-    from chic_register.noise import difference_sigma
+    from chic_register.detect.noise import difference_sigma
 
     rng = np.random.default_rng(1)
     img = rng.normal(0.0, 2.0, (200, 200))

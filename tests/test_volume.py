@@ -12,10 +12,10 @@ from scipy import ndimage
 from scipy.spatial import cKDTree
 
 from chic_register.errors import ChicRegisterError, ImageReadError
-from chic_register.pose import apply, invert, rigid, rot_y, rot_z, slice_frame
-from chic_register.reslice import default_depths, reslice, reslice_study
-from chic_register.simulate import render_slice
-from chic_register.volume import Volume, read_volume, simulate_volume, write_volume
+from chic_register.model.pose import apply, invert, rigid, rot_y, rot_z, slice_frame
+from chic_register.studies.reslice import default_depths, reslice, reslice_study
+from chic_register.imaging.simulate import render_slice
+from chic_register.io.volumes import Volume, read_volume, simulate_volume, write_volume
 
 LPS_RAS = np.diag([-1.0, -1.0, 1.0, 1.0])
 OBLIQUE = rot_z(25.0) @ rot_y(-12.0)  # direction of an oblique acquisition
@@ -226,7 +226,7 @@ def test_reslice_matches_direct_rendering(neuro_geometry, clean_volume, angles):
 
 
 def test_same_pose_from_nifti_nrrd_and_dicom(tmp_path, neuro_geometry, sim_volume):
-    from chic_register.solve import register
+    from chic_register.pipeline.register import register
 
     poses = {}
     for name in ("vol.nii.gz", "vol.nrrd", "series"):
@@ -265,7 +265,7 @@ def test_reslice_study_table(neuro_geometry, sim_volume):
 def test_cli_simulate_volume_then_reslice(tmp_path, neuro_geometry_file, capsys):
     import json
 
-    from chic_register.cli import main
+    from chic_register.cli.main import main
 
     vol = tmp_path / "vol.nrrd"
     rc = main(["simulate", "--geometry", str(neuro_geometry_file), "--depth", "25", "--tilt", "5", "--azimuth", "30",
@@ -286,7 +286,7 @@ def test_cli_simulate_volume_then_reslice(tmp_path, neuro_geometry_file, capsys)
 
 
 def test_cli_bad_inputs(tmp_path, neuro_geometry_file, capsys):
-    from chic_register.cli import main
+    from chic_register.cli.main import main
 
     g = str(neuro_geometry_file)
     assert main(["simulate", "--geometry", g, "--depth", "25", "--volume-shape", "8", "8", "8", "--out",
@@ -309,7 +309,7 @@ def test_cli_bad_inputs(tmp_path, neuro_geometry_file, capsys):
 def test_cli_solve_volume_slices_jointly(tmp_path, neuro_geometry_file, sim_volume, capsys):
     import json
 
-    from chic_register.cli import main
+    from chic_register.cli.main import main
 
     path = write_volume(sim_volume.volume, tmp_path / "vol.nii.gz")
     rc = main(["solve", str(path), "--slices", "22", "30", "38", "--geometry", str(neuro_geometry_file), "--json"])
@@ -327,7 +327,7 @@ def test_neuro_volume_registers_without_slices_leaving_out_the_slices_that_fail_
     """A 60-slice neuro volume reaching past both end faces: slices near an end, whose cut tubes the verification
     cannot tell from a wrong pose, are skipped with that reason; the rest register jointly (this raised no_lock
     for the whole volume before)."""
-    from chic_register.volume_register import register_volume
+    from chic_register.pipeline.volume import register_volume
 
     T = rigid(rot_z(20) @ rot_y(8), (1.0, -1.0, -25.0))
     sv = simulate_volume(neuro_geometry, T, (128, 128, 60), (0.5, 0.5, 1.0), noise="rician", snr=20, rng=1,
@@ -346,7 +346,7 @@ def test_a_folder_of_several_series_lists_them_and_solves_the_one_named(tmp_path
 
     import pydicom
 
-    from chic_register.cli import main
+    from chic_register.cli.main import main
 
     g = str(neuro_geometry_file)
     for name, depth in (("scan", "25"), ("other", "20")):

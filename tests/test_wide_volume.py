@@ -2,19 +2,19 @@
 
 Round trips: geometry -> simulated volume (Rician SNR 20, blob width 2x nominal, axial and tilted near the design's
 computed limit: neuro 26.5 deg, needle-guide 24.5 deg at mid depth) -> ``register_volume`` -> compared with the known
-pose at the frame centre. The pose comes from the voxels (chic_register.volume_search), is fitted through the blurred
-model to spread slices and verified on them (chic_register.volume_register._register_wide).
+pose at the frame centre. The pose comes from the voxels (chic_register.guess.volume_search), is fitted through the blurred
+model to spread slices and verified on them (chic_register.pipeline.volume._register_wide).
 """
 
 import numpy as np
 import pytest
 
 from chic_register.errors import NoLock
-from chic_register.pose import apply, invert, rigid, rot_y, rot_z
-from chic_register.tube_model import prepare_geometry
-from chic_register.volume import simulate_volume
-from chic_register.volume_register import register_volume
-from chic_register.volume_search import volume_first_guesses
+from chic_register.model.pose import apply, invert, rigid, rot_y, rot_z
+from chic_register.model.tube_model import prepare_geometry
+from chic_register.io.volumes import simulate_volume
+from chic_register.pipeline.volume import register_volume
+from chic_register.guess.volume_search import volume_first_guesses
 
 PROTOCOL = {"neuro": ((0.5, 0.5, 2.0), (128, 128, 40)), "needle": ((0.3, 0.3, 1.0), (128, 128, 40))}
 

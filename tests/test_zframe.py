@@ -14,11 +14,11 @@ from chic_design.feasibility import check_design
 from chic_design.frame_symmetry import frame_symmetries
 from chic_design.layout import design_geometry, fiducial_geometry
 from chic_design.spec import load_spec, parse_spec
-from chic_register.blob_width import BlobWidth, render_tubes_widened
-from chic_register.cli import main as register_main
-from chic_register.geometry import Body, content_sha256, geometry_from_dict, load_geometry, write_geometry
-from chic_register.pose import slice_frame
-from chic_register.simulate import simulate_slice
+from chic_register.imaging.blob_width import BlobWidth, render_tubes_widened
+from chic_register.cli.main import main as register_main
+from chic_register.model.geometry import Body, content_sha256, geometry_from_dict, load_geometry, write_geometry
+from chic_register.model.pose import slice_frame
+from chic_register.imaging.simulate import simulate_slice
 
 from .conftest import NEEDLE, NEURO, ROOT
 
@@ -176,7 +176,7 @@ def test_z001_is_symmetric_under_a_half_turn_about_y(zgeom):
 def test_the_solvers_coarse_symmetry_test_bounds_the_full_one_from_below(zgeom, neuro_geometry, needle_geometry):
     """prior_needed first compares 9 of the 65 points per tube (a subset of the same pairs): each coarse mismatch
     is a lower bound, so a frame it clears has no symmetry, and the frames it does not clear get the full test."""
-    from chic_register.frame_symmetry import EXACT_SHARE, _mismatches, candidate_rotations, prior_needed
+    from chic_register.model.symmetry import EXACT_SHARE, _mismatches, candidate_rotations, prior_needed
 
     for g in (zgeom, neuro_geometry, needle_geometry):
         Rs = np.stack([R for _, R in candidate_rotations(g.body.length)])
@@ -191,7 +191,7 @@ def test_the_solvers_coarse_symmetry_test_bounds_the_full_one_from_below(zgeom, 
 def test_prior_needed_memo_gives_what_the_test_itself_gives(zgeom, neuro_geometry, needle_geometry):
     """prior_needed is memoised per geometry and tolerance: every answer equals the unmemoised test's, on repeat
     calls too, and a different tolerance is not served another's answer."""
-    from chic_register.frame_symmetry import _prior_needed, prior_needed
+    from chic_register.model.symmetry import _prior_needed, prior_needed
 
     for g in (zgeom, neuro_geometry, needle_geometry):
         for tol in (0.05, 0.1, 0.7):
@@ -297,7 +297,7 @@ def test_simulate_cli_on_a_zframe_geometry_slices_and_volume(zgeom, tmp_path, ca
     assert register_main(["simulate", "--geometry", str(geo), "--depth", "30", "--tilt", "8", "--out", str(vol),
                           "--volume-shape", "150", "150", "9", "--voxel-size", "0.5", "0.5", "2",
                           "--blob-width", "1.5", "--noise", "none"]) == 0
-    from chic_register.volume import read_volume
+    from chic_register.io.volumes import read_volume
 
     mid = np.asarray(read_volume(vol).voxels)[4]  # the middle k-plane: depth 30, tilt 8
     truth = json.loads((tmp_path / "v.nii.gz.truth.json").read_text())
@@ -318,7 +318,7 @@ def test_check_and_solver_agree_on_ambiguity(zgeom, zcheck, tmp_path):
     with one; with the -x diagonal reversed, which check calls unambiguous, it registers alone.
     """
     from chic_register.errors import NoLock
-    from chic_register.solve import register
+    from chic_register.pipeline.register import register
 
     centre = np.array([0.0, 0.0, 30.0, 1.0])
 

@@ -10,7 +10,7 @@ from chic_design.build import build_design
 from chic_design.layout import design_geometry
 from chic_design.spec import load_spec
 from chic_design.verify import section_loops, verify_export
-from chic_register.geometry import load_geometry
+from chic_register.model.geometry import load_geometry
 
 from .conftest import ROOT
 
@@ -75,7 +75,7 @@ def test_verify_catches_a_rod_moved_in_geometry_yaml(built, tmp_path):
 
     import yaml
 
-    from chic_register.geometry import content_sha256
+    from chic_register.model.geometry import content_sha256
 
     _, result = built
     folder = tmp_path / "copy"

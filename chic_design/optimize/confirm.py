@@ -15,7 +15,7 @@ import math
 
 import numpy as np
 
-from chic_register.evaluate import StudyCase
+from chic_register.studies.evaluate import StudyCase
 
 from ..layout import fiducial_geometry
 from ..spec import parse_spec
@@ -45,8 +45,8 @@ def image_shape(outer_diameter_mm: float, tilt_deg: float, pixel_mm: float) -> t
 def simulate_parallel(geom, depth_mm: float, tilt_deg: float, azimuth_deg: float, twist_deg: float, n_slices: int,
                       spacing_mm: float, pixel_mm: float, thickness_mm: float, snr: float, rng, shape=None):
     """``n_slices`` parallel simulated slices ``spacing_mm`` apart (along their normal), centred on the pose, one
-    fiducial pose in the scanner (a series as :class:`chic_register.crlb.Protocol` models it), Rician noise."""
-    from chic_register.simulate import simulate_slice
+    fiducial pose in the scanner (a series as :class:`chic_register.precision.crlb.Protocol` models it), Rician noise."""
+    from chic_register.imaging.simulate import simulate_slice
 
     shape = shape or image_shape(geom.body.outer_diameter, tilt_deg, pixel_mm)
     step = spacing_mm / math.cos(math.radians(tilt_deg))  # along the axis between parallel planes
@@ -80,9 +80,9 @@ def confirm_design(spec_data: dict, req_data: dict, draws: int, seed: int) -> di
     imprecise to trust). Errors are those of the middle slice's pose.
     """
     from chic_register.errors import ImprecisePose, NoLock
-    from chic_register.evaluate import _normal_angle_deg
-    from chic_register.pose import invert, slice_angles, wrap_deg
-    from chic_register.solve import register
+    from chic_register.studies.evaluate import _normal_angle_deg
+    from chic_register.model.pose import invert, slice_angles, wrap_deg
+    from chic_register.pipeline.register import register
 
     req = Requirements.model_validate(req_data)
     spec = parse_spec(spec_data, "<candidate>")

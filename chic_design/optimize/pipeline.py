@@ -16,7 +16,7 @@ from collections import Counter
 from dataclasses import dataclass
 from pathlib import Path
 
-from chic_register.atomic import write_json, write_text
+from chic_register.util.atomic import write_json, write_text
 
 from ..feasibility import check_geometry, save_tilt_plot
 from ..layout import fiducial_geometry
@@ -94,7 +94,7 @@ def _chosen_pictures(req: Requirements, name: str, result: dict, folder: Path) -
                             slice_thickness_mm=req.imaging.slice_thickness, min_wall_mm=req.printer.min_wall,
                             max_overhang_deg=req.printer.max_overhang_deg)
     save_tilt_plot(report, folder / "tilt_limits.png")
-    from chic_register.crlb import precision_map
+    from chic_register.precision.crlb import precision_map
 
     from .precision import protocol_of
 

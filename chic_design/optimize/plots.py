@@ -6,7 +6,7 @@ from pathlib import Path
 
 import numpy as np
 
-from chic_register.atomic import save_figure
+from chic_register.util.atomic import save_figure
 
 from .choose import LABELS
 from .score import OBJECTIVES

@@ -1,6 +1,6 @@
 """Predicted precision of a candidate over the required depth/tilt range (the search's third objective).
 
-The bound itself lives in :mod:`chic_register.crlb` (Cramér-Rao lower bound of
+The bound itself lives in :mod:`chic_register.precision.crlb` (Cramér-Rao lower bound of
 the pose from the image model). This module only chooses where to evaluate it:
 ``DEPTH_SAMPLES`` depths across ``required.depth_mm`` at the lowest and the
 highest required tilt, the tilted ones at ``AZIMUTHS_DEG`` (a tilt toward a
@@ -13,7 +13,7 @@ from __future__ import annotations
 
 import numpy as np
 
-from chic_register.geometry import FiducialGeometry
+from chic_register.model.geometry import FiducialGeometry
 
 from .requirements import Requirements
 from .trust import SOLVER_OVER_CRLB, predicted_solver_error, solver_limits
@@ -37,7 +37,7 @@ def sample_poses(req: Requirements) -> list[tuple[float, float, float]]:
 
 def protocol_of(req: Requirements):
     """The bound's imaging protocol from the requirements (slices ``slice_thickness`` apart by default)."""
-    from chic_register.crlb import Protocol
+    from chic_register.precision.crlb import Protocol
 
     im = req.imaging
     spacing = im.slice_spacing if im.slice_spacing is not None else im.slice_thickness
@@ -50,7 +50,7 @@ def method(req: Requirements) -> str:
     poses = sample_poses(req)
     depths = sorted({z for z, _, _ in poses})
     tilts = sorted({t for _, t, _ in poses})
-    return (f"Cramér-Rao bound (chic_register.crlb, renderer quality '{QUALITY}'), worst TRE over {len(poses)} "
+    return (f"Cramér-Rao bound (chic_register.precision.crlb, renderer quality '{QUALITY}'), worst TRE over {len(poses)} "
             f"poses: depths {', '.join(f'{z:g}' for z in depths)} mm x tilts {', '.join(f'{t:g}' for t in tilts)} "
             f"deg (tilted ones at azimuths {', '.join(f'{a:g}' for a in AZIMUTHS_DEG)} deg), twist 0, "
             f"{req.imaging.n_slices} slice(s); the solver's 3-sigma error predicted as the bound's worst "
@@ -60,7 +60,7 @@ def method(req: Requirements) -> str:
 def predicted_precision(geom: FiducialGeometry, req: Requirements) -> dict:
     """Worst case over :func:`sample_poses` of the bound's SDs and TRE at the target (mm, deg), and of the
     solver's predicted 3-sigma error (``solver_tre_mm`` at the frame centre, ``solver_rot_deg``; :mod:`.trust`)."""
-    from chic_register.crlb import pose_crlb
+    from chic_register.precision.crlb import pose_crlb
 
     protocol = protocol_of(req)
     target = np.asarray(req.required.target_mm, dtype=float)

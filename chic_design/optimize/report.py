@@ -8,7 +8,7 @@ from pathlib import Path
 
 import yaml
 
-from chic_register.atomic import write_text
+from chic_register.util.atomic import write_text
 
 from ..spec import parse_spec
 from .choose import LABELS, compare

@@ -204,7 +204,7 @@ def parse_requirements(data, path="<requirements>") -> Requirements:
 def load_requirements(path) -> Requirements:
     """Read and validate a requirements file."""
     from chic_register.errors import InputFileError
-    from chic_register.safeload import load_yaml_file
+    from chic_register.util.safeload import load_yaml_file
 
     path = Path(path)
     try:

@@ -1,8 +1,8 @@
 """Will the solver trust a candidate's poses? Its refusal test predicted from the Cramér-Rao bound.
 
-``chic_register.solve.register`` refuses a pose whose own predicted error,
-:data:`~chic_register.verify_pose.PRECISION_SIGMAS` (3) times the 1-sigma of
-:func:`~chic_register.verify_pose.pose_precision` (worst direction of the
+``chic_register.pipeline.register.register`` refuses a pose whose own predicted error,
+:data:`~chic_register.verify.pixels.PRECISION_SIGMAS` (3) times the 1-sigma of
+:func:`~chic_register.verify.pixels.pose_precision` (worst direction of the
 rotation, and of the frame centre ``(0, 0, L/2)``'s displacement), exceeds
 ``SolveOptions.trust_rot_deg`` or ``trust_tre_mm``. A design whose slices the
 solver refuses at the required poses is useless, however good its bound, so
@@ -41,8 +41,8 @@ class TrustLimits:
 
 def solver_limits() -> TrustLimits:
     """The limits as ``chic_register`` sets them today (``SolveOptions`` defaults, ``PRECISION_SIGMAS``)."""
-    from chic_register.solve import SolveOptions
-    from chic_register.verify_pose import PRECISION_SIGMAS
+    from chic_register.pipeline.register import SolveOptions
+    from chic_register.verify.pixels import PRECISION_SIGMAS
 
     default = {f.name: f.default for f in fields(SolveOptions)}
     return TrustLimits(float(default["trust_tre_mm"]), float(default["trust_rot_deg"]), float(PRECISION_SIGMAS))
@@ -50,8 +50,8 @@ def solver_limits() -> TrustLimits:
 
 def solver_sds(cov_deg_mm, length_mm: float) -> tuple[float, float]:
     """Worst-direction 1-sigma of the frame centre's displacement (mm) and of the rotation (deg) of a pose
-    covariance in :data:`chic_register.crlb.PARAMETER_ORDER` (what ``pose_precision`` reports, from the bound)."""
-    from chic_register.pose_params import deg_mm_scale as _scale, target_jacobian
+    covariance in :data:`chic_register.precision.crlb.PARAMETER_ORDER` (what ``pose_precision`` reports, from the bound)."""
+    from chic_register.model.pose_params import deg_mm_scale as _scale, target_jacobian
 
     s = _scale()
     C = np.asarray(cov_deg_mm, dtype=float) / np.outer(s, s)  # rad, mm

@@ -1,0 +1,159 @@
+"""``chic-register solve`` (the command layer): read the slices, register them, print the pose, deliver outputs.
+
+Exit codes as :mod:`chic_register.cli.main`: 0, 2 bad input, 3 no lock, 4 when an
+output (``--tfm``, ``--scene``, ``--overlay``, OpenIGTLink) failed after the pose was printed.
+"""
+
+from __future__ import annotations
+
+import json
+import math
+import sys
+from pathlib import Path
+
+from chic_register.cli.inputs import check_spacing_flag, load_prior
+from chic_register.errors import ChicRegisterError, NoLock
+
+
+def _report_failures(delivery) -> None:
+    for note in delivery.failed:
+        print(f"chic-register: output failed: {note}", file=sys.stderr, flush=True)
+
+
+def run_solve(args) -> int:
+    from chic_register.model.geometry import load_geometry
+    from chic_register.outputs.deliver import EXIT_OUTPUT_FAILED, Delivery, OutputPlan, deliver, deliver_no_lock
+    from chic_register.pipeline.register import register
+
+    plan = OutputPlan.from_args(args).check()
+    geom = load_geometry(args.geometry)
+    options = {}
+    if args.prior:
+        if not (0 < args.prior_max_deg <= 180):
+            raise ChicRegisterError(f"--prior-max-deg must be in (0, 180] deg, got {args.prior_max_deg:g}")
+        options = {"prior": load_prior(args.prior), "prior_max_deg": args.prior_max_deg}
+    slices, skip = _read_solve_inputs(args)
+    extra = {}
+    if args.target is not None:
+        if not all(math.isfinite(v) for v in args.target):
+            raise ChicRegisterError("--target must be three finite numbers (mm in F)")
+        extra["target_F_mm"] = tuple(args.target)
+    if args.max_tre is not None:
+        if not (args.max_tre > 0 and math.isfinite(args.max_tre)):
+            raise ChicRegisterError(f"--max-tre must be a positive number of mm, got {args.max_tre:g}")
+        extra["max_tre_mm"] = args.max_tre
+    if args.trust is not None:
+        tre_mm, rot_deg = args.trust
+        if not all(math.isfinite(v) and v > 0 for v in args.trust):
+            raise ChicRegisterError(f"--trust takes two positive numbers (mm, deg), got {tre_mm:g} {rot_deg:g}")
+        extra.update(trust_tre_mm=tre_mm, trust_rot_deg=rot_deg)
+    early = Delivery()  # a server that cannot listen is an output failure: the pose still comes
+    link = None
+    try:
+        link = plan.open_link()
+    except ChicRegisterError as exc:
+        early.failed.append(f"{plan.igtl_flag}: {exc}")
+    if plan.igtl_listen is not None and link is not None:
+        print(f"chic-register: OpenIGTLink server listening on port {link.port} (a peer may connect now; "
+              f"the pose waits up to {plan.igtl_wait_s:g} s for one)", file=sys.stderr, flush=True)
+    try:
+        try:
+            reg = register(slices, geom, skip_failed=skip, **options, **extra)
+        except NoLock as exc:
+            hint = _series_hint(args, slices, skip)
+            if hint and hint not in exc.reason:
+                exc.reason += hint
+                exc.args = (exc.reason,)
+            _report_failures(early)
+            _report_failures(deliver_no_lock(plan, exc.reason, geom, slices, link))
+            raise
+        # the pose is printed first: a failing optional output (overlay, --tfm, --scene, --igtl) must not lose it
+        _print_pose(args, reg, geom)
+        out = deliver(plan, reg, geom, slices, link)
+    finally:
+        if link is not None:
+            link.close()
+    out.failed[:0] = early.failed
+    for note in out.done:
+        print(f"chic-register: {note}" if args.json else note, file=sys.stderr if args.json else sys.stdout)
+    _report_failures(out)
+    return EXIT_OUTPUT_FAILED if out.failed else 0
+
+
+def _print_pose(args, reg, geom) -> None:
+    """The pose of ``solve``: one JSON object (``--json``) or the human summary."""
+    from chic_register.outputs.deliver import registration_json, tool_pose
+
+    if args.json:
+        print(json.dumps(registration_json(reg, geom), indent=2), flush=True)
+        return
+    t = reg.timing_ms
+    print(f"status: ok ({len(reg.slices)} slice{'s' if len(reg.slices) > 1 else ''} of '{geom.name}'"
+          + (f" used, {len(reg.skipped)} skipped" if reg.skipped else "")
+          + f", {t['total']:.1f} ms: detect {t['detect']:.1f}, pose {t['pose']:.1f})")
+    print("T_scanner_from_fiducial (mm):")
+    for row in reg.T_scanner_from_fiducial:
+        print("  " + "  ".join(f"{v:11.5f}" for v in row))
+    T_tool = tool_pose(reg, geom)
+    if T_tool is not None:
+        print("T_scanner_from_tool (mm):")
+        for row in T_tool:
+            print("  " + "  ".join(f"{v:11.5f}" for v in row))
+        print("tool tip (scanner, mm): " + ", ".join(f"{v:.3f}" for v in T_tool[:3, 3]))
+    for s in reg.slices:
+        print(f"{s.source}: depth {s.depth_mm:.3f} mm, tilt {s.tilt_deg:.3f}, azimuth {s.azimuth_deg:.3f}, "
+              f"twist {s.twist_deg:.3f} deg; residual RMS {s.residual_rms_mm:.3f} mm over {s.n_tubes} tubes")
+        print("  residuals (mm): " + ", ".join(f"{k} {v:.3f}" for k, v in s.residuals_mm.items()))
+    for s in reg.skipped:
+        print(f"skipped {s.source}: {s.reason}")
+    u = reg.uncertainty
+    if u is not None:
+        sd = [math.sqrt(max(0.0, float(u.covariance[i, i]))) for i in range(6)]
+        print(f"predicted TRE {u.predicted_tre_mm:.3f} mm at ({', '.join(f'{v:g}' for v in u.target_F_mm)}) in F; "
+              f"SD rotation {max(sd[:3]):.3f} deg, translation {max(sd[3:]):.3f} mm (largest axis); "
+              f"image noise sigma {', '.join(f'{n.sigma:.4g}' for n in u.noise)}")
+    sys.stdout.flush()
+
+
+def _series_hint(args, slices, skip: bool) -> str:
+    """What to do when the files of one series were given one by one and one of them does not show the frame:
+    every slice given as a file must lock; a volume's slices that do not are skipped."""
+
+    files = [p for p in args.images if Path(p).is_file()]
+    if skip or len(slices) < 3 or len(files) < 3:
+        return ""
+    folders = {str(Path(p).resolve().parent) for p in files}
+    if len(folders) != 1:
+        return ""
+    return (f" (every one of the {len(slices)} slices given must lock; to register only those that show the frame, "
+            f"give the series' folder as one volume: chic-register solve {Path(files[0]).parent} ...)")
+
+
+def _read_solve_inputs(args) -> tuple[list, bool]:
+    """The slices of ``solve`` and whether failing ones may be skipped.
+
+    2-D image files as they are; a volume by its ``--slices`` indices and
+    ranges, or, without them, every native slice (those that do not lock are
+    then skipped and reported).
+    """
+    from chic_register.io.images import is_volume_path, read_slices
+
+    check_spacing_flag(args)
+    volumes = [p for p in args.images if is_volume_path(p)]
+    if args.slices and not volumes:
+        raise ChicRegisterError("--slices applies to volume inputs (.nii, .nii.gz, .nrrd, .mha, DICOM series folder)")
+    if args.series is not None and not any(Path(p).is_dir() for p in args.images):
+        raise ChicRegisterError("--series applies to a folder of DICOM files (the series to read from it)")
+    slices = []
+    for path in args.images:
+        if is_volume_path(path):
+            from chic_register.io.volumes import read_volume
+            from chic_register.pipeline.volume import parse_slice_indices
+
+            vol = read_volume(path, args.series)
+            nk = vol.shape[0]
+            ks = parse_slice_indices(args.slices, nk) if args.slices else range(nk)
+            slices.extend(vol.native_slice(k) for k in ks)
+        else:
+            slices.extend(read_slices([path], args.pixel_spacing))
+    return slices, bool(volumes) and not args.slices

@@ -1,0 +1,82 @@
+"""``chic-register track`` (the command layer): a watched folder (:mod:`~chic_register.live.folder`) or IMAGE
+messages from a scanner bridge (:mod:`~chic_register.live.igtl_track`), with the same outputs as ``solve``.
+
+Exit codes as ``solve``: 0, 2 bad input, 4 when an output (OpenIGTLink, a scene) failed for any image.
+"""
+
+from __future__ import annotations
+
+import json
+import sys
+
+from chic_register.cli.inputs import check_spacing_flag
+from chic_register.errors import ChicRegisterError
+
+
+def run_track(args) -> int:
+    """``chic-register track``: a watched folder, or IMAGE messages from a scanner bridge."""
+    from pathlib import Path
+
+    from chic_register.model.geometry import load_geometry
+    from chic_register.io.igtl import IgtlServer, check_port, parse_address
+    from chic_register.outputs.deliver import EXIT_OUTPUT_FAILED, OutputPlan
+
+    images = args.igtl_images is not None or args.igtl_images_listen is not None
+    if args.igtl_images is not None and args.igtl_images_listen is not None:
+        raise ChicRegisterError("--igtl-images and --igtl-images-listen: give one (connect to the bridge, or listen)")
+    if images and args.folder not in (None, "-"):
+        raise ChicRegisterError(f"track {args.folder} with --igtl-images: images come over OpenIGTLink; give '-' "
+                                "instead of a folder")
+    if not images and args.folder in (None, "-"):
+        raise ChicRegisterError("track: give the FOLDER to watch, or --igtl-images HOST:PORT")
+    if not images and not Path(args.folder).is_dir():
+        raise ChicRegisterError(f"{args.folder}: not a folder")
+    if args.igtl_images is not None:
+        parse_address(args.igtl_images, "--igtl-images")
+    if args.igtl_images_listen is not None:
+        check_port(args.igtl_images_listen, "--igtl-images-listen")
+    plan = OutputPlan.from_args(args).check()
+    if not (args.poll > 0 and args.settle >= 0):
+        raise ChicRegisterError(f"--poll must be > 0 and --settle >= 0 s, got {args.poll:g} and {args.settle:g}")
+    if args.max_files is not None and args.max_files < 1:
+        raise ChicRegisterError(f"--max-files must be >= 1, got {args.max_files}")
+    check_spacing_flag(args)
+    geom = load_geometry(args.geometry)
+    if args.scene and not Path(args.scene).is_dir():
+        Path(args.scene).mkdir()  # its parent exists (checked above)
+
+    def on_event(event):
+        print(json.dumps(event.to_dict()) if args.json else event.text(), flush=True)
+
+    def on_message(text):
+        print(f"chic-register: {text}", file=sys.stderr, flush=True)
+
+    common = dict(scene_dir=args.scene, geometry_path=args.geometry, on_event=on_event, on_message=on_message)
+    if images:
+        from chic_register.live.igtl_track import track_images
+
+        listen = IgtlServer(args.igtl_images_listen) if args.igtl_images_listen is not None else None
+        where = f"port {listen.port}" if listen else args.igtl_images
+        on_message(f"registering IMAGE messages from the scanner bridge at {where} (Ctrl-C to stop)")
+        try:
+            summary = track_images(geom, connect=args.igtl_images, listen=listen, name=plan.igtl_name,
+                                   max_images=args.max_files, timeout_s=args.timeout, **common)
+        finally:
+            if listen is not None:
+                listen.close()
+    else:
+        from chic_register.live.folder import track
+
+        link = plan.open_link()
+        if plan.igtl_listen is not None:
+            on_message(f"OpenIGTLink server listening on port {link.port}")
+        if not args.json:
+            print(f"watching {args.folder} (Ctrl-C to stop)", file=sys.stderr, flush=True)
+        summary = track(args.folder, geom, pixel_spacing=args.pixel_spacing, poll_s=args.poll, settle_s=args.settle,
+                        include_existing=args.existing, max_files=args.max_files, timeout_s=args.timeout,
+                        igtl_name=plan.igtl_name, link=link, **common)
+    if args.json:
+        print(json.dumps(summary.to_dict()), flush=True)
+    else:
+        print(summary.text(), file=sys.stderr, flush=True)
+    return EXIT_OUTPUT_FAILED if summary.outputs_failed else 0

@@ -1,0 +1,106 @@
+"""One slice's lock search: first guesses (:mod:`chic_register.guess.hypotheses`) turned into refined, ranked fits.
+
+:func:`_solve_one` takes the paper's closed form when the layout allows it,
+else the generic first guess; :func:`_refine_guesses` refines the guesses
+that line up the most tubes, and any close rival for the ambiguity check.
+"""
+
+from __future__ import annotations
+
+from typing import TYPE_CHECKING
+
+import numpy as np
+
+from chic_register.detect.blobs import median
+from chic_register.errors import NoLock
+from chic_register.guess.hypotheses import ellipse_layout, family_hypotheses, fit_ellipse_robust, initial_hypotheses, parallel_family
+from chic_register.model.pose import invert
+from chic_register.fit.refine import _assign, _rank, _reject_outliers, _unexplained, match_gate_mm, refine
+from chic_register.verify.trust import _distinct, _near_prior
+from chic_register.model.tube_model import TubeModel, _crossings_memo, _inside
+
+if TYPE_CHECKING:
+    from chic_register.pipeline.register import SolveOptions
+
+
+def _solve_one(model: TubeModel, xy: np.ndarray, S: np.ndarray, opts: SolveOptions, pixel_mm: float):
+    """Refined hypotheses of one slice, best first, and the ellipse (or None). Raises NoLock if there are none.
+
+    First guesses come from the paper's closed form when the layout allows it
+    (:func:`~chic_register.guess.hypotheses.ellipse_layout`), else, or when that
+    yields no acceptable fit, from the generic stage
+    (:func:`~chic_register.guess.hypotheses.family_hypotheses`). Every guess gets a
+    short refinement; the best, and any distinct rival as good as it, are then
+    refined to convergence. With a prior orientation (``opts.prior``), guesses
+    and fits farther from it are dropped.
+    """
+    if xy.shape[0] < opts.min_tubes:
+        raise NoLock(f"found {xy.shape[0]} candidate tube cross-sections; need at least {opts.min_tubes}",
+                     {"n_candidates": int(xy.shape[0])})
+    gate = match_gate_mm(model, pixel_mm)
+    limit = opts.max_rms_px * pixel_mm
+    fits, ell = [], None
+    if ellipse_layout(model):
+        radius = median(model.axis_radius_mm)
+        ell_fit = fit_ellipse_robust(xy, radius, max_tilt_deg=opts.max_tilt_deg,
+                                     tol_mm=max(0.08 * radius, 1.5 * pixel_mm))
+        if ell_fit is not None:
+            ell, inl = ell_fit
+            hyps = initial_hypotheses(model, xy[inl], ell, max_hypotheses=opts.max_hypotheses)
+            fits = _refine_guesses(model, xy, S, hyps, opts, pixel_mm, gate)
+    if not fits or fits[0].n_matched < opts.min_tubes or fits[0].rms_mm > limit:
+        if parallel_family(model) is None:
+            if not fits:
+                raise NoLock("the geometry has no family of three parallel straight tubes that are not in one "
+                             "plane, which the generic first guess needs, and no ellipse of tube centres "
+                             "was found", {"n_candidates": int(xy.shape[0])})
+        else:
+            hyps = family_hypotheses(model, xy, gate_mm=gate, max_tilt_deg=opts.max_tilt_deg,
+                                     max_hypotheses=6 * opts.max_hypotheses)
+            extra = _refine_guesses(model, xy, S, hyps, opts, pixel_mm, gate)
+            if ell is not None or ellipse_layout(model):
+                # a fallback where the closed form applies but found nothing: only a fit that explains
+                # (nearly) every tube it puts in the slice, as the closed form's fits would
+                extra = [f for f in extra if _unexplained(f) <= 1]
+            fits = _rank(fits + extra, limit)
+    if not fits:
+        raise NoLock("the detected centres do not match the geometry's tube pattern",
+                     {"n_candidates": int(xy.shape[0])})
+    return fits, ell
+
+
+def _refine_guesses(model: TubeModel, xy: np.ndarray, S: np.ndarray, hyps: list, opts: SolveOptions,
+                    pixel_mm: float, gate: float) -> list:
+    """Rank first guesses ``T_F_from_I`` by the tubes they line up, refine the best; fits best first."""
+    S_inv = invert(S)
+    # rank the guesses by how many tubes they line up before refining any
+    scored = []
+    for T in hyps:
+        X = T @ S_inv
+        if not _near_prior(X, opts):
+            continue
+        hit = _crossings_memo(model, np.asarray(T, dtype=float))  # plane_crossings' numbers, less its copies
+        scored.append((int((_assign(hit[0][:, :2], _inside(model, hit, 5.0), xy, gate) >= 0).sum()), X))
+    scored.sort(key=lambda t: -t[0])
+
+    def full(X):
+        return refine(model, [xy], [S], X, gates_mm=(2 * gate, 0.6 * gate), iters_per_gate=3, final_iters=2)
+
+    # refine in order until a fit explains at least as many tubes as any guess
+    # still untried lines up; those rivals (for the ambiguity check) get a short
+    # refinement first and a full one only if they come close
+    fits = []
+    limit = opts.max_rms_px * pixel_mm
+    for count, X in scored:
+        if fits and count < fits[0].n_matched and fits[0].rms_mm <= limit:
+            break
+        if fits:
+            quick = refine(model, [xy], [S], X, gates_mm=(gate,), iters_per_gate=2, final_iters=0)
+            if (quick.n_matched < fits[0].n_matched or quick.rms_mm > 2 * limit
+                    or not _distinct(quick.T_F_from_scanner, fits[0].T_F_from_scanner, model)):
+                fits.append(quick)
+                continue
+        fit = _reject_outliers(model, [xy], [S], full(X), [pixel_mm], opts)
+        if _near_prior(fit.T_F_from_scanner, opts):
+            fits = _rank(fits + [fit], limit)
+    return fits

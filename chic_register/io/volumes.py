@@ -1,0 +1,515 @@
+"""3-D volumes: read NIfTI, NRRD and DICOM series, write them back, simulate one.
+
+Everything is in the scanner frame LPS (CONTRACT.md section 3). SimpleITK
+reports every format's physical space in LPS: it converts NIfTI's RAS
+(qform/sform) and NRRD's ``space`` field (``right-anterior-superior`` or
+``left-posterior-superior``) itself, and reads DICOM's LPS as is
+(tests/test_volume.py checks this against nibabel and pynrrd).
+
+Index convention: ``voxels[k, j, i]`` (SimpleITK's array order, z slowest);
+``affine_lps`` maps the voxel index ``(i, j, k, 1)`` to LPS mm, so column
+``i`` is the direction of the fastest array axis.
+"""
+
+from __future__ import annotations
+
+import datetime
+import math
+import os
+import shutil
+import tempfile
+from dataclasses import dataclass, field
+from pathlib import Path
+from typing import TYPE_CHECKING
+
+import numpy as np
+
+from chic_register.util.atomic import atomic_path
+from chic_register.errors import ChicRegisterError, ImageReadError, InputFileError
+from chic_register.io.images import VOLUME_SUFFIXES as FILE_SUFFIXES
+from chic_register.io.images import _suffix, is_volume_path  # noqa: F401  (importable from here, as before)
+from chic_register.model.slices import Slice
+
+if TYPE_CHECKING:  # annotations only: SimpleITK is imported where it is used
+    import SimpleITK as sitk
+
+MAX_VOXELS = 2**26  # 64 M voxels (512 x 512 x 256): 256 MiB as float32, read and copied once
+WRITE_SUFFIXES = (".nii", ".nii.gz", ".nrrd", ".mha")
+MR_IMAGE_STORAGE = "1.2.840.10008.5.1.4.1.1.4"  # MR Image Storage SOP class
+
+
+@dataclass(frozen=True, eq=False)
+class Volume:
+    """Voxels plus their place in the scanner.
+
+    ``voxels``: shape (nk, nj, ni). ``spacing_mm``: (si, sj, sk), the voxel
+    pitch along i, j, k. ``origin_mm``: LPS centre of voxel (0, 0, 0).
+    ``direction``: 3x3, column c is the LPS unit direction of index axis c
+    (i, j, k).
+    """
+
+    voxels: np.ndarray
+    spacing_mm: tuple[float, float, float]
+    origin_mm: np.ndarray = field(default_factory=lambda: np.zeros(3))
+    direction: np.ndarray = field(default_factory=lambda: np.eye(3))
+    source: str = "<array>"
+    slice_thickness_mm: float | None = None  # when the file says (DICOM SliceThickness); else the k spacing
+
+    def __post_init__(self):
+        if np.ndim(self.voxels) != 3:
+            raise ValueError(f"voxels must be 3-D (nk, nj, ni), got shape {np.shape(self.voxels)}")
+        object.__setattr__(self, "spacing_mm", tuple(float(s) for s in self.spacing_mm))
+        object.__setattr__(self, "origin_mm", np.asarray(self.origin_mm, dtype=float).reshape(3))
+        object.__setattr__(self, "direction", np.asarray(self.direction, dtype=float).reshape(3, 3))
+
+    @property
+    def shape(self) -> tuple[int, int, int]:
+        """Array shape (nk, nj, ni)."""
+        return tuple(self.voxels.shape)
+
+    @property
+    def size_ijk(self) -> tuple[int, int, int]:
+        """Number of voxels along i, j, k (NX, NY, NZ)."""
+        nk, nj, ni = self.voxels.shape
+        return (ni, nj, nk)
+
+    @property
+    def affine_lps(self) -> np.ndarray:
+        """4x4 from voxel index (i, j, k, 1) to LPS mm."""
+        A = np.eye(4)
+        A[:3, :3] = self.direction * np.asarray(self.spacing_mm)[None, :]
+        A[:3, 3] = self.origin_mm
+        return A
+
+    def index_to_lps(self, ijk) -> np.ndarray:
+        """Voxel indices, shape (N, 3) as (i, j, k), to LPS points (mm), shape (N, 3)."""
+        ijk = np.atleast_2d(np.asarray(ijk, dtype=float))
+        A = self.affine_lps
+        return ijk @ A[:3, :3].T + A[:3, 3]
+
+    def native_slice(self, k: int) -> Slice:
+        """The acquired slice ``k`` as a :class:`Slice`: rows along j, columns along i."""
+        nk = self.voxels.shape[0]
+        if not -nk <= int(k) < nk:
+            raise ChicRegisterError(f"{self.source}: slice index {k} is outside 0..{nk - 1}")
+        k = int(k) % nk
+        si, sj, sk = self.spacing_mm
+        return Slice(
+            pixels=np.asarray(self.voxels[k], dtype=float),
+            pixel_spacing_mm=(sj, si),
+            origin_mm=self.origin_mm + k * sk * self.direction[:, 2],
+            col_dir=self.direction[:, 0].copy(),
+            row_dir=self.direction[:, 1].copy(),
+            slice_thickness_mm=self.thickness_mm,
+            source=f"{self.source}[k={k}]",
+        )
+
+    @property
+    def thickness_mm(self) -> float:
+        """Each k-slice's thickness: the file's own (DICOM SliceThickness: slices with gaps, or overlapping),
+        else the k spacing."""
+        t = self.slice_thickness_mm
+        return float(t) if t is not None and math.isfinite(t) and t > 0 else float(self.spacing_mm[2])
+
+    def to_sitk(self) -> sitk.Image:
+        import SimpleITK as sitk  # (imported where used: a one-slice DICOM solve never needs it)
+
+        img = sitk.GetImageFromArray(np.ascontiguousarray(self.voxels))
+        img.SetSpacing(self.spacing_mm)
+        img.SetOrigin(tuple(self.origin_mm))
+        img.SetDirection(tuple(self.direction.ravel()))
+        return img
+
+
+def volume_from_sitk(img: sitk.Image, source: str = "<sitk>", slice_thickness_mm: float | None = None) -> Volume:
+    """A :class:`Volume` from a 3-D scalar SimpleITK image."""
+    import SimpleITK as sitk
+
+    if img.GetDimension() != 3:
+        raise ImageReadError(source, f"expected a 3-D volume, got {img.GetDimension()}-D")
+    if img.GetNumberOfComponentsPerPixel() != 1:
+        raise ImageReadError(source, f"expected scalar voxels, got {img.GetNumberOfComponentsPerPixel()} components")
+    from chic_register.io.images import MAX_SPACING_MM, MIN_SPACING_MM
+
+    spacing, origin = np.array(img.GetSpacing()), np.array(img.GetOrigin())
+    if not np.all(np.isfinite(spacing) & (spacing >= MIN_SPACING_MM) & (spacing <= MAX_SPACING_MM)):
+        raise ImageReadError(source, f"voxel spacing must be three numbers in {MIN_SPACING_MM:g}..{MAX_SPACING_MM:g} "
+                                     f"mm, got {spacing.tolist()}")
+    direction = np.array(img.GetDirection()).reshape(3, 3)
+    if not (np.all(np.isfinite(origin)) and np.allclose(direction.T @ direction, np.eye(3), atol=1e-3)):
+        raise ImageReadError(source, "volume origin/direction are not a finite position and an orthonormal frame")
+    return Volume(
+        voxels=sitk.GetArrayFromImage(img),
+        spacing_mm=img.GetSpacing(),
+        origin_mm=np.array(img.GetOrigin()),
+        direction=np.array(img.GetDirection()).reshape(3, 3),
+        source=source,
+        slice_thickness_mm=slice_thickness_mm,
+    )
+
+
+def _dicom_thickness_mm(reader, spacing_k_mm: float) -> float | None:
+    """SliceThickness (0018,0050) of a series' first file when it differs from the slice spacing (gaps between
+    slices, or overlapping slices) and is a plausible thickness; else None (the spacing serves)."""
+    from chic_register.io.images import MAX_SPACING_MM, MIN_SPACING_MM
+
+    try:
+        t = float(str(reader.GetMetaData("0018|0050")).strip()) if reader.HasMetaDataKey("0018|0050") else None
+    except (ValueError, RuntimeError):
+        return None
+    if t is None or not (math.isfinite(t) and MIN_SPACING_MM <= t <= MAX_SPACING_MM):
+        return None
+    return None if abs(t - spacing_k_mm) <= 1e-3 * spacing_k_mm else t
+
+
+def _last_line(exc: Exception) -> str:
+    lines = [ln.strip() for ln in str(exc).strip().splitlines() if ln.strip()]
+    return lines[-1] if lines else type(exc).__name__
+
+
+def _check_voxels(path, size, components: int) -> None:
+    """Refuse a volume too large to read (from its header, before any voxel is decoded)."""
+    n = components
+    for v in size:
+        n *= int(v)
+    if n > MAX_VOXELS:
+        raise ImageReadError(path, f"volume of size {tuple(int(v) for v in size)} is too large "
+                                   f"(at most {MAX_VOXELS} voxels)")
+
+
+def read_volume(path, series_id: str | None = None) -> Volume:
+    """Read a NIfTI / NRRD / MetaImage file, or a folder holding one DICOM series.
+
+    Raises :class:`ImageReadError` naming the path for a missing, unreadable
+    or non-3-D input, or a folder with no or several DICOM series (pass
+    ``series_id``, a SeriesInstanceUID or a SeriesNumber, to pick one; the
+    message lists them).
+    """
+    import SimpleITK as sitk
+
+    path = Path(path)
+    if not path.exists():
+        raise ImageReadError(path, "no such file or folder")
+    if path.is_dir():
+        reader = sitk.ImageSeriesReader()
+        ids = list(reader.GetGDCMSeriesIDs(str(path)))
+        if not ids:
+            raise ImageReadError(path, "folder holds no DICOM series")
+        if series_id is None and len(ids) > 1:
+            tags = {i: _series_tags(reader, path, i) for i in ids[:LISTED_SERIES]}
+            raise ImageReadError(path, f"folder holds {len(ids)} DICOM series: {_series_list(tags, ids)}; "
+                                       f"pick one with --series (its number or UID)")
+        if series_id is None:
+            series_id = ids[0]
+        elif series_id not in ids:
+            tags = {i: _series_tags(reader, path, i) for i in ids}  # each series' first header, read once
+            by_number = [i for i in ids if _same_number(tags[i][0], series_id)]
+            if len(by_number) > 1:
+                raise ImageReadError(path, f"SeriesNumber {series_id} names {len(by_number)} DICOM series here; give "
+                                           f"the SeriesInstanceUID: {_series_list(tags, by_number)}")
+            if not by_number:
+                raise ImageReadError(path, f"no DICOM series {series_id!r} (a SeriesNumber or SeriesInstanceUID); "
+                                           f"found: {_series_list(tags, ids)}")
+            series_id = by_number[0]
+        files = reader.GetGDCMSeriesFileNames(str(path), series_id)
+        if len(files) < 2:
+            raise ImageReadError(path, "DICOM series has a single slice: read it as a slice, not a volume")
+        reader.SetFileNames(files)
+        try:
+            first = sitk.ImageFileReader()
+            first.SetFileName(files[0])
+            first.ReadImageInformation()
+            _check_voxels(path, (*first.GetSize()[:2], len(files)), first.GetNumberOfComponents())
+            img = reader.Execute()
+        except RuntimeError as exc:
+            raise ImageReadError(path, f"cannot read DICOM series: {_last_line(exc)}") from None
+        if img.GetDimension() == 3:
+            return volume_from_sitk(img, source=str(path),
+                                    slice_thickness_mm=_dicom_thickness_mm(first, float(img.GetSpacing()[2])))
+    else:
+        if series_id is not None:
+            raise ImageReadError(path, "--series applies to a folder of DICOM files, not a volume file")
+        if _suffix(path) not in FILE_SUFFIXES:
+            raise ImageReadError(path, f"not a volume file; allowed: {', '.join(FILE_SUFFIXES)} or a DICOM series folder")
+        from chic_register.util.safeload import open_regular_file
+
+        try:
+            open_regular_file(path, "volume file").close()  # a FIFO or device is refused, not waited on
+        except InputFileError as exc:
+            raise ImageReadError(path, exc.detail) from None
+        try:
+            reader = sitk.ImageFileReader()
+            reader.SetFileName(str(path))
+            reader.ReadImageInformation()
+            _check_voxels(path, reader.GetSize(), reader.GetNumberOfComponents())
+            img = reader.Execute()
+        except RuntimeError as exc:
+            raise ImageReadError(path, f"cannot read volume: {_last_line(exc)}") from None
+    if img.GetDimension() == 4 and img.GetSize()[3] == 1:
+        img = img[:, :, :, 0]
+    return volume_from_sitk(img, source=str(path))
+
+
+#: A refusal lists at most this many of a folder's series (an export folder may hold dozens).
+LISTED_SERIES = 8
+
+
+def _series_tags(reader, folder: Path, series_id: str) -> tuple[str, str, int]:
+    """``(SeriesNumber, SeriesDescription, file count)`` of one DICOM series in ``folder`` (from its first file's
+    header; empty strings where it has none)."""
+    import SimpleITK as sitk
+
+    files = reader.GetGDCMSeriesFileNames(str(folder), series_id)
+    first = sitk.ImageFileReader()
+    first.SetFileName(files[0])
+    try:
+        first.ReadImageInformation()
+    except RuntimeError:
+        return "", "", len(files)
+    tag = lambda key: first.GetMetaData(key).strip() if first.HasMetaDataKey(key) else ""  # noqa: E731
+    return tag("0020|0011"), tag("0008|103e"), len(files)
+
+
+def _same_number(number: str, wanted) -> bool:
+    """A SeriesNumber read from a header against the one a user gave ("05" is 5)."""
+    try:
+        return int(str(number).strip()) == int(str(wanted).strip())
+    except ValueError:
+        return False
+
+
+def _series_list(tags: dict, ids) -> str:
+    """One line naming each series (the first :data:`LISTED_SERIES`): number, description, file count and UID, from
+    ``tags`` (:func:`_series_tags` by series UID)."""
+    out = []
+    for i in list(ids)[:LISTED_SERIES]:
+        number, description, n = tags[i]
+        name = " ".join(v for v in (f"#{number}" if number else "", f"'{description}'" if description else "") if v)
+        out.append(f"{name + ' ' if name else ''}({n} file{'s' if n != 1 else ''}, {i})")
+    more = len(ids) - LISTED_SERIES
+    return "; ".join(out) + (f"; and {more} more" if more > 0 else "")
+
+
+def _replace_dir(tmp: Path, path: Path) -> None:
+    """Move folder ``tmp`` to ``path``, replacing an earlier folder there."""
+    if path.exists():
+        old = path.with_name(f".{path.name}.old-{os.getpid()}")
+        os.replace(path, old)
+        os.replace(tmp, path)
+        shutil.rmtree(old, ignore_errors=True)
+    else:
+        os.replace(tmp, path)
+
+
+def _dicom_quantise(voxels: np.ndarray) -> tuple[np.ndarray, float, float]:
+    """Stored int16 values plus (intercept, slope) so that voxels ~ stored * slope + intercept."""
+    v = np.asarray(voxels)
+    if np.issubdtype(v.dtype, np.integer) and v.min() >= -32768 and v.max() <= 32767:
+        return v.astype(np.int16), 0.0, 1.0
+    lo, hi = float(np.min(v)), float(np.max(v))
+    intercept = 0.5 * (lo + hi)
+    slope = max(0.5 * (hi - lo), 1e-6) / 32000.0
+    stored = np.clip(np.rint((v - intercept) / slope), -32768, 32767).astype(np.int16)
+    return stored, intercept, slope
+
+
+def _ds(x: float) -> str:
+    """A DICOM decimal string (at most 16 characters)."""
+    for digits in range(12, 4, -1):
+        text = f"{x:.{digits}g}"
+        if len(text) <= 16:
+            return text
+    return f"{x:.4g}"
+
+
+def _write_dicom_series(volume: Volume, folder: Path) -> None:
+    """One MR Image Storage file per k-slice (pydicom), the volume's geometry in IPP/IOP."""
+    from pydicom.dataset import FileDataset, FileMetaDataset
+    from pydicom.uid import ExplicitVRLittleEndian, generate_uid
+
+    stored, intercept, slope = _dicom_quantise(volume.voxels)
+    now = datetime.datetime.now()
+    study_uid, series_uid, frame_uid = generate_uid(), generate_uid(), generate_uid()
+    si, sj, sk = volume.spacing_mm
+    d = volume.direction
+    for k in range(stored.shape[0]):
+        meta = FileMetaDataset()
+        meta.MediaStorageSOPClassUID = MR_IMAGE_STORAGE
+        meta.MediaStorageSOPInstanceUID = generate_uid()
+        meta.TransferSyntaxUID = ExplicitVRLittleEndian
+        ds = FileDataset(str(folder / f"slice_{k:04d}.dcm"), {}, file_meta=meta, preamble=b"\0" * 128)
+        ds.SOPClassUID = MR_IMAGE_STORAGE
+        ds.SOPInstanceUID = meta.MediaStorageSOPInstanceUID
+        ds.Modality = "MR"
+        ds.ImageType = ["DERIVED", "SECONDARY", "OTHER"]
+        ds.StudyDate = ds.SeriesDate = ds.ContentDate = now.strftime("%Y%m%d")
+        ds.StudyTime = ds.SeriesTime = ds.ContentTime = now.strftime("%H%M%S")
+        ds.SeriesDescription = f"CHIC volume {Path(volume.source).name}"[:64]
+        ds.PatientName = "CHIC^PHANTOM"
+        ds.PatientID = "CHIC"
+        ds.PatientBirthDate, ds.PatientSex, ds.PatientPosition = "", "O", "HFS"
+        ds.ReferringPhysicianName, ds.StudyID, ds.AccessionNumber = "", "1", ""
+        ds.PositionReferenceIndicator, ds.Manufacturer = "", "CHIC"
+        ds.ScanningSequence, ds.SequenceVariant, ds.ScanOptions, ds.MRAcquisitionType = "RM", "NONE", "", "3D"
+        ds.RepetitionTime, ds.EchoTime, ds.EchoTrainLength = "", "", ""
+        ds.StudyInstanceUID, ds.SeriesInstanceUID, ds.FrameOfReferenceUID = study_uid, series_uid, frame_uid
+        ds.SeriesNumber = 1
+        ds.InstanceNumber = k + 1
+        ds.ImagePositionPatient = [_ds(x) for x in volume.origin_mm + k * sk * d[:, 2]]
+        ds.ImageOrientationPatient = [_ds(x) for x in (*d[:, 0], *d[:, 1])]
+        ds.PixelSpacing = [_ds(sj), _ds(si)]
+        ds.SliceThickness, ds.SpacingBetweenSlices = _ds(volume.thickness_mm), _ds(sk)
+        ds.SamplesPerPixel = 1
+        ds.PhotometricInterpretation = "MONOCHROME2"
+        ds.Rows, ds.Columns = stored.shape[1], stored.shape[2]
+        ds.BitsAllocated, ds.BitsStored, ds.HighBit, ds.PixelRepresentation = 16, 16, 15, 1
+        ds.RescaleIntercept, ds.RescaleSlope, ds.RescaleType = _ds(intercept), _ds(slope), "US"
+        ds.PixelData = np.ascontiguousarray(stored[k]).tobytes()
+        ds.save_as(folder / f"slice_{k:04d}.dcm", enforce_file_format=True)
+
+
+def write_volume(volume: Volume, path) -> Path:
+    """Write ``volume`` atomically: ``.nii``, ``.nii.gz``, ``.nrrd`` or ``.mha`` file, or a DICOM series folder.
+
+    A path without one of those suffixes is a folder: one DICOM file per
+    k-slice (MR Image Storage, int16 with rescale slope/intercept when the
+    voxels are not already int16-representable integers).
+    """
+    path = Path(path)
+    path.parent.mkdir(parents=True, exist_ok=True)
+    suffix = _suffix(path)
+    if suffix in WRITE_SUFFIXES:
+        import SimpleITK as sitk
+
+        try:
+            with atomic_path(path, suffix=suffix) as tmp:
+                sitk.WriteImage(volume.to_sitk(), str(tmp))
+        except RuntimeError as exc:
+            raise ChicRegisterError(f"{path}: cannot write volume: {_last_line(exc)}") from None
+        return path
+    if suffix in (".dcm", ".gz", ".nhdr", ".mhd", ".png", ".tif", ".tiff", ".npy", ".json"):
+        raise ChicRegisterError(
+            f"{path}: volume output must end in {', '.join(WRITE_SUFFIXES)}, or be a folder name (DICOM series)"
+        )
+    tmp = Path(tempfile.mkdtemp(prefix=f".{path.name}-", dir=path.parent))
+    try:
+        _write_dicom_series(volume, tmp)
+        _replace_dir(tmp, path)
+    except RuntimeError as exc:
+        shutil.rmtree(tmp, ignore_errors=True)
+        raise ChicRegisterError(f"{path}: cannot write DICOM series: {_last_line(exc)}") from None
+    except BaseException:
+        shutil.rmtree(tmp, ignore_errors=True)
+        raise
+    return path
+
+
+# --------------------------------------------------------------------------- simulated volumes
+
+
+@dataclass(frozen=True)
+class SimulatedVolume:
+    """A synthetic volume and the pose of the fiducial in it.
+
+    ``T_scanner_from_fiducial`` (4x4): F (mm) -> the volume's LPS frame (mm).
+    """
+
+    volume: Volume
+    T_scanner_from_fiducial: np.ndarray
+    settings: dict = field(default_factory=dict)
+
+    def truth_dict(self) -> dict:
+        """JSON-ready truth: the pose plus the volume grid and the simulation settings."""
+        v = self.volume
+        return {
+            "T_scanner_from_fiducial": np.asarray(self.T_scanner_from_fiducial).tolist(),
+            "size_ijk": list(v.size_ijk),
+            "spacing_mm": list(v.spacing_mm),
+            "origin_mm": v.origin_mm.tolist(),
+            "direction": v.direction.tolist(),
+            "settings": dict(self.settings),
+        }
+
+
+def plane_frame(volume_or_grid, k: float) -> np.ndarray:
+    """``T_scanner_from_plane`` (4x4) of the k-plane: origin at voxel (0, 0, k), x along i, y along j."""
+    v = volume_or_grid
+    x, y = v.direction[:, 0], v.direction[:, 1]
+    T = np.eye(4)
+    T[:3, 0], T[:3, 1], T[:3, 2] = x, y, np.cross(x, y)
+    T[:3, 3] = v.origin_mm + k * v.spacing_mm[2] * v.direction[:, 2]
+    return T
+
+
+def simulate_volume(
+    geom,
+    T_scanner_from_fiducial,
+    shape_vox=(128, 128, 60),
+    spacing_mm=(0.5, 0.5, 1.0),
+    *,
+    origin_mm=None,
+    direction=None,
+    signal: float = 1000.0,
+    noise: str = "rician",
+    noise_level: float = 0.05,
+    snr: float = 20.0,
+    rng=None,
+    supersample: int = 3,
+    thickness_samples: int = 3,
+    blob_width: float = 1.0,
+) -> SimulatedVolume:
+    """A synthetic MRI volume of ``geom`` at a known pose.
+
+    ``shape_vox``: (NX, NY, NZ) voxels along i, j, k; ``spacing_mm``: (si, sj, sk).
+    Each voxel holds ``signal`` times its fluid fraction (partial volume over
+    the voxel), rendered k-plane by k-plane with
+    :func:`chic_register.imaging.render.render_slice` (plane thickness = sk), then
+    noise as in :mod:`chic_register.imaging.simulate` (``"none"``, ``"uniform"``
+    amplitude ``noise_level`` x signal, ``"rician"`` at ``snr``).
+    Default placement: ``direction`` identity and the volume centre at the
+    scanner origin. ``blob_width`` widens every blob in each k-plane as
+    :func:`chic_register.imaging.blob_width.render_tubes_widened` does.
+    """
+    from chic_register.imaging import simulate
+
+    nx, ny, nz = (int(n) for n in shape_vox)
+    if min(nx, ny, nz) < 1:
+        raise ValueError(f"shape_vox must be three positive integers, got {tuple(shape_vox)}")
+    si, sj, sk = (float(s) for s in spacing_mm)
+    if not min(si, sj, sk) > 0:
+        raise ValueError(f"spacing_mm must be three positive numbers, got {tuple(spacing_mm)}")
+    if noise not in simulate.NOISE_KINDS:
+        raise ValueError(f"noise is {noise!r}; allowed: {', '.join(simulate.NOISE_KINDS)}")
+    D = np.eye(3) if direction is None else np.asarray(direction, dtype=float).reshape(3, 3)
+    if not np.allclose(D.T @ D, np.eye(3), atol=1e-6):
+        raise ValueError("direction must be an orthonormal 3x3 matrix (columns = LPS directions of i, j, k)")
+    if origin_mm is None:
+        origin_mm = -D @ (np.array([nx - 1, ny - 1, nz - 1]) * np.array([si, sj, sk]) / 2.0)
+    T_sf = np.asarray(T_scanner_from_fiducial, dtype=float)
+    rng = rng if isinstance(rng, np.random.Generator) else np.random.default_rng(rng)
+
+    grid = Volume(np.zeros((1, 1, 1)), (si, sj, sk), origin_mm, D)
+    T_fs = np.linalg.inv(T_sf)
+    voxels = np.empty((nz, ny, nx))
+    for k in range(nz):
+        T_F_from_S = T_fs @ plane_frame(grid, k)
+        voxels[k] = simulate.render_tubes_widened(
+            geom.tubes, T_F_from_S, (ny, nx), (sj, si), sk, center_px=(0.0, 0.0),
+            supersample=supersample, thickness_samples=thickness_samples, blob_width=blob_width,
+        )
+    if noise == "uniform":
+        voxels = simulate.add_uniform_noise(voxels, noise_level, rng)
+    elif noise == "rician":
+        voxels = simulate.add_rician_noise(voxels, snr, rng)
+    vol = Volume((signal * voxels).astype(np.float32), (si, sj, sk), origin_mm, D, "<simulated>")
+    settings = {
+        "geometry": geom.name,
+        "signal": float(signal),
+        "noise": noise,
+        "noise_level": float(noise_level) if noise == "uniform" else None,
+        "snr": float(snr) if noise == "rician" else None,
+        "supersample": int(supersample),
+        "thickness_samples": int(thickness_samples),
+        "blob_width": float(blob_width),
+    }
+    return SimulatedVolume(vol, T_sf, settings)

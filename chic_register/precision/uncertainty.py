@@ -1,0 +1,390 @@
+"""The uncertainty of a registered pose: its covariance, from the solver's own estimator.
+
+The solver's pose is the least-squares fit (Gauss-Newton, unweighted) of the
+model's tube positions to the measured ones (intensity centroids of each
+blob's footprint, :mod:`chic_register.detect.blobs`). Its covariance to first order
+is the sandwich ``H^-1 J^T S J H^-1`` (``H = J^T J``) where ``J`` is the fit's
+Jacobian at the solution and ``S`` the block-diagonal covariance of the
+measured positions. A centroid is linear in the pixels, so its 2x2
+covariance follows from the pixel noise: ``sum_i var_i (x_i - c)(x_i - c)^T / W^2``
+over the footprint (``W`` the summed weight).
+
+The pixel noise is estimated from the image background: a magnitude image
+has a Rayleigh background of scale ``sigma`` (median ``1.1774 sigma``);
+otherwise (a Gaussian background with an offset) ``sigma`` is its
+interquartile range over 1.349. Each pixel's variance is the Rician variance
+at its estimated signal (0.43 ``sigma^2`` in the background, ``sigma^2`` in the
+fluid). The residuals then check the noise model: their chi-square per degree
+of freedom (``2 N - 6``) under the predicted position covariances; when it is
+improbably large (above its 99th percentile), the covariance is scaled up by
+it, so a model misfit widens the reported uncertainty instead of hiding.
+
+The covariance is reported for the perturbation ``delta`` of
+:data:`chic_register.model.pose_params.PARAMETER_ORDER` (rotation about F's axes in deg,
+then translation along them in mm): the fiducial's points ``p`` (F) move by
+``r x p + t``, i.e. ``T_scanner_from_fiducial @ exp(delta)``.
+"""
+
+from __future__ import annotations
+
+import functools
+import math
+from dataclasses import dataclass
+
+import numpy as np
+
+from chic_register.model.pose_params import PARAMETER_FRAME, PARAMETER_ORDER, default_target, tre_rms_mm
+from chic_register.detect.blobs import median
+from chic_register.detect.noise import (  # noqa: F401  (the noise model, importable from here as before)
+    CORRELATION_BLOCK_PX,
+    INTERPOLATED_CORRELATION,
+    MAX_NOISE_CORRELATION,
+    RAYLEIGH_MEDIAN,
+    NoiseEstimate,
+    background_noise,
+    clear_blocks,
+    clear_of_blobs,
+    correlation_inflation,
+    noise_correlation,
+    noise_correlation_axes,
+)
+
+@dataclass(frozen=True)
+class PoseUncertainty:
+    """Covariance (6x6, :data:`PARAMETER_ORDER`, deg and mm) of a registered pose and what it came from.
+
+    ``residual_chi2_per_dof``: the residuals' chi-square over ``dof`` under
+    the predicted position covariances (about 1 when the noise model
+    holds); ``inflation``: the factor applied to the covariance (1, or that
+    chi-square when improbably large); ``predicted_tre_mm``: RMS 3-D error of
+    ``target_F_mm``.
+    """
+
+    covariance: np.ndarray
+    noise: tuple[NoiseEstimate, ...]
+    residual_chi2_per_dof: float
+    dof: int
+    inflation: float
+    target_F_mm: tuple[float, float, float]
+    predicted_tre_mm: float
+    measurement: str = "centroid"
+
+    def to_dict(self) -> dict:
+        return {
+            "covariance": {"parameters": list(PARAMETER_ORDER), "frame": PARAMETER_FRAME,
+                           "matrix": [[float(v) for v in row] for row in self.covariance]},
+            "noise": {"image_sigma": [round(n.sigma, 6) for n in self.noise],
+                      "background_model": [n.model for n in self.noise],
+                      "background_pixels": [n.n_pixels for n in self.noise],
+                      "measurement": self.measurement,
+                      "residual_chi2_per_dof": round(self.residual_chi2_per_dof, 4), "dof": self.dof,
+                      "inflation": round(self.inflation, 4)},
+            "target_F_mm": [float(v) for v in self.target_F_mm],
+            "predicted_tre_mm": round(self.predicted_tre_mm, 6),
+        }
+
+
+@functools.lru_cache(maxsize=1)
+def _rician_variance_table():
+    """Variance of a Rician magnitude (sigma 1) on a grid of signal a in [0, 8], by quadrature of its density."""
+    a = np.linspace(0.0, 8.0, 161)
+    x = np.linspace(0.0, 20.0, 4001)
+    var = np.empty_like(a)
+    for i, ai in enumerate(a):
+        p = x * np.exp(-0.5 * (x * x + ai * ai)) * np.i0(ai * x)
+        mean = np.trapezoid(p * x, x) / np.trapezoid(p, x)
+        var[i] = 2.0 + ai * ai - mean * mean
+    return a, var
+
+
+def rician_variance_factor(a) -> np.ndarray:
+    """Variance of a Rician magnitude over sigma^2 at signal/sigma ``a`` (2 - pi/2 at 0, -> 1 at high signal)."""
+    grid, var = _rician_variance_table()
+    return np.interp(np.abs(np.asarray(a, dtype=float)), grid, var, right=1.0)
+
+
+def centroid_covariance(pixels: np.ndarray, footprint, background: float, noise: NoiseEstimate,
+                        pixel_spacing_mm) -> np.ndarray:
+    """2x2 covariance (image x = columns, y = rows; mm^2) of the background-subtracted intensity centroid of a footprint."""
+    r0, c0, mask = footprint
+    h, w = mask.shape
+    z = np.asarray(pixels[r0:r0 + h, c0:c0 + w], dtype=float)
+    wgt = np.where(mask, z - background, 0.0)
+    total = float(wgt.sum())
+    if not total > 0:
+        return np.full((2, 2), np.inf)
+    rr, cc = np.nonzero(mask)
+    wv = wgt[rr, cc]
+    mr, mc = float(wv @ rr) / total, float(wv @ cc) / total
+    s2 = noise.sigma ** 2
+    if noise.model == "rayleigh" and noise.sigma > 0:
+        nu = np.sqrt(np.maximum(z[rr, cc] ** 2 - 2.0 * s2, 0.0)) / noise.sigma
+        var = s2 * rician_variance_factor(nu)
+    else:
+        var = np.full(rr.size, s2)
+    rs, cs = (float(v) for v in pixel_spacing_mm)
+    d = np.stack([(cc - mc) * cs, (rr - mr) * rs])  # (2, n): x, y in mm
+    return (d * var) @ d.T / (total * total)
+
+
+def _binomial_passes(x: np.ndarray, n: int) -> np.ndarray:
+    """``n`` separable [1, 2, 1] / 4 passes over the last two axes, edges replicated (the detector's smoothing)."""
+    for _ in range(n):
+        for ax in (-2, -1):
+            pad = [(0, 0)] * x.ndim
+            pad[ax] = (1, 1)
+            p = np.pad(x, pad, mode="edge")
+            m = x.shape[ax]
+            x = 0.25 * (np.take(p, range(0, m), ax) + 2 * np.take(p, range(1, m + 1), ax) + np.take(p, range(2, m + 2), ax))
+    return x
+
+
+def _grow(m: np.ndarray) -> np.ndarray:
+    """3 x 3 binary dilation over the last two axes."""
+    p = np.pad(m, [(0, 0)] * (m.ndim - 2) + [(1, 1), (1, 1)])
+    h, w = m.shape[-2:]
+    out = np.zeros_like(m)
+    for dr in range(3):
+        for dc in range(3):
+            out |= p[..., dr:dr + h, dc:dc + w]
+    return out
+
+
+def mask_jitter_covariances(pixels: np.ndarray, footprints, which, threshold: float, noise: NoiseEstimate,
+                            pixel_spacing_mm, tube_diameter_mm: float, *, background: float = 0.0,
+                            draws: int = 16, seed: int = 0) -> np.ndarray:
+    """2x2 covariances (len(which), 2, 2; mm^2) the centroids of blobs ``which`` gain because their footprints
+    themselves depend on the noise.
+
+    The detector's footprint is the smoothed image above its threshold, grown
+    by one pixel (:func:`chic_register.detect.blobs.detect_blobs`); where a
+    section's edge is a long shallow ramp (a tube crossing the slab
+    obliquely) pixels enter and leave it with the noise, and the pixels that
+    enter are the brighter ones: for such sections this adds about as much
+    variance as the pixels' own noise. Measured by a parametric bootstrap on
+    each blob's patch (all blobs at once): ``draws`` fresh noise fields (each
+    pixel's variance as in :func:`centroid_covariance`) added to the patch,
+    which is smoothed, thresholded and grown as the detector does (kept off
+    the other blobs' footprints); the centroid over that footprint against
+    the centroid over the original one, under the same noise (a control
+    variate), gives the footprint's share. Seeded: the same image gives the
+    same answer.
+    """
+    which = [int(i) for i in which]
+    if not which:
+        return np.zeros((0, 2, 2))
+    img = np.asarray(pixels, dtype=float)
+    H, W = img.shape
+    pad = 2
+    hc = max(footprints[i][2].shape[0] for i in which) + 2 * pad
+    wc = max(footprints[i][2].shape[1] for i in which) + 2 * pad
+    patches = np.empty((len(which), hc, wc))
+    own = np.zeros((len(which), hc, wc), bool)
+    near = np.zeros((len(which), hc, wc), bool)
+    for t, i in enumerate(which):
+        r0, c0, m = footprints[i]
+        R0, C0 = r0 - pad, c0 - pad  # the patch's first pixel (may lie outside the image: edges replicated)
+        rows = np.clip(np.arange(R0, R0 + hc), 0, H - 1)
+        cols = np.clip(np.arange(C0, C0 + wc), 0, W - 1)
+        patches[t] = img[rows[:, None], cols[None, :]]
+        own[t, pad:pad + m.shape[0], pad:pad + m.shape[1]] = m
+        free = np.ones((hc, wc), bool)
+        for n, (o0, p0, om) in enumerate(footprints):  # never into a neighbour's footprint
+            if n == i or o0 >= R0 + hc or p0 >= C0 + wc or o0 + om.shape[0] <= R0 or p0 + om.shape[1] <= C0:
+                continue
+            a0, b0 = max(o0, R0), max(p0, C0)
+            a1, b1 = min(o0 + om.shape[0], R0 + hc), min(p0 + om.shape[1], C0 + wc)
+            free[a0 - R0:a1 - R0, b0 - C0:b1 - C0] &= ~om[a0 - o0:a1 - o0, b0 - p0:b1 - p0]
+        near[t] = _grow(own[t]) & (free | own[t])
+    rs, cs = (float(v) for v in pixel_spacing_mm)
+    r_px = 0.5 * tube_diameter_mm / math.sqrt(rs * cs)
+    sig = max(0.5, 0.3 * r_px)  # the detector's default smoothing: round(2 sig^2) binomial passes
+    passes = min(3, max(1, int(round(2 * sig * sig))))
+    sd = noise.sigma * np.sqrt(_pixel_variance_factor(patches, noise))
+    rng = np.random.default_rng(seed)
+    imgs = patches[:, None] + rng.normal(0.0, 1.0, (len(which), int(draws), hc, wc)) * sd[:, None]
+    feet = _grow((_binomial_passes(imgs, passes) > threshold) & near[:, None]) & near[:, None]
+    rr, cc = np.mgrid[0:hc, 0:wc]
+    z = imgs - background
+
+    def centroids(wgt):
+        total = wgt.sum(axis=(2, 3))
+        with np.errstate(invalid="ignore", divide="ignore"):
+            return np.stack([(wgt * cc).sum(axis=(2, 3)) / total * cs, (wgt * rr).sum(axis=(2, 3)) / total * rs], -1)
+
+    full, fixed = centroids(np.where(feet, z, 0.0)), centroids(np.where(own[:, None], z, 0.0))
+    out = np.zeros((len(which), 2, 2))
+    for t in range(len(which)):
+        ok = np.all(np.isfinite(full[t]), axis=1) & np.all(np.isfinite(fixed[t]), axis=1)
+        if ok.sum() < 3:
+            continue
+        # cov(full) - cov(fixed) = cov(d) + cov(d, fixed) + cov(fixed, d), d = full - fixed
+        d, f = full[t, ok] - fixed[t, ok], fixed[t, ok] - fixed[t, ok].mean(axis=0)
+        d = d - d.mean(axis=0)
+        C = (d.T @ d + d.T @ f + f.T @ d) / (len(d) - 1)
+        out[t] = 0.5 * (C + C.T)  # unclipped: a noisy estimate of a share near 0 stays unbiased
+    return out
+
+
+def _pixel_variance_factor(z: np.ndarray, noise: NoiseEstimate) -> np.ndarray:
+    """Each pixel's noise variance over sigma^2: Rician at its estimated signal, or 1 (Gaussian)."""
+    if noise.model == "rayleigh" and noise.sigma > 0:
+        nu = np.sqrt(np.maximum(z * z - 2.0 * noise.sigma ** 2, 0.0)) / noise.sigma
+        return rician_variance_factor(nu)
+    return np.ones_like(z)
+
+
+def sandwich(J: np.ndarray, S: np.ndarray) -> np.ndarray:
+    """Covariance of the unweighted least-squares estimate ``(J^T J)^-1 J^T m`` when ``m`` has covariance ``S``."""
+    Hinv = np.linalg.inv(J.T @ J)
+    return Hinv @ J.T @ S @ J @ Hinv
+
+
+def residual_chi2(residuals: np.ndarray, S: np.ndarray, J: np.ndarray) -> tuple[float, int]:
+    """Chi-square per degree of freedom of least-squares residuals (M,) with measurement covariance ``S`` (M, M)."""
+    M, p = J.shape
+    dof = M - p
+    if dof <= 0:
+        return float("nan"), dof
+    # the residual's covariance is (I - P) S (I - P), P the hat matrix; its pseudo-inverse weighs them
+    P = J @ np.linalg.solve(J.T @ J, J.T)
+    R = (np.eye(M) - P) @ S @ (np.eye(M) - P)
+    chi2 = float(residuals @ np.linalg.pinv(R, rcond=1e-10, hermitian=True) @ residuals)
+    return chi2 / dof, dof
+
+
+def inflation_factor(chi2_per_dof: float, dof: int, p: float = 0.99) -> float:
+    """1 when the residuals fit the noise model; their chi-square per dof when it exceeds its ``p`` quantile."""
+    if not (dof > 0 and math.isfinite(chi2_per_dof)):
+        return 1.0
+    return chi2_per_dof if chi2_per_dof > chi2_quantile(p, dof) / dof else 1.0
+
+
+def normal_quantile(p: float) -> float:
+    """The standard normal ``p`` quantile, 0 < p < 1: Newton's method on ``math.erfc``.
+
+    Not ``statistics.NormalDist`` (it pulls ``fractions`` in: ~4 ms on every one-shot solve). For p > 1/2 the
+    CDF is concave, so Newton from 0 rises monotonically onto the root; p < 1/2 by symmetry.
+    """
+    if not 0.0 < p < 1.0:
+        raise ValueError(f"a quantile needs 0 < p < 1, got {p!r}")
+    if p < 0.5:
+        return -normal_quantile(1.0 - p)
+    z = 0.0
+    for _ in range(100):
+        step = (0.5 * math.erfc(-z / math.sqrt(2.0)) - p) / (math.exp(-0.5 * z * z) / math.sqrt(2.0 * math.pi))
+        z -= step
+        if abs(step) < 1e-12 * max(1.0, z):
+            break
+    return z
+
+
+def chi2_quantile(p: float, dof: int) -> float:
+    """Chi-square quantile (Wilson-Hilferty; within 1 % for dof >= 3), without importing scipy.stats."""
+    z = normal_quantile(p)
+    c = 2.0 / (9.0 * dof)
+    return dof * (1.0 - c + z * math.sqrt(c)) ** 3
+
+
+def target_point(geom, target_F_mm=None) -> tuple[float, float, float]:
+    """The TRE target: given, else the geometry's tool tip, else the body's centre on the axis (see :func:`chic_register.model.pose_params.default_target`)."""
+    if target_F_mm is not None:
+        return tuple(float(v) for v in target_F_mm)
+    return default_target(geom)
+
+
+def pose_uncertainty(J_F: np.ndarray, S: np.ndarray, residuals: np.ndarray, noise, target_F_mm,
+                     measurement: str = "centroid") -> PoseUncertainty:
+    """Covariance of a point-fit pose: ``J_F`` (M, 6) d(predicted positions)/d(delta) in (rad, mm),
+    ``S`` (M, M) the measured positions' covariance, ``residuals`` (M,) predicted minus measured."""
+    C = sandwich(J_F, S)
+    chi, dof = residual_chi2(residuals, S, J_F)
+    k = inflation_factor(chi, dof)
+    s = np.array([math.degrees(1.0)] * 3 + [1.0] * 3)
+    cov = k * C * np.outer(s, s)
+    cov = 0.5 * (cov + cov.T)
+    target = tuple(float(v) for v in target_F_mm)
+    return PoseUncertainty(cov, tuple(noise), chi, dof, k, target, tre_rms_mm(cov, target), measurement)
+
+
+def pixel_fit_uncertainty(blurred, slices, blob_sets, target_F_mm) -> PoseUncertainty:
+    """The uncertainty of a pose fitted to the pixels through the blurred model (a
+    :class:`chic_register.fit.blurred.BlurredFit`): its sandwich covariance, in F's parameters. The residual
+    chi-square per degree of freedom is the fit's residual variance over the background's."""
+    noises = tuple(background_noise(sl.pixels, b.footprints) for sl, b in zip(slices, blob_sets))
+    bg = float(np.mean([n.sigma for n in noises]))
+    chi = (blurred.noise_sigma / bg) ** 2 if bg > 0 else float("nan")
+    cov = blurred.covariance_F()
+    target = tuple(float(v) for v in target_F_mm)
+    return PoseUncertainty(cov, noises, chi, max(int(blurred.n_pixels) - 7, 1), 1.0, target, tre_rms_mm(cov, target),
+                           "blurred fit (pixels)")
+
+
+def mahalanobis2(delta_deg_mm: np.ndarray, covariance: np.ndarray) -> float:
+    """Squared Mahalanobis length of a pose error (order :data:`PARAMETER_ORDER`) under a covariance."""
+    d = np.asarray(delta_deg_mm, dtype=float)
+    return float(d @ np.linalg.solve(covariance, d))
+
+
+def detection_diameter_mm(blobs, model) -> float:
+    """The tube diameter the detector smoothed for: the geometry's median, or the width it measured in the
+    image when that differs by more than a quarter (:func:`chic_register.detect.blobs.detect_blobs` redoes the
+    detection at that size)."""
+    d_mid = median(model.diameter_mm)
+    width = float(getattr(blobs, "width_mm", float("nan")))
+    if math.isfinite(width) and not 0.8 <= width / d_mid <= 1.25:
+        return width
+    return d_mid
+
+
+def registration_uncertainty(model, fit, xys, Ss, slices, blob_sets, target_F_mm,
+                             measurement: str = "centroid") -> PoseUncertainty:
+    """The covariance of a solver fit (``chic_register.pipeline.register``): its Jacobian at the solution, the measured
+    positions' covariances, and the residuals' check.
+
+    ``fit`` holds ``T_F_from_scanner``, per-slice ``assignments`` (tube -> blob index or -1) and, when its
+    positions were not the blob centroids, ``measurements``: per slice (positions (N, 2) mm, square-root
+    information ``L`` (K, 2, 2) the fit was weighted by, the noise sigma ``L`` assumed); ``xys`` the blob
+    centroids (image mm) per slice, ``Ss`` the slices' ``T_scanner_from_image``.
+    """
+    from chic_register.model.pose import invert
+    from chic_register.fit.refine import scanner_crossing_jacobian, whitened_residuals
+    from chic_register.model.tube_model import _adjoint, plane_crossings
+
+    X = fit.T_F_from_scanner
+    Ad_sf = _adjoint(invert(X))
+    meas = getattr(fit, "measurements", None)
+    Js, rs, blocks, noises = [], [], [], []
+    for j, (sl, S, b) in enumerate(zip(slices, Ss, blob_sets)):
+        noise = background_noise(sl.pixels, b.footprints)
+        noises.append(noise)
+        a = fit.assignments[j]
+        q, tan, _, inside = plane_crossings(model, X @ S, margin_mm=1e-9)
+        k = np.flatnonzero((a >= 0) & inside)
+        if k.size == 0:
+            continue
+        J_s = scanner_crossing_jacobian(q[k], tan[k], S)  # d/d(xi) of X @ exp(xi), xi in the scanner
+        J_F = -J_s @ Ad_sf  # the same motion as delta in F: xi = -Ad(T_sf) delta
+        if meas is not None:  # an information-weighted fit of fitted section positions (the default mode)
+            _, L, sigma_used = meas[j]
+            Js.append(np.einsum("kij,kjl->kil", L[k], J_F).reshape(-1, 6))
+            rs.append(whitened_residuals(meas[j], q, a, k).ravel())
+            # L whitens the positions for the noise sigma it assumed; the image's own sigma rescales that
+            scale = (noise.sigma / sigma_used) ** 2 if sigma_used > 0 else 1.0
+            blocks += [scale * np.eye(2)] * k.size
+            continue
+        Js.append(J_F.reshape(-1, 6))
+        rs.append((q[k] - xys[j][a[k]]).ravel())
+        jitter = mask_jitter_covariances(sl.pixels, b.footprints, a[k], b.threshold, noise, sl.pixel_spacing_mm,
+                                         detection_diameter_mm(b, model), background=b.background, seed=j)
+        for i, extra in zip(a[k], jitter):
+            base = centroid_covariance(sl.pixels, b.footprints[int(i)], b.background, noise, sl.pixel_spacing_mm)
+            vals, vecs = np.linalg.eigh(base + extra)  # never below the fixed footprint's own half
+            floor = 0.5 * float(np.linalg.eigvalsh(base)[0])
+            blocks.append((vecs * np.maximum(vals, floor)) @ vecs.T)
+    J = np.concatenate(Js)
+    S = np.zeros((J.shape[0], J.shape[0]))
+    for n, B in enumerate(blocks):
+        S[2 * n:2 * n + 2, 2 * n:2 * n + 2] = B
+    return pose_uncertainty(J, S, np.concatenate(rs), noises, target_F_mm,
+                            "section fit" if meas is not None else measurement)
