@@ -18,7 +18,7 @@ import numpy as np
 from chic_design.layout import fiducial_geometry
 from chic_design.spec import load_spec
 from chic_register.errors import NoLock
-from chic_register.studies.evaluate import _normal_angle_deg
+from chic_register.studies.evaluate import normal_angle_deg
 from chic_register.model.pose import invert, wrap_deg
 from chic_register.imaging.simulate import simulate_slice
 from chic_register.pipeline.register import register
@@ -50,7 +50,7 @@ def main() -> None:
                 s, t = reg.slices[0], sim.truth.angles
                 T_fi = invert(reg.T_scanner_from_fiducial) @ sim.slice.T_scanner_from_image()
                 T_true = invert(sim.truth.T_scanner_from_fiducial) @ sim.slice.T_scanner_from_image()
-                errs.append((abs(s.depth_mm - t.depth_mm), _normal_angle_deg(T_fi, T_true),
+                errs.append((abs(s.depth_mm - t.depth_mm), normal_angle_deg(T_fi, T_true),
                              abs(wrap_deg(s.twist_deg - t.twist_deg))))
         e = np.max(errs, axis=0) if errs else np.full(3, np.nan)
         worst = np.fmax(worst, e)

@@ -79,7 +79,7 @@ from dataclasses import replace
 import numpy as np
 
 from chic_register.model.envelope import (  # noqa: F401 - the plane checks live with the solver, re-exported here
-    OUTSIDE, _clipped_disc_distance, _pair_order, _PlaneChecker, crossing_counts, plane_crossings, plane_normals,
+    OUTSIDE, clipped_disc_distance, pair_order, PlaneChecker, crossing_counts, plane_crossings, plane_normals,
     section_gap,
 )
 from chic_register.model.geometry import FiducialGeometry

@@ -32,7 +32,7 @@ import math
 
 import numpy as np
 
-from chic_register.model.envelope import _pair_order
+from chic_register.model.envelope import pair_order
 from chic_register.model.geometry import FiducialGeometry
 
 from .depth_precision import depth_sensitivity
@@ -130,7 +130,7 @@ def channel_clearances(geom: FiducialGeometry, min_wall_mm: float, spacing_mm: f
 
     # z-ranges where two channels touch: the one answer (contacts), also used by the report
     touch = {frozenset((c.a, c.b)): c.z_ranges_mm for c in channel_contacts(geom)}
-    for i, j in _pair_order(geom):
+    for i, j in pair_order(geom):
         a, b = geom.tubes[i], geom.tubes[j]
         gap, z, inter, thin = _pair_gap(a, b, min_wall_mm, spacing_mm)
         inter = touch.get(frozenset((a.id, b.id)), inter)

@@ -2,7 +2,7 @@
 
 Items 1 and 2 of :mod:`chic_design.feasibility`: for planes through the axis
 point ``(0, 0, z)``, the first tilt at which a plane check of
-:class:`chic_register.model.envelope._PlaneChecker` fails (tube outside the body,
+:class:`chic_register.model.envelope.PlaneChecker` fails (tube outside the body,
 crossed twice, sections merging), on a tilt grid then by bisection, the worst
 case over azimuths; and the depth ranges usable at given tilts.
 """
@@ -13,7 +13,7 @@ import math
 
 import numpy as np
 
-from chic_register.model.envelope import _PlaneChecker
+from chic_register.model.envelope import PlaneChecker
 from chic_register.model.geometry import FiducialGeometry
 
 from .feasibility_report import TiltLimit, UsableDepth
@@ -23,7 +23,7 @@ TILT_CAP_DEG = 89.0
 NO_LIMIT = "none_below_89_deg"
 
 
-def _max_tilt(checker: _PlaneChecker, z: np.ndarray, az: np.ndarray, grid_step: float = 5.0,
+def _max_tilt(checker: PlaneChecker, z: np.ndarray, az: np.ndarray, grid_step: float = 5.0,
               tol_deg: float = 0.05):
     """Per (depth, azimuth) pair: first failing tilt (grid, then bisection). Returns tilt, code, ok0."""
     grid = np.append(np.arange(0.0, TILT_CAP_DEG, grid_step), TILT_CAP_DEG)
@@ -80,7 +80,7 @@ def tilt_limits(geom: FiducialGeometry, pixel_size_mm: float, slice_thickness_mm
     :func:`~chic_register.model.envelope.section_gap` (about 15x slower; for designs/neuro.yaml it gives the
     same limits to 0.1 deg, so :func:`~chic_design.feasibility.check_geometry` uses the ellipse model).
     """
-    checker = _PlaneChecker(geom, pixel_size_mm, slice_thickness_mm, merges=merges, exact=exact)
+    checker = PlaneChecker(geom, pixel_size_mm, slice_thickness_mm, merges=merges, exact=exact)
     zs = depth_samples(geom.body.length) if depths_mm is None else np.asarray(depths_mm, dtype=float)
     azs = np.arange(0.0, 360.0, azimuth_step_deg)
     Z, A = np.meshgrid(zs, azs, indexing="ij")

@@ -431,15 +431,15 @@ def test_clipped_disc_distance_hand_cases():
     c1, c2 = np.array([0.0, 1.0, 0.0]), np.array([3.0, 1.0, 0.0])
     one = np.array(1.0)
     # both discs inside-ish: arc points on the centre line lie in y >= 0 -> 3 - 2
-    assert F._clipped_disc_distance(c1, one, c2, one, G, np.array(1.0), np.array(1.0)) == pytest.approx(1.0)
+    assert F.clipped_disc_distance(c1, one, c2, one, G, np.array(1.0), np.array(1.0)) == pytest.approx(1.0)
     # centres below the line at y = -0.6: caps with chords |x - cx| <= 0.8 on y = 0 -> 3 - 1.6
     c1b, c2b = c1 - [0, 1.6, 0], c2 - [0, 1.6, 0]
-    assert F._clipped_disc_distance(c1b, one, c2b, one, G, np.array(-0.6), np.array(-0.6)) == pytest.approx(1.4)
+    assert F.clipped_disc_distance(c1b, one, c2b, one, G, np.array(-0.6), np.array(-0.6)) == pytest.approx(1.4)
     # overlapping discs whose lens lies below the line: chords 0.8 wide at centres 1.2 apart -> no overlap
     c2c = c1b + [1.9, 0, 0]
-    assert F._clipped_disc_distance(c1b, one, c2c, one, G, np.array(-0.6), np.array(-0.6)) == pytest.approx(0.3)
+    assert F.clipped_disc_distance(c1b, one, c2c, one, G, np.array(-0.6), np.array(-0.6)) == pytest.approx(0.3)
     # a disc entirely below the line is empty
-    assert F._clipped_disc_distance(c1 - [0, 2.5, 0], one, c2, one, G, np.array(-1.5), np.array(1.0)) == np.inf
+    assert F.clipped_disc_distance(c1 - [0, 2.5, 0], one, c2, one, G, np.array(-1.5), np.array(1.0)) == np.inf
 
 
 def test_tube_crossings_are_plane_crossings_tube_by_tube(neuro_geometry, needle_geometry):

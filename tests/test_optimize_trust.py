@@ -18,7 +18,7 @@ from chic_design.spec import load_spec, parse_spec
 from chic_register.precision.crlb import Protocol, pose_crlb
 from chic_register.errors import ImprecisePose, NoLock
 from chic_register.pipeline.register import SolveOptions, register
-from chic_register.verify.pixels import PRECISION_SIGMAS
+from chic_register.fit.checks import PRECISION_SIGMAS
 
 ROOT = Path(__file__).resolve().parents[1]
 SMALL = ROOT / "tests" / "data" / "optimize-small.yaml"

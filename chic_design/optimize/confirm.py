@@ -80,7 +80,7 @@ def confirm_design(spec_data: dict, req_data: dict, draws: int, seed: int) -> di
     imprecise to trust). Errors are those of the middle slice's pose.
     """
     from chic_register.errors import ImprecisePose, NoLock
-    from chic_register.studies.evaluate import _normal_angle_deg
+    from chic_register.studies.evaluate import normal_angle_deg
     from chic_register.model.pose import invert, slice_angles, wrap_deg
     from chic_register.pipeline.register import register
 
@@ -113,7 +113,7 @@ def confirm_design(spec_data: dict, req_data: dict, draws: int, seed: int) -> di
             T_true = invert(truth.T_scanner_from_fiducial) @ sl.T_scanner_from_image()
             got = slice_angles(T_F_from_I)
             axial[i, k] = got.depth_mm - truth.angles.depth_mm
-            normal[i, k] = _normal_angle_deg(T_F_from_I, T_true)
+            normal[i, k] = normal_angle_deg(T_F_from_I, T_true)
             twist[i, k] = wrap_deg(got.twist_deg - truth.angles.twist_deg)
     n = axial.size
     locked = int(np.isfinite(axial).sum())

@@ -1,7 +1,7 @@
 """Will the solver trust a candidate's poses? Its refusal test predicted from the Cramér-Rao bound.
 
 ``chic_register.pipeline.register.register`` refuses a pose whose own predicted error,
-:data:`~chic_register.verify.pixels.PRECISION_SIGMAS` (3) times the 1-sigma of
+:data:`~chic_register.fit.checks.PRECISION_SIGMAS` (3) times the 1-sigma of
 :func:`~chic_register.verify.pixels.pose_precision` (worst direction of the
 rotation, and of the frame centre ``(0, 0, L/2)``'s displacement), exceeds
 ``SolveOptions.trust_rot_deg`` or ``trust_tre_mm``. A design whose slices the
@@ -42,7 +42,7 @@ class TrustLimits:
 def solver_limits() -> TrustLimits:
     """The limits as ``chic_register`` sets them today (``SolveOptions`` defaults, ``PRECISION_SIGMAS``)."""
     from chic_register.pipeline.register import SolveOptions
-    from chic_register.verify.pixels import PRECISION_SIGMAS
+    from chic_register.fit.checks import PRECISION_SIGMAS
 
     default = {f.name: f.default for f in fields(SolveOptions)}
     return TrustLimits(float(default["trust_tre_mm"]), float(default["trust_rot_deg"]), float(PRECISION_SIGMAS))

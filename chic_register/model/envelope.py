@@ -45,7 +45,7 @@ def plane_normals(tilt_deg, azimuth_deg) -> np.ndarray:
 # ----------------------------------------------------------------------------- tilt limits
 
 
-def _pair_order(geom: FiducialGeometry) -> list[tuple[int, int]]:
+def pair_order(geom: FiducialGeometry) -> list[tuple[int, int]]:
     """All tube pairs, each ordered helix < orientation < diametric < other (``H0/D0``)."""
     idx = list(range(len(geom.tubes)))
     rank = sorted(idx, key=lambda i: (_ROLE_RANK.get(geom.tubes[i].role, 9), i))
@@ -126,7 +126,7 @@ def _disc_union(tube, t_center, origins, normals, slice_mm, half_mm, n: int):
     return t, c, rho
 
 
-def _clipped_disc_distance(c1, r1, c2, r2, G, f1, f2):
+def clipped_disc_distance(c1, r1, c2, r2, G, f1, f2):
     """Distance between discs clipped to a half-plane {f >= 0} (f: in-plane distance to the face line).
 
     c1, c2: centres (..., 3); r1, r2: radii; G: unit in-plane gradient of f
@@ -185,7 +185,7 @@ def section_gap(tube_a, tube_b, origins, normals, slice_thickness_mm: float, bod
     :func:`_disc_union`), clipped by the end face (z = 0 or
     ``body_length_mm``, the one nearer the crossings; None: no clipping). The
     distance between two such sets is the smallest distance between a disc of
-    one and a disc of the other (:func:`_clipped_disc_distance`), found on an
+    one and a disc of the other (:func:`clipped_disc_distance`), found on an
     ``n_samples``^2 grid of centreline parameters around the crossings
     (``t_a``, ``t_b``: crossing parameters, computed if None), zoomed in
     ``n_zoom`` times. Negative = the blobs overlap (then only the sign is
@@ -237,7 +237,7 @@ def section_gap(tube_a, tube_b, origins, normals, slice_thickness_mm: float, bod
 
         fa, fb = f_of(pa), f_of(pb)
         fa, fb = np.where(np.isinf(fa), 1e9, fa), np.where(np.isinf(fb), 1e9, fb)
-        d = _clipped_disc_distance(pa[:, :, None, :], ra[:, :, None], pb[:, None, :, :], rb[:, None, :],
+        d = clipped_disc_distance(pa[:, :, None, :], ra[:, :, None], pb[:, None, :, :], rb[:, None, :],
                                    G, fa[:, :, None], fb[:, None, :])
         d = np.where(np.isnan(d), np.inf, d).reshape(len(o), -1)
         k = np.argmin(d, axis=1)
@@ -251,7 +251,7 @@ def section_gap(tube_a, tube_b, origins, normals, slice_thickness_mm: float, bod
     zb[ok] = tube_b.points(cb)[:, 2]
     return gap, za, zb
 
-class _PlaneChecker:
+class PlaneChecker:
     """Evaluates the tilt constraints on many planes through the axis at once."""
 
     def __init__(self, geom: FiducialGeometry, pixel_size_mm: float, slice_thickness_mm: float,
@@ -260,7 +260,7 @@ class _PlaneChecker:
         self.tubes = geom.tubes
         self.pixel = float(pixel_size_mm)
         self.slice = float(slice_thickness_mm)
-        self.pairs = _pair_order(geom) if merges else []
+        self.pairs = pair_order(geom) if merges else []
         self.I = np.array([p[0] for p in self.pairs], dtype=int)
         self.J = np.array([p[1] for p in self.pairs], dtype=int)
         self.semi = np.array([t.diameter / 2 for t in self.tubes])
@@ -353,7 +353,7 @@ class PlaneStatus:
     """The plane checks of one image plane.
 
     ``ok`` when every check passes; ``failure``: the first failing check's
-    label as in :class:`_PlaneChecker` (``tube_outside_body``,
+    label as in :class:`PlaneChecker` (``tube_outside_body``,
     ``tube_crosses_twice:<id>``, ``tubes_merge:<id>/<id>``) or ``""``;
     ``outside``: ids of the tubes the plane misses, ``twice``: ids crossed
     more than once, ``merged``: id pairs whose sections come closer than one
@@ -371,12 +371,12 @@ def plane_status(geom: FiducialGeometry, depth_mm: float, tilt_deg: float, azimu
                  pixel_size_mm: float, slice_thickness_mm: float, exact: bool = False) -> PlaneStatus:
     """The design's plane checks (the tilt limits' constraints) on one plane, for this pixel size and thickness.
 
-    The failure named is the one :meth:`_PlaneChecker.codes` names (missed,
+    The failure named is the one :meth:`PlaneChecker.codes` names (missed,
     then crossed twice, then the worst merge). ``exact`` as in
     :func:`chic_design.feasibility.tilt_limits` (the ellipse model is within
     0.1 deg of the exact sections for the designs here, at a 15th of the cost).
     """
-    checker = _PlaneChecker(geom, pixel_size_mm, slice_thickness_mm, exact=exact)
+    checker = PlaneChecker(geom, pixel_size_mm, slice_thickness_mm, exact=exact)
     cnt, margin = checker.margins(np.array([float(depth_mm)]), float(tilt_deg), float(azimuth_deg))
     ids = [t.id for t in geom.tubes]
     outside = tuple(ids[k] for k in np.flatnonzero(cnt[0] == 0))

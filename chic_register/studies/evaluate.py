@@ -141,7 +141,7 @@ class StudyResult:
                              "max": float(np.max(ms)) if ms.size else None}}
 
 
-def _normal_angle_deg(T1: np.ndarray, T2: np.ndarray) -> float:
+def normal_angle_deg(T1: np.ndarray, T2: np.ndarray) -> float:
     """Angle between the image normals (z axes) of two slice frames, sign-insensitive."""
     c = abs(float(T1[:3, 2] @ T2[:3, 2]))
     return math.degrees(math.acos(min(1.0, c)))
@@ -191,7 +191,7 @@ def run_study(geom: FiducialGeometry, draws: int = 20, seed: int = 0, *, noise: 
             T_F_from_I = invert(reg.T_scanner_from_fiducial) @ sim.slice.T_scanner_from_image()
             T_true = invert(sim.truth.T_scanner_from_fiducial) @ sim.slice.T_scanner_from_image()
             axial[i, k] = s.depth_mm - truth.depth_mm
-            normal[i, k] = _normal_angle_deg(T_F_from_I, T_true)
+            normal[i, k] = normal_angle_deg(T_F_from_I, T_true)
             twist[i, k] = wrap_deg(s.twist_deg - truth.twist_deg)
             ms[i, k] = reg.timing_ms["detect"] + reg.timing_ms["pose"]
             if bar is not None:
