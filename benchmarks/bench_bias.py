@@ -18,10 +18,10 @@ import numpy as np
 from chic_design.layout import fiducial_geometry
 from chic_design.spec import load_spec
 from chic_register.errors import NoLock
-from chic_register.studies.evaluate import normal_angle_deg
-from chic_register.model.pose import invert, wrap_deg
 from chic_register.imaging.simulate import simulate_slice
+from chic_register.model.pose import invert, wrap_deg
 from chic_register.pipeline.register import register
+from chic_register.studies.evaluate import normal_angle_deg
 
 ROOT = Path(__file__).resolve().parents[1]
 

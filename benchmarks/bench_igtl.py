@@ -33,9 +33,9 @@ import numpy as np  # noqa: E402
 
 from chic_design.layout import fiducial_geometry  # noqa: E402
 from chic_design.spec import load_spec  # noqa: E402
+from chic_register.imaging.simulate import simulate_slice  # noqa: E402
 from chic_register.io.igtl import read_message, slice_to_image_message  # noqa: E402
 from chic_register.live.igtl_track import track_images  # noqa: E402
-from chic_register.imaging.simulate import simulate_slice  # noqa: E402
 
 ROOT = Path(__file__).resolve().parents[1]
 
@@ -48,7 +48,7 @@ def main() -> None:
     ap.add_argument("--verify", choices=("on", "off"), default="on",
                     help="the solver's verification of the pose against the image (default on, as chic-register)")
     args = ap.parse_args()
-    from chic_register.pipeline.register import SolveOptions
+    from chic_register.options import SolveOptions
 
     options = SolveOptions(verify=args.verify == "on")
 

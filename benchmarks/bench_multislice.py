@@ -28,10 +28,10 @@ sys.path.insert(0, str(ROOT))
 from chic_design.layout import fiducial_geometry  # noqa: E402
 from chic_design.spec import load_spec  # noqa: E402
 from chic_register.errors import NoLock  # noqa: E402
-from chic_register.model.pose import rigid, rot_y, rot_z, slice_angles, slice_frame  # noqa: E402
-from chic_register.studies.reslice import AXES, slice_errors  # noqa: E402
 from chic_register.imaging.simulate import simulate_slice  # noqa: E402
+from chic_register.model.pose import rigid, rot_y, rot_z, slice_angles, slice_frame  # noqa: E402
 from chic_register.pipeline.register import register  # noqa: E402
+from chic_register.studies.reslice import AXES, slice_errors  # noqa: E402
 
 SUBSETS = {1: (1,), 2: (1, 2), 3: (0, 1, 2)}  # indices into the stack (0: shallow, 1: middle, 2: deep)
 

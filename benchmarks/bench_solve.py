@@ -34,10 +34,10 @@ import numpy as np  # noqa: E402
 
 from chic_design.layout import fiducial_geometry  # noqa: E402
 from chic_design.spec import load_spec  # noqa: E402
-from chic_register.studies.efficiency import METRICS, pose_efficiency  # noqa: E402
 from chic_register.errors import NoLock  # noqa: E402
 from chic_register.imaging.simulate import simulate_slice  # noqa: E402
 from chic_register.pipeline.register import register  # noqa: E402
+from chic_register.studies.efficiency import METRICS, pose_efficiency  # noqa: E402
 
 ROOT = Path(__file__).resolve().parents[1]
 MODES = {"default": {}, "fast": {"section_fit": False}, "centroid": {"centroid_model": True}}

@@ -43,8 +43,8 @@ def main() -> None:
     args = ap.parse_args()
     from chic_design.layout import fiducial_geometry
     from chic_design.spec import load_spec
-    from chic_register.model.geometry import write_geometry
     from chic_register.imaging.simulate import simulate_slice, write_simulated
+    from chic_register.model.geometry import write_geometry
 
     compileall.compile_dir(str(ROOT / "chic_register"), quiet=1)
     with tempfile.TemporaryDirectory() as tmp:

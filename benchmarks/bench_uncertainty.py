@@ -27,9 +27,9 @@ import numpy as np  # noqa: E402
 
 from chic_design.layout import fiducial_geometry  # noqa: E402
 from chic_design.spec import load_spec  # noqa: E402
-from chic_register.studies.calibration import run_calibration, z001_geometry  # noqa: E402
 from chic_register.imaging.simulate import simulate_slice  # noqa: E402
 from chic_register.pipeline.register import register  # noqa: E402
+from chic_register.studies.calibration import run_calibration, z001_geometry  # noqa: E402
 
 ROOT = Path(__file__).resolve().parents[1]
 CHIC_POSES = [(35.0, 25.0, 300.0, 20.0), (22.0, 15.0, 30.0, 10.0), (30.0, 30.0, 100.0, 40.0), (15.0, 20.0, 200.0, 5.0)]

@@ -26,9 +26,11 @@ import numpy as np  # noqa: E402
 
 from chic_design.layout import fiducial_geometry  # noqa: E402
 from chic_design.spec import load_spec  # noqa: E402
-from chic_register.model.geometry import Body, FiducialGeometry, LineTube  # noqa: E402
+from chic_register.imaging.simulate import simulate_volume
+from chic_register.model.body import Body  # noqa: E402
+from chic_register.model.geometry import FiducialGeometry  # noqa: E402
 from chic_register.model.pose import apply, rigid, rot_y, rot_z  # noqa: E402
-from chic_register.io.volumes import simulate_volume  # noqa: E402
+from chic_register.model.tubes import LineTube  # noqa: E402
 from chic_register.pipeline.volume import register_volume  # noqa: E402
 
 ROOT = Path(__file__).resolve().parents[1]

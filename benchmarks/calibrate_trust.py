@@ -36,9 +36,9 @@ def main(argv=None) -> int:
     from chic_design.optimize.confirm import simulate_parallel
     from chic_design.optimize.trust import solver_sds
     from chic_design.spec import load_spec
-    from chic_register.precision.crlb import Protocol, pose_crlb
     from chic_register.errors import ImprecisePose, NoLock
     from chic_register.pipeline.register import register
+    from chic_register.precision.crlb import Protocol, pose_crlb
 
     p = argparse.ArgumentParser(description=__doc__.splitlines()[0])
     p.add_argument("--draws", type=int, default=6)

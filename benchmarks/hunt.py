@@ -133,11 +133,12 @@ def _T_old_from_new(A, t, spacing_old, spacing_new):
 
 def build_case(case: Case, geom):
     """``(Slice to solve, true T_scanner_from_fiducial, in_envelope)`` of a case."""
+    from chic_register.imaging.render import render_tubes
+    from chic_register.imaging.simulate import add_rician_noise, simulate_slice
     from chic_register.model.envelope import plane_status
-    from chic_register.model.geometry import LineTube
     from chic_register.model.pose import invert, slice_frame
-    from chic_register.imaging.simulate import add_rician_noise, render_tubes, simulate_slice
     from chic_register.model.slices import Slice
+    from chic_register.model.tubes import LineTube
 
     rng = np.random.default_rng(case.mutation_seed)
     m = case.mutation

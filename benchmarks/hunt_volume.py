@@ -36,8 +36,8 @@ def main(argv=None) -> int:
     from chic_design.layout import design_geometry
     from chic_design.spec import load_spec
     from chic_register.errors import NoLock
+    from chic_register.imaging.simulate import simulate_volume
     from chic_register.model.pose import rigid, rot_y, rot_z
-    from chic_register.io.volumes import simulate_volume
     from chic_register.pipeline.volume import register_volume
 
     ap = argparse.ArgumentParser(description=__doc__.splitlines()[0])

@@ -264,9 +264,9 @@ def build_volume(geom, case: dict):
 
 def usable_slices(geom, vol, T_sf, thickness_mm: float) -> int:
     """How many k-planes the design's plane checks pass (all rods visible and apart at nominal width)."""
+    from chic_register.io.volumes import plane_frame
     from chic_register.model.envelope import plane_status
     from chic_register.model.pose import slice_angles
-    from chic_register.io.volumes import plane_frame
 
     T_fs = np.linalg.inv(T_sf)
     n = 0
@@ -323,8 +323,8 @@ def classify(res: dict, T_true) -> tuple[str, str]:
 
 
 def run_case(index: int, seed: int, geometry: Path, keep: Path | None = None) -> dict:
-    from chic_register.model.geometry import load_geometry
     from chic_register.io.volumes import write_volume
+    from chic_register.model.geometry import load_geometry
 
     rng = np.random.default_rng([seed, index])
     case = draw_case(rng)

@@ -40,7 +40,8 @@ from build123d import (
     sweep,
 )
 
-from chic_register.model.geometry import FiducialGeometry, Tube
+from chic_register.model.geometry import FiducialGeometry
+from chic_register.model.tubes import Tube
 
 _BOTTOM = (Align.CENTER, Align.CENTER, Align.MIN)
 

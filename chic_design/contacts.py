@@ -18,7 +18,8 @@ from dataclasses import dataclass
 
 import numpy as np
 
-from chic_register.model.geometry import FiducialGeometry, Tube
+from chic_register.model.geometry import FiducialGeometry
+from chic_register.model.tubes import Tube
 
 BOUNDARY_POINTS = 256
 

@@ -78,10 +78,8 @@ from dataclasses import replace
 
 import numpy as np
 
-from chic_register.model.envelope import (  # noqa: F401 - the plane checks live with the solver, re-exported here
-    OUTSIDE, clipped_disc_distance, pair_order, PlaneChecker, crossing_counts, plane_crossings, plane_normals,
-    section_gap,
-)
+from chic_register.model.envelope import OUTSIDE, clipped_disc_distance, pair_order, PlaneChecker, plane_normals, section_gap
+from chic_register.model.centreline_crossings import crossing_counts, plane_crossings
 from chic_register.model.geometry import FiducialGeometry
 
 from .depth_precision import depth_sensitivity

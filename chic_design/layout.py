@@ -9,7 +9,9 @@ from __future__ import annotations
 import math
 
 from chic_register.version import __version__
-from chic_register.model.geometry import Body, FiducialGeometry, HelixTube, LineTube, ToolFrame
+from chic_register.model.geometry import FiducialGeometry
+from chic_register.model.body import Body, ToolFrame
+from chic_register.model.tubes import HelixTube, LineTube
 
 from .spec import Spec, quadrant_bounds_deg
 

@@ -12,7 +12,7 @@ import math
 
 import numpy as np
 
-from chic_register.model.envelope import plane_crossings
+from chic_register.model.centreline_crossings import plane_crossings
 from chic_register.model.geometry import FiducialGeometry
 
 from .feasibility_report import Finding, Symmetry

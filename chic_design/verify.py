@@ -24,7 +24,8 @@ from pathlib import Path
 import numpy as np
 import trimesh
 
-from chic_register.model.geometry import FiducialGeometry, Tube, load_geometry
+from chic_register.model.geometry import FiducialGeometry, load_geometry
+from chic_register.model.tubes import Tube
 
 from .errors import BuildCheckError
 

@@ -17,7 +17,9 @@ The CAD channels are swept along these same objects.
 from __future__ import annotations
 
 from chic_register.version import __version__
-from chic_register.model.geometry import Body, FiducialGeometry, LineTube
+from chic_register.model.geometry import FiducialGeometry
+from chic_register.model.body import Body
+from chic_register.model.tubes import LineTube
 
 from .layout import spec_tool_frame
 from .zframe_spec import FACES, ZFrameSpec

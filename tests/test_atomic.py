@@ -1,12 +1,12 @@
 """The one atomic writer every output goes through."""
 
-import pytest
-
 import os
 import stat
 
-from chic_register.util.atomic import atomic_path, write_json
+import pytest
+
 from chic_register.errors import OutputError
+from chic_register.util.atomic import atomic_path, write_json
 
 
 def test_failed_write_leaves_the_old_file_and_no_temporary(tmp_path):

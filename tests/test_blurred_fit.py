@@ -7,12 +7,14 @@ import numpy as np
 import pytest
 from scipy import ndimage as ndi
 
-from chic_register.fit.blurred import WIDE_RATIO, blob_width_ratio, blurred_fit
 from chic_register.detect.blobs import detect_blobs
+from chic_register.detect.wide_blobs import WIDE_RATIO, blob_width_ratio
 from chic_register.errors import NoLock
-from chic_register.model.pose import invert
+from chic_register.fit.blurred import blurred_fit
 from chic_register.imaging.simulate import add_rician_noise, simulate_slice
-from chic_register.pipeline.register import prepare_geometry, register
+from chic_register.model.pose import invert
+from chic_register.model.tube_model import prepare_geometry
+from chic_register.pipeline.register import register
 
 
 def _blurred(geom, pose, width, snr, seed):
@@ -144,10 +146,10 @@ def test_wide_volume_pose_carries_the_pixel_fits_covariance(needle_geometry):
     """A 1.3x needle-guide volume: 18 slices' blob centres alone put the pose 0.29 mm off while predicting 0.04 mm
     (merged neighbours pull every slice the same way); the pose fitted to the pixels of spread slices through the
     blurred model is within 0.1 mm, and its reported covariance (from that fit) is consistent with the error."""
+    from chic_register.imaging.simulate import simulate_volume
     from chic_register.model.pose import rigid, rot_y, rot_z
-    from chic_register.precision.uncertainty import mahalanobis2
-    from chic_register.io.volumes import simulate_volume
     from chic_register.pipeline.volume import register_volume
+    from chic_register.precision.uncertainty import mahalanobis2
 
     L = needle_geometry.body.length
     T = rigid(rot_z(30) @ rot_y(0.0), (1.0, -2.0, -L / 2))
@@ -167,8 +169,8 @@ def test_wide_volume_pose_carries_the_pixel_fits_covariance(needle_geometry):
 def test_a_tight_field_of_view_never_crashes_the_blurred_fit(needle_geometry):
     """A 1.3x needle-guide volume in a 24 mm field of view (sections near the edges): some spread slice holds no
     section box; the fit was an IndexError there. Now a pose within 0.3 mm, or a refusal."""
+    from chic_register.imaging.simulate import simulate_volume
     from chic_register.model.pose import rigid, rot_y, rot_z
-    from chic_register.io.volumes import simulate_volume
     from chic_register.pipeline.volume import register_volume
 
     L = needle_geometry.body.length

@@ -28,7 +28,8 @@ from chic_design.verify import (
     section_heights,
     verify_export,
 )
-from chic_register.model.geometry import LineTube, load_geometry
+from chic_register.model.geometry import load_geometry
+from chic_register.model.tubes import LineTube
 
 from .conftest import NEURO
 

@@ -18,7 +18,7 @@ from chic_design.cad import (
 )
 from chic_design.layout import fiducial_geometry
 from chic_design.spec import load_spec
-from chic_register.model.geometry import HelixTube, LineTube
+from chic_register.model.tubes import HelixTube, LineTube
 
 from .conftest import NEEDLE, NEURO
 

@@ -6,10 +6,19 @@ import numpy as np
 import pytest
 from scipy.special import i0e, i1e
 
-from chic_register.precision.crlb import (PARAMETER_ORDER, Protocol, image_jacobian, image_shape, model_image,
-                                perturbation, pose_crlb, precision_map, rician_information)
-from chic_register.model.pose import slice_angles, slice_frame, wrap_deg
 from chic_register.imaging.simulate import add_rician_noise
+from chic_register.model.pose import slice_angles, slice_frame, wrap_deg
+from chic_register.model.pose_params import PARAMETER_ORDER
+from chic_register.precision.crlb import (
+    Protocol,
+    image_jacobian,
+    image_shape,
+    model_image,
+    perturbation,
+    pose_crlb,
+    precision_map,
+    rician_information,
+)
 
 Q = "fast"  # renderer sampling of both the simulated images and the fit (3x3 samples, 3 sub-planes)
 
@@ -84,8 +93,8 @@ def test_bound_does_not_depend_on_the_difference_step(neuro_geometry, monkeypatc
 
     bounds = []
     for step_rad, step_mm in ((3e-4, 0.005), (3e-3, 0.05)):
-        monkeypatch.setattr(crlb, "_STEP_RAD", step_rad)
-        monkeypatch.setattr(crlb, "_STEP_MM", step_mm)
+        monkeypatch.setattr(crlb, "STEP_RAD", step_rad)
+        monkeypatch.setattr(crlb, "STEP_MM", step_mm)
         bounds.append(pose_crlb(neuro_geometry, 40.0, 0.0, 0.0, 0.0, Protocol(), quality="fast"))
     fine, coarse = bounds
     for k, rel in (("sd_normal_deg", 0.03), ("sd_twist_deg", 0.05), ("sd_depth_mm", 0.03), ("tre_mm", 0.03)):

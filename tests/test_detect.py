@@ -76,7 +76,7 @@ def test_pure_noise_has_no_strong_candidates():
 def test_smoothing_is_repeated_binomial_passes_with_replicated_edges():
     from scipy import ndimage as ndi
 
-    from chic_register.detect.blobs import _smooth
+    from chic_register.detect.filters import gaussian_smooth
 
     rng = np.random.default_rng(1)
     for shape in [(64, 48), (5, 3), (1, 7), (7, 1), (2, 2)]:
@@ -86,25 +86,25 @@ def test_smoothing_is_repeated_binomial_passes_with_replicated_edges():
             for _ in range(n):
                 for axis in (0, 1):
                     ref = ndi.correlate1d(ref, [0.25, 0.5, 0.25], axis=axis, mode="nearest")
-            out = _smooth(img, sigma)
+            out = gaussian_smooth(img, sigma)
             assert out.dtype == np.float32 and out.shape == shape
             assert np.allclose(out, ref, atol=1e-6)
 
 
 def test_smoothing_scaled_at_the_end_is_the_same_to_the_bit():
-    from chic_register.detect.blobs import _smooth
+    from chic_register.detect.filters import gaussian_smooth
 
     rng = np.random.default_rng(2)
     for lo, hi in [(1e-25, 1e-24), (0.5, 4095.0), (1.0, 1e25), (1e-20, 1e20)]:
         img = np.exp(rng.uniform(np.log(lo), np.log(hi), (61, 47)))
         for sigma in (0.5, 0.9, 1.3):
-            assert np.array_equal(_smooth(img, sigma, scale_at_end=True), _smooth(img, sigma))
+            assert np.array_equal(gaussian_smooth(img, sigma, scale_at_end=True), gaussian_smooth(img, sigma))
 
 
 def test_maximum_filter_is_scipys():
     from scipy import ndimage as ndi
 
-    from chic_register.detect.blobs import _maximum_filter
+    from chic_register.detect.filters import maximum_filter
 
     rng = np.random.default_rng(3)
     for _ in range(300):
@@ -112,7 +112,7 @@ def test_maximum_filter_is_scipys():
         vals = rng.normal(size=shape).astype(np.float32)
         vals[rng.random(shape) < 0.3] = -np.inf
         ref = ndi.maximum_filter(vals, size=size, mode="constant", cval=-np.inf)
-        assert np.array_equal(_maximum_filter(vals, size), ref)
+        assert np.array_equal(maximum_filter(vals, size), ref)
 
 
 def test_footprints_areas_and_means_follow_the_per_blob_rules():
@@ -120,7 +120,7 @@ def test_footprints_areas_and_means_follow_the_per_blob_rules():
     the blob dilated by one pixel less the neighbours' own dilations within its box, areas and means the blob's own."""
     import cc3d
 
-    from chic_register.detect.blobs import _dilate, _smooth
+    from chic_register.detect.filters import dilate, gaussian_smooth
 
     rng = np.random.default_rng(4)
     yy, xx = np.mgrid[:96, :96]
@@ -133,13 +133,13 @@ def test_footprints_areas_and_means_follow_the_per_blob_rules():
                 img += 60.0 * (np.hypot(yy - r, xx - c) < rng.uniform(2.3, 3.2))
         b = detect_blobs(img, (0.5, 0.5), 3.0, smooth_sigma_px=0.9, split_touching=False, size_from_image=False)
         assert len(b) >= 30
-        labels = cc3d.connected_components(_smooth(img, 0.9) > b.threshold, connectivity=4)
+        labels = cc3d.connected_components(gaussian_smooth(img, 0.9) > b.threshold, connectivity=4)
         for (r0, c0, foot), area, mean in zip(b.footprints, b.area_px, b.mean_intensity):
             lab = labels[r0:r0 + foot.shape[0], c0:c0 + foot.shape[1]]
             own = np.bincount(lab[foot & (lab > 0)]).argmax()
             blob = lab == own
             others = (lab != 0) & ~blob
-            ref = _dilate(blob) & ~_dilate(others) if others.any() else _dilate(blob)
+            ref = dilate(blob) & ~dilate(others) if others.any() else dilate(blob)
             assert np.array_equal(foot, ref)
             assert area == np.count_nonzero(labels == own)  # the whole component lies in its box
             assert mean == img[r0:r0 + foot.shape[0], c0:c0 + foot.shape[1]][blob].sum() / area

@@ -6,7 +6,13 @@ import numpy as np
 import pytest
 
 from chic_register.cli.main import main
-from chic_register.studies.evaluate import PAPER, StudyCase, format_summary, paper_cases, run_study
+from chic_register.studies.evaluate import (
+    PAPER,
+    StudyCase,
+    format_summary,
+    paper_cases,
+    run_study,
+)
 
 
 def test_paper_cases_follow_the_paper(neuro_geometry):

@@ -13,7 +13,9 @@ from chic_design import feasibility as F
 from chic_design.cli import main
 from chic_design.layout import fiducial_geometry
 from chic_design.spec import load_spec, parse_spec
-from chic_register.model.geometry import Body, FiducialGeometry, HelixTube, LineTube
+from chic_register.model.body import Body
+from chic_register.model.geometry import FiducialGeometry
+from chic_register.model.tubes import HelixTube, LineTube
 
 NEURO = "designs/neuro.yaml"
 NEEDLE = "designs/needle-guide.yaml"
@@ -446,7 +448,8 @@ def test_tube_crossings_are_plane_crossings_tube_by_tube(neuro_geometry, needle_
     """The solver's envelope check asks every tube at once (straight tubes together, helices together): the same
     numbers as plane_crossings tube by tube, for one plane and for many, and a tube of another kind (a helix of
     another length) among them."""
-    from chic_register.model.envelope import plane_crossings, plane_normals, tube_crossings
+    from chic_register.model.centreline_crossings import plane_crossings, tube_crossings
+    from chic_register.model.envelope import plane_normals
 
     rng = np.random.default_rng(3)
     odd = HelixTube("Hx", "helix", 11.0, 40.0, -3.0, 5.0, 30.0, 2.0)  # fewer brackets than the design's helices

@@ -25,9 +25,13 @@ from chic_design.layout import fiducial_geometry
 from chic_design.printability import build_violations
 from chic_design.spec import load_spec, parse_spec
 from chic_register.errors import GeometryFileError, ImageReadError, NoLock
-from chic_register.model.geometry import content_sha256, geometry_from_dict, load_geometry
-from chic_register.io.images import read_slices
 from chic_register.imaging.simulate import simulate_slice, write_simulated
+from chic_register.io.images import read_slices
+from chic_register.model.geometry import (
+    content_sha256,
+    geometry_from_dict,
+    load_geometry,
+)
 from chic_register.pipeline.register import register
 
 from .conftest import NEURO

@@ -17,13 +17,21 @@ from scipy import ndimage as ndi
 from chic_register.cli.main import main
 from chic_register.detect.blobs import detect_blobs
 from chic_register.errors import ChicRegisterError, NoLock
-from chic_register.model.geometry import Body, FiducialGeometry, LineTube, write_geometry
-from chic_register.guess.generic import _rotations_from_affine, family_hypotheses, parallel_family
+from chic_register.guess.generic import (
+    family_hypotheses,
+    parallel_family,
+    rotations_from_affine,
+)
+from chic_register.imaging.simulate import add_rician_noise, simulate_slice, simulate_volume
+from chic_register.io.volumes import write_volume
+from chic_register.model.body import Body
+from chic_register.model.geometry import FiducialGeometry, write_geometry
 from chic_register.model.pose import apply, rigid, rot_y, rot_z, slice_frame
-from chic_register.imaging.simulate import add_rician_noise, simulate_slice
-from chic_register.pipeline.register import _depth_tube_name, plane_crossings, prepare_geometry, register
-from chic_register.io.volumes import simulate_volume, write_volume
+from chic_register.model.tube_model import plane_crossings, prepare_geometry
+from chic_register.model.tubes import LineTube
+from chic_register.pipeline.register import register
 from chic_register.pipeline.volume import parse_slice_indices, register_volume
+from chic_register.verify.trust import depth_tube_name
 
 ZF_CENTRE = np.array([0.0, 0.0, 30.0])
 ZF_LIMIT_DEG = 30.6  # chic_design.feasibility.tilt_limits at depth 30 mm (0.5 mm pixels, 2 mm slices): 30.70
@@ -86,7 +94,7 @@ def test_rotations_from_an_affine_map_recover_the_cut(zf):
     for pose in [(30, 0, 0, 0), (20, 25, 40, 10), (40, 60, 200, -70)]:
         R = slice_frame(*pose)[:3, :3]
         A = fam.E.T @ R[:, :2]  # section coordinates of an image point p are A p + const
-        got = _rotations_from_affine(A, fam, math.cos(math.radians(80)))
+        got = rotations_from_affine(A, fam, math.cos(math.radians(80)))
         assert min(np.abs(Rg - R).max() for Rg, _ in got) < 1e-9
         assert len(got) == (1 if pose[1] == 0 else 2)
 
@@ -108,8 +116,8 @@ def test_generic_guesses_contain_the_pose_from_exact_crossings(geom_name, zf, ne
 
 
 def test_depth_tubes_are_named_by_their_shape(zf, neuro_geometry):
-    assert _depth_tube_name(prepare_geometry(zf)[0]) == "diagonal"
-    assert _depth_tube_name(prepare_geometry(neuro_geometry)[0]) == "helical"
+    assert depth_tube_name(prepare_geometry(zf)[0]) == "diagonal"
+    assert depth_tube_name(prepare_geometry(neuro_geometry)[0]) == "helical"
 
 
 # ----------------------------------------------------------------------------- Z-frame slices
@@ -270,16 +278,20 @@ def test_no_lock_without_the_depth_tubes_or_with_the_wrong_geometry(zf, neuro_ge
 def test_first_guess_on_hundreds_of_specks_samples_its_triples(zf):
     """300 candidate blobs (an image strewn with bright specks): C(300, 3) = 4.5 million triples are sampled to the
     pair budget, not enumerated (that allocated gigabytes), and the nearest-blob search agrees with brute force."""
-    from chic_register.guess.generic import _affine_candidates, _nearest_blob_mm, parallel_family
-    from chic_register.pipeline.register import prepare_geometry
+    from chic_register.guess.generic import (
+        affine_candidates,
+        nearest_blob_mm,
+        parallel_family,
+    )
+    from chic_register.model.tube_model import prepare_geometry
 
     model, _ = prepare_geometry(zf)
     fam = parallel_family(model)
     rng = np.random.default_rng(0)
     xy = rng.uniform(-40, 40, (300, 2))
-    blob_t, ti = _affine_candidates(fam, xy, 3.0, math.cos(math.radians(75)), 4000, rng)
+    blob_t, ti = affine_candidates(fam, xy, 3.0, math.cos(math.radians(75)), 4000, rng)
     assert blob_t.shape[0] == ti.shape[0] and blob_t.shape[0] <= 4000 * 2
     assert np.all(blob_t[:, 0] < blob_t[:, 1]) and np.all(blob_t[:, 1] < blob_t[:, 2])
     pred = rng.uniform(-40, 40, (50, 4, 2))
     brute = np.linalg.norm(pred[:, :, None, :] - xy[None, None], axis=-1).min(axis=2)
-    assert np.allclose(_nearest_blob_mm(pred, xy), brute)
+    assert np.allclose(nearest_blob_mm(pred, xy), brute)

@@ -7,13 +7,8 @@ import pytest
 import yaml
 
 from chic_register.errors import GeometryFileError
-from chic_register.model.geometry import (
-    HelixTube,
-    LineTube,
-    content_sha256,
-    load_geometry,
-    write_geometry,
-)
+from chic_register.model.geometry import content_sha256, load_geometry, write_geometry
+from chic_register.model.tubes import HelixTube, LineTube
 
 
 def test_helix_angle_and_points_at_z():

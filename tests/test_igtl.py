@@ -14,11 +14,22 @@ import pytest
 pyigtl = pytest.importorskip("pyigtl")
 
 from chic_register.errors import ChicRegisterError  # noqa: E402
-from chic_register.io.igtl import (IgtlClient, IgtlError, IgtlServer, StatusMessage, check_name,  # noqa: E402
-                                image_to_slices, no_lock_messages, parse_address, pose_messages, read_message,
-                                send_pose, slice_to_image_message)
-from chic_register.model.pose import rigid, rot_y, rot_z  # noqa: E402
+from chic_register.io.igtl import (  # noqa: E402
+    IgtlClient,
+    IgtlError,
+    IgtlServer,
+    StatusMessage,
+    check_name,
+    image_to_slices,
+    no_lock_messages,
+    parse_address,
+    pose_messages,
+    read_message,
+    send_pose,
+    slice_to_image_message,
+)
 from chic_register.io.transforms import ras_matrix, slicer_matrix  # noqa: E402
+from chic_register.model.pose import rigid, rot_y, rot_z  # noqa: E402
 
 FLIP = np.diag([-1.0, -1.0, 1.0, 1.0])
 
@@ -307,8 +318,7 @@ def test_quality_carries_predicted_tre_when_the_solver_reports_it():
 def test_track_folder_serves_poses_to_peers_that_connect(tmp_path, neuro_geometry):
     import shutil
 
-    from chic_register.imaging.simulate import write_simulated
-    from chic_register.imaging.simulate import simulate_slice
+    from chic_register.imaging.simulate import simulate_slice, write_simulated
     from chic_register.live.folder import track
 
     sims = [simulate_slice(neuro_geometry, 20.0 + 5 * k, 8.0, 30.0 * k, 10.0, rng=k) for k in range(2)]

@@ -11,11 +11,11 @@ import time
 import numpy as np
 import pytest
 
+from chic_register.imaging.simulate import simulate_slice
 from chic_register.io.igtl import IgtlServer, read_message, slice_to_image_message
+from chic_register.io.transforms import ras_matrix
 from chic_register.live.igtl_track import track_images
 from chic_register.model.pose import apply
-from chic_register.imaging.simulate import simulate_slice
-from chic_register.io.transforms import ras_matrix
 
 # tilted slices: a near-normal single slice knows its tilt only to ~0.3 deg, which the solver's default trust
 # limits (0.5 deg at 3 sigma, chic_register.verify.pixels) refuse

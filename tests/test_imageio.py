@@ -13,11 +13,11 @@ from PIL import Image
 from pydicom.dataset import Dataset
 from pydicom.sequence import Sequence
 
-from chic_register.io.dicom import dicom_dataset, write_dicom
 from chic_register.errors import ImageReadError
+from chic_register.imaging.simulate import simulate_slice
+from chic_register.io.dicom import dicom_dataset, write_dicom
 from chic_register.io.images import read_slices, write_plain_image
 from chic_register.model.pose import apply
-from chic_register.imaging.simulate import simulate_slice
 from chic_register.model.slices import Slice
 
 

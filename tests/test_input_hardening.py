@@ -20,9 +20,9 @@ import yaml
 from chic_design.cli import main as design_main
 from chic_register.cli.main import main as register_main
 from chic_register.errors import GeometryFileError, NoLock
-from chic_register.model.geometry import content_sha256, load_geometry
 from chic_register.imaging.simulate import simulate_slice, write_simulated
 from chic_register.live.folder import track
+from chic_register.model.geometry import content_sha256, load_geometry
 
 ROOT = Path(__file__).resolve().parents[1]
 NEURO_TEXT = (ROOT / "designs" / "neuro.yaml").read_text()

@@ -15,16 +15,16 @@ import numpy as np
 import pytest
 
 from chic_design.build import build_design
+from chic_design.cli import main
+from chic_design.feasibility import check_design
 from chic_design.optimize import space
 from chic_design.optimize.engine import SerialEngine
 from chic_design.optimize.requirements import baseline_path, load_requirements
 from chic_design.optimize.search import run_search
 from chic_design.optimize.store import ResultStore
-from chic_design.cli import main
-from chic_design.feasibility import check_design
 from chic_design.spec import load_spec
-from chic_register.model.geometry import load_geometry
 from chic_register.imaging.simulate import simulate_slice
+from chic_register.model.geometry import load_geometry
 from chic_register.pipeline.register import register
 
 ROOT = Path(__file__).resolve().parents[1]

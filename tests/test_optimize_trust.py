@@ -15,10 +15,11 @@ from chic_design.optimize.requirements import load_requirements, parse_requireme
 from chic_design.optimize.score import N_CONSTRAINTS, score_spec
 from chic_design.optimize.trust import SOLVER_OVER_CRLB, solver_limits, solver_sds
 from chic_design.spec import load_spec, parse_spec
-from chic_register.precision.crlb import Protocol, pose_crlb
 from chic_register.errors import ImprecisePose, NoLock
-from chic_register.pipeline.register import SolveOptions, register
 from chic_register.fit.checks import PRECISION_SIGMAS
+from chic_register.options import SolveOptions
+from chic_register.pipeline.register import register
+from chic_register.precision.crlb import Protocol, pose_crlb
 
 ROOT = Path(__file__).resolve().parents[1]
 SMALL = ROOT / "tests" / "data" / "optimize-small.yaml"

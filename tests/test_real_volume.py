@@ -16,12 +16,12 @@ from scipy.spatial.transform import Rotation
 
 from chic_register.cli.main import main
 from chic_register.errors import NoLock
+from chic_register.imaging.simulate import add_rician_noise, simulate_slice, simulate_volume
+from chic_register.io.volumes import Volume, read_volume, write_volume
 from chic_register.model.geometry import load_geometry, write_geometry
 from chic_register.model.pose import rigid
-from chic_register.imaging.simulate import add_rician_noise, simulate_slice
 from chic_register.model.slices import Slice
 from chic_register.pipeline.register import register
-from chic_register.io.volumes import Volume, read_volume, simulate_volume, write_volume
 
 CENTRE = np.array([0.0, 0.0, 30.0, 1.0])
 

@@ -5,13 +5,13 @@ from __future__ import annotations
 import numpy as np
 import pytest
 
+from chic_register.fit.section import fit_sections
+from chic_register.imaging.rician import rayleigh_sigma, rician_mean, rician_signal
+from chic_register.imaging.simulate import add_rician_noise, simulate_slice
+from chic_register.model.pose import invert, slice_frame
+from chic_register.model.tube_model import plane_crossings, prepare_geometry
 from chic_register.precision.crlb import Protocol, counted_tubes, pose_crlb
 from chic_register.studies.efficiency import pose_efficiency, ratio_interval
-from chic_register.model.pose import invert, slice_frame
-from chic_register.imaging.rician import rayleigh_sigma, rician_mean, rician_signal
-from chic_register.fit.section import fit_sections
-from chic_register.imaging.simulate import add_rician_noise, simulate_slice
-from chic_register.pipeline.register import plane_crossings, prepare_geometry
 
 
 def test_rician_mean_matches_magnitudes_of_noisy_signals():
@@ -40,9 +40,9 @@ def test_rician_mean_table_is_the_closed_form():
     g, d = rician_mean(u)
     assert np.abs(g - exact).max() < 2e-4  # the linear interpolation between the table's 0.02 steps
     assert rician_mean(np.array([0.0]))[0][0] == pytest.approx(np.sqrt(np.pi / 2), abs=1e-14)  # Rayleigh mean
-    from chic_register.imaging.rician import _table
+    from chic_register.imaging.rician import rician_table
 
-    u_tab, g_tab, _ = _table()
+    u_tab, g_tab, _ = rician_table()
     x = 0.25 * u_tab * u_tab
     assert np.abs(g_tab - np.sqrt(np.pi / 2) * ((1 + 2 * x) * i0e(x) + 2 * x * i1e(x))).max() < 1e-13
 

@@ -9,7 +9,12 @@ import pytest
 
 from chic_register.errors import InputFileError
 from chic_register.model.geometry import geometry_to_yaml, load_geometry
-from chic_register.util.safeload import MAX_DEPTH, load_yaml_file, load_yaml_text, read_regular_file
+from chic_register.util.safeload import (
+    MAX_DEPTH,
+    load_yaml_file,
+    load_yaml_text,
+    read_regular_file,
+)
 
 
 @pytest.mark.parametrize("text, value", [

@@ -9,15 +9,20 @@ import numpy as np
 import pytest
 import yaml
 
-from chic_design.layout import fiducial_geometry
 from chic_design.errors import SpecError
+from chic_design.layout import fiducial_geometry
 from chic_design.spec import ToolSpec, parse_spec
 from chic_register.cli.main import main
-from chic_register.model.geometry import content_sha256, geometry_from_dict, load_geometry, write_geometry
-from chic_register.model.pose import rigid, rot_y
 from chic_register.imaging.simulate import simulate_slice, write_simulated
 from chic_register.io.stl import stl_bytes, stl_header
 from chic_register.io.transforms import LPS_TO_RAS, slicer_matrix
+from chic_register.model.geometry import (
+    content_sha256,
+    geometry_from_dict,
+    load_geometry,
+    write_geometry,
+)
+from chic_register.model.pose import rigid, rot_y
 
 from .conftest import NEURO
 from .test_slicer import needs_slicer, run_probe

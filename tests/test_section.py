@@ -7,11 +7,13 @@ import math
 import numpy as np
 import pytest
 
-from chic_register.studies.efficiency import pose_efficiency, pose_errors
-from chic_register.model.pose import invert
-from chic_register.fit.section import _box_edge, _chord_m2, fit_sections
+from chic_register.fit.section import fit_sections
+from chic_register.imaging.pixel_coverage import box_edge, chord_m2
 from chic_register.imaging.simulate import simulate_slice
-from chic_register.pipeline.register import plane_crossings, prepare_geometry, register
+from chic_register.model.pose import invert
+from chic_register.model.tube_model import plane_crossings, prepare_geometry
+from chic_register.pipeline.register import register
+from chic_register.studies.efficiency import pose_efficiency, pose_errors
 
 
 def test_box_edge_is_the_pixel_share_inside_a_straight_edge():
@@ -23,9 +25,9 @@ def test_box_edge_is_the_pixel_share_inside_a_straight_edge():
         n = np.array([math.cos(phi), math.sin(phi)])
         d = rng.uniform(-0.4, 0.4)
         share = float(np.mean(X * n[0] + Y * n[1] <= d))
-        got, slope = _box_edge(np.array([d]), np.array([0.5 * abs(n[0])]), np.array([0.4 * abs(n[1])]))
+        got, slope = box_edge(np.array([d]), np.array([0.5 * abs(n[0])]), np.array([0.4 * abs(n[1])]))
         assert got[0] == pytest.approx(share, abs=3e-3)
-        up, _ = _box_edge(np.array([d + 1e-4]), np.array([0.5 * abs(n[0])]), np.array([0.4 * abs(n[1])]))
+        up, _ = box_edge(np.array([d + 1e-4]), np.array([0.5 * abs(n[0])]), np.array([0.4 * abs(n[1])]))
         assert slope[0] == pytest.approx((up[0] - got[0]) / 1e-4, rel=1e-2, abs=1e-2)
 
 
@@ -40,7 +42,7 @@ def test_chord_second_moment_matches_the_chord():
         on = tau[(np.abs(x) <= 0.25) & (np.abs(y) <= 0.2)]
         if on.size < 10:
             continue
-        got = _chord_m2(np.array([d]), np.array([nx]), np.array([ny]), 0.5, 0.4)[0]
+        got = chord_m2(np.array([d]), np.array([nx]), np.array([ny]), 0.5, 0.4)[0]
         assert got == pytest.approx(float(np.mean(on**2)), rel=2e-3, abs=1e-6)
 
 

@@ -8,17 +8,18 @@ import pytest
 from scipy import ndimage
 
 from chic_register.cli.main import main
-from chic_register.model.geometry import FiducialGeometry, LineTube, load_geometry
-from chic_register.io.images import read_slices
-from chic_register.model.pose import apply, invert, slice_frame
+from chic_register.imaging.render import render_slice
 from chic_register.imaging.simulate import (
     add_rician_noise,
     add_uniform_noise,
     crossings_px,
-    render_slice,
     simulate_slice,
     truth_path,
 )
+from chic_register.io.images import read_slices
+from chic_register.model.geometry import FiducialGeometry, load_geometry
+from chic_register.model.pose import apply, invert, slice_frame
+from chic_register.model.tubes import LineTube
 
 SHAPE = (256, 256)
 CENTER = ((SHAPE[0] - 1) / 2, (SHAPE[1] - 1) / 2)

@@ -16,9 +16,9 @@ import numpy as np
 import pytest
 
 from chic_register.io.igtl import pose_messages, read_message
-from chic_register.model.pose import rigid, rot_y, rot_z
 from chic_register.io.stl import write_stl
 from chic_register.io.transforms import LPS_TO_RAS, slicer_matrix, write_tfm
+from chic_register.model.pose import rigid, rot_y, rot_z
 
 ROOT = Path(__file__).resolve().parents[1]
 PROBE = ROOT / "tests" / "slicer_probe.py"

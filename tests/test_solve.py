@@ -9,13 +9,26 @@ import pytest
 
 from chic_register.cli.main import main
 from chic_register.errors import NoLock
-from chic_register.model.geometry import content_sha256, write_geometry
-from chic_register.model.pose import apply, invert, rigid, slice_angles, slice_frame, wrap_deg
+from chic_register.fit.refine import assign_blobs
+from chic_register.guess.ellipse import Ellipse, fit_ellipse_robust
 from chic_register.imaging.simulate import simulate_slice
-from chic_register.pipeline.register import (
-    Ellipse, TubeModel, _assign, _crossing_jacobian, _exp_se3, fit_ellipse_robust, plane_crossings,
-    prepare_geometry, register,
+from chic_register.model.geometry import content_sha256, write_geometry
+from chic_register.model.pose import (
+    apply,
+    invert,
+    rigid,
+    slice_angles,
+    slice_frame,
+    wrap_deg,
 )
+from chic_register.model.tube_model import (
+    TubeModel,
+    crossing_jacobian,
+    exp_se3,
+    plane_crossings,
+    prepare_geometry,
+)
+from chic_register.pipeline.register import register
 
 # ----------------------------------------------------------------------------- model
 
@@ -43,13 +56,13 @@ def test_crossing_jacobian_matches_finite_differences(neuro_geometry):
     model = TubeModel.from_geometry(neuro_geometry)
     T = slice_frame(20, 25, 30, 10)
     xy, tan, _, _ = plane_crossings(model, T)
-    J = _crossing_jacobian(xy, tan)
+    J = crossing_jacobian(xy, tan)
     h = 1e-6
     for i in range(6):
         xi = np.zeros(6)
         xi[i] = h
-        xp, *_ = plane_crossings(model, T @ _exp_se3(xi))
-        xm, *_ = plane_crossings(model, T @ _exp_se3(-xi))
+        xp, *_ = plane_crossings(model, T @ exp_se3(xi))
+        xm, *_ = plane_crossings(model, T @ exp_se3(-xi))
         assert np.allclose((xp - xm) / (2 * h), J[:, :, i], atol=1e-5)
 
 
@@ -89,7 +102,7 @@ def test_assignment_fast_path_agrees_with_the_hungarian_matching():
         r, c = linear_sum_assignment(cost)
         ref = np.full(K, -1)
         ref[r[cost[r, c] < 1e6]] = c[cost[r, c] < 1e6]
-        got = _assign(pred, ok, blobs, gate)
+        got = assign_blobs(pred, ok, blobs, gate)
         # same number of matches and the same total cost (the optimum; ties may pick other pairs)
         assert (got >= 0).sum() == (ref >= 0).sum()
         k = np.flatnonzero(got >= 0)
@@ -331,7 +344,8 @@ def test_centroid_offsets_predict_the_detected_centres_at_the_true_pose(neuro_ge
     # steep cut, thick slice: curved helix sections and touching blobs; at the true pose the model's
     # centroids must land on the detector's centres (the crossings alone are off by up to a pixel)
     from chic_register.detect.blobs import detect_blobs
-    from chic_register.pipeline.register import _assign, centroid_offsets
+    from chic_register.fit.accuracy import centroid_offsets
+    from chic_register.fit.refine import assign_blobs
 
     sim = simulate_slice(neuro_geometry, 25, 60, 75, 20, slice_thickness_mm=2.0)
     b = detect_blobs(sim.slice.pixels, sim.slice.pixel_spacing_mm, 3.0)
@@ -339,7 +353,7 @@ def test_centroid_offsets_predict_the_detected_centres_at_the_true_pose(neuro_ge
     model = TubeModel.from_geometry(neuro_geometry)
     T_F_from_I = invert(sim.truth.T_scanner_from_fiducial) @ sim.slice.T_scanner_from_image()
     q, _, _, inside = plane_crossings(model, T_F_from_I)
-    a = _assign(q, inside, xy, 1.5)
+    a = assign_blobs(q, inside, xy, 1.5)
     off, pure = centroid_offsets(neuro_geometry.tubes, model, T_F_from_I, a, b.footprints, (0.5, 0.5), 2.0,
                                  purity=True)
     k = np.flatnonzero(a >= 0)
@@ -378,13 +392,13 @@ def _true_setup(geom, sim):
     model = TubeModel.from_geometry(geom)
     T_F_from_I = invert(sim.truth.T_scanner_from_fiducial) @ sim.slice.T_scanner_from_image()
     q, _, _, inside = plane_crossings(model, T_F_from_I)
-    return model, b, xy, T_F_from_I, q, _assign(q, inside, xy, 1.5)
+    return model, b, xy, T_F_from_I, q, assign_blobs(q, inside, xy, 1.5)
 
 
 def test_template_shifts_find_a_known_in_plane_shift(neuro_geometry):
     # noise-free: at the true pose every template sits on its section (shift 0, gain 1); with the pose
     # moved by delta in the image plane, every template must report that the sections lie delta away
-    from chic_register.pipeline.register import template_shifts
+    from chic_register.fit.accuracy import template_shifts
 
     sim = simulate_slice(neuro_geometry, 20, 30, 40, 15, slice_thickness_mm=0.0)
     model, b, _, T, _, a = _true_setup(neuro_geometry, sim)
@@ -405,7 +419,7 @@ def test_template_shifts_find_a_known_in_plane_shift(neuro_geometry):
 def test_template_fit_is_more_precise_than_the_centroid(neuro_geometry):
     # the same noisy slices (uniform +-0.05), evaluated at the true pose: the template positions scatter
     # clearly less than the centroid model's (about 0.33 vs 0.5 noise sigmas in pixels)
-    from chic_register.pipeline.register import centroid_offsets, template_shifts
+    from chic_register.fit.accuracy import centroid_offsets, template_shifts
 
     rng = np.random.default_rng(7)
     tpl, cen = [], []

@@ -6,11 +6,18 @@ import numpy as np
 import pytest
 
 from chic_register.fit import section
-from chic_register.model.pose import invert
-from chic_register.fit.section import fit_sections, joint_windows, section_model, section_windows, tube_frames
+from chic_register.fit.section import fit_sections, section_model, tube_frames
+from chic_register.fit.windows import joint_windows, section_windows
 from chic_register.imaging.simulate import simulate_slice
-from chic_register.pipeline.register import plane_crossings, prepare_geometry
-from chic_register.model.tube_model import TubeModel, _crossing_jacobian, _exp_se3, _section_extent
+from chic_register.model.pose import invert
+from chic_register.model.tube_model import (
+    TubeModel,
+    crossing_jacobian,
+    exp_se3,
+    plane_crossings,
+    prepare_geometry,
+    section_extent,
+)
 
 
 def _near_end(neuro_geometry, seed=4):
@@ -29,13 +36,13 @@ def test_joint_pass_reusing_the_first_draw_equals_drawing_again(neuro_geometry, 
     args = (model, T, np.where(found, 0, -1), pixels, (0.5, 0.5), 2.0, 0.05)
     reused, win = fit_sections(*args, rician_sigma=rician_sigma)
     assert win.shared  # the joint pass has work, on the windows the first fit drew ahead
-    real = section._joint_pass
+    real = section.joint_pass
     # (fit_sections' positional arguments: ..., n_pix, reach, at_crossing, rician_sigma, ahead): nothing handed on,
     # the joint windows chosen and every pixel drawn again
-    monkeypatch.setattr(section, "_joint_pass", lambda *a: real(*a[:19], None, None, a[21], None))
+    monkeypatch.setattr(section, "joint_pass", lambda *a: real(*a[:19], None, None, a[21], None))
     again, _ = fit_sections(*args, rician_sigma=rician_sigma)
     # and from windows given (no reach): the joint pass takes the first draw's pixels where it has them
-    monkeypatch.setattr(section, "_joint_pass", real)
+    monkeypatch.setattr(section, "joint_pass", real)
     given, _ = fit_sections(*args, windows=win, rician_sigma=rician_sigma)
     assert reused.fitted.sum() >= 8
     for other in (again, given):
@@ -49,9 +56,9 @@ def test_window_pixels_pairs_are_every_pixel_against_every_tube(neuro_geometry):
     pixels, T = _near_end(neuro_geometry)
     q, tan, _, found = plane_crossings(model, T, margin_mm=1e-9)
     todo = np.flatnonzero(found)
-    reach = section._window_pixels(model, q, tan, found, todo, pixels.shape, (0.5, 0.5), 2.0, 1.5)
+    reach = section.window_pixels(model, q, tan, found, todo, pixels.shape, (0.5, 0.5), 2.0, 1.5)
     # the definition, pixel by tube: within a pixel of another found tube's section box (its tube's width across)
-    half_len, _, u = _section_extent(model, tan, 2.0)
+    half_len, _, u = section_extent(model, tan, 2.0)
     u = np.where((np.abs(u).sum(axis=1) > 0)[:, None], u, [1.0, 0.0])
     dx = (reach.cols * 0.5)[:, None] - q[:, 0][None]
     dy = (reach.rows * 0.5)[:, None] - q[:, 1][None]
@@ -75,7 +82,7 @@ def test_model_taken_from_an_earlier_draw_is_the_whole_draw(neuro_geometry):
     jw = joint_windows(model, q, tan, found, todo, *geo, found.copy())[0]
     assert jw.owner.size > win.owner.size  # shared pixels: some to draw anew
     drawn = section_model(model, T, q, tan, win, (0.5, 0.5), 2.0)
-    got = section._model_reusing(model, T, q, tan, jw, pixels.shape, (0.5, 0.5), 2.0, 5, True, (win, drawn))
+    got = section.model_reusing(model, T, q, tan, jw, pixels.shape, (0.5, 0.5), 2.0, 5, True, (win, drawn))
     want = section_model(model, T, q, tan, jw, (0.5, 0.5), 2.0)
     assert all(np.array_equal(g, w) for g, w in zip(got, want))
 
@@ -111,13 +118,13 @@ def test_crossing_jacobian_is_the_crossings_derivative(neuro_geometry):
     model, _ = prepare_geometry(neuro_geometry)
     _, T = _near_end(neuro_geometry)
     q, tan, _, found = plane_crossings(model, T, margin_mm=1e-9)
-    J = _crossing_jacobian(q[found], tan[found])
+    J = crossing_jacobian(q[found], tan[found])
     h = 1e-6
     for i in range(6):
         xi = np.zeros(6)
         xi[i] = h
-        up = plane_crossings(model, T @ _exp_se3(xi), margin_mm=1e-9)[0][found]
-        down = plane_crossings(model, T @ _exp_se3(-xi), margin_mm=1e-9)[0][found]
+        up = plane_crossings(model, T @ exp_se3(xi), margin_mm=1e-9)[0][found]
+        down = plane_crossings(model, T @ exp_se3(-xi), margin_mm=1e-9)[0][found]
         assert np.allclose((up - down) / (2 * h), J[:, :, i], atol=1e-4)
 
 
@@ -126,20 +133,25 @@ def test_geometry_key_memo_of_the_tubes_repr_is_the_repr(neuro_geometry):
     changed tube) its own, and never memoises tubes holding a value a caller could change in place."""
     import dataclasses
 
-    from chic_register.model.tube_model import _TUBES_REPR, _GeometryKey, _immutable_tubes, _tubes_repr
+    from chic_register.model.tube_model import (
+        TUBES_REPR,
+        GeometryKey,
+        immutable_tubes,
+        tubes_repr,
+    )
 
     tubes = neuro_geometry.tubes
-    assert _immutable_tubes(tubes)
-    assert _GeometryKey(neuro_geometry).key[3] == repr(tubes) and _tubes_repr(tubes) == repr(tubes)
+    assert immutable_tubes(tubes)
+    assert GeometryKey(neuro_geometry).key[3] == repr(tubes) and tubes_repr(tubes) == repr(tubes)
     moved = tuple(dataclasses.replace(t, diameter=t.diameter + 0.5) if k == 4 else t for k, t in enumerate(tubes))
     other = dataclasses.replace(neuro_geometry, tubes=moved)
-    assert _GeometryKey(other).key[3] == repr(moved) != repr(tubes)
-    assert _GeometryKey(other) != _GeometryKey(neuro_geometry)
+    assert GeometryKey(other).key[3] == repr(moved) != repr(tubes)
+    assert GeometryKey(other) != GeometryKey(neuro_geometry)
     assert prepare_geometry(other)[1] != prepare_geometry(neuro_geometry)[1]
     held = tuple(dataclasses.replace(t, diameter=np.float64(t.diameter)) if k == 4 else t for k, t in enumerate(tubes))
-    assert not _immutable_tubes(held) and not _immutable_tubes(list(tubes))
-    _tubes_repr(held)
-    assert id(held) not in _TUBES_REPR
+    assert not immutable_tubes(held) and not immutable_tubes(list(tubes))
+    tubes_repr(held)
+    assert id(held) not in TUBES_REPR
 
 
 def test_gauss_newton_solve_without_numpys_private_gufunc_gives_the_same_steps(monkeypatch):
@@ -147,15 +159,14 @@ def test_gauss_newton_solve_without_numpys_private_gufunc_gives_the_same_steps(m
     the public wrapper gives the same step, and NaNs (not an exception) for a singular matrix, as the gufunc does."""
     import numpy as np
 
+    from chic_register.fit import refine
     from chic_register.util import lapack
 
-    from chic_register.fit import refine
-
-    assert refine._solve is lapack.solve_vector
+    assert refine.solve_vector is lapack.solve_vector
     rng = np.random.default_rng(5)
     A = rng.normal(size=(6, 6))
     H, g = A @ A.T + np.eye(6), rng.normal(size=6)
     fast = lapack.solve_vector(H, g)
-    monkeypatch.setattr(lapack, "_solve1", None)
+    monkeypatch.setattr(lapack, "GUFUNC_SOLVE1", None)
     assert lapack.solve_vector(H, g) == fast
     assert all(v != v for v in lapack.solve_vector(np.zeros((6, 6)), g))  # NaNs

@@ -11,10 +11,11 @@ import sys
 import numpy as np
 import pytest
 
-from chic_register.model.geometry import HelixTube, bracketed_root
-from chic_register.util.matching import gated_matching, hungarian
 from chic_register.imaging.simulate import simulate_slice, write_simulated
+from chic_register.model.tubes import HelixTube
 from chic_register.precision.uncertainty import normal_quantile
+from chic_register.util.matching import gated_matching, hungarian
+from chic_register.util.roots import bracketed_root
 
 SLOW_IMPORTS = ("scipy.optimize", "SimpleITK", "matplotlib")
 
@@ -116,7 +117,7 @@ def test_gated_matching_maximises_allowed_pairs_first():
 def test_chi_square_quantile_without_scipy_matches_scipy():
     from scipy.special import gammainc, gammaincinv
 
-    from chic_register.verify.pixels import gamma_p, gamma_p_inverse
+    from chic_register.fit.checks import gamma_p, gamma_p_inverse
 
     for a in (1.5, 3.0, 4.5, 10.0, 27.0, 100.0):
         for p in (0.01, 0.1, 0.5, 0.9):

@@ -12,9 +12,9 @@ import time
 import numpy as np
 import pytest
 
-from chic_register.model.pose import apply
 from chic_register.imaging.simulate import simulate_slice, write_simulated
 from chic_register.live.folder import track
+from chic_register.model.pose import apply
 
 # near-normal slices: their tilt is known to ~0.3 deg, more than the solver's default trust limit proves; these
 # tests are about tracking files, so they lift the precision refusal (every other check of the pose applies)

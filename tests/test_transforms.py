@@ -7,8 +7,8 @@ import pytest
 import SimpleITK as sitk
 
 from chic_register.errors import ChicRegisterError
-from chic_register.model.pose import apply, invert, rigid, rot_y, rot_z
 from chic_register.io.transforms import read_tfm, sitk_to_matrix, write_tfm
+from chic_register.model.pose import apply, invert, rigid, rot_y, rot_z
 
 
 def _pose():

@@ -5,7 +5,13 @@ import math
 import numpy as np
 import pytest
 
-from chic_register.model.geometry import HelixTube, LineTube, Tube, sample_centreline, slab_reach_mm
+from chic_register.model.tubes import (
+    HelixTube,
+    LineTube,
+    Tube,
+    sample_centreline,
+    slab_reach_mm,
+)
 
 LINE = LineTube("D0", "diametric", (12.5, 0.0, 0.0), (12.5, 0.0, 50.0), 3.0)
 SLANT = LineTube("Z1", "diagonal", (30.0, 30.0, 0.0), (30.0, -30.0, 60.0), 3.0)

@@ -7,9 +7,8 @@ import math
 import numpy as np
 import pytest
 
-from chic_register.studies.calibration import run_calibration, z001_geometry
 from chic_register.cli.main import main
-
+from chic_register.studies.calibration import run_calibration, z001_geometry
 
 # tilted poses: the verification refuses single slices near tilt 0 of neuro as too imprecise to trust
 POSES = [(35.0, 25.0, 300.0, 20.0), (22.0, 15.0, 30.0, 10.0), (30.0, 30.0, 100.0, 40.0), (15.0, 20.0, 200.0, 5.0)]
@@ -128,7 +127,11 @@ def test_noise_correlation_reads_an_interpolated_image_and_not_objects():
     0.7 once the image is zoomed 2x bilinearly (each new pixel half-shares its neighbour's noise)."""
     from scipy import ndimage as ndi
 
-    from chic_register.precision.uncertainty import correlation_inflation, noise_correlation, noise_correlation_axes
+    from chic_register.detect.noise import (
+        correlation_inflation,
+        noise_correlation,
+        noise_correlation_axes,
+    )
 
     rng = np.random.default_rng(4)
     img = np.hypot(1.0 + rng.normal(0, 0.3, (160, 160)), rng.normal(0, 0.3, (160, 160)))
@@ -156,7 +159,7 @@ def test_noise_correlation_reads_an_interpolated_image_and_not_objects():
 def test_clear_blocks_are_the_blocks_wholly_clear_of_blobs_and_finite():
     """The noise correlation's blocks, found from the footprints' boxes: the blocks whose every pixel is finite and
     outside every footprint's box grown by the guard (clear_of_blobs), footprints at the image's edges included."""
-    from chic_register.precision.uncertainty import clear_blocks, clear_of_blobs
+    from chic_register.detect.noise import clear_blocks, clear_of_blobs
 
     rng = np.random.default_rng(8)
     for shape in ((96, 96), (101, 77), (64, 130)):

@@ -12,6 +12,7 @@ import numpy as np
 import pytest
 
 import chic_register.verify.pixels as vp
+import chic_register.verify.windows as vw
 from chic_register.errors import NoLock
 from chic_register.model.pose import invert
 from chic_register.model.slices import Slice
@@ -84,12 +85,12 @@ def test_a_shifted_section_is_measured():
     def disc(r0, c0):
         return gaussian_blur((np.hypot(yy - r0, xx - c0) < 4.0).astype(float), 0.7)
 
-    w = vp._TubeWindow(0, 0, 0, disc(12.0, 12.0), np.zeros((24, 24)))
+    w = vw.TubeWindow(0, 0, 0, disc(12.0, 12.0), np.zeros((24, 24)))
     rng = np.random.default_rng(0)
     for true_shift in (0.0, 1.5):
         y = (0.1 + disc(12.0, 12.0 + true_shift) + rng.normal(0, 0.02, (24, 24))).ravel()
-        coef, y, _ = vp._fit_window(y.reshape(24, 24), w)
-        shift, se = vp.section_shift(w, y, coef, 0.02)
+        coef, y, _ = vw.fit_window(y.reshape(24, 24), w)
+        shift, se = vw.section_shift(w, y, coef, 0.02)
         assert abs(shift - true_shift) < 0.35 and 0 < se < 0.05
 
 

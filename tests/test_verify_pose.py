@@ -11,12 +11,13 @@ from pathlib import Path
 import numpy as np
 import pytest
 
-from chic_register.model.envelope import plane_status
 from chic_register.errors import NoLock
-from chic_register.model.geometry import LineTube
+from chic_register.imaging.render import render_tubes
+from chic_register.imaging.simulate import add_rician_noise, simulate_slice
+from chic_register.model.envelope import plane_status
 from chic_register.model.pose import invert, slice_frame
-from chic_register.imaging.simulate import add_rician_noise, render_tubes, simulate_slice
 from chic_register.model.slices import Slice
+from chic_register.model.tubes import LineTube
 from chic_register.pipeline.register import register
 
 ROOT = Path(__file__).resolve().parents[1]
@@ -117,8 +118,8 @@ def test_a_blob_on_the_tube_circle_that_no_pose_uses_is_left_alone(neuro_geometr
     import chic_register.verify.rivals as rv
 
     calls = []
-    real = rv._stray_rivals
-    monkeypatch.setattr(rv, "_stray_rivals", lambda *a: calls.append(1) or real(*a))
+    real = rv.stray_rivals
+    monkeypatch.setattr(rv, "stray_rivals", lambda *a: calls.append(1) or real(*a))
     sim, img = _circle_blob_slice(neuro_geometry)
     tre, rot = _outcome(neuro_geometry, sim, img)
     assert calls  # the stray was seen and its rivals tried
@@ -165,8 +166,8 @@ def test_a_section_pulled_off_alone_is_left_out_and_the_pose_refitted(neuro_geom
     left out and the refit lands on the truth; with every section where it belongs, none is."""
     from chic_register.fit.accuracy import drop_section_outliers
     from chic_register.fit.refine import refine
-    from chic_register.pipeline.register import SolveOptions
     from chic_register.model.tube_model import plane_crossings, prepare_geometry
+    from chic_register.options import SolveOptions
 
     model = prepare_geometry(neuro_geometry)[0]
     T_F_from_S = slice_frame(20.0, 25.0, 40.0, 10.0)
@@ -259,7 +260,7 @@ def test_wide_blobs_are_verified_with_a_fitted_point_spread(monkeypatch):
 def test_window_least_squares_are_numpys():
     """The windows' least squares skip np.linalg.lstsq's wrapper: the same coefficients and rank, bit for bit, for
     full-rank, collinear and empty columns, and its answer where the call gives no finite one (NaN pixels)."""
-    from chic_register.verify.windows import _lstsq
+    from chic_register.util.lapack import lstsq as _lstsq
 
     rng = np.random.default_rng(0)
     for i in range(300):
@@ -278,9 +279,9 @@ def test_window_least_squares_are_numpys():
 
 
 def test_aspect_standard_error_matches_the_scatter_of_noisy_sections():
-    """A tilted section's spread aspect (column over row, :func:`_spread`) measured in 2000 noisy draws scatters as
-    :func:`_aspect_se` predicts from the pixel noise (within 15 %), at a low and a moderate SNR."""
-    from chic_register.verify.windows import _aspect_se, _spread
+    """A tilted section's spread aspect (column over row, :func:`window_spread`) measured in 2000 noisy draws scatters as
+    :func:`aspect_error` predicts from the pixel noise (within 15 %), at a low and a moderate SNR."""
+    from chic_register.verify.windows import aspect_error, window_spread
 
     r, c = np.mgrid[0:15, 0:19].astype(float)
     section = np.clip(1.0 - np.hypot((r - 7.0) / 3.0, (c - 9.0) / 4.5), 0.0, 0.3) / 0.3  # an ellipse, 3 x 4.5 px
@@ -290,9 +291,9 @@ def test_aspect_standard_error_matches_the_scatter_of_noisy_sections():
         aspects, predicted = [], []
         for _ in range(2000):
             w = (section + rng.normal(0.0, sigma, section.shape)) * support
-            v = _spread(w)
+            v = window_spread(w)
             aspects.append(math.sqrt(v[1] / v[0]))
-            predicted.append(_aspect_se(w, support, v, sigma))
+            predicted.append(aspect_error(w, support, v, sigma))
         rel = np.std(aspects) / np.mean(aspects)
         assert abs(np.median(predicted) / rel - 1.0) < 0.15, (sigma, rel, np.median(predicted))
 
@@ -318,7 +319,7 @@ def test_a_rival_that_falls_back_onto_the_pose_under_the_section_fit_is_no_rival
         assert out["outcome"] == "ok" and out["rot_deg"] < 0.1 and out["tre_mm"] < 0.05, out
     out = _run_hunt_case(4340)
     assert out["outcome"] == "no_lock" and "ambiguous" in out["reason"], out
-    monkeypatch.setattr(rv, "_falls_onto_pose", lambda *a: False)
+    monkeypatch.setattr(rv, "falls_onto_pose", lambda *a: False)
     for case in (3423, 3968):
         out = _run_hunt_case(case)
         assert out["outcome"] == "no_lock" and "ambiguous" in out["reason"], out
@@ -353,7 +354,7 @@ def test_a_motion_ghost_of_the_whole_pattern_is_a_rival(monkeypatch):
 
     out = _run_hunt_case(476, 2)
     assert out["outcome"] == "no_lock" and "ambiguous" in out["reason"], out
-    monkeypatch.setattr(rv, "_second_copy_rivals", lambda *a: [])
+    monkeypatch.setattr(rv, "second_copy_rivals", lambda *a: [])
     assert _run_hunt_case(476, 2)["outcome"] == "false_lock"
 
 

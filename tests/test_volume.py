@@ -12,10 +12,11 @@ from scipy import ndimage
 from scipy.spatial import cKDTree
 
 from chic_register.errors import ChicRegisterError, ImageReadError
+from chic_register.imaging.render import render_slice
+from chic_register.imaging.simulate import simulate_volume
+from chic_register.io.volumes import Volume, read_volume, write_volume
 from chic_register.model.pose import apply, invert, rigid, rot_y, rot_z, slice_frame
 from chic_register.studies.reslice import default_depths, reslice, reslice_study
-from chic_register.imaging.simulate import render_slice
-from chic_register.io.volumes import Volume, read_volume, simulate_volume, write_volume
 
 LPS_RAS = np.diag([-1.0, -1.0, 1.0, 1.0])
 OBLIQUE = rot_z(25.0) @ rot_y(-12.0)  # direction of an oblique acquisition

@@ -10,11 +10,11 @@ import numpy as np
 import pytest
 
 from chic_register.errors import NoLock
+from chic_register.guess.volume_search import volume_first_guesses
+from chic_register.imaging.simulate import simulate_volume
 from chic_register.model.pose import apply, invert, rigid, rot_y, rot_z
 from chic_register.model.tube_model import prepare_geometry
-from chic_register.io.volumes import simulate_volume
 from chic_register.pipeline.volume import register_volume
-from chic_register.guess.volume_search import volume_first_guesses
 
 PROTOCOL = {"neuro": ((0.5, 0.5, 2.0), (128, 128, 40)), "needle": ((0.3, 0.3, 1.0), (128, 128, 40))}
 

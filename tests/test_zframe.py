@@ -11,14 +11,20 @@ from scipy.spatial.transform import Rotation
 from chic_design.cli import main as design_main
 from chic_design.errors import SpecError
 from chic_design.feasibility import check_design
-from chic_design.frame_symmetry import frame_symmetries
 from chic_design.layout import design_geometry, fiducial_geometry
 from chic_design.spec import load_spec, parse_spec
-from chic_register.imaging.blob_width import BlobWidth, render_tubes_widened
 from chic_register.cli.main import main as register_main
-from chic_register.model.geometry import Body, content_sha256, geometry_from_dict, load_geometry, write_geometry
-from chic_register.model.pose import slice_frame
+from chic_register.imaging.blob_width import BlobWidth, render_tubes_widened
 from chic_register.imaging.simulate import simulate_slice
+from chic_register.model.body import Body
+from chic_register.model.geometry import (
+    content_sha256,
+    geometry_from_dict,
+    load_geometry,
+    write_geometry,
+)
+from chic_register.model.pose import slice_frame
+from chic_register.model.symmetry import frame_symmetries
 
 from .conftest import NEEDLE, NEURO, ROOT
 
@@ -176,11 +182,16 @@ def test_z001_is_symmetric_under_a_half_turn_about_y(zgeom):
 def test_the_solvers_coarse_symmetry_test_bounds_the_full_one_from_below(zgeom, neuro_geometry, needle_geometry):
     """prior_needed first compares 9 of the 65 points per tube (a subset of the same pairs): each coarse mismatch
     is a lower bound, so a frame it clears has no symmetry, and the frames it does not clear get the full test."""
-    from chic_register.model.symmetry import EXACT_SHARE, _mismatches, candidate_rotations, prior_needed
+    from chic_register.model.symmetry import (
+        EXACT_SHARE,
+        candidate_rotations,
+        mismatches,
+        prior_needed,
+    )
 
     for g in (zgeom, neuro_geometry, needle_geometry):
         Rs = np.stack([R for _, R in candidate_rotations(g.body.length)])
-        full, coarse = _mismatches(g, Rs), _mismatches(g, Rs, 9)
+        full, coarse = mismatches(g, Rs), mismatches(g, Rs, 9)
         assert all(c <= f + 1e-12 for (c, _), (f, _) in zip(coarse, full))
         assert min(f for f, _ in full) > 0.5 or g is zgeom  # the CHIC designs are far from any symmetry
     assert prior_needed(zgeom, EXACT_SHARE * 1.0) is not None
@@ -191,11 +202,11 @@ def test_the_solvers_coarse_symmetry_test_bounds_the_full_one_from_below(zgeom, 
 def test_prior_needed_memo_gives_what_the_test_itself_gives(zgeom, neuro_geometry, needle_geometry):
     """prior_needed is memoised per geometry and tolerance: every answer equals the unmemoised test's, on repeat
     calls too, and a different tolerance is not served another's answer."""
-    from chic_register.model.symmetry import _prior_needed, prior_needed
+    from chic_register.model.symmetry import prior_needed, prior_needed_unmemoised
 
     for g in (zgeom, neuro_geometry, needle_geometry):
         for tol in (0.05, 0.1, 0.7):
-            want = _prior_needed(g, tol)
+            want = prior_needed_unmemoised(g, tol)
             assert prior_needed(g, tol) == want and prior_needed(g, tol) == want
     assert prior_needed(needle_geometry, 0.1) is None and prior_needed(needle_geometry, 0.7) is not None
 

@@ -41,7 +41,7 @@ class TrustLimits:
 
 def solver_limits() -> TrustLimits:
     """The limits as ``chic_register`` sets them today (``SolveOptions`` defaults, ``PRECISION_SIGMAS``)."""
-    from chic_register.pipeline.register import SolveOptions
+    from chic_register.options import SolveOptions
     from chic_register.fit.checks import PRECISION_SIGMAS
 
     default = {f.name: f.default for f in fields(SolveOptions)}

@@ -15,14 +15,13 @@ import argparse
 import json
 import sys
 
-from chic_register.version import __version__
-
 from chic_register.cli import exits
 from chic_register.cli.simulate import run_simulate
 from chic_register.cli.solve import run_solve
 from chic_register.cli.studies import run_evaluate, run_precision, run_reslice
 from chic_register.cli.track import run_track
 from chic_register.errors import ChicRegisterError, NoLock
+from chic_register.version import __version__
 
 PROG = "chic-register"
 

@@ -21,9 +21,13 @@ def run_simulate(args) -> int:
 
     import numpy as np
 
-    from chic_register.model.geometry import load_geometry
+    from chic_register.imaging.simulate import (
+        DICOM_SUFFIXES,
+        simulate_slice,
+        write_simulated,
+    )
     from chic_register.io.images import MAX_SPACING_MM, MIN_SPACING_MM, PLAIN_SUFFIXES
-    from chic_register.imaging.simulate import DICOM_SUFFIXES, simulate_slice, write_simulated
+    from chic_register.model.geometry import load_geometry
 
     out = Path(args.out)
     checks = [
@@ -95,12 +99,12 @@ def _run_simulate_volume(args) -> int:
 
     import numpy as np
 
-    from chic_register.util.atomic import write_json
-    from chic_register.model.geometry import load_geometry
+    from chic_register.imaging.simulate import simulate_volume, truth_path
     from chic_register.io.images import MAX_SPACING_MM, MIN_SPACING_MM
+    from chic_register.io.volumes import MAX_VOXELS, write_volume
+    from chic_register.model.geometry import load_geometry
     from chic_register.model.pose import invert, slice_frame
-    from chic_register.imaging.simulate import truth_path
-    from chic_register.io.volumes import MAX_VOXELS, simulate_volume, write_volume
+    from chic_register.util.atomic import write_json
 
     nx, ny, nz = args.volume_shape
     given = args.voxel_size or [0.5, 0.5, 1.0]

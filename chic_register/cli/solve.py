@@ -22,7 +22,13 @@ def _report_failures(delivery) -> None:
 
 def run_solve(args) -> int:
     from chic_register.model.geometry import load_geometry
-    from chic_register.outputs.deliver import EXIT_OUTPUT_FAILED, Delivery, OutputPlan, deliver, deliver_no_lock
+    from chic_register.outputs.deliver import (
+        EXIT_OUTPUT_FAILED,
+        Delivery,
+        OutputPlan,
+        deliver,
+        deliver_no_lock,
+    )
     from chic_register.pipeline.register import register
 
     plan = OutputPlan.from_args(args).check()

@@ -18,8 +18,8 @@ from chic_register.errors import ChicRegisterError, NoLock
 def run_evaluate(args) -> int:
     import math
 
-    from chic_register.studies.evaluate import format_summary, run_study, save_plots
     from chic_register.model.geometry import load_geometry
+    from chic_register.studies.evaluate import format_summary, run_study, save_plots
 
     if args.draws < 1:
         raise ChicRegisterError(f"--draws must be >= 1, got {args.draws}")
@@ -52,10 +52,10 @@ def run_reslice(args) -> int:
     import math
     from pathlib import Path
 
-    from chic_register.model.geometry import load_geometry
     from chic_register.io.images import MAX_SPACING_MM, MIN_SPACING_MM
-    from chic_register.studies.reslice import default_depths, reslice, reslice_study
     from chic_register.io.volumes import read_volume
+    from chic_register.model.geometry import load_geometry
+    from chic_register.studies.reslice import default_depths, reslice, reslice_study
 
     checks = [
         (8 <= args.size <= 4096, f"--size must be 8..4096 pixels, got {args.size}"),
@@ -109,8 +109,8 @@ def run_reslice(args) -> int:
 
 
 def run_precision(args) -> int:
-    from chic_register.precision.crlb import Protocol, precision_map
     from chic_register.model.geometry import load_geometry
+    from chic_register.precision.crlb import Protocol, precision_map
     from chic_register.precision.report import format_map, plot_map
 
     geom = load_geometry(args.geometry)

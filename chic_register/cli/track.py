@@ -17,8 +17,8 @@ def run_track(args) -> int:
     """``chic-register track``: a watched folder, or IMAGE messages from a scanner bridge."""
     from pathlib import Path
 
-    from chic_register.model.geometry import load_geometry
     from chic_register.io.igtl import IgtlServer, check_port, parse_address
+    from chic_register.model.geometry import load_geometry
     from chic_register.outputs.deliver import EXIT_OUTPUT_FAILED, OutputPlan
 
     images = args.igtl_images is not None or args.igtl_images_listen is not None

@@ -19,7 +19,13 @@ from dataclasses import dataclass
 import cc3d
 import numpy as np
 
-from chic_register.detect.filters import SAFE_MAGNITUDE, _dilate, _maximum_filter, _smooth
+from chic_register.detect.filters import (
+    SAFE_MAGNITUDE,
+    dilate,
+    gaussian_smooth,
+    maximum_filter,
+)
+from chic_register.model.slices import Slice
 from chic_register.util.quantiles import sorted_span
 
 #: :func:`median` of this many values or more: from a bracket of the middle values (see ``quantiles.sorted_span``).
@@ -186,7 +192,7 @@ def _components(img: np.ndarray, lab: np.ndarray, rows: np.ndarray, cols: np.nda
                        np.bincount(j, weights=lr, minlength=n).tolist(), np.bincount(j, weights=lc, minlength=n).tolist())
 
 
-def _index(n: int) -> np.ndarray:
+def float_range(n: int) -> np.ndarray:
     """``np.arange(n, dtype=float)``, as a view of one cached array (the moments' row and column indices)."""
     global _INDEX
     if n > _INDEX.size:
@@ -220,14 +226,14 @@ def _centroid(w: np.ndarray, with_sums: bool = False):
     if not total > 0:
         return None
     # (ndarray.dot is matmul's BLAS call, less its ufunc machinery: the same bits)
-    mr, mc = float(wr.dot(_index(w.shape[0]))) / total, float(wc.dot(_index(w.shape[1]))) / total
+    mr, mc = float(wr.dot(float_range(w.shape[0]))) / total, float(wc.dot(float_range(w.shape[1]))) / total
     return (mr, mc, wr, wc, total) if with_sums else (mr, mc)
 
 
 def _spread(w: np.ndarray, wr: np.ndarray, wc: np.ndarray, total: float, mr: float, mc: float):
     """``(minor/major axis ratio, variance across)`` of weights ``w`` (h, w) with row and column sums ``wr``,
     ``wc``, sum ``total`` and centroid ``(mr, mc)``."""
-    dr, dc = _index(w.shape[0]) - mr, _index(w.shape[1]) - mc
+    dr, dc = float_range(w.shape[0]) - mr, float_range(w.shape[1]) - mc
     srr, scc, src = float(wr.dot(dr * dr)) / total, float(wc.dot(dc * dc)) / total, float(dr.dot(w).dot(dc)) / total
     half_tr, det = (srr + scc) / 2, srr * scc - src * src
     root = math.sqrt(max(half_tr * half_tr - det, 0.0))
@@ -313,7 +319,7 @@ def _detect(pixels, pixel_spacing_mm, tube_diameter_mm: float, min_area_factor: 
     r_px = 0.5 * tube_diameter_mm / math.sqrt(rs * cs)
     a0 = math.pi * r_px * r_px
     sig = smooth_sigma_px if smooth_sigma_px is not None else max(0.5, 0.3 * r_px)
-    smooth = _smooth(img, sig, scale_at_end=lo >= 1.0 / SAFE_MAGNITUDE and hi <= SAFE_MAGNITUDE)  # (exact: see _smooth)
+    smooth = gaussian_smooth(img, sig, scale_at_end=lo >= 1.0 / SAFE_MAGNITUDE and hi <= SAFE_MAGNITUDE)  # (exact: see gaussian_smooth)
     sub_smooth = np.ascontiguousarray(smooth[::2, ::2])  # (Otsu's histogram is faster from a contiguous copy)
     thr = otsu_threshold(sub_smooth)
     base = median(smooth[::4, ::4])
@@ -345,7 +351,7 @@ def _detect(pixels, pixel_spacing_mm, tube_diameter_mm: float, min_area_factor: 
     # a component too large for one tube may be several blurred ones run together (wide blobs of close tubes):
     # it is offered split at higher levels, never whole
     merged = set(np.flatnonzero((area > max_area_factor * a0) & (area <= 150 * a0)).tolist()) if split_touching else set()
-    grown = _dilate(labels != 0) if k == 1 else None  # every component's footprint at once (see below)
+    grown = dilate(labels != 0) if k == 1 else None  # every component's footprint at once (see below)
     img_bg = img[R0:R1, C0:C1] - bg
     centres, areas, means, ratios, contrasts, feet, widths = [], [], [], [], [], [], []
     for i in sorted(set(keep.tolist()) | merged):
@@ -378,7 +384,7 @@ def _detect(pixels, pixel_spacing_mm, tube_diameter_mm: float, min_area_factor: 
                 parts = [blob] + parts
         keep_out, alone = None, False
         if np.count_nonzero(lab) > n_i:  # other components in the box: keep out of the neighbours' own edges
-            keep_out = ~_dilate((lab != 0) ^ blob)
+            keep_out = ~dilate((lab != 0) ^ blob)
         elif grown is not None:
             # alone in its box and in the ring just outside it (so no neighbour's pixel reaches the box's edge):
             # its dilation in the box is that of all the components
@@ -389,7 +395,7 @@ def _detect(pixels, pixel_spacing_mm, tube_diameter_mm: float, min_area_factor: 
             if part is blob and alone:
                 foot = grown[r0 - R0:r1 - R0, c0 - C0:c1 - C0].copy()
             else:
-                foot = _dilate(part, k)
+                foot = dilate(part, k)
             if keep_out is not None:
                 foot &= keep_out
             if part is not blob:
@@ -439,7 +445,7 @@ def _flatten(pixels, pixel_spacing_mm, d_mm: float, smooth_sigma_px, min_area_fa
     width = max(d_mm, first.width_mm) if math.isfinite(first.width_mm) else 2.0 * d_mm
     px = math.sqrt(float(pixel_spacing_mm[0]) * float(pixel_spacing_mm[1]))
     size = int(2 * math.ceil(1.5 * width / px) + 1)
-    base = ndi.grey_opening(_smooth(img, 1.0), size=(size, size), mode="nearest")
+    base = ndi.grey_opening(gaussian_smooth(img, 1.0), size=(size, size), mode="nearest")
     return np.maximum(img - base, 0.0)
 
 
@@ -480,7 +486,7 @@ def _split(blob: np.ndarray, smooth: np.ndarray, r_px: float):
     """Split a blob at its two strongest intensity peaks (>= one tube radius apart); None if single-peaked."""
     vals = np.where(blob, smooth, -np.inf)
     size = max(3, int(2 * round(0.8 * r_px) + 1))
-    peaks = (vals == _maximum_filter(vals, size)) & blob
+    peaks = (vals == maximum_filter(vals, size)) & blob
     pr, pc = peaks.nonzero()
     if pr.size < 2:
         return None
@@ -500,3 +506,26 @@ def _split(blob: np.ndarray, smooth: np.ndarray, r_px: float):
     a[rr[d1 <= d2], cc[d1 <= d2]] = True
     b[rr[d1 > d2], cc[d1 > d2]] = True
     return [a, b]
+
+
+def pixel_mm(sl: Slice) -> float:
+    return float(max(sl.pixel_spacing_mm))
+
+
+def centres_xy_mm(blobs: Blobs, sl: Slice) -> np.ndarray:
+    rc = blobs.centres_rc
+    return np.stack([rc[:, 1] * sl.pixel_spacing_mm[1], rc[:, 0] * sl.pixel_spacing_mm[0]], axis=1)
+
+
+def resolution_mm(sl: Slice, blobs: Blobs) -> float:
+    """The unit of a slice's trust thresholds (mm): what its image can resolve, never less than a pixel.
+
+    A centre is as precise as the blob is sharp: blobs wider than the tube
+    (blur, partial volume, fluid around a printed channel; ``blobs.width_mm``
+    measured in the image) and thick slices (a tilted tube's section is
+    smeared over the thickness) both widen the error, so the unit is the
+    largest of the pixel, a 7.5th of the blob width and a 6th of the slice
+    thickness (equal to the pixel for 3 mm tubes at 0.5 mm pixels and 2-3 mm slices).
+    """
+    w = blobs.width_mm if math.isfinite(blobs.width_mm) else 0.0
+    return max(pixel_mm(sl), w / 7.5, float(sl.slice_thickness_mm) / 6.0)

@@ -8,7 +8,7 @@ from __future__ import annotations
 import numpy as np
 
 
-def _dilate(mask: np.ndarray, iterations: int = 1) -> np.ndarray:
+def dilate(mask: np.ndarray, iterations: int = 1) -> np.ndarray:
     """3 x 3 (8-connected) binary dilation of a small mask (h, w), by array shifts (no scipy call overhead)."""
     out = mask
     for _ in range(iterations):
@@ -22,12 +22,12 @@ def _dilate(mask: np.ndarray, iterations: int = 1) -> np.ndarray:
     return out
 
 
-#: Largest pixel magnitude :func:`_smooth` takes (it works in single precision, to 3.4e38, with headroom for its
+#: Largest pixel magnitude :func:`gaussian_smooth` takes (it works in single precision, to 3.4e38, with headroom for its
 #: sums); 2^-100 is the smallest for its ``scale_at_end``.
 SAFE_MAGNITUDE = 2.0 ** 100
 
 
-def _smooth(img: np.ndarray, sigma_px: float, scale_at_end: bool = False) -> np.ndarray:
+def gaussian_smooth(img: np.ndarray, sigma_px: float, scale_at_end: bool = False) -> np.ndarray:
     """Separable binomial smoothing (float32), the closest of widths 3 / 5 / 7 to a Gaussian of ``sigma_px``.
 
     ``n`` passes of [1, 2, 1] / 4 have sigma sqrt(n / 2); array shifts are
@@ -91,7 +91,7 @@ def _binomial_cols(x: np.ndarray, y: np.ndarray, pair: np.ndarray, scale: bool =
         y *= 0.25
 
 
-def _maximum_filter(vals: np.ndarray, size: int) -> np.ndarray:
+def maximum_filter(vals: np.ndarray, size: int) -> np.ndarray:
     """Maximum over each ``size`` x ``size`` window (odd ``size``), as ``scipy.ndimage.maximum_filter``.
 
     The border is padded with -inf; for a maximum that equals scipy's default

@@ -24,8 +24,8 @@ import math
 
 import numpy as np
 
-from chic_register.errors import NoLock
 from chic_register.detect.noise import clear_blocks
+from chic_register.errors import NoLock
 
 #: Side (pixels) of the background blocks whose means are compared: 64 noise samples, a standard error of the mean
 #: of about a tenth of the noise, and dozens of blocks in the smallest slice the solver takes ...

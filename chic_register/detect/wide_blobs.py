@@ -11,7 +11,7 @@ import math
 
 import numpy as np
 
-from chic_register.detect.blobs import _index, median
+from chic_register.detect.blobs import float_range, median
 from chic_register.model.tube_model import TubeModel
 
 #: Blobs this many times wider than the channels (median over the slices' measured widths) take the blurred fit
@@ -47,8 +47,8 @@ def blob_width_ratio(model: TubeModel, slices, blob_sets, assignments) -> float:
             total = float(np.add.reduce(w, axis=None))
             if not total > 0:
                 continue
-            y = _index(h) * rs
-            x = _index(wd) * cs
+            y = float_range(h) * rs
+            x = float_range(wd) * cs
             wy, wx = np.add.reduce(w, 1), np.add.reduce(w, 0)  # the marginals give the means and variances
             my, mx = float(wy.dot(y)) / total, float(wx.dot(x)) / total  # (dot: matmul's BLAS call, less overhead)
             dy, dx = y - my, x - mx

@@ -1,8 +1,8 @@
 """Accuracy refinement: the locked pose refitted on better tube positions than the blob centroids.
 
 The default mode fits each matched tube's section model to its pixels
-(:func:`_section_refine`, through :mod:`chic_register.fit.section`); the
-centroid model (:func:`_centroid_refine`) instead predicts each blob's
+(:func:`section_refine`, through :mod:`chic_register.fit.section`); the
+centroid model (:func:`centroid_refine`) instead predicts each blob's
 centroid as the detector measures it (:func:`centroid_offsets`), then
 refines on template fits of the rendered sections (:func:`_template_refine`,
 :func:`template_shifts`). Both render or model the sections at the pose, so
@@ -16,12 +16,17 @@ import math
 
 import numpy as np
 
-from chic_register.detect.blobs import _dilate, median
+from chic_register.detect.blobs import median, pixel_mm
+from chic_register.detect.filters import dilate
 from chic_register.errors import NoLock
+from chic_register.fit.refine import (
+    Fit,
+    refine,
+    scanner_crossing_jacobian,
+    whitened_residuals,
+)
 from chic_register.model.pose import invert
-from chic_register.fit.refine import _Fit, refine, scanner_crossing_jacobian, whitened_residuals
-from chic_register.verify.trust import _pixel_mm
-from chic_register.model.tube_model import TubeModel, _section_extent, plane_crossings
+from chic_register.model.tube_model import TubeModel, plane_crossings, section_extent
 
 #: A fitted section disagrees with the pose the other sections give when its whitened residual (chi-square, 2 degrees
 #: of freedom, under its own information) exceeds this (a 4e-6 tail) ...
@@ -54,7 +59,7 @@ def centroid_offsets(tubes, model: TubeModel, T_F_from_I: np.ndarray, assignment
     a touching neighbour or a footprint split through the section, whose
     centre follows the pose only weakly), else ones.
     """
-    from chic_register.imaging.simulate import render_tubes
+    from chic_register.imaging.render import render_tubes
 
     q, tan, _, found = plane_crossings(model, T_F_from_I, margin_mm=5.0)
     K = q.shape[0]
@@ -62,7 +67,7 @@ def centroid_offsets(tubes, model: TubeModel, T_F_from_I: np.ndarray, assignment
     pure = np.ones(K)
     rs, cs = (float(v) for v in pixel_spacing_mm)
     px = max(rs, cs)
-    half_len, half_wid, u = _section_extent(model, tan, slice_thickness_mm)
+    half_len, half_wid, u = section_extent(model, tan, slice_thickness_mm)
     render = {"pixel_spacing_mm": (rs, cs), "slice_thickness_mm": slice_thickness_mm,
               "supersample": supersample, "thickness_samples": thickness_samples}
     for k in np.flatnonzero(assignment >= 0):
@@ -122,7 +127,7 @@ def template_shifts(tubes, model: TubeModel, T_F_from_I: np.ndarray, assignment:
     bias); ``fitted`` is False for unmatched tubes (gain 0), degenerate fits
     (gain NaN) and fits without a positive gain.
     """
-    from chic_register.imaging.simulate import render_tubes
+    from chic_register.imaging.render import render_tubes
 
     q, tan, _, found = plane_crossings(model, T_F_from_I, margin_mm=5.0)
     K = q.shape[0]
@@ -130,7 +135,7 @@ def template_shifts(tubes, model: TubeModel, T_F_from_I: np.ndarray, assignment:
     rs, cs = (float(v) for v in pixel_spacing_mm)
     px = max(rs, cs)
     H, W = pixels.shape
-    half_len, half_wid, u = _section_extent(model, tan, slice_thickness_mm)
+    half_len, half_wid, u = section_extent(model, tan, slice_thickness_mm)
     render = {"pixel_spacing_mm": (rs, cs), "slice_thickness_mm": slice_thickness_mm,
               "supersample": supersample, "thickness_samples": thickness_samples}
     g = int(grow_px)
@@ -142,7 +147,7 @@ def template_shifts(tubes, model: TubeModel, T_F_from_I: np.ndarray, assignment:
         h, w = r1 - r0, c1 - c0
         own = np.zeros((h, w), bool)
         own[fr0 - r0:fr0 - r0 + fmask.shape[0], fc0 - c0:fc0 - c0 + fmask.shape[1]] = fmask
-        mask = _dilate(own, g) if g > 0 else own.copy()
+        mask = dilate(own, g) if g > 0 else own.copy()
         for n, (or0, oc0, omask) in enumerate(footprints):
             if n == i or or0 >= r1 or oc0 >= c1 or or0 + omask.shape[0] <= r0 or oc0 + omask.shape[1] <= c0:
                 continue
@@ -186,7 +191,7 @@ def template_shifts(tubes, model: TubeModel, T_F_from_I: np.ndarray, assignment:
     return shift, gain, fitted
 
 
-def _centroid_refine(model: TubeModel, tubes, fit: _Fit, xys, Ss, slices, blob_sets, opts) -> _Fit:
+def centroid_refine(model: TubeModel, tubes, fit: Fit, xys, Ss, slices, blob_sets, opts) -> Fit:
     """Refit ``fit`` with the centroid model (:func:`centroid_offsets`).
 
     A fixed-point iteration: offsets at the current pose, refit, repeated
@@ -226,8 +231,8 @@ def _centroid_refine(model: TubeModel, tubes, fit: _Fit, xys, Ss, slices, blob_s
     return fit
 
 
-def _template_refine(model: TubeModel, tubes, fit: _Fit, assign, xys, Ss, slices, blob_sets, opts,
-                     centroid_offs) -> _Fit:
+def _template_refine(model: TubeModel, tubes, fit: Fit, assign, xys, Ss, slices, blob_sets, opts,
+                     centroid_offs) -> Fit:
     """Refit ``fit`` on template-fitted tube positions (:func:`template_shifts`), ``template_iterations`` times.
 
     Each matched tube's measurement becomes the position of its fitted
@@ -265,7 +270,7 @@ def _template_refine(model: TubeModel, tubes, fit: _Fit, assign, xys, Ss, slices
             xy = xys[j].copy()
             if it == 0 and kk.size:
                 gap = np.linalg.norm(xy[a[kk]] - off[kk] - (q[kk] + shift[kk]), axis=1)
-                limit = opts.template_max_disagreement_px * _pixel_mm(sl)
+                limit = opts.template_max_disagreement_px * pixel_mm(sl)
                 if gap.max() > limit:
                     k = int(kk[np.argmax(gap)])
                     raise NoLock(f"{sl.source}: tube {model.ids[k]}'s template fit is {gap.max():.3f} mm from its "
@@ -283,7 +288,7 @@ def _template_refine(model: TubeModel, tubes, fit: _Fit, assign, xys, Ss, slices
     return fit
 
 
-def _section_refine(model: TubeModel, fit: _Fit, xys, Ss, slices, blob_sets, opts) -> _Fit | None:
+def section_refine(model: TubeModel, fit: Fit, xys, Ss, slices, blob_sets, opts) -> Fit | None:
     """Refit ``fit`` on section-fitted tube positions (:func:`~chic_register.fit.section.fit_sections`).
 
     Up to ``section_iterations`` passes: fit every matched tube's section
@@ -296,12 +301,12 @@ def _section_refine(model: TubeModel, fit: _Fit, xys, Ss, slices, blob_sets, opt
     (tubes in tissue, blobs much wider than the channels) return ``None``:
     the blob-centre pose then stands, and is verified like any other.
     """
-    from chic_register.imaging.rician import rayleigh_sigma
     from chic_register.fit.section import fit_sections
+    from chic_register.imaging.rician import rayleigh_sigma
 
     assign = [a.copy() for a in fit.assignments]
     wins = [None] * len(slices)  # each tube's pixels: chosen at the first pass, kept (the pose barely moves)
-    px = min(_pixel_mm(sl) for sl in slices)
+    px = min(pixel_mm(sl) for sl in slices)
     exact = True
     for it in range(opts.section_iterations):
         X0 = fit.T_F_from_scanner
@@ -324,7 +329,7 @@ def _section_refine(model: TubeModel, fit: _Fit, xys, Ss, slices, blob_sets, opt
             ok = sf.fitted & (a00 > 0) & (a00 * a11 - info[:, 0, 1] * info[:, 1, 0] > 1e-9 * a00 * a11)
             if ok.any():  # a section far from where the locked pose puts it, or faint, is not the tube's
                 shift = np.linalg.norm(sf.position_mm - sf.predicted_mm, axis=1)
-                ok &= (shift <= opts.section_max_shift_px * _pixel_mm(sl)) & (sf.gain >= 0.5 * median(sf.gain[ok]))
+                ok &= (shift <= opts.section_max_shift_px * pixel_mm(sl)) & (sf.gain >= 0.5 * median(sf.gain[ok]))
             a[(a >= 0) & ~ok] = -1
             k = np.flatnonzero(a >= 0)
             xy = xys[j].copy()
@@ -352,7 +357,7 @@ def _section_refine(model: TubeModel, fit: _Fit, xys, Ss, slices, blob_sets, opt
     return fit
 
 
-def _whitened_sections(model: TubeModel, fit: _Fit, assign, Ss, jacobian: bool = False):
+def _whitened_sections(model: TubeModel, fit: Fit, assign, Ss, jacobian: bool = False):
     """``(keys, r, J)`` of every matched section at ``fit``: ``keys`` (n,) its index among the slices' tubes laid
     end to end, ``r`` (n, 2) its whitened residual ``L (predicted - fitted)`` under its section fit's information
     (``fit.measurements``), ``J`` (n, 2, 6) the whitened Jacobian of its crossing in the pose's scanner twist (None
@@ -374,7 +379,7 @@ def _whitened_sections(model: TubeModel, fit: _Fit, assign, Ss, jacobian: bool =
     return np.asarray(keys, dtype=int), r, (np.concatenate(Js) if Js else None)
 
 
-def section_chi2(model: TubeModel, fit: _Fit, assign, Ss) -> np.ndarray:
+def section_chi2(model: TubeModel, fit: Fit, assign, Ss) -> np.ndarray:
     """Each matched tube's whitened residual ``|L (predicted - fitted)|^2`` under its section fit's information
     (``fit.measurements``), the slices' tubes laid end to end (``len(Ss) * K``); NaN for unmatched tubes."""
     keys, r, _ = _whitened_sections(model, fit, assign, Ss)
@@ -383,8 +388,8 @@ def section_chi2(model: TubeModel, fit: _Fit, assign, Ss) -> np.ndarray:
     return out
 
 
-def drop_section_outliers(model: TubeModel, fit: _Fit, Ss, opts) -> _Fit:
-    """``fit`` (a :func:`_section_refine` result) refitted without the sections that alone disagree with the
+def drop_section_outliers(model: TubeModel, fit: Fit, Ss, opts) -> Fit:
+    """``fit`` (a :func:`section_refine` result) refitted without the sections that alone disagree with the
     others' pose (:data:`SECTION_OUTLIER_CHI2`, :data:`SECTION_OUTLIER_RATIO`), one at a time, up to
     :data:`MAX_SECTION_OUTLIERS`; never below ``min_tubes`` / ``min_depth_tubes``. ``fit`` itself when none does.
 
@@ -421,7 +426,7 @@ def drop_section_outliers(model: TubeModel, fit: _Fit, Ss, opts) -> _Fit:
     return fit
 
 
-def studentized_chi2(model: TubeModel, fit: _Fit, assign, Ss, left_out: int) -> np.ndarray:
+def studentized_chi2(model: TubeModel, fit: Fit, assign, Ss, left_out: int) -> np.ndarray:
     """Each matched section's whitened residual at ``fit`` (a fit without section ``left_out``, an index into the
     slices' tubes laid end to end), as a chi-square with 2 degrees of freedom under the sections' own information:
     ``r^T (I - H)^-1 r`` for the sections the fit used (``H`` the 2x2 block of the hat matrix: a fitted section's

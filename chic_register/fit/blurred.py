@@ -31,16 +31,22 @@ from dataclasses import dataclass
 
 import numpy as np
 
-from chic_register.detect.wide_blobs import WIDE_RATIO, blob_width_ratio, blobs_wide  # noqa: F401  (importable from here as before)
 from chic_register.detect.blobs import median
 from chic_register.errors import NoLock
 from chic_register.fit.checks import STRETCH_MIN, worst_errors
-from chic_register.model.pose import invert
-from chic_register.imaging.psf import gaussian_blur
 from chic_register.fit.refine import refine
-from chic_register.fit.section import Windows, section_model
-from chic_register.verify.trust import _distinct
-from chic_register.model.tube_model import TubeModel, _exp_se3, _section_box, _section_extent, plane_crossings
+from chic_register.fit.section import section_model
+from chic_register.fit.windows import Windows
+from chic_register.imaging.psf import gaussian_blur
+from chic_register.model.pose import invert
+from chic_register.model.tube_model import (
+    TubeModel,
+    exp_se3,
+    plane_crossings,
+    poses_distinct,
+    section_box,
+    section_extent,
+)
 
 #: Point-spread sigmas tried (in tube radii; 0.35 r widens a 6 px blob to ~1.4x, 1.0 r to ~2.5x).
 SIGMAS_RADII = (0.2, 0.35, 0.5, 0.7, 1.0, 1.4)
@@ -124,8 +130,8 @@ def _boxes(model: TubeModel, T_F_from_I: np.ndarray, shape, spacing, thickness_m
     """A box around every tube section the pose puts in the image (clipped to it)."""
     rs, cs = spacing
     q, tan, _, found = plane_crossings(model, T_F_from_I, margin_mm=1e-9)
-    half_len, half_wid, u = _section_extent(model, tan, thickness_mm)
-    ex, ey = _section_box(half_len, half_wid, u)
+    half_len, half_wid, u = section_extent(model, tan, thickness_mm)
+    ex, ey = section_box(half_len, half_wid, u)
     ex, ey = ex + reach_px * cs, ey + reach_px * rs
     H, W = shape
     out = []
@@ -215,7 +221,7 @@ def _perturb(X: np.ndarray, xi: np.ndarray, centre: np.ndarray) -> np.ndarray:
     C[:3, 3] = centre
     Ci = np.eye(4)
     Ci[:3, 3] = -centre
-    return X @ C @ invert(_exp_se3(xi)) @ Ci
+    return X @ C @ invert(exp_se3(xi)) @ Ci
 
 
 def _jacobian(prob: _Problem, X: np.ndarray, coef: np.ndarray, centre: np.ndarray, base: np.ndarray) -> np.ndarray:
@@ -360,7 +366,7 @@ def blurred_stage(model: TubeModel, fit, xys, Ss, slices, blob_sets, max_slices:
                      f"({abs(stretch[worst]) / max(sd[worst], 1e-12):.1f} sigma): the pixel spacing looks wrong; "
                      f"check --pixel-spacing or the file's PixelSpacing",
                      {"stretch": [round(float(v), 4) for v in stretch], "residual_sigma": round(blurred.noise_sigma, 6)})
-    if _distinct(blurred.T_F_from_scanner, fit.T_F_from_scanner, model):
+    if poses_distinct(blurred.T_F_from_scanner, fit.T_F_from_scanner, model):
         return fit, None, blurred
     moved = refine(model, xys, Ss, blurred.T_F_from_scanner, gates_mm=(), final_iters=0,
                    assign0=fit.assignments)  # the blob residuals at the pose, for the report

@@ -15,20 +15,14 @@ import math
 
 import numpy as np
 
-from chic_register.util.roots import bracketed_root
 from chic_register.fit.refine import scanner_crossing_jacobian
-from chic_register.model.tube_model import _skew, plane_crossings
+from chic_register.model.tube_model import plane_crossings, skew
+from chic_register.util.roots import bracketed_root
 
-#: Default trust limits (SolveOptions.trust_tre_mm / trust_rot_deg): the predicted error (TRE at the frame centre,
-#: rotation) ...
-TRE_TOL_MM = 1.0
-ROT_TOL_DEG = 0.75
-#: ... at this many standard deviations of its own predicted error (first-order covariance of the fit:
-#: residual scatter through the crossings' Jacobian). 3: a 0.3 % tail per direction. Why these limits: a single
-#: slice near normal to the axis knows its tilt to 0.2-0.25 deg (1 sigma, the Cramer-Rao bound at SNR 20), so a
-#: 0.5 deg limit refuses the paper's own protocol; a wrong pose that survived the image checks fits with a residual
-#: scatter well above its noise, and in the false-lock hunt (benchmarks/hunt.py, 5000 cases) every such pose had a
-#: 3-sigma rotation above 0.8 deg, while the correct poses that 0.75 deg lets through were all within 0.5 mm, 0.5 deg.
+#: The predicted error is held to the trust limits (:data:`~chic_register.options.TRE_TOL_MM`,
+#: :data:`~chic_register.options.ROT_TOL_DEG`) at this many standard deviations of its own predicted error
+#: (first-order covariance of the fit: residual scatter through the crossings' Jacobian). 3: a 0.3 % tail per
+#: direction.
 PRECISION_SIGMAS = 3.0
 #: A pose refitted without a section the damage pulled off (chic_register.fit.accuracy.drop_section_outliers) is held to
 #: this many: what moved one section may have moved others by less than their noise shows, along the direction a
@@ -124,7 +118,7 @@ def worst_errors(C: np.ndarray, lever_mm: np.ndarray) -> tuple[float, float]:
     """1-sigma ``(displacement (mm), rotation (deg))`` in the worst direction, from the covariance ``C`` (6, 6) of a
     twist ``(omega (rad), v (mm))``: a point at ``lever_mm`` (3,) from the turns' centre moves by ``omega x lever + v``
     (either sign convention of the twist gives the same covariance of it)."""
-    A = np.hstack([_skew(np.asarray(lever_mm, float)), -np.eye(3)])
+    A = np.hstack([skew(np.asarray(lever_mm, float)), -np.eye(3)])
     tre = math.sqrt(max(float(np.linalg.eigvalsh(A @ C @ A.T).max()), 0.0))
     rot = math.degrees(math.sqrt(max(float(np.linalg.eigvalsh(C[:3, :3]).max()), 0.0)))
     return tre, rot

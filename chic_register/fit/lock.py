@@ -1,29 +1,38 @@
 """One slice's lock search: first guesses (:mod:`chic_register.guess.hypotheses`) turned into refined, ranked fits.
 
-:func:`_solve_one` takes the paper's closed form when the layout allows it,
+:func:`lock_slice` takes the paper's closed form when the layout allows it,
 else the generic first guess; :func:`_refine_guesses` refines the guesses
 that line up the most tubes, and any close rival for the ambiguity check.
 """
 
 from __future__ import annotations
 
-from typing import TYPE_CHECKING
-
 import numpy as np
 
 from chic_register.detect.blobs import median
 from chic_register.errors import NoLock
-from chic_register.guess.hypotheses import ellipse_layout, family_hypotheses, fit_ellipse_robust, initial_hypotheses, parallel_family
-from chic_register.model.pose import invert
-from chic_register.fit.refine import _assign, _rank, _reject_outliers, _unexplained, match_gate_mm, refine
-from chic_register.verify.trust import _distinct, _near_prior
-from chic_register.model.tube_model import TubeModel, _crossings_memo, _inside
+from chic_register.fit.refine import (
+    assign_blobs,
+    match_gate_mm,
+    rank_fits,
+    refine,
+    reject_outliers,
+    unexplained_tubes,
+)
+from chic_register.guess.ellipse import fit_ellipse_robust
+from chic_register.guess.generic import family_hypotheses, parallel_family
+from chic_register.guess.hypotheses import ellipse_layout, initial_hypotheses
+from chic_register.model.pose import invert, near_prior
+from chic_register.model.tube_model import (
+    TubeModel,
+    crossings_memo,
+    inside_mask,
+    poses_distinct,
+)
+from chic_register.options import SolveOptions
 
-if TYPE_CHECKING:
-    from chic_register.pipeline.register import SolveOptions
 
-
-def _solve_one(model: TubeModel, xy: np.ndarray, S: np.ndarray, opts: SolveOptions, pixel_mm: float):
+def lock_slice(model: TubeModel, xy: np.ndarray, S: np.ndarray, opts: SolveOptions, pixel_mm: float):
     """Refined hypotheses of one slice, best first, and the ellipse (or None). Raises NoLock if there are none.
 
     First guesses come from the paper's closed form when the layout allows it
@@ -61,8 +70,8 @@ def _solve_one(model: TubeModel, xy: np.ndarray, S: np.ndarray, opts: SolveOptio
             if ell is not None or ellipse_layout(model):
                 # a fallback where the closed form applies but found nothing: only a fit that explains
                 # (nearly) every tube it puts in the slice, as the closed form's fits would
-                extra = [f for f in extra if _unexplained(f) <= 1]
-            fits = _rank(fits + extra, limit)
+                extra = [f for f in extra if unexplained_tubes(f) <= 1]
+            fits = rank_fits(fits + extra, limit)
     if not fits:
         raise NoLock("the detected centres do not match the geometry's tube pattern",
                      {"n_candidates": int(xy.shape[0])})
@@ -77,10 +86,10 @@ def _refine_guesses(model: TubeModel, xy: np.ndarray, S: np.ndarray, hyps: list,
     scored = []
     for T in hyps:
         X = T @ S_inv
-        if not _near_prior(X, opts):
+        if not near_prior(X, opts):
             continue
-        hit = _crossings_memo(model, np.asarray(T, dtype=float))  # plane_crossings' numbers, less its copies
-        scored.append((int((_assign(hit[0][:, :2], _inside(model, hit, 5.0), xy, gate) >= 0).sum()), X))
+        hit = crossings_memo(model, np.asarray(T, dtype=float))  # plane_crossings' numbers, less its copies
+        scored.append((int((assign_blobs(hit[0][:, :2], inside_mask(model, hit, 5.0), xy, gate) >= 0).sum()), X))
     scored.sort(key=lambda t: -t[0])
 
     def full(X):
@@ -97,10 +106,10 @@ def _refine_guesses(model: TubeModel, xy: np.ndarray, S: np.ndarray, hyps: list,
         if fits:
             quick = refine(model, [xy], [S], X, gates_mm=(gate,), iters_per_gate=2, final_iters=0)
             if (quick.n_matched < fits[0].n_matched or quick.rms_mm > 2 * limit
-                    or not _distinct(quick.T_F_from_scanner, fits[0].T_F_from_scanner, model)):
+                    or not poses_distinct(quick.T_F_from_scanner, fits[0].T_F_from_scanner, model)):
                 fits.append(quick)
                 continue
-        fit = _reject_outliers(model, [xy], [S], full(X), [pixel_mm], opts)
-        if _near_prior(fit.T_F_from_scanner, opts):
-            fits = _rank(fits + [fit], limit)
+        fit = reject_outliers(model, [xy], [S], full(X), [pixel_mm], opts)
+        if near_prior(fit.T_F_from_scanner, opts):
+            fits = rank_fits(fits + [fit], limit)
     return fits

@@ -1,9 +1,9 @@
 """Refinement: Gauss-Newton on the six DOF of a pose, with the blob-to-tube assignment re-solved on the way.
 
-:func:`refine` turns a guess of ``T_F_from_scanner`` into a :class:`_Fit`
+:func:`refine` turns a guess of ``T_F_from_scanner`` into a :class:`Fit`
 (pose, assignments, residuals) from the detected centres of one or more
-slices; :func:`_reject_outliers` drops tubes that spoil a fit;
-:func:`_rank` orders fits best first. The model and its derivatives are
+slices; :func:`reject_outliers` drops tubes that spoil a fit;
+:func:`rank_fits` orders fits best first. The model and its derivatives are
 :mod:`chic_register.model.tube_model`'s.
 """
 
@@ -12,21 +12,25 @@ from __future__ import annotations
 import functools
 import math
 from dataclasses import dataclass
-from typing import TYPE_CHECKING
 
 import numpy as np
 
-from chic_register.util.lapack import solve_vector as _solve
-from chic_register.util.matching import matched_pairs
 from chic_register.model.pose import invert
-from chic_register.model.tube_model import TubeModel, _adjoint, _crossing_jacobian, _crossings_memo, _exp_se3, _inside_list
-
-if TYPE_CHECKING:
-    from chic_register.pipeline.register import SolveOptions
+from chic_register.model.tube_model import (
+    TubeModel,
+    adjoint,
+    crossing_jacobian,
+    crossings_memo,
+    exp_se3,
+    inside_list,
+)
+from chic_register.options import SolveOptions
+from chic_register.util.lapack import solve_vector
+from chic_register.util.matching import matched_pairs
 
 
 @dataclass(frozen=True, eq=False)
-class _Fit:
+class Fit:
     """One refined joint hypothesis."""
 
     T_F_from_scanner: np.ndarray
@@ -42,12 +46,12 @@ class _Fit:
 
 def whitened_residuals(measurement, q: np.ndarray, a: np.ndarray, k: np.ndarray) -> np.ndarray:
     """(len(k), 2): tubes ``k``'s ``L (predicted - measured)`` in one slice's ``measurement`` (an entry of
-    ``_Fit.measurements``), ``q`` (K, 2) the predicted crossings and ``a`` (K,) the blob index per tube."""
+    ``Fit.measurements``), ``q`` (K, 2) the predicted crossings and ``a`` (K,) the blob index per tube."""
     xy, L, _ = measurement
     return np.einsum("kij,kj->ki", L[k], q[k] - xy[a[k]])
 
 
-def _assign(pred: np.ndarray, ok: np.ndarray, blobs_xy: np.ndarray, gate_mm: float) -> np.ndarray:
+def assign_blobs(pred: np.ndarray, ok: np.ndarray, blobs_xy: np.ndarray, gate_mm: float) -> np.ndarray:
     """Blob index per tube (K,), -1 for none: minimum-cost matching within ``gate_mm``."""
     K, N = pred.shape[0], blobs_xy.shape[0]
     if N == 0:
@@ -66,18 +70,18 @@ def _assign(pred: np.ndarray, ok: np.ndarray, blobs_xy: np.ndarray, gate_mm: flo
 
 
 def _image_adjoint(S: np.ndarray) -> np.ndarray:
-    """``_adjoint(invert(S))`` of a slice's ``T_scanner_from_image`` (read-only; memoised: every refinement of
+    """``adjoint(invert(S))`` of a slice's ``T_scanner_from_image`` (read-only; memoised: every refinement of
     a slice needs it)."""
     S = np.asarray(S)
     if S.shape != (4, 4) or S.dtype != np.float64:
-        return _adjoint(invert(S))
+        return adjoint(invert(S))
     return _adjoint_of_inverse(S.tobytes())
 
 
 def scanner_crossing_jacobian(q: np.ndarray, tan_I: np.ndarray, S: np.ndarray) -> np.ndarray:
     """(M, 2, 6) d(crossing xy)/d(xi) of crossings ``q`` (M, 2) with image-frame tangents ``tan_I`` (M, 3) for a
     twist xi of ``T_F_from_scanner`` in the scanner frame, on the slice ``S`` (its ``T_scanner_from_image``)."""
-    return _crossing_jacobian(q, tan_I) @ _image_adjoint(S)
+    return crossing_jacobian(q, tan_I) @ _image_adjoint(S)
 
 
 def match_gate_mm(model: TubeModel, pixel_mm: float) -> float:
@@ -87,7 +91,7 @@ def match_gate_mm(model: TubeModel, pixel_mm: float) -> float:
 
 @functools.lru_cache(maxsize=64)
 def _adjoint_of_inverse(S_bytes: bytes) -> np.ndarray:
-    A = _adjoint(invert(np.frombuffer(S_bytes).reshape(4, 4)))
+    A = adjoint(invert(np.frombuffer(S_bytes).reshape(4, 4)))
     A.flags.writeable = False
     return A
 
@@ -96,7 +100,7 @@ def refine(model: TubeModel, blobs_xy: list[np.ndarray], T_scanner_from_image: l
            T_F_from_scanner: np.ndarray, *, gates_mm=(3.0, 1.5, 1.0, 1.0), iters_per_gate: int = 3,
            final_iters: int = 4, damping: float = 1e-6, exclude: list | None = None,
            assign0: list | None = None, offsets_mm: list | None = None, strict_ends: bool = True,
-           weights: list | None = None, tol: float = 1e-6) -> _Fit:
+           weights: list | None = None, tol: float = 1e-6) -> Fit:
     """Gauss-Newton on all six DOF of ``T_F_from_scanner`` with re-assignment.
 
     ``blobs_xy``: per slice, detected centres in image mm (N_j, 2). Each gate
@@ -132,13 +136,13 @@ def refine(model: TubeModel, blobs_xy: list[np.ndarray], T_scanner_from_image: l
                 break  # converged and the assignment did not change
             Js, rs = [], []
             for j, (xy, S) in enumerate(zip(blobs_xy, T_scanner_from_image)):
-                hit = _crossings_memo(model, X @ S)  # plane_crossings' numbers, less its copies (read-only here)
-                inside = _inside_list(model, hit, margin)
+                hit = crossings_memo(model, X @ S)  # plane_crossings' numbers, less its copies (read-only here)
+                inside = inside_list(model, hit, margin)
                 if gate is not None and it == 0:
                     q = hit[0][:, :2]
                     qm = q + offs[j] if offs[j] is not None else q  # what the detector measures
                     ins = np.array(inside, dtype=bool)
-                    new = _assign(qm, ins & ~exclude[j] if exclude else ins, xy, gate)
+                    new = assign_blobs(qm, ins & ~exclude[j] if exclude else ins, xy, gate)
                     changed = changed or assign[j] is None or not np.array_equal(new, assign[j])
                     assign[j] = new
                     a_lists[j] = None
@@ -148,7 +152,7 @@ def refine(model: TubeModel, blobs_xy: list[np.ndarray], T_scanner_from_image: l
                 k = [i for i, (ai, ok) in enumerate(zip(a, inside)) if ai >= 0 and ok]
                 if not k:
                     continue
-                res, Jl = _residuals_jacobian(hit[5].tolist(), k, a, xy_lists[j], offs_lists[j])
+                res, Jl = residuals_jacobian(hit[5].tolist(), k, a, xy_lists[j], offs_lists[j])
                 M = len(k)
                 # (M, 2, 6) @ (6, 6) as one (2M, 6) product: the same numbers, one BLAS call instead of M
                 Jk = np.fromiter(Jl, float, 12 * M).reshape(2 * M, 6) @ ads[j]
@@ -167,12 +171,12 @@ def refine(model: TubeModel, blobs_xy: list[np.ndarray], T_scanner_from_image: l
             diag = H.reshape(-1)[::7]  # a view of the diagonal
             diag *= 1 + damping
             diag += 1e-9
-            xi = _solve(H, J.T @ r)
+            xi = solve_vector(H, J.T @ r)
             step = max(map(abs, xi))
             if not math.isfinite(sum(xi)):
                 break  # H singular (np.linalg.solve would raise)
             xi = [-v for v in xi]
-            X = X @ _exp_se3(xi)
+            X = X @ exp_se3(xi)
             # rad and mm: under a gate, close enough to re-assign; at the end, far below any error that matters
             if step < (1e-3 if gate is not None else tol):
                 break
@@ -181,8 +185,8 @@ def refine(model: TubeModel, blobs_xy: list[np.ndarray], T_scanner_from_image: l
     # final bookkeeping (scalar code over the tubes, as in the iterations: numpy's numbers, fewer calls)
     residuals, insides, total, sq = [], [], 0, 0.0
     for j, (xy, S) in enumerate(zip(blobs_xy, T_scanner_from_image)):
-        hit = _crossings_memo(model, X @ S)
-        inside = _inside_list(model, hit, end_margin)
+        hit = crossings_memo(model, X @ S)
+        inside = inside_list(model, hit, end_margin)
         a_j = assign[j] if assign[j] is not None else np.full(model.is_helix.size, -1)
         a = [ai if ok else -1 for ai, ok in zip(a_j.tolist(), inside)]
         qt, xyl, offl = hit[5].tolist(), xy_lists[j], offs_lists[j]
@@ -203,12 +207,12 @@ def refine(model: TubeModel, blobs_xy: list[np.ndarray], T_scanner_from_image: l
         if dist:
             sq += float(np.add.reduce(np.array(dist) ** 2))  # numpy's sum (pairwise: not Python's)
     rms = math.sqrt(sq / total) if total else float("inf")
-    return _Fit(X, assign, residuals, insides, total, rms)
+    return Fit(X, assign, residuals, insides, total, rms)
 
 
-def _residuals_jacobian(qt: list, k: list, a: list, xy: list, offs: list | None):
+def residuals_jacobian(qt: list, k: list, a: list, xy: list, offs: list | None):
     """The Gauss-Newton rows of the tubes ``k`` (a list): residuals ``[x, y, ...]`` (predicted + offset - blob
-    ``a[i]``) and the crossings' Jacobian :func:`~chic_register.model.tube_model._crossing_jacobian` flattened
+    ``a[i]``) and the crossings' Jacobian :func:`~chic_register.model.tube_model.crossing_jacobian` flattened
     (``12 * len(k)``), from :func:`~chic_register.model.tube_model._crossings`' ``qt`` as a list.
 
     Scalar code (the same arithmetic as the array versions, to the bit): on nine tubes a dozen numpy calls cost
@@ -230,7 +234,7 @@ def _residuals_jacobian(qt: list, k: list, a: list, xy: list, offs: list | None)
     return res, J
 
 
-def _reject_outliers(model: TubeModel, xys, Ss, fit: _Fit, px_mm: list[float], opts: SolveOptions) -> _Fit:
+def reject_outliers(model: TubeModel, xys, Ss, fit: Fit, px_mm: list[float], opts: SolveOptions) -> Fit:
     """Drop the worst-fitting tube while that makes the fit markedly better, and refit.
 
     Tried while the worst residual exceeds ``max_rms_px`` pixels (two
@@ -261,11 +265,11 @@ def _reject_outliers(model: TubeModel, xys, Ss, fit: _Fit, px_mm: list[float], o
     return fit
 
 
-def _rank(fits: list[_Fit], rms_limit_mm: float = math.inf) -> list[_Fit]:
+def rank_fits(fits: list[Fit], rms_limit_mm: float = math.inf) -> list[Fit]:
     """Best first: fits within the RMS limit, then the most tubes, then the lowest RMS."""
     return sorted(fits, key=lambda f: (f.rms_mm > rms_limit_mm, -f.n_matched, f.rms_mm))
 
 
-def _unexplained(fit: _Fit) -> int:
+def unexplained_tubes(fit: Fit) -> int:
     """Tubes a fit puts wholly inside the slice (every slice) that no blob is assigned to."""
     return sum(int(np.sum(ins & (a < 0))) for ins, a in zip(fit.inside, fit.assignments))

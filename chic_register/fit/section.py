@@ -15,8 +15,8 @@ tubes at once (no renders):
   ``thickness_samples`` planes across the slice thickness (as the simulator
   renders); in each plane, the exact share of the pixel inside the section's
   edge taken as straight (a trapezoid in the signed distance,
-  :func:`_box_edge`) less the edge's curvature times the second moment of
-  the pixel's chord along it (:func:`_chord_m2`); pixels no edge crosses are
+  :func:`box_edge`) less the edge's curvature times the second moment of
+  the pixel's chord along it (:func:`chord_m2`); pixels no edge crosses are
   1 or 0 without that work.
 
 For tube ``k`` the window's pixels ``y`` are fitted, to first order in a
@@ -51,13 +51,13 @@ import numpy as np
 
 from chic_register.fit.windows import (
     Windows,
-    _joint_windows,
-    _kept,
-    _window_pixels,
     joint_windows,
+    joint_windows_from_reach,
+    kept_pixels,
     section_windows,
+    window_pixels,
 )
-from chic_register.imaging.pixel_coverage import _box_edge, _chord_m2
+from chic_register.imaging.pixel_coverage import box_edge, chord_m2
 from chic_register.imaging.rician import inner_gain, rician_model
 from chic_register.model.tube_model import plane_crossings
 
@@ -222,12 +222,12 @@ def _section_band(tan_rows, kappa, s_lo, s_hi, r_tube, own, dx0, dy0, cs: float,
     nx, ny = ex_ * inv_p, ey_ * inv_p  # the section edge's in-plane outward normal
     # in-plane signed distance to the edge (inside > 0), and the pixel's exact coverage of a straight edge
     delta = (r_tube[own] - dist) * (dist * inv_p)
-    cov, dcov = _box_edge(delta, cs * np.abs(nx), rs * np.abs(ny))
+    cov, dcov = box_edge(delta, cs * np.abs(nx), rs * np.abs(ny))
     # the edge is curved (curvature of the section's outline at the pixel): the inside loses kappa tau^2 / 2
     # along the chord of the pixel at the edge, tau its coordinate along the edge from the foot point
     if curved:
         cross = (ex_ * ty - ey_ * tx) * inv_p
-        cov -= dcov * _chord_m2(delta, nx, ny, cs, rs) * (0.5 * (1.0 - cross * cross) * inv_p)
+        cov -= dcov * chord_m2(delta, nx, ny, cs, rs) * (0.5 * (1.0 - cross * cross) * inv_p)
     if ends:  # the tube's end faces: a ramp across the pixel along the centreline
         inside = np.minimum(s_lo[own] + s0, s_hi[own] - s0)
         end = np.clip(0.5 + inside / np.maximum(cs * np.abs(tx) + rs * np.abs(ty), 1e-12), 0.0, 1.0)
@@ -259,7 +259,7 @@ def fit_sections(model, T_F_from_I: np.ndarray, assignment: np.ndarray, pixels: 
     previous one put the section (the first-order fit is then refined to
     second order); ``exact``: see :func:`section_model`; ``joint``: refit
     the tubes on the pixels they share with their neighbours, whose fitted
-    sections are subtracted (:func:`_joint_pass`); ``rician_sigma`` > 0: the
+    sections are subtracted (:func:`joint_pass`); ``rician_sigma`` > 0: the
     pixels are magnitudes with Rician noise of that scale, and the fit is
     of their mean (:func:`~chic_register.imaging.rician.rician_model`); ``lost``: (rows, cols) bool, pixels lost to
     dropout (:mod:`chic_register.detect.dropout`; their filled values carry no information), left out of every window.
@@ -276,16 +276,16 @@ def fit_sections(model, T_F_from_I: np.ndarray, assignment: np.ndarray, pixels: 
     ahead = None  # the joint pass's windows when they are known now (see below)
     joint = joint and exact and int(shift_iterations) <= 1
     if windows is None:
-        reach = _window_pixels(model, q, tan, found, todo, pixels.shape, pixel_spacing_mm, slice_thickness_mm,
+        reach = window_pixels(model, q, tan, found, todo, pixels.shape, pixel_spacing_mm, slice_thickness_mm,
                                margin_px, lost)
-        keep, shared = _kept(reach, assignment, footprints)
+        keep, shared = kept_pixels(reach, assignment, footprints)
         windows = Windows(reach.rows[keep], reach.cols[keep], reach.own[keep], shared)
         if joint and shared and todo.size >= 2:
             # a joint pass that fits the same tubes (the usual case) uses these windows and the pixels they share:
             # draw the first model on all of them at once (each pixel's value depends on that pixel alone)
             modelled = np.zeros(K, bool)
             modelled[todo] = True
-            ahead = _joint_windows(reach, assignment, footprints, modelled)
+            ahead = joint_windows_from_reach(reach, assignment, footprints, modelled)
             in_windows = keep[ahead[3]]  # the windows' pixels among the joint windows' (a subset)
     own = windows.owner
     if todo.size == 0 or own.size == 0:
@@ -325,7 +325,7 @@ def fit_sections(model, T_F_from_I: np.ndarray, assignment: np.ndarray, pixels: 
         at[sel] += shift
     if joint and windows.shared and sel.size >= 2:
         same = reach is not None and np.array_equal(sel, todo)  # the same tubes: the same joint windows
-        sel, at, info, a, n_pix = _joint_pass(model, T_F_from_I, q, tan, found, pixels, pixel_spacing_mm,
+        sel, at, info, a, n_pix = joint_pass(model, T_F_from_I, q, tan, found, pixels, pixel_spacing_mm,
                                               slice_thickness_mm, thickness_samples, exact, noise_sigma, assignment,
                                               footprints, margin_px, sel, at, info, a, n_pix,
                                               reach if same else None, at_crossing, rician_sigma,
@@ -338,7 +338,7 @@ def fit_sections(model, T_F_from_I: np.ndarray, assignment: np.ndarray, pixels: 
     return SectionFit(q, out_pos, out_info, out_gain, n_pix, fitted), windows
 
 
-def _joint_pass(model, T_F_from_I, q, tan, found, pixels, pixel_spacing_mm, slice_thickness_mm: float,
+def joint_pass(model, T_F_from_I, q, tan, found, pixels, pixel_spacing_mm, slice_thickness_mm: float,
                 thickness_samples: int, exact: bool, noise_sigma: float, assignment, footprints, margin_px: float,
                 sel, at, info, a, n_pix, reach=None, at_crossing=None, rician_sigma: float = 0.0, ahead=None,
                 lost=None):
@@ -382,7 +382,7 @@ def _joint_pass(model, T_F_from_I, q, tan, found, pixels, pixel_spacing_mm, slic
     starts = np.flatnonzero(np.concatenate(([True], jw.owner[1:] != jw.owner[:-1])))
     if ahead is None:
         y = np.asarray(pixels, dtype=float)[jw.rows, jw.cols]
-        S, Sx, Sy = _model_reusing(model, T_F_from_I, q, tan, jw, pixels.shape, pixel_spacing_mm, slice_thickness_mm,
+        S, Sx, Sy = model_reusing(model, T_F_from_I, q, tan, jw, pixels.shape, pixel_spacing_mm, slice_thickness_mm,
                                    thickness_samples, exact, at_crossing)
     else:  # at_crossing was drawn on the joint windows before the strong pixels left
         S, Sx, Sy = at_crossing[1]
@@ -411,7 +411,7 @@ def _joint_pass(model, T_F_from_I, q, tan, found, pixels, pixel_spacing_mm, slic
     return sel, at, info, a, n_pix
 
 
-def _model_reusing(model, T_F_from_I, q, tan, win: Windows, shape, pixel_spacing_mm, slice_thickness_mm: float,
+def model_reusing(model, T_F_from_I, q, tan, win: Windows, shape, pixel_spacing_mm, slice_thickness_mm: float,
                    thickness_samples: int, exact: bool, drawn=None):
     """:func:`section_model` at ``q`` on ``win``, taking the pixels ``drawn`` = ``(windows, (S, Sx, Sy))`` already
     has (drawn at the same ``q``, pose and settings) from it: each pixel's value depends on that pixel alone."""

@@ -3,7 +3,7 @@
 A tube's window is its section's box grown by a margin, less the pixels a
 neighbouring tube's section reaches or an unassigned blob covers, so that each
 fit sees one tube; the joint pass's windows keep the pixels only fitted
-neighbours reach. The boxes are enumerated once per pose (:func:`_window_pixels`,
+neighbours reach. The boxes are enumerated once per pose (:func:`window_pixels`,
 a :class:`Reach`), and only the pairs of tubes whose boxes can meet are tested
 pixel by pixel.
 """
@@ -14,8 +14,8 @@ from dataclasses import dataclass
 
 import numpy as np
 
-from chic_register.util.quantiles import _unique_ints
-from chic_register.model.tube_model import _section_box, _section_extent
+from chic_register.model.tube_model import section_box, section_extent
+from chic_register.util.quantiles import unique_ints
 
 
 @dataclass(frozen=True, eq=False)
@@ -36,12 +36,12 @@ def section_windows(model, q: np.ndarray, tan: np.ndarray, found: np.ndarray, to
     ``q``, ``tan``, ``found``: :func:`~chic_register.pipeline.register.plane_crossings`
     at the pose. Pixels within half a pixel of another tube's section box,
     or inside the footprint of a blob that is not the tube's own (nor
-    overlaps it), are left out. ``reach``: :func:`_window_pixels` of these
+    overlaps it), are left out. ``reach``: :func:`window_pixels` of these
     arguments, when already computed.
     """
-    reach = reach or _window_pixels(model, q, tan, found, todo, shape, pixel_spacing_mm, slice_thickness_mm,
+    reach = reach or window_pixels(model, q, tan, found, todo, shape, pixel_spacing_mm, slice_thickness_mm,
                                     margin_px)
-    keep, shared = _kept(reach, assignment, footprints)
+    keep, shared = kept_pixels(reach, assignment, footprints)
     return Windows(reach.rows[keep], reach.cols[keep], reach.own[keep], shared)
 
 
@@ -71,7 +71,7 @@ class Reach:
         return ~keep
 
 
-def _window_pixels(model, q, tan, found, todo, shape, pixel_spacing_mm, slice_thickness_mm: float,
+def window_pixels(model, q, tan, found, todo, shape, pixel_spacing_mm, slice_thickness_mm: float,
                    margin_px: float, lost=None) -> Reach:
     """Every tube in ``todo``'s bounding-box pixels, which other found tubes' section boxes (grown by a pixel)
     reach each, and which lie beyond the tube's own grown box: a :class:`Reach`. ``lost``: (rows, cols) bool,
@@ -81,11 +81,11 @@ def _window_pixels(model, q, tan, found, todo, shape, pixel_spacing_mm, slice_th
     testing every pixel against every tube, at a fraction of the work.)"""
     rs, cs = (float(v) for v in pixel_spacing_mm)
     H, W = shape
-    half_len, _, u = _section_extent(model, tan, slice_thickness_mm)
+    half_len, _, u = section_extent(model, tan, slice_thickness_mm)
     half_wid = 0.5 * model.diameter_mm  # across its length a section is the tube's width
     u = np.where((np.abs(u).sum(axis=1) > 0)[:, None], u, [1.0, 0.0])  # a round section: any direction
     m_mm = margin_px * max(rs, cs)
-    ex, ey = (e + m_mm for e in _section_box(half_len, half_wid, u))
+    ex, ey = (e + m_mm for e in section_box(half_len, half_wid, u))
     qx, qy = q.T.copy()  # (contiguous rows: 1-d gathers, several times cheaper than 2-d fancy indexing)
     i0 = np.maximum(0, np.ceil((qy[todo] - ey[todo]) / rs)).astype(int)
     i1 = np.minimum(H - 1, np.floor((qy[todo] + ey[todo]) / rs)).astype(int)
@@ -141,7 +141,7 @@ def _window_pixels(model, q, tan, found, todo, shape, pixel_spacing_mm, slice_th
     return Reach(rr, cc, own, far, p[hit], o[hit])
 
 
-def _kept(reach: Reach, assignment, footprints, modelled=None):
+def kept_pixels(reach: Reach, assignment, footprints, modelled=None):
     """(P,) bool: the pixels of ``reach`` a window keeps: not beyond the tube's own box, not reached by another
     tube's section (with ``modelled`` (K,) given: by one not modelled), not in a foreign blob's footprint; and
     whether a window (``modelled`` None) left a pixel out for a neighbour's sake only."""
@@ -166,14 +166,14 @@ def joint_windows(model, q: np.ndarray, tan: np.ndarray, found: np.ndarray, todo
     a helix runs close to a straight tube (near the body's ends). ``reach``: as for :func:`section_windows`;
     ``lost``: (rows, cols) bool, pixels no window keeps (lost to dropout).
     """
-    reach = reach or _window_pixels(model, q, tan, found, todo, shape, pixel_spacing_mm, slice_thickness_mm,
+    reach = reach or window_pixels(model, q, tan, found, todo, shape, pixel_spacing_mm, slice_thickness_mm,
                                     margin_px, lost)
-    return _joint_windows(reach, assignment, footprints, modelled)[:3]
+    return joint_windows_from_reach(reach, assignment, footprints, modelled)[:3]
 
 
-def _joint_windows(reach: Reach, assignment, footprints, modelled):
+def joint_windows_from_reach(reach: Reach, assignment, footprints, modelled):
     """:func:`joint_windows` from ``reach``, and the (P,) mask of its pixels that it keeps."""
-    keep, _ = _kept(reach, assignment, footprints, modelled)
+    keep, _ = kept_pixels(reach, assignment, footprints, modelled)
     pair = keep[reach.pair_p]
     p = (np.cumsum(keep) - 1)[reach.pair_p[pair]]  # (the pairs stay ordered by pixel, then tube)
     return Windows(reach.rows[keep], reach.cols[keep], reach.own[keep]), p, reach.pair_o[pair], keep
@@ -189,7 +189,7 @@ def _drop_foreign_blobs(keep, rr, cc, own, assignment, footprints) -> None:
         inside = (rr >= r0) & (rr < r0 + h) & (cc >= c0) & (cc < c0 + w)
         if not inside.any():
             continue
-        for k in _unique_ints(own[inside]).tolist():
+        for k in unique_ints(own[inside]).tolist():
             R0, C0, M = footprints[int(assignment[k])]
             a0, b0 = max(r0, R0), max(c0, C0)
             a1, b1 = min(r0 + h, R0 + M.shape[0]), min(c0 + w, C0 + M.shape[1])

@@ -14,8 +14,8 @@ from dataclasses import dataclass
 
 import numpy as np
 
-from chic_register.util.lapack import eig_vectors as _lapack_eig
-from chic_register.util.lapack import solve as _lapack_solve
+from chic_register.util.lapack import eig_vectors
+from chic_register.util.lapack import solve as lapack_solve
 
 
 @dataclass(frozen=True)
@@ -110,12 +110,12 @@ def _lsq_conic(xy: np.ndarray) -> np.ndarray:
     D = _design(xy)
     D1, D2 = D[:, :3], D[:, 3:]
     S1, S2, S3 = D1.T @ D1, D1.T @ D2, D2.T @ D2
-    Tm = -_lapack_solve(S3, S2.T)
+    Tm = -lapack_solve(S3, S2.T)
     M = S1 + S2 @ Tm
     M = np.array([M[2] / 2, -M[1], M[0] / 2])
     if not math.isfinite(sum(M.ravel().tolist())):  # S3 singular (np.linalg.solve would raise)
         return np.full(6, np.nan)
-    v = _lapack_eig(M)
+    v = eig_vectors(M)
     cond = 4 * v[0] * v[2] - v[1] ** 2
     idx = np.flatnonzero(cond > 0)
     if idx.size == 0:

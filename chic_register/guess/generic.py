@@ -20,8 +20,8 @@ from typing import TYPE_CHECKING
 import numpy as np
 
 from chic_register.detect.blobs import median
-from chic_register.model.geometry import sample_centreline
 from chic_register.model.pose import rigid
+from chic_register.model.tubes import sample_centreline
 
 if TYPE_CHECKING:
     from chic_register.model.tube_model import TubeModel
@@ -117,7 +117,7 @@ def parallel_family(model: "TubeModel", sample_step_mm: float = 0.5) -> Parallel
                           tuple(spans), tuple(rises))
 
 
-def _affine_candidates(fam: ParallelFamily, xy: np.ndarray, gate_mm: float, cos_max: float, max_pairs: int,
+def affine_candidates(fam: ParallelFamily, xy: np.ndarray, gate_mm: float, cos_max: float, max_pairs: int,
                        rng: np.random.Generator):
     """Every (blob triple, member triple) whose image distances a tilted cut can give; (blob idx (n, 3), triple (n,))."""
     N = xy.shape[0]
@@ -159,7 +159,7 @@ def family_hypotheses(model: "TubeModel", xy_mm: np.ndarray, *, gate_mm: float, 
         return []
     cos_max = math.cos(math.radians(max_tilt_deg))
     rng = np.random.default_rng(rng_seed)
-    blob_t, ti = _affine_candidates(fam, xy, gate_mm, cos_max, max_pairs, rng)
+    blob_t, ti = affine_candidates(fam, xy, gate_mm, cos_max, max_pairs, rng)
     if blob_t.size == 0:
         return []
     P = xy[blob_t]  # (n, 3, 2)
@@ -182,7 +182,7 @@ def family_hypotheses(model: "TubeModel", xy_mm: np.ndarray, *, gate_mm: float, 
     # every family tube predicted in the image: how many land on a blob
     Ainv = np.linalg.inv(A)
     pred = np.einsum("nij,nkj->nki", Ainv, fam.c[None] - b[:, None, :])  # (n, F, 2)
-    dist = _nearest_blob_mm(pred, xy)  # (n, F)
+    dist = nearest_blob_mm(pred, xy)  # (n, F)
     hit = dist < gate_mm
     n_hit = hit.sum(axis=1)
     err = np.where(hit, dist, 0.0).sum(axis=1)
@@ -201,7 +201,7 @@ def family_hypotheses(model: "TubeModel", xy_mm: np.ndarray, *, gate_mm: float, 
     for n_fam, Ao, bo, used in affines:
         free = np.ones(xy.shape[0], bool)
         free[used] = False  # blobs taken by the family vote for no depth (they sit where diagonals end)
-        rots = _rotations_from_affine(Ao, fam, cos_max)
+        rots = rotations_from_affine(Ao, fam, cos_max)
         for (R, _), votes in zip(rots, _depth_votes(fam, xy[free], Ao, bo, [w for _, w in rots], gate_mm)):
             for lam, n_depth in votes:
                 rows.append((n_fam + n_depth, n_depth, R, fam.E @ bo + lam * fam.u))
@@ -214,7 +214,7 @@ def family_hypotheses(model: "TubeModel", xy_mm: np.ndarray, *, gate_mm: float, 
 NEAREST_CHUNK = 3_000_000
 
 
-def _nearest_blob_mm(pred: np.ndarray, xy: np.ndarray) -> np.ndarray:
+def nearest_blob_mm(pred: np.ndarray, xy: np.ndarray) -> np.ndarray:
     """Distance (mm) from each predicted point ``pred`` (n, F, 2) to its nearest blob of ``xy`` (N, 2): (n, F)."""
     flat = pred.reshape(-1, 2)
     out = np.empty(flat.shape[0])
@@ -241,7 +241,7 @@ def _refit_affine(fam: ParallelFamily, xy: np.ndarray, A: np.ndarray, b: np.ndar
     return X[:2].T, X[2], j[ok]
 
 
-def _rotations_from_affine(A: np.ndarray, fam: ParallelFamily, cos_max: float):
+def rotations_from_affine(A: np.ndarray, fam: ParallelFamily, cos_max: float):
     """The rotations ``R_F_from_I`` whose cut maps the image onto the section by ``A``: ``[(R, w)]``, 1 or 2.
 
     ``E^T R[:, :2] = A`` once ``A``'s larger singular value is set to 1 (a

@@ -28,8 +28,7 @@ from typing import TYPE_CHECKING
 import numpy as np
 
 from chic_register.detect.blobs import median
-from chic_register.guess.ellipse import Ellipse, fit_ellipse_robust  # noqa: F401  (fit_ellipse_robust: part of this stage's API)
-from chic_register.guess.generic import ParallelFamily, family_hypotheses, parallel_family  # noqa: F401  (the generic stage)
+from chic_register.guess.ellipse import Ellipse
 
 if TYPE_CHECKING:
     from chic_register.model.tube_model import TubeModel

@@ -16,12 +16,10 @@ pixels (:mod:`chic_register.fit.blurred`) and verifies it.
 
 from __future__ import annotations
 
-
 import numpy as np
 
 from chic_register.model.pose import invert
-from chic_register.verify.trust import _distinct
-from chic_register.model.tube_model import TubeModel, _exp_se3
+from chic_register.model.tube_model import TubeModel, exp_se3, poses_distinct
 
 #: Centreline samples this far apart (mm): the wide blobs this is for are several millimetres across.
 SAMPLE_MM = 1.5
@@ -148,18 +146,18 @@ def volume_first_guesses(voxels: np.ndarray, affine_lps: np.ndarray, model: Tube
     grid.sort(key=lambda sx: -sx[0])
     starts = []
     for s, X, _ in grid:
-        if all(_distinct(X, Y, model) for _, Y in starts):
+        if all(poses_distinct(X, Y, model) for _, Y in starts):
             starts.append((s, X))
         if len(starts) == N_REFINED:
             break
     for g in range(len(groups)):  # and each axis direction's best (a turned twin of the pose is one of them)
         s, X = next((s, X) for s, X, gi in grid if gi == g)
-        if all(_distinct(X, Y, model) for _, Y in starts):
+        if all(poses_distinct(X, Y, model) for _, Y in starts):
             starts.append((s, X))
     out = []
     for _, X in starts:
         s, Xr = _refine(vol, to_index, P, wts, X)
-        if all(_distinct(Xr, Y, model) for _, Y in out):
+        if all(poses_distinct(Xr, Y, model) for _, Y in out):
             out.append((s, Xr))
     return sorted(out, key=lambda sx: -sx[0])
 
@@ -178,7 +176,7 @@ def _refine(vol, to_index, P, wts, X0):
         C[:3, 3] = centre
         Ci = np.eye(4)
         Ci[:3, 3] = -centre
-        return C @ _exp_se3(xi) @ Ci @ T0  # T_scanner_from_F moved
+        return C @ exp_se3(xi) @ Ci @ T0  # T_scanner_from_F moved
 
     def cost(v):
         T = pose(v)

@@ -1,7 +1,7 @@
 """A pixel's exact share of the inside of a section's edge, for the section model (:mod:`chic_register.fit.section`).
 
-:func:`_box_edge` is the share of a square pixel on the inside of a straight
-edge and its slope; :func:`_chord_m2` the second moment of the pixel's chord
+:func:`box_edge` is the share of a square pixel on the inside of a straight
+edge and its slope; :func:`chord_m2` the second moment of the pixel's chord
 along the edge, which corrects that share for the edge's curvature.
 """
 
@@ -10,7 +10,7 @@ from __future__ import annotations
 import numpy as np
 
 
-def _box_edge(delta: np.ndarray, A: np.ndarray, B: np.ndarray):
+def box_edge(delta: np.ndarray, A: np.ndarray, B: np.ndarray):
     """Share of a pixel inside a straight edge at signed distance ``delta`` from its centre, and its derivative.
 
     ``A``, ``B``: the pixel's two sides projected on the edge normal. The
@@ -31,7 +31,7 @@ def _box_edge(delta: np.ndarray, A: np.ndarray, B: np.ndarray):
     return np.minimum(share, 1.0), slope
 
 
-def _chord_m2(delta, nx, ny, cs: float, rs: float):
+def chord_m2(delta, nx, ny, cs: float, rs: float):
     """Mean of tau^2 over the chord ``n . p = delta`` of the pixel ``|x| <= cs/2, |y| <= rs/2``; tau along the edge.
 
     On the chord ``p = delta n + tau (-ny, nx)`` each pair of pixel sides

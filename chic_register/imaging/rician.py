@@ -34,7 +34,7 @@ _STEP = 0.02
 
 
 @functools.lru_cache(maxsize=1)
-def _table():
+def rician_table():
     """``(u, g, g')`` of :func:`rician_mean` on ``u = 0, _STEP, ..., _U_MAX``."""
     u = np.arange(0.0, _U_MAX + 0.5 * _STEP, _STEP)
     x = 0.25 * u * u
@@ -54,7 +54,7 @@ def _table():
 def rician_mean(u: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
     """``(g(u), g'(u))``: the mean magnitude over sigma at signal over sigma ``u >= 0``, and its slope."""
     u = np.abs(np.asarray(u, dtype=float))
-    u_tab, g_tab, d_tab = _table()
+    u_tab, g_tab, d_tab = rician_table()
     uc = np.minimum(u, _U_MAX)
     w = np.maximum(u, _U_MAX)  # above the table: g(U) + (u - U) + 1 / (2 u) - 1 / (2 U), to 1 / (8 U^3)
     g = np.interp(uc, u_tab, g_tab) + (u - uc) + 0.5 / w - 0.5 / _U_MAX
@@ -66,7 +66,7 @@ def rician_signal(mean: np.ndarray) -> np.ndarray:
     """The inverse of :func:`rician_mean`'s ``g``: signal over sigma from mean magnitude over sigma (0 below the
     floor ``g(0)``)."""
     m = np.asarray(mean, dtype=float)
-    u_tab, g_tab, _ = _table()
+    u_tab, g_tab, _ = rician_table()
     u = np.interp(m, g_tab, u_tab, left=0.0)
     far = m > g_tab[-1]
     if far.any():

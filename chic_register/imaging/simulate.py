@@ -22,12 +22,21 @@ from pathlib import Path
 
 import numpy as np
 
-from chic_register.util.atomic import write_json
-from chic_register.imaging.blob_width import BLOB_WIDTH_RANGE, BlobWidth, render_tubes_widened  # noqa: F401 (public here too)
-from chic_register.model.geometry import FiducialGeometry, LineTube
-from chic_register.model.pose import SliceAngles, apply, invert, rigid, slice_angles, slice_frame
-from chic_register.imaging.render import check_grid, render_slice, render_tubes, sample_offsets  # noqa: F401 (render_*: public here too)
+from chic_register.imaging.blob_width import render_tubes_widened
+from chic_register.imaging.render import check_grid, render_tubes, sample_offsets
+from chic_register.io.volumes import Volume, plane_frame
+from chic_register.model.geometry import FiducialGeometry
+from chic_register.model.pose import (
+    SliceAngles,
+    apply,
+    invert,
+    rigid,
+    slice_angles,
+    slice_frame,
+)
 from chic_register.model.slices import Slice
+from chic_register.model.tubes import LineTube
+from chic_register.util.atomic import write_json
 
 NOISE_KINDS = ("none", "uniform", "rician")
 
@@ -373,3 +382,100 @@ def write_simulated(sim: SimulatedSlice, path, extra: dict | None = None):
         raise ValueError(f"{p}: unsupported output suffix {p.suffix!r}; allowed: {allowed}")
     doc = {**sim.truth.to_dict(), "file": info, **(extra or {})}
     return p, write_json(truth_path(p), doc)
+
+
+@dataclass(frozen=True)
+class SimulatedVolume:
+    """A synthetic volume and the pose of the fiducial in it.
+
+    ``T_scanner_from_fiducial`` (4x4): F (mm) -> the volume's LPS frame (mm).
+    """
+
+    volume: Volume
+    T_scanner_from_fiducial: np.ndarray
+    settings: dict = field(default_factory=dict)
+
+    def truth_dict(self) -> dict:
+        """JSON-ready truth: the pose plus the volume grid and the simulation settings."""
+        v = self.volume
+        return {
+            "T_scanner_from_fiducial": np.asarray(self.T_scanner_from_fiducial).tolist(),
+            "size_ijk": list(v.size_ijk),
+            "spacing_mm": list(v.spacing_mm),
+            "origin_mm": v.origin_mm.tolist(),
+            "direction": v.direction.tolist(),
+            "settings": dict(self.settings),
+        }
+
+
+def simulate_volume(
+    geom,
+    T_scanner_from_fiducial,
+    shape_vox=(128, 128, 60),
+    spacing_mm=(0.5, 0.5, 1.0),
+    *,
+    origin_mm=None,
+    direction=None,
+    signal: float = 1000.0,
+    noise: str = "rician",
+    noise_level: float = 0.05,
+    snr: float = 20.0,
+    rng=None,
+    supersample: int = 3,
+    thickness_samples: int = 3,
+    blob_width: float = 1.0,
+) -> SimulatedVolume:
+    """A synthetic MRI volume of ``geom`` at a known pose.
+
+    ``shape_vox``: (NX, NY, NZ) voxels along i, j, k; ``spacing_mm``: (si, sj, sk).
+    Each voxel holds ``signal`` times its fluid fraction (partial volume over
+    the voxel), rendered k-plane by k-plane with
+    :func:`chic_register.imaging.render.render_slice` (plane thickness = sk), then
+    noise as in :mod:`chic_register.imaging.simulate` (``"none"``, ``"uniform"``
+    amplitude ``noise_level`` x signal, ``"rician"`` at ``snr``).
+    Default placement: ``direction`` identity and the volume centre at the
+    scanner origin. ``blob_width`` widens every blob in each k-plane as
+    :func:`chic_register.imaging.blob_width.render_tubes_widened` does.
+    """
+
+    nx, ny, nz = (int(n) for n in shape_vox)
+    if min(nx, ny, nz) < 1:
+        raise ValueError(f"shape_vox must be three positive integers, got {tuple(shape_vox)}")
+    si, sj, sk = (float(s) for s in spacing_mm)
+    if not min(si, sj, sk) > 0:
+        raise ValueError(f"spacing_mm must be three positive numbers, got {tuple(spacing_mm)}")
+    if noise not in NOISE_KINDS:
+        raise ValueError(f"noise is {noise!r}; allowed: {', '.join(NOISE_KINDS)}")
+    D = np.eye(3) if direction is None else np.asarray(direction, dtype=float).reshape(3, 3)
+    if not np.allclose(D.T @ D, np.eye(3), atol=1e-6):
+        raise ValueError("direction must be an orthonormal 3x3 matrix (columns = LPS directions of i, j, k)")
+    if origin_mm is None:
+        origin_mm = -D @ (np.array([nx - 1, ny - 1, nz - 1]) * np.array([si, sj, sk]) / 2.0)
+    T_sf = np.asarray(T_scanner_from_fiducial, dtype=float)
+    rng = rng if isinstance(rng, np.random.Generator) else np.random.default_rng(rng)
+
+    grid = Volume(np.zeros((1, 1, 1)), (si, sj, sk), origin_mm, D)
+    T_fs = np.linalg.inv(T_sf)
+    voxels = np.empty((nz, ny, nx))
+    for k in range(nz):
+        T_F_from_S = T_fs @ plane_frame(grid, k)
+        voxels[k] = render_tubes_widened(
+            geom.tubes, T_F_from_S, (ny, nx), (sj, si), sk, center_px=(0.0, 0.0),
+            supersample=supersample, thickness_samples=thickness_samples, blob_width=blob_width,
+        )
+    if noise == "uniform":
+        voxels = add_uniform_noise(voxels, noise_level, rng)
+    elif noise == "rician":
+        voxels = add_rician_noise(voxels, snr, rng)
+    vol = Volume((signal * voxels).astype(np.float32), (si, sj, sk), origin_mm, D, "<simulated>")
+    settings = {
+        "geometry": geom.name,
+        "signal": float(signal),
+        "noise": noise,
+        "noise_level": float(noise_level) if noise == "uniform" else None,
+        "snr": float(snr) if noise == "rician" else None,
+        "supersample": int(supersample),
+        "thickness_samples": int(thickness_samples),
+        "blob_width": float(blob_width),
+    }
+    return SimulatedVolume(vol, T_sf, settings)

@@ -21,9 +21,9 @@ import pydicom
 from pydicom.dataset import Dataset, FileMetaDataset
 from pydicom.uid import ExplicitVRLittleEndian, MRImageStorage, generate_uid
 
-from chic_register.version import __version__
-from chic_register.util.atomic import atomic_path
 from chic_register.model.slices import Slice
+from chic_register.util.atomic import atomic_path
+from chic_register.version import __version__
 
 STORED_MAX = 65535  # 16 bits stored
 _COMMENT_LIMIT = 10240  # LT maximum length

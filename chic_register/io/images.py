@@ -22,16 +22,16 @@ from pathlib import Path
 
 import numpy as np
 
-from chic_register.util.atomic import atomic_path
 from chic_register.errors import ImageReadError, InputFileError
-from chic_register.util.safeload import open_regular_file
 from chic_register.model.slices import Slice
+from chic_register.util.atomic import atomic_path
+from chic_register.util.safeload import open_regular_file
 
 #: Volume files (read by :mod:`chic_register.io.volumes`, SimpleITK); a folder is read as a DICOM series.
 VOLUME_SUFFIXES = (".nii", ".nii.gz", ".nrrd", ".nhdr", ".mha", ".mhd")
 
 
-def _suffix(path: Path) -> str:
+def file_suffix(path: Path) -> str:
     name = path.name.lower()
     return ".nii.gz" if name.endswith(".nii.gz") else path.suffix.lower()
 
@@ -41,7 +41,7 @@ def is_volume_path(path) -> bool:
 
     Decided here, by name, so that a one-shot solve of a 2-D file never imports the volume code."""
     path = Path(path)
-    return path.is_dir() or _suffix(path) in VOLUME_SUFFIXES
+    return path.is_dir() or file_suffix(path) in VOLUME_SUFFIXES
 
 #: Physical range of a pixel spacing (mm): 10 um (microscopy-grade MRI) to 50 mm.
 MIN_SPACING_MM = 0.01

@@ -10,8 +10,8 @@ from pathlib import Path
 
 import numpy as np
 
-from chic_register.util.atomic import write_bytes
 from chic_register.io.transforms import MODEL_SPACE
+from chic_register.util.atomic import write_bytes
 
 HEADER_BYTES = 80
 

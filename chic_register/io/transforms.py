@@ -35,9 +35,9 @@ from pathlib import Path
 import numpy as np
 import SimpleITK as sitk
 
-from chic_register.util.atomic import atomic_path
 from chic_register.errors import ChicRegisterError
 from chic_register.model.pose import invert
+from chic_register.util.atomic import atomic_path
 
 SUFFIXES = (".tfm", ".txt", ".h5", ".hdf5")
 

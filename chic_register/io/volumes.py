@@ -24,11 +24,11 @@ from typing import TYPE_CHECKING
 
 import numpy as np
 
-from chic_register.util.atomic import atomic_path
 from chic_register.errors import ChicRegisterError, ImageReadError, InputFileError
 from chic_register.io.images import VOLUME_SUFFIXES as FILE_SUFFIXES
-from chic_register.io.images import _suffix, is_volume_path  # noqa: F401  (importable from here, as before)
+from chic_register.io.images import file_suffix
 from chic_register.model.slices import Slice
+from chic_register.util.atomic import atomic_path
 
 if TYPE_CHECKING:  # annotations only: SimpleITK is imported where it is used
     import SimpleITK as sitk
@@ -229,7 +229,7 @@ def read_volume(path, series_id: str | None = None) -> Volume:
     else:
         if series_id is not None:
             raise ImageReadError(path, "--series applies to a folder of DICOM files, not a volume file")
-        if _suffix(path) not in FILE_SUFFIXES:
+        if file_suffix(path) not in FILE_SUFFIXES:
             raise ImageReadError(path, f"not a volume file; allowed: {', '.join(FILE_SUFFIXES)} or a DICOM series folder")
         from chic_register.util.safeload import open_regular_file
 
@@ -377,7 +377,7 @@ def write_volume(volume: Volume, path) -> Path:
     """
     path = Path(path)
     path.parent.mkdir(parents=True, exist_ok=True)
-    suffix = _suffix(path)
+    suffix = file_suffix(path)
     if suffix in WRITE_SUFFIXES:
         import SimpleITK as sitk
 
@@ -407,30 +407,6 @@ def write_volume(volume: Volume, path) -> Path:
 # --------------------------------------------------------------------------- simulated volumes
 
 
-@dataclass(frozen=True)
-class SimulatedVolume:
-    """A synthetic volume and the pose of the fiducial in it.
-
-    ``T_scanner_from_fiducial`` (4x4): F (mm) -> the volume's LPS frame (mm).
-    """
-
-    volume: Volume
-    T_scanner_from_fiducial: np.ndarray
-    settings: dict = field(default_factory=dict)
-
-    def truth_dict(self) -> dict:
-        """JSON-ready truth: the pose plus the volume grid and the simulation settings."""
-        v = self.volume
-        return {
-            "T_scanner_from_fiducial": np.asarray(self.T_scanner_from_fiducial).tolist(),
-            "size_ijk": list(v.size_ijk),
-            "spacing_mm": list(v.spacing_mm),
-            "origin_mm": v.origin_mm.tolist(),
-            "direction": v.direction.tolist(),
-            "settings": dict(self.settings),
-        }
-
-
 def plane_frame(volume_or_grid, k: float) -> np.ndarray:
     """``T_scanner_from_plane`` (4x4) of the k-plane: origin at voxel (0, 0, k), x along i, y along j."""
     v = volume_or_grid
@@ -441,75 +417,3 @@ def plane_frame(volume_or_grid, k: float) -> np.ndarray:
     return T
 
 
-def simulate_volume(
-    geom,
-    T_scanner_from_fiducial,
-    shape_vox=(128, 128, 60),
-    spacing_mm=(0.5, 0.5, 1.0),
-    *,
-    origin_mm=None,
-    direction=None,
-    signal: float = 1000.0,
-    noise: str = "rician",
-    noise_level: float = 0.05,
-    snr: float = 20.0,
-    rng=None,
-    supersample: int = 3,
-    thickness_samples: int = 3,
-    blob_width: float = 1.0,
-) -> SimulatedVolume:
-    """A synthetic MRI volume of ``geom`` at a known pose.
-
-    ``shape_vox``: (NX, NY, NZ) voxels along i, j, k; ``spacing_mm``: (si, sj, sk).
-    Each voxel holds ``signal`` times its fluid fraction (partial volume over
-    the voxel), rendered k-plane by k-plane with
-    :func:`chic_register.imaging.render.render_slice` (plane thickness = sk), then
-    noise as in :mod:`chic_register.imaging.simulate` (``"none"``, ``"uniform"``
-    amplitude ``noise_level`` x signal, ``"rician"`` at ``snr``).
-    Default placement: ``direction`` identity and the volume centre at the
-    scanner origin. ``blob_width`` widens every blob in each k-plane as
-    :func:`chic_register.imaging.blob_width.render_tubes_widened` does.
-    """
-    from chic_register.imaging import simulate
-
-    nx, ny, nz = (int(n) for n in shape_vox)
-    if min(nx, ny, nz) < 1:
-        raise ValueError(f"shape_vox must be three positive integers, got {tuple(shape_vox)}")
-    si, sj, sk = (float(s) for s in spacing_mm)
-    if not min(si, sj, sk) > 0:
-        raise ValueError(f"spacing_mm must be three positive numbers, got {tuple(spacing_mm)}")
-    if noise not in simulate.NOISE_KINDS:
-        raise ValueError(f"noise is {noise!r}; allowed: {', '.join(simulate.NOISE_KINDS)}")
-    D = np.eye(3) if direction is None else np.asarray(direction, dtype=float).reshape(3, 3)
-    if not np.allclose(D.T @ D, np.eye(3), atol=1e-6):
-        raise ValueError("direction must be an orthonormal 3x3 matrix (columns = LPS directions of i, j, k)")
-    if origin_mm is None:
-        origin_mm = -D @ (np.array([nx - 1, ny - 1, nz - 1]) * np.array([si, sj, sk]) / 2.0)
-    T_sf = np.asarray(T_scanner_from_fiducial, dtype=float)
-    rng = rng if isinstance(rng, np.random.Generator) else np.random.default_rng(rng)
-
-    grid = Volume(np.zeros((1, 1, 1)), (si, sj, sk), origin_mm, D)
-    T_fs = np.linalg.inv(T_sf)
-    voxels = np.empty((nz, ny, nx))
-    for k in range(nz):
-        T_F_from_S = T_fs @ plane_frame(grid, k)
-        voxels[k] = simulate.render_tubes_widened(
-            geom.tubes, T_F_from_S, (ny, nx), (sj, si), sk, center_px=(0.0, 0.0),
-            supersample=supersample, thickness_samples=thickness_samples, blob_width=blob_width,
-        )
-    if noise == "uniform":
-        voxels = simulate.add_uniform_noise(voxels, noise_level, rng)
-    elif noise == "rician":
-        voxels = simulate.add_rician_noise(voxels, snr, rng)
-    vol = Volume((signal * voxels).astype(np.float32), (si, sj, sk), origin_mm, D, "<simulated>")
-    settings = {
-        "geometry": geom.name,
-        "signal": float(signal),
-        "noise": noise,
-        "noise_level": float(noise_level) if noise == "uniform" else None,
-        "snr": float(snr) if noise == "rician" else None,
-        "supersample": int(supersample),
-        "thickness_samples": int(thickness_samples),
-        "blob_width": float(blob_width),
-    }
-    return SimulatedVolume(vol, T_sf, settings)

@@ -220,7 +220,7 @@ def _scan(folder: Path) -> dict[str, tuple]:
     return out
 
 
-def _warm_up() -> None:
+def warm_up() -> None:
     """Import the image readers now, so the first file's latency does not include loading them."""
     import importlib
 
@@ -293,7 +293,7 @@ def track(
         sender = IgtlClient(igtl)
     publish = Publisher(geom, sender, igtl_name, scene_dir, geometry_path)
 
-    _warm_up()
+    warm_up()
     start = time.monotonic()
     done: dict[str, tuple] = {} if include_existing else _scan(folder)
     pending: dict[str, _Pending] = {}

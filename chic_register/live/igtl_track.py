@@ -19,9 +19,15 @@ import socket
 import time
 
 from chic_register.errors import ImageReadError, NoLock
-from chic_register.io.igtl import IgtlClient, image_to_slices, no_lock_messages, pose_messages, read_message
+from chic_register.io.igtl import (
+    IgtlClient,
+    image_to_slices,
+    no_lock_messages,
+    pose_messages,
+    read_message,
+)
+from chic_register.live.folder import Publisher, TrackEvent, TrackSummary, warm_up
 from chic_register.outputs.deliver import quality, tool_pose
-from chic_register.live.folder import Publisher, TrackEvent, TrackSummary, _warm_up
 
 
 def _connect(connect, listen, deadline):
@@ -53,7 +59,7 @@ def track_images(geom, *, connect=None, listen=None, name: str = "CHIC", max_ima
         from chic_register.pipeline.register import register
     on_event = on_event or (lambda event: None)
     on_message = on_message or (lambda text: None)
-    _warm_up()
+    warm_up()
     start = time.monotonic()
     deadline = None if timeout_s is None else start + timeout_s
     events: list[TrackEvent] = []

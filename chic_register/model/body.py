@@ -82,7 +82,7 @@ class Body:
         return out
 
 
-def _rigid_4x4(values) -> np.ndarray | None:
+def rigid_4x4(values) -> np.ndarray | None:
     """``values`` as a proper rigid 4x4 matrix (last row 0 0 0 1), or None."""
     try:
         T = np.asarray(values, dtype=float)
@@ -107,7 +107,7 @@ class ToolFrame:
     T_fiducial_from_tool: np.ndarray
 
     def __post_init__(self):
-        T = _rigid_4x4(self.T_fiducial_from_tool)
+        T = rigid_4x4(self.T_fiducial_from_tool)
         if T is None:
             raise ValueError("tool.T_fiducial_from_tool must be a rigid 4x4 matrix (rotation, translation, 0 0 0 1)")
         object.__setattr__(self, "T_fiducial_from_tool", T)

@@ -15,7 +15,13 @@ import functools
 
 import numpy as np
 
-from chic_register.model.tubes import HelixTube, LineTube, helix_points, helix_tangents, line_points
+from chic_register.model.tubes import (
+    HelixTube,
+    LineTube,
+    helix_points,
+    helix_tangents,
+    line_points,
+)
 
 
 def _brackets(tube) -> tuple[np.ndarray, np.ndarray]:

@@ -18,8 +18,7 @@ from dataclasses import dataclass
 
 import numpy as np
 
-from chic_register.model.centreline_crossings import (  # noqa: F401 - re-exported: the design checks import them from here
-    _brackets,
+from chic_register.model.centreline_crossings import (
     crossing_counts,
     plane_crossings,
     tube_crossings,

@@ -30,11 +30,10 @@ from pathlib import Path
 import numpy as np
 import yaml
 
-from chic_register.util.atomic import write_text
-from chic_register.model.body import BODY_SHAPES, Body, ToolFrame, _rigid_4x4
 from chic_register.errors import GeometryFileError, InputFileError
-from chic_register.util.roots import bracketed_root  # noqa: F401 (importable from here)
-from chic_register.model.tubes import HelixTube, LineTube, Tube, sample_centreline, slab_reach_mm  # noqa: F401 (importable from here)
+from chic_register.model.body import BODY_SHAPES, Body, ToolFrame, rigid_4x4
+from chic_register.model.tubes import HelixTube, LineTube, Tube
+from chic_register.util.atomic import write_text
 
 #: Plausibility bounds of a geometry file (mm): a fiducial that fits in an MRI bore.
 MAX_EXTENT_MM = 1000.0
@@ -299,7 +298,7 @@ def tool_from_dict(data, path="<geometry>") -> ToolFrame:
     """Parse the optional ``tool`` entry: ``{T_fiducial_from_tool: 4x4}``."""
     if not isinstance(data, dict) or set(data) != {"T_fiducial_from_tool"}:
         raise GeometryFileError(path, f"tool must be a mapping with the one key T_fiducial_from_tool, got {_short(data)}")
-    T = _rigid_4x4(data["T_fiducial_from_tool"])
+    T = rigid_4x4(data["T_fiducial_from_tool"])
     if T is None:
         raise GeometryFileError(path, "tool.T_fiducial_from_tool must be a rigid 4x4 matrix "
                                 "(orthonormal rotation, det +1, last row 0 0 0 1)")

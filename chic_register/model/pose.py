@@ -25,6 +25,8 @@ from dataclasses import dataclass
 
 import numpy as np
 
+from chic_register.options import SolveOptions
+
 
 def rot_z(angle_deg: float) -> np.ndarray:
     a = math.radians(angle_deg)
@@ -113,3 +115,16 @@ def slice_angles(T_F_from_S: np.ndarray) -> SliceAngles:
     M = rot_y(-tilt) @ rot_z(-azimuth) @ R
     gamma = math.degrees(math.atan2(M[1, 0], M[0, 0]))
     return SliceAngles(depth, tilt, wrap_deg(azimuth), wrap_deg(azimuth + gamma))
+
+
+def rotation_deg(R1: np.ndarray, R2: np.ndarray) -> float:
+    """Angle (degrees) of the rotation between two 3x3 rotations."""
+    return math.degrees(math.acos(min(1.0, max(-1.0, (float(np.trace(R1.T @ R2)) - 1) / 2))))
+
+
+def near_prior(T_F_from_scanner: np.ndarray, opts: "SolveOptions") -> bool:
+    """True without a prior, else when the pose's rotation lies within ``prior_max_deg`` of the prior's."""
+    if opts.prior is None:
+        return True
+    R_prior = np.asarray(opts.prior, float)[:3, :3]  # R_scanner_from_fiducial
+    return rotation_deg(T_F_from_scanner[:3, :3].T, R_prior) <= opts.prior_max_deg

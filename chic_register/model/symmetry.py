@@ -73,10 +73,10 @@ def rotation_mismatch(geom: FiducialGeometry, R: np.ndarray) -> tuple[float, tup
     tube sets, each tube a whole curve (0 for an exact symmetry); the mapping
     sends tube i to the tube nearest its image.
     """
-    return _mismatches(geom, np.asarray(R, dtype=float)[None])[0]
+    return mismatches(geom, np.asarray(R, dtype=float)[None])[0]
 
 
-def _mismatches(geom: FiducialGeometry, Rs: np.ndarray, n_samples: int = _N_SAMPLES) -> list[tuple[float, tuple[int, ...]]]:
+def mismatches(geom: FiducialGeometry, Rs: np.ndarray, n_samples: int = _N_SAMPLES) -> list[tuple[float, tuple[int, ...]]]:
     """:func:`rotation_mismatch` of every rotation of ``Rs`` (shape (K, 3, 3)) at once. With fewer ``n_samples``
     (``n_samples - 1`` dividing ``_N_SAMPLES - 1``: a subset of the same points) each mismatch is a lower bound."""
     c = np.array([0.0, 0.0, geom.body.length / 2])
@@ -99,7 +99,7 @@ EXACT_SHARE = 0.05
 def _candidates(geom: FiducialGeometry) -> tuple[tuple[str, float, tuple[int, ...]], ...]:
     """``(what, mismatch mm, mapping)`` of every candidate rotation of ``geom``."""
     named = candidate_rotations(geom.body.length)
-    found = _mismatches(geom, np.stack([R for _, R in named]))
+    found = mismatches(geom, np.stack([R for _, R in named]))
     return tuple((what, mism, mapping) for (what, _), (mism, mapping) in zip(named, found))
 
 
@@ -111,10 +111,10 @@ def _memo_candidates(key) -> tuple[tuple[str, float, tuple[int, ...]], ...]:
 
 def frame_symmetries(geom: FiducialGeometry, tolerance_mm: float) -> tuple[tuple[FrameSymmetry, ...], float | None]:
     """Symmetries within ``tolerance_mm``, and the smallest mismatch of any candidate (None if none maps)."""
-    from chic_register.model.tube_model import _GeometryKey
+    from chic_register.model.tube_model import GeometryKey
 
     try:
-        candidates = _memo_candidates(_GeometryKey(geom))
+        candidates = _memo_candidates(GeometryKey(geom))
     except TypeError:  # an unhashable value somewhere: no memo
         candidates = _candidates(geom)
     found, best = [], None
@@ -135,23 +135,23 @@ def prior_needed(geom: FiducialGeometry, tolerance_mm: float) -> str | None:
     end in an ambiguous fit (or, worse, a coin toss). Memoised per distinct
     geometry and tolerance (the solver asks on every call without a prior).
     """
-    from chic_register.model.tube_model import _GeometryKey
+    from chic_register.model.tube_model import GeometryKey
 
     try:
-        return _memo_prior_needed(_GeometryKey(geom), float(tolerance_mm))
+        return _memo_prior_needed(GeometryKey(geom), float(tolerance_mm))
     except TypeError:  # an unhashable value somewhere: no memo
-        return _prior_needed(geom, tolerance_mm)
+        return prior_needed_unmemoised(geom, tolerance_mm)
 
 
 @functools.lru_cache(maxsize=16)
 def _memo_prior_needed(key, tolerance_mm: float) -> str | None:
-    return _prior_needed(key.geom, tolerance_mm)
+    return prior_needed_unmemoised(key.geom, tolerance_mm)
 
 
-def _prior_needed(geom: FiducialGeometry, tolerance_mm: float) -> str | None:
+def prior_needed_unmemoised(geom: FiducialGeometry, tolerance_mm: float) -> str | None:
     """:func:`prior_needed` without the memo."""
     named = candidate_rotations(geom.body.length)
-    coarse = _mismatches(geom, np.stack([R for _, R in named]), _COARSE_SAMPLES)
+    coarse = mismatches(geom, np.stack([R for _, R in named]), _COARSE_SAMPLES)
     if min(m for m, _ in coarse) > tolerance_mm:  # a lower bound of every mismatch: no symmetry (the common case)
         return None
     found, _ = frame_symmetries(geom, tolerance_mm)

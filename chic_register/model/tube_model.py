@@ -2,9 +2,9 @@
 
 :class:`TubeModel` holds every tube of a :class:`~chic_register.model.geometry.FiducialGeometry`
 in arrays so that :func:`plane_crossings` predicts all crossings of a pose
-at once; :func:`_crossing_jacobian`, :func:`_exp_se3` and :func:`_adjoint`
+at once; :func:`crossing_jacobian`, :func:`exp_se3` and :func:`adjoint`
 are the pose derivatives the refinement (:mod:`chic_register.fit.refine`), the
-verification and the uncertainty need; :func:`_section_extent` is the size
+verification and the uncertainty need; :func:`section_extent` is the size
 of a tube's section in a slab. Kept free of the solver's search so that the
 verification, the section fit and the uncertainty use the same model.
 """
@@ -131,7 +131,7 @@ class TubeModel:
         )
 
 
-class _GeometryKey:
+class GeometryKey:
     """A hashable stand-in for a :class:`FiducialGeometry` (whose ``source`` dict is not hashable).
 
     Equal keys mean equal content (name, units, body, tubes, source, by
@@ -145,36 +145,36 @@ class _GeometryKey:
         src = geom.source
         frozen_src = None if src is None else tuple(sorted((str(k), repr(v)) for k, v in src.items()))
         self.geom = geom
-        self.key = (geom.name, geom.units, repr(geom.body), _tubes_repr(geom.tubes), frozen_src)
+        self.key = (geom.name, geom.units, repr(geom.body), tubes_repr(geom.tubes), frozen_src)
         self._hash = hash(self.key)
 
     def __hash__(self) -> int:
         return self._hash
 
     def __eq__(self, other) -> bool:
-        return isinstance(other, _GeometryKey) and self.key == other.key
+        return isinstance(other, GeometryKey) and self.key == other.key
 
 
 #: id of a geometry's tube tuple -> (the tuple, its repr): the tuple is held, so its id stays its own; only tubes
-#: of immutable values (:func:`_immutable_tubes`), whose repr cannot change
-_TUBES_REPR: dict = {}
+#: of immutable values (:func:`immutable_tubes`), whose repr cannot change
+TUBES_REPR: dict = {}
 
 
-def _tubes_repr(tubes) -> str:
+def tubes_repr(tubes) -> str:
     """``repr(tubes)``, memoised per tuple of immutable tubes (~25 us each time for nine tubes; the solver keys
     its memos on it on every call)."""
-    hit = _TUBES_REPR.get(id(tubes))
+    hit = TUBES_REPR.get(id(tubes))
     if hit is not None and hit[0] is tubes:
         return hit[1]
     text = repr(tubes)
-    if _immutable_tubes(tubes):
-        if len(_TUBES_REPR) >= 16:
-            _TUBES_REPR.clear()
-        _TUBES_REPR[id(tubes)] = (tubes, text)
+    if immutable_tubes(tubes):
+        if len(TUBES_REPR) >= 16:
+            TUBES_REPR.clear()
+        TUBES_REPR[id(tubes)] = (tubes, text)
     return text
 
 
-def _immutable_tubes(tubes) -> bool:
+def immutable_tubes(tubes) -> bool:
     """Whether ``tubes`` is a tuple of the frozen tube classes holding only str, bool, int, float and tuples of
     floats (nothing a caller could change in place)."""
     from chic_register.model.tubes import HelixTube, LineTube
@@ -194,7 +194,7 @@ def _immutable_tubes(tubes) -> bool:
 
 
 @functools.lru_cache(maxsize=8)
-def _prepared(key: _GeometryKey) -> tuple[TubeModel, str]:
+def _prepared(key: GeometryKey) -> tuple[TubeModel, str]:
     """The tube model and the content hash of a geometry, computed once per distinct geometry."""
     return TubeModel.from_geometry(key.geom), content_sha256(key.geom.content())
 
@@ -202,7 +202,7 @@ def _prepared(key: _GeometryKey) -> tuple[TubeModel, str]:
 def prepare_geometry(geom: FiducialGeometry) -> tuple[TubeModel, str]:
     """``(TubeModel, content sha256)`` of ``geom``, memoised on its content (repeat calls cost ~10 us)."""
     try:
-        return _prepared(_GeometryKey(geom))
+        return _prepared(GeometryKey(geom))
     except TypeError:  # an unhashable value somewhere: no memo
         return TubeModel.from_geometry(geom), content_sha256(geom.content())
 
@@ -217,11 +217,11 @@ def plane_crossings(model: TubeModel, T_F_from_I: np.ndarray, margin_mm: float =
     helices: Newton on z started from the axis crossing (scalar code: the
     arrays are tiny and numpy's per-call overhead would dominate).
     """
-    hit = _crossings_memo(model, np.asarray(T_F_from_I, dtype=float))
-    return hit[0][:, :2].copy(), hit[1].copy(), np.array(hit[2]), _inside(model, hit, margin_mm)
+    hit = crossings_memo(model, np.asarray(T_F_from_I, dtype=float))
+    return hit[0][:, :2].copy(), hit[1].copy(), np.array(hit[2]), inside_mask(model, hit, margin_mm)
 
 
-def _crossings_memo(model: TubeModel, T_F_from_I: np.ndarray):
+def crossings_memo(model: TubeModel, T_F_from_I: np.ndarray):
     """:func:`_crossings` of a float64 (4, 4) pose, memoised per model (read-only arrays: views, not copies, for
     the refinement's inner loop). The solver asks for the same pose's crossings several times (a fit, then its
     checks)."""
@@ -236,13 +236,13 @@ def _crossings_memo(model: TubeModel, T_F_from_I: np.ndarray):
     return hit
 
 
-def _inside(model: TubeModel, hit: tuple, margin_mm: float) -> np.ndarray:
+def inside_mask(model: TubeModel, hit: tuple, margin_mm: float) -> np.ndarray:
     """:func:`plane_crossings`' ``inside`` (K,) bool of a :func:`_crossings` result (a new array)."""
-    return np.array(_inside_list(model, hit, margin_mm), dtype=bool)
+    return np.array(inside_list(model, hit, margin_mm), dtype=bool)
 
 
-def _inside_list(model: TubeModel, hit: tuple, margin_mm: float) -> list:
-    """:func:`_inside` as a list of K bools.
+def inside_list(model: TubeModel, hit: tuple, margin_mm: float) -> list:
+    """:func:`inside_mask` as a list of K bools.
 
     Scalar code over the tubes (numpy's own arithmetic and comparisons, the same numbers): a dozen array
     operations on nine tubes cost several times more.
@@ -316,7 +316,7 @@ def _crossings(model: TubeModel, T_F_from_I: np.ndarray):
     return qt[:, 0], qt[:, 1], zF, found, tan_z, qt
 
 
-def _section_extent(model, tan, slice_thickness_mm):
+def section_extent(model, tan, slice_thickness_mm):
     """Each tube's in-plane section: half-length (mm) along its projected tangent ``u`` (K, 2), half-width across."""
     txy = np.hypot(tan[:, 0], tan[:, 1])
     tz = np.maximum(np.abs(tan[:, 2]), 1e-3)
@@ -326,14 +326,14 @@ def _section_extent(model, tan, slice_thickness_mm):
     return half_len, half_wid, u
 
 
-def _section_box(half_len: np.ndarray, half_wid: np.ndarray, u: np.ndarray):
+def section_box(half_len: np.ndarray, half_wid: np.ndarray, u: np.ndarray):
     """``(ex, ey)`` (K,): half-extents along the image's x and y of each section's box (``half_len`` along its
     in-plane direction ``u`` (K, 2), ``half_wid`` across it)."""
     ax, ay = np.abs(u[:, 0]), np.abs(u[:, 1])
     return ax * half_len + ay * half_wid, ay * half_len + ax * half_wid
 
 
-def _skew(v: np.ndarray) -> np.ndarray:
+def skew(v: np.ndarray) -> np.ndarray:
     """Cross-product matrices of vectors (..., 3) -> (..., 3, 3)."""
     z = np.zeros(v.shape[:-1])
     return np.stack(
@@ -342,7 +342,7 @@ def _skew(v: np.ndarray) -> np.ndarray:
          np.stack([-v[..., 1], v[..., 0], z], -1)], -2)
 
 
-def _crossing_jacobian(xy: np.ndarray, tan_I: np.ndarray) -> np.ndarray:
+def crossing_jacobian(xy: np.ndarray, tan_I: np.ndarray) -> np.ndarray:
     """d(crossing xy)/d(xi) for a right perturbation ``T_F_from_I @ exp(xi)``, xi = (omega, v).
 
     Shapes: xy (M, 2), tan_I (M, 3) -> (M, 2, 6). The curve moves by
@@ -361,7 +361,7 @@ def _crossing_jacobian(xy: np.ndarray, tan_I: np.ndarray) -> np.ndarray:
     return J
 
 
-def _exp_se3(xi: np.ndarray) -> np.ndarray:
+def exp_se3(xi: np.ndarray) -> np.ndarray:
     """4x4 transform of a small twist xi = (omega (rad), v (mm)) (Rodrigues; v applied as is)."""
     wx, wy, wz, vx, vy, vz = map(float, xi)
     th2 = wx * wx + wy * wy + wz * wz
@@ -378,7 +378,7 @@ def _exp_se3(xi: np.ndarray) -> np.ndarray:
         0.0, 0.0, 0.0, 1.0), float, 16).reshape(4, 4)
 
 
-def _adjoint(T: np.ndarray) -> np.ndarray:
+def adjoint(T: np.ndarray) -> np.ndarray:
     """6x6 adjoint of a rigid transform for twists (omega, v): [[R, 0], [[p]x R, R]]."""
     R, p = T[:3, :3], T[:3, 3]
     px, py, pz = (float(v) for v in p)
@@ -387,3 +387,14 @@ def _adjoint(T: np.ndarray) -> np.ndarray:
     A[3:, 3:] = R
     A[3:, :3] = np.array([[0.0, -pz, py], [pz, 0.0, -px], [-py, px, 0.0]]) @ R
     return A
+
+
+def poses_distinct(T1: np.ndarray, T2: np.ndarray, model: TubeModel, mm: float = 1.0, deg: float = 1.0) -> bool:
+    """Two fiducial poses differ by more than ``mm`` at any tube end or by more than ``deg`` (1 mm, 1 degree)."""
+    dR = T1[:3, :3].T @ T2[:3, :3]
+    ang = math.degrees(math.acos(min(1.0, max(-1.0, (np.trace(dR) - 1) / 2))))
+    if ang > deg:
+        return True
+    pts = model.probe_points_mm  # tube ends on the axis circle, the axis ends
+    d = (pts @ T1[:3, :3].T + T1[:3, 3]) - (pts @ T2[:3, :3].T + T2[:3, 3])
+    return float(np.sqrt(np.add.reduce(d * d, axis=1)).max()) > mm  # (np.linalg.norm's formula, less its checks)

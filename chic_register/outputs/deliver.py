@@ -91,7 +91,9 @@ class OutputPlan:
         from chic_register.util.atomic import check_parent
 
         if self.tfm:
-            from chic_register.io.transforms import SUFFIXES  # (only with --tfm: it imports SimpleITK, slow to load)
+            from chic_register.io.transforms import (
+                SUFFIXES,  # (only with --tfm: it imports SimpleITK, slow to load)
+            )
 
             if Path(self.tfm).suffix.lower() not in SUFFIXES:
                 raise ChicRegisterError(f"--tfm {self.tfm}: transform file must end in {', '.join(SUFFIXES)}")
@@ -107,7 +109,11 @@ class OutputPlan:
         if not (self.igtl_wait_s >= 0):
             raise ChicRegisterError(f"--igtl-wait must be >= 0 s, got {self.igtl_wait_s:g}")
         if self.igtl or self.igtl_listen is not None or self.scene:  # (the name is only used by these; and
-            from chic_register.io.igtl import check_name, check_port, parse_address  # .igtl loads pyigtl and SimpleITK)
+            from chic_register.io.igtl import (  # .igtl loads pyigtl and SimpleITK)
+                check_name,
+                check_port,
+                parse_address,
+            )
 
             if self.igtl:
                 parse_address(self.igtl)

@@ -12,8 +12,8 @@ from pathlib import Path
 
 import numpy as np
 
-from chic_register.util.atomic import save_figure
 from chic_register.errors import ChicRegisterError
+from chic_register.util.atomic import save_figure
 
 
 def _pixels_of_ellipse(ell, spacing) -> np.ndarray:

@@ -32,11 +32,11 @@ from pathlib import Path
 
 import numpy as np
 
-from chic_register.util.atomic import _umask, check_parent, write_json
 from chic_register.errors import OutputError
-from chic_register.model.geometry import sample_centreline
 from chic_register.io.stl import declare_space, write_stl
 from chic_register.io.transforms import write_tfm
+from chic_register.model.tubes import sample_centreline
+from chic_register.util.atomic import check_parent, current_umask, write_json
 
 SCENE_FILE = "scene.mrml"
 MARKUPS_SCHEMA = ("https://raw.githubusercontent.com/slicer/slicer/master/Modules/Loadable/Markups/"
@@ -227,7 +227,7 @@ def write_scene(folder, reg, geom, slices, *, name: str = "CHIC", geometry_path=
     tmp = Path(tempfile.mkdtemp(prefix=f".{folder.name}.tmp-", dir=folder.parent))
     try:
         _fill(tmp, reg, geom, slices, name, geometry_path)
-        os.chmod(tmp, 0o777 & ~_umask())
+        os.chmod(tmp, 0o777 & ~current_umask())
         old = None
         if folder.exists():
             old = Path(tempfile.mkdtemp(prefix=f".{folder.name}.old-", dir=folder.parent))

@@ -1,29 +1,26 @@
 """Several slices, one pose: the order slices are solved in, tracking a found pose, and the joint fit.
 
-:func:`_joint` fits every slice's correspondences at once and, for a
-volume's slices, drops those that disagree; :func:`_track` starts a slice
-from a pose another slice found; :func:`_no_slice_locked` sums up why none
+:func:`joint_fit` fits every slice's correspondences at once and, for a
+volume's slices, drops those that disagree; :func:`track_pose` starts a slice
+from a pose another slice found; :func:`no_slice_locked` sums up why none
 locked.
 """
 
 from __future__ import annotations
 
 import math
-from typing import TYPE_CHECKING
 
 import numpy as np
 
 from chic_register.errors import AmbiguousFit, NoLock
-from chic_register.fit.refine import _reject_outliers, match_gate_mm, refine
+from chic_register.fit.refine import match_gate_mm, refine, reject_outliers
 from chic_register.model.slices import Slice
-from chic_register.verify.trust import _check_trust, _distinct
-from chic_register.model.tube_model import TubeModel, plane_crossings
-
-if TYPE_CHECKING:
-    from chic_register.pipeline.register import SolveOptions
+from chic_register.model.tube_model import TubeModel, plane_crossings, poses_distinct
+from chic_register.options import SolveOptions
+from chic_register.verify.trust import check_trust
 
 
-def _solve_order(xys: list, model: TubeModel, skip_failed: bool) -> list[int]:
+def solve_order(xys: list, model: TubeModel, skip_failed: bool) -> list[int]:
     """The order slices are solved in: as given, or (skipping) those with about one blob per tube first."""
     if not skip_failed:
         return list(range(len(xys)))
@@ -31,14 +28,14 @@ def _solve_order(xys: list, model: TubeModel, skip_failed: bool) -> list[int]:
     return sorted(range(len(xys)), key=lambda j: (abs(xys[j].shape[0] - K), j))
 
 
-def _track(model: TubeModel, xy: np.ndarray, S: np.ndarray, T_F_from_scanner: np.ndarray, sl: Slice,
+def track_pose(model: TubeModel, xy: np.ndarray, S: np.ndarray, T_F_from_scanner: np.ndarray, sl: Slice,
            opts: SolveOptions, res_mm: float):
     """A slice's fit refined from a pose found in another slice of the same volume, if trustworthy; else None."""
     gate = match_gate_mm(model, res_mm)
     fit = refine(model, [xy], [S], T_F_from_scanner, gates_mm=(gate, 0.6 * gate), iters_per_gate=3, final_iters=2)
-    fit = _reject_outliers(model, [xy], [S], fit, [res_mm], opts)
+    fit = reject_outliers(model, [xy], [S], fit, [res_mm], opts)
     try:
-        _check_trust(fit, [], model, [sl], opts, [S], [res_mm])
+        check_trust(fit, [], model, [sl], opts, [S], [res_mm])
     except NoLock:
         return None
     return fit
@@ -52,7 +49,7 @@ def _decide(model: TubeModel, first, others, opts: SolveOptions, res_mm) -> "obj
     for other in fits[1:]:
         if (other.n_matched >= best.n_matched and other.rms_mm <= opts.ambiguity_ratio * max(best.rms_mm, 1e-3)
                 and other.rms_mm <= opts.max_rms_px * min(res_mm)
-                and _distinct(best.T_F_from_scanner, other.T_F_from_scanner, model)):
+                and poses_distinct(best.T_F_from_scanner, other.T_F_from_scanner, model)):
             raise AmbiguousFit(f"ambiguous fit: the slices together fit two distinct poses, matching {best.n_matched} "
                                f"and {other.n_matched} tubes with RMS {best.rms_mm:.3f} and {other.rms_mm:.3f} mm"
                                + ("" if opts.prior is not None else "; an approximate orientation (prior, --prior) "
@@ -60,7 +57,7 @@ def _decide(model: TubeModel, first, others, opts: SolveOptions, res_mm) -> "obj
     return best
 
 
-def _joint(model: TubeModel, slices, xys, Ss, res_mm, per_slice, opts: SolveOptions, skip_failed: bool,
+def joint_fit(model: TubeModel, slices, xys, Ss, res_mm, per_slice, opts: SolveOptions, skip_failed: bool,
            starts=()):
     """The joint fit of every slice's correspondences; ``(fit, dropped)``.
 
@@ -84,7 +81,7 @@ def _joint(model: TubeModel, slices, xys, Ss, res_mm, per_slice, opts: SolveOpti
             best = _decide(model, best, [refine(model, sub[0], sub[1], T, gates_mm=(gate, 0.6 * gate))
                                          for T in starts], opts, res_mm)
         if not skip_failed:
-            _check_trust(best, [], model, slices, opts, Ss, res_mm)
+            check_trust(best, [], model, slices, opts, Ss, res_mm)
             if best.n_matched < sum(f.n_matched for f, _ in per_slice):
                 raise NoLock("the slices disagree: the joint pose matches fewer tubes than the slices alone",
                              {"n_tubes": best.n_matched})
@@ -104,7 +101,7 @@ def _joint(model: TubeModel, slices, xys, Ss, res_mm, per_slice, opts: SolveOpti
             if score > worst_score:
                 worst, why, worst_score = n, reason, score
         if worst is None or len(active) == 1:
-            _check_trust(best, [], model, [slices[j] for j in active], opts, [Ss[j] for j in active],
+            check_trust(best, [], model, [slices[j] for j in active], opts, [Ss[j] for j in active],
                          [res_mm[j] for j in active])
             return best, dropped
         j = active[worst]
@@ -119,7 +116,7 @@ def _joint(model: TubeModel, slices, xys, Ss, res_mm, per_slice, opts: SolveOpti
         start = best.T_F_from_scanner
 
 
-def _no_slice_locked(skipped: list) -> str:
+def no_slice_locked(skipped: list) -> str:
     """One line for slices of which none locked: how many, the commonest reasons, and one in full."""
     import re
 

@@ -40,50 +40,41 @@ from dataclasses import dataclass, field
 
 import numpy as np
 
-from chic_register.fit.accuracy import (  # noqa: F401
-    _centroid_refine,
-    _section_refine,
-    centroid_offsets,
-    template_shifts,
-)
-from chic_register.detect.wide_blobs import blobs_wide
-from chic_register.detect.blobs import Blobs, detect_blobs
+from chic_register.detect.blobs import Blobs, centres_xy_mm, detect_blobs, resolution_mm
 from chic_register.detect.dropout import fill_slice_dropouts
-from chic_register.errors import AmbiguousFit, ImprecisePose, NoLock, SliceRefused
-from chic_register.fit.checks import OUTLIER_PRECISION_SIGMAS, PRECISION_SIGMAS, ROT_TOL_DEG, TRE_TOL_MM, check_noise_precision
-from chic_register.model.geometry import FiducialGeometry
-from chic_register.guess.hypotheses import (  # noqa: F401  (the first-guess stage; its public names stay importable from here)
-    Ellipse,
-    ellipse_layout,
-    family_hypotheses,
-    fit_ellipse_robust,
-    initial_hypotheses,
-    parallel_family,
-)
 from chic_register.detect.filters import SAFE_MAGNITUDE
-from chic_register.pipeline.joint import _joint, _no_slice_locked, _solve_order, _track
 from chic_register.detect.magnitude import refuse_signed
-from chic_register.model.pose import invert, slice_angles
-from chic_register.fit.refine import _assign, _Fit, _unexplained, refine  # noqa: F401
-from chic_register.fit.lock import _solve_one
-from chic_register.model.slices import Slice
-from chic_register.verify.trust import (  # noqa: F401
-    _check_trust,
-    _depth_tube_name,
-    _distinct,
-    _near_prior,
-    _resolution_mm,
-    _to_xy_mm,
+from chic_register.detect.wide_blobs import blobs_wide
+from chic_register.errors import AmbiguousFit, ImprecisePose, NoLock, SliceRefused
+from chic_register.fit.accuracy import (
+    centroid_refine,
+    section_refine,
 )
-from chic_register.model.tube_model import (  # noqa: F401
+from chic_register.fit.checks import (
+    OUTLIER_PRECISION_SIGMAS,
+    PRECISION_SIGMAS,
+    check_noise_precision,
+)
+from chic_register.fit.lock import lock_slice
+from chic_register.fit.refine import refine, unexplained_tubes
+from chic_register.guess.ellipse import Ellipse
+from chic_register.model.geometry import FiducialGeometry
+from chic_register.model.pose import invert, slice_angles
+from chic_register.model.slices import Slice
+from chic_register.model.tube_model import (
     TubeModel,
-    _adjoint,
-    _crossing_jacobian,
-    _exp_se3,
-    _section_extent,
     plane_crossings,
+    poses_distinct,
     prepare_geometry,
 )
+from chic_register.options import SolveOptions
+from chic_register.pipeline.joint import (
+    joint_fit,
+    no_slice_locked,
+    solve_order,
+    track_pose,
+)
+from chic_register.verify.trust import check_trust
 
 # --------------------------------------------------------------------------- public API
 
@@ -172,98 +163,6 @@ class Registration:
         }
 
 
-@dataclass(frozen=True)
-class SolveOptions:
-    """Trust thresholds and search settings of :func:`register`.
-
-    ``max_rms_px``: largest accepted RMS residual, in pixels of each slice;
-    ``max_residual_px``: largest accepted single-tube residual; ``min_tubes``
-    and ``min_depth_tubes``: fewest matched tubes in all, and of tubes not
-    parallel to the axis (helices), needed for a lock; ``ambiguity_ratio``:
-    a distinct second pose matching as many tubes with an RMS within this
-    factor of the best makes the fit ambiguous (a pose that leaves a tube
-    unexplained loses: near-symmetric layouts always have one that fits all
-    but one tube). ``centroid_model``: after the lock, refit predicting
-    each tube's section centroid as the detector measures it, not its
-    centreline crossing (:func:`centroid_offsets`; removes the bias of
-    curved, clipped and touching sections at a few ms per iteration:
-    ``centroid_iterations`` renders of every matched tube's footprint with
-    ``centroid_supersample``² samples per pixel and
-    ``centroid_thickness_samples`` sub-planes). Then, ``template_iterations``
-    times, each clean tube's position is measured by fitting its rendered
-    section to the pixels (:func:`template_shifts`; about 1.5 times more
-    precise than a centroid in white noise) and the pose refitted on those;
-    a template landing more than ``template_max_disagreement_px`` from the
-    centroid model's position gives :class:`NoLock`. 0 turns it off.
-    ``section_fit`` (the default mode, unless ``centroid_model``): after the
-    lock, each matched tube's section is located by fitting an analytic
-    model of it to its pixels (:mod:`chic_register.fit.section`, with
-    ``section_thickness_samples`` planes across the slice) and the pose is
-    refitted on those positions, weighted by their information; up to
-    ``section_iterations`` passes (see :func:`_section_refine`); tubes whose
-    fit lands more than ``section_max_shift_px`` from the pose's prediction
-    are left out. Off: the pose fitted to blob centroids (faster, biased).
-    ``section_rician``: where the image's background is Rayleigh (a magnitude
-    image), the section fit models the Rician mean of the pixels
-    (:mod:`chic_register.imaging.rician`): a linear model reads the lifted faint
-    edges as a sub-pixel shift, a bias growing with the noise.
-    ``verify``: before ``ok``, prove the pose against the image
-    (:mod:`chic_register.verify.pixels`: envelope, every predicted section
-    present with its shape, nothing unexplained on the tubes' circle, pixel
-    spacing, no rival that explains the pixels nearly as well, and a
-    predicted error (3 sigma) within ``trust_tre_mm`` at the frame centre and
-    ``trust_rot_deg``; when only that last test fails, the section fit is
-    tried again without a section the damage pulled off alone, held to 4.5
-    sigma (:func:`_without_outlier_sections`), and then, with
-    ``refine_when_imprecise``, the accuracy mode's refinement, before
-    refusing); off only for studies of the raw fit.
-    ``blurred_fit``: when the blobs are clearly wider than the channels,
-    the pose is fitted to the pixels through a blurred model of all the
-    sections at once (:mod:`chic_register.fit.blurred`) instead of the
-    section fit, and verified with that fit's precision.
-    ``uncertainty``: compute the pose's covariance and predicted TRE
-    (:mod:`~chic_register.precision.uncertainty`; a few ms per slice; always when
-    ``max_tre_mm`` is finite); ``max_tre_mm``: a pose whose predicted TRE at
-    the registration's target exceeds it gives :class:`NoLock` (``imprecise``).
-    ``prior``: an approximate ``T_scanner_from_fiducial`` (4x4, only its
-    rotation is used): poses turned more than ``prior_max_deg`` from it are
-    never considered. It is what resolves a geometry that maps onto itself
-    under a rotation (the classic Z-frame does, under a half turn): without
-    it, such a fit is refused as ambiguous.
-    """
-
-    max_rms_px: float = 0.5
-    max_residual_px: float = 1.5
-    min_tubes: int = 6
-    min_depth_tubes: int = 2
-    ambiguity_ratio: float = 3.0
-    max_hypotheses: int = 4
-    max_tilt_deg: float = 75.0
-    centroid_model: bool = False
-    centroid_iterations: int = 4
-    centroid_supersample: int = 5
-    centroid_thickness_samples: int = 5
-    centroid_min_purity: float = 0.93
-    template_iterations: int = 1
-    template_max_disagreement_px: float = 0.5
-    section_fit: bool = True
-    section_iterations: int = 5
-    section_close_px: float = 0.2
-    section_done_px: float = 0.05
-    section_thickness_samples: int = 5
-    section_max_shift_px: float = 1.0
-    section_rician: bool = True
-    verify: bool = True
-    trust_tre_mm: float = TRE_TOL_MM  # (why these limits: chic_register.fit.checks)
-    trust_rot_deg: float = ROT_TOL_DEG
-    refine_when_imprecise: bool = False
-    blurred_fit: bool = True
-    max_tre_mm: float = math.inf
-    uncertainty: bool = True
-    prior: np.ndarray | None = None
-    prior_max_deg: float = 60.0
-
-
 def register(slices: list[Slice], geom: FiducialGeometry, *, options: SolveOptions | None = None,
              detect_options: dict | None = None, skip_failed: bool = False, target_F_mm=None,
              **overrides) -> Registration:
@@ -302,31 +201,31 @@ def register(slices: list[Slice], geom: FiducialGeometry, *, options: SolveOptio
         b = detect_blobs(sl.pixels, sl.pixel_spacing_mm, model.diameter_mm, **(detect_options or {}))
         refuse_signed(sl.pixels, b, sl.source, lo)
         blob_sets.append(b)
-        xys.append(_to_xy_mm(b, sl))
+        xys.append(centres_xy_mm(b, sl))
     t1 = time.perf_counter()
     Ss = [sl.T_scanner_from_image() for sl in slices]
-    res_mm = [_resolution_mm(sl, b) for sl, b in zip(slices, blob_sets)]
+    res_mm = [resolution_mm(sl, b) for sl, b in zip(slices, blob_sets)]
     per_slice = [None] * len(slices)
     rivals = [[] for _ in slices]  # per slice: the distinct fits that came close (for the verification)
     skipped = []
     anchor = None
     undecided = []  # slices of a series that alone fit two distinct poses: the series decides (joint.py)
-    for j in _solve_order(xys, model, skip_failed):
+    for j in solve_order(xys, model, skip_failed):
         sl, xy, S = slices[j], xys[j], Ss[j]
         if anchor is not None:
-            fit = _track(model, xy, S, anchor, sl, opts, res_mm[j])
+            fit = track_pose(model, xy, S, anchor, sl, opts, res_mm[j])
             if fit is not None:
                 per_slice[j] = (fit, None)
                 continue
         try:
             try:
-                fits, ell = _solve_one(model, xy, S, opts, res_mm[j])
-                _check_trust(fits[0], fits[1:], model, [sl], opts, [S], [res_mm[j]])
+                fits, ell = lock_slice(model, xy, S, opts, res_mm[j])
+                check_trust(fits[0], fits[1:], model, [sl], opts, [S], [res_mm[j]])
             except AmbiguousFit:
                 if len(slices) == 1 and opts.verify and not skip_failed:
                     # two poses fit the blob centres about as well: the pixels decide (the verification's rival
                     # test, to which fits[1:] go), the best held to the rest of the trust checks
-                    _check_trust(fits[0], [], model, [sl], opts, [S], [res_mm[j]])
+                    check_trust(fits[0], [], model, [sl], opts, [S], [res_mm[j]])
                 elif len(slices) == 1 or skip_failed:
                     raise
                 else:
@@ -338,11 +237,11 @@ def register(slices: list[Slice], geom: FiducialGeometry, *, options: SolveOptio
                 # tissue touching the tubes or a dim side of the image: once more on the flattened image
                 b = detect_blobs(sl.pixels, sl.pixel_spacing_mm, model.diameter_mm, flatten_background=True,
                                  **(detect_options or {}))
-                xy2, res2 = _to_xy_mm(b, sl), _resolution_mm(sl, b)
+                xy2, res2 = centres_xy_mm(b, sl), resolution_mm(sl, b)
                 try:
-                    fits, ell = _solve_one(model, xy2, S, opts, res2)
-                    _check_trust(fits[0], fits[1:], model, [sl], opts, [S], [res2])
-                    if _unexplained(fits[0]) > 1:  # a second look is held to explaining (nearly) every tube
+                    fits, ell = lock_slice(model, xy2, S, opts, res2)
+                    check_trust(fits[0], fits[1:], model, [sl], opts, [S], [res2])
+                    if unexplained_tubes(fits[0]) > 1:  # a second look is held to explaining (nearly) every tube
                         raise NoLock("more than one predicted tube unexplained on the flattened image")
                 except NoLock:
                     raise first from None  # the plain image's reason says more
@@ -363,14 +262,14 @@ def register(slices: list[Slice], geom: FiducialGeometry, *, options: SolveOptio
     skipped = [s for _, s in sorted(skipped, key=lambda js: js[0])]  # in the slices' order
     used = [j for j in range(len(slices)) if per_slice[j] is not None]
     if not used:
-        raise NoLock(_no_slice_locked(skipped), {"n_skipped": len(skipped)})
+        raise NoLock(no_slice_locked(skipped), {"n_skipped": len(skipped)})
     starts = [f.T_F_from_scanner for j in undecided for f in [per_slice[j][0], *rivals[j]]]
     slices, xys, Ss, blob_sets, res_mm, per_slice, rivals = (
         [seq[j] for j in used] for seq in (slices, xys, Ss, blob_sets, res_mm, per_slice, rivals))
     if len(slices) == 1:
         best = per_slice[0][0]
     else:
-        best, dropped = _joint(model, slices, xys, Ss, res_mm, per_slice, opts, skip_failed, starts)
+        best, dropped = joint_fit(model, slices, xys, Ss, res_mm, per_slice, opts, skip_failed, starts)
         if dropped:
             skipped += [SkippedSlice(slices[j].source, why, rms) for j, why, rms in dropped]
             keep = [j for j in range(len(slices)) if j not in {d[0] for d in dropped}]  # the fit's slices, in order
@@ -386,10 +285,10 @@ def register(slices: list[Slice], geom: FiducialGeometry, *, options: SolveOptio
 
         best, precision, blurred = blurred_stage(model, best, xys, Ss, slices, blob_sets)
     elif opts.section_fit and not opts.centroid_model:
-        fine = _section_refine(model, best, xys, Ss, slices, blob_sets, opts)
+        fine = section_refine(model, best, xys, Ss, slices, blob_sets, opts)
         if fine is not None:
-            _check_trust(fine, [], model, slices, opts, Ss, res_mm)
-            if _distinct(fine.T_F_from_scanner, best.T_F_from_scanner, model):
+            check_trust(fine, [], model, slices, opts, Ss, res_mm)
+            if poses_distinct(fine.T_F_from_scanner, best.T_F_from_scanner, model):
                 if not (opts.verify and len(slices) == 1):
                     raise NoLock("the section fit moved the pose by more than 1 mm or 1 degree: the fit is not stable",
                                  {"n_tubes": fine.n_matched})
@@ -401,9 +300,9 @@ def register(slices: list[Slice], geom: FiducialGeometry, *, options: SolveOptio
                 locked = fine
             best = fine
     if opts.centroid_model:
-        corrected = _centroid_refine(model, geom.tubes, best, xys, Ss, slices, blob_sets, opts)
-        _check_trust(corrected, [], model, slices, opts, Ss)  # only ever stricter: the lock was checked above
-        if _distinct(corrected.T_F_from_scanner, best.T_F_from_scanner, model):
+        corrected = centroid_refine(model, geom.tubes, best, xys, Ss, slices, blob_sets, opts)
+        check_trust(corrected, [], model, slices, opts, Ss)  # only ever stricter: the lock was checked above
+        if poses_distinct(corrected.T_F_from_scanner, best.T_F_from_scanner, model):
             raise NoLock("the centroid model moved the pose by more than 1 mm or 1 degree: the fit is not stable",
                          {"n_tubes": corrected.n_matched})
         best = corrected
@@ -425,7 +324,7 @@ def register(slices: list[Slice], geom: FiducialGeometry, *, options: SolveOptio
                         skipped.append(SkippedSlice(slices[j].source, reason.removeprefix(prefix)))
                     keep = [i for i in range(len(slices)) if i not in out]
                     if len(keep) == 0:
-                        raise NoLock(_no_slice_locked(skipped), {"n_skipped": len(skipped)}) from None
+                        raise NoLock(no_slice_locked(skipped), {"n_skipped": len(skipped)}) from None
                     slices, xys, Ss, blob_sets, res_mm, per_slice, rivals = (
                         [seq[i] for i in keep] for seq in (slices, xys, Ss, blob_sets, res_mm, per_slice, rivals))
                     best = _only_slices(model, best, keep, xys, Ss)
@@ -453,20 +352,20 @@ def register(slices: list[Slice], geom: FiducialGeometry, *, options: SolveOptio
         if checks is None:
             # verified but not precise enough from the centroids: fit the sections themselves (the accuracy
             # mode), then decide on that
-            accurate = _centroid_refine(model, geom.tubes, locked, xys, Ss, slices, blob_sets, opts)
-            _check_trust(accurate, [], model, slices, opts, Ss)
-            if _distinct(accurate.T_F_from_scanner, best.T_F_from_scanner, model):
+            accurate = centroid_refine(model, geom.tubes, locked, xys, Ss, slices, blob_sets, opts)
+            check_trust(accurate, [], model, slices, opts, Ss)
+            if poses_distinct(accurate.T_F_from_scanner, best.T_F_from_scanner, model):
                 raise NoLock("the accuracy refinement moved the pose by more than 1 mm or 1 degree: the fit is "
                              "not stable", {"n_tubes": accurate.n_matched}) from None
             best = accurate
             checks = verify_fit(geom, model, best, rivals, slices, Ss, blob_sets, opts)
     t2 = time.perf_counter()
-    return _registration(geom, model, geom_sha, best, slices, Ss, blob_sets, xys,
+    return build_registration(geom, model, geom_sha, best, slices, Ss, blob_sets, xys,
                          [e for _, e in per_slice], checks, filled, skipped, opts, target_F_mm,
                          (t0, t1, t2), pixel_fit=blurred if precision is not None else None)
 
 
-def _registration(geom: FiducialGeometry, model: TubeModel, geom_sha: str, best, slices, Ss, blob_sets, xys,
+def build_registration(geom: FiducialGeometry, model: TubeModel, geom_sha: str, best, slices, Ss, blob_sets, xys,
                   ellipses, checks, filled, skipped, opts: SolveOptions, target_F_mm, times,
                   pixel_fit=None) -> Registration:
     """The :class:`Registration` of a verified fit ``best`` (a ``refine._Fit``) on ``slices``: per-slice results,
@@ -501,7 +400,11 @@ def _registration(geom: FiducialGeometry, model: TubeModel, geom_sha: str, best,
     t3 = time.perf_counter()
     unc = None
     if opts.uncertainty or opts.verify or math.isfinite(opts.max_tre_mm):
-        from chic_register.precision.uncertainty import pixel_fit_uncertainty, registration_uncertainty, target_point
+        from chic_register.precision.uncertainty import (
+            pixel_fit_uncertainty,
+            registration_uncertainty,
+            target_point,
+        )
 
         target = target_point(geom, target_F_mm)
         if pixel_fit is not None:
@@ -536,12 +439,12 @@ def _without_outlier_sections(geom, model: TubeModel, fit, rivals, slices, Ss, b
     """``(checks, fit)`` of the section fit ``fit`` refitted without its outlier sections
     (:func:`~chic_register.fit.accuracy.drop_section_outliers`) when that pose verifies at
     :data:`~chic_register.fit.checks.OUTLIER_PRECISION_SIGMAS` and lies within 1 mm and 1 deg of ``fit``
-    (:func:`~chic_register.verify.trust._distinct`); else ``(None, fit)``."""
+    (:func:`~chic_register.verify.trust.poses_distinct`); else ``(None, fit)``."""
     from chic_register.fit.accuracy import drop_section_outliers
     from chic_register.verify.pixels import verify_fit
 
     dropped = drop_section_outliers(model, fit, Ss, opts)
-    if dropped is fit or _distinct(dropped.T_F_from_scanner, fit.T_F_from_scanner, model):
+    if dropped is fit or poses_distinct(dropped.T_F_from_scanner, fit.T_F_from_scanner, model):
         return None, fit
     try:
         return verify_fit(geom, model, dropped, rivals, slices, Ss, blob_sets, opts,

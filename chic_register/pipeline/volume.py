@@ -17,9 +17,15 @@ import time
 import numpy as np
 
 from chic_register.errors import ChicRegisterError, NoLock, SliceRefused
-from chic_register.model.geometry import FiducialGeometry
-from chic_register.pipeline.register import Registration, SkippedSlice, SolveOptions, _registration, register
 from chic_register.io.volumes import Volume
+from chic_register.model.geometry import FiducialGeometry
+from chic_register.options import SolveOptions
+from chic_register.pipeline.register import (
+    Registration,
+    SkippedSlice,
+    build_registration,
+    register,
+)
 
 #: A volume whose slices give no pose, with wide blobs: the pixels of this many slices, spread over those that
 #: cross the fiducial, are fitted through the blurred model (CPU grows with them; 6 slices carry ~60 sections).
@@ -120,13 +126,13 @@ def _register_wide(volume: Volume, geom: FiducialGeometry, opts: SolveOptions, t
     as well (:data:`RIVAL_SHARE`) is fitted and verified too: two distinct poses that both verify are refused as
     ambiguous. None when the blobs are not wide or no pose is found (the slices' own reason stands);
     :class:`NoLock` when the poses found fail their checks."""
-    from chic_register.model.tube_model import prepare_geometry
-    from chic_register.verify.trust import _near_prior
     from chic_register.guess.volume_search import volume_first_guesses
+    from chic_register.model.pose import near_prior
+    from chic_register.model.tube_model import prepare_geometry
 
     t0 = time.perf_counter()
     model, geom_sha = prepare_geometry(geom)
-    guesses = [g for g in volume_first_guesses(volume.voxels, volume.affine_lps, model) if _near_prior(g[1], opts)]
+    guesses = [g for g in volume_first_guesses(volume.voxels, volume.affine_lps, model) if near_prior(g[1], opts)]
     if not guesses:
         return None
     all_slices = [volume.native_slice(k) for k in range(volume.shape[0])]
@@ -172,7 +178,7 @@ def _register_wide(volume: Volume, geom: FiducialGeometry, opts: SolveOptions, t
                                         "spread over the fiducial") for sl in all_slices if sl.source not in used]
     order = {sl.source: k for k, sl in enumerate(all_slices)}
     skipped.sort(key=lambda s: order.get(s.source, 0))
-    return _registration(geom, model, geom_sha, best, slices, Ss, blob_sets, xys, [None] * len(slices), checks,
+    return build_registration(geom, model, geom_sha, best, slices, Ss, blob_sets, xys, [None] * len(slices), checks,
                          {}, skipped, opts, target_F_mm, (t0, t1, t2), pixel_fit=blurred)
 
 
@@ -187,10 +193,10 @@ def _fit_and_verify(geom, model, X: np.ndarray, all_slices, opts: SolveOptions, 
     ``(fit, slices, Ss, blob_sets, xys, checks, skipped, BlurredFit)``; None when the blobs are not wide or too few slices cross
     the body; :class:`NoLock` when it does not converge or fails its verification (its detail then holds the fit's
     ``residual_sigma``). ``verify`` False: fitted only (``checks`` None)."""
-    from chic_register.fit.blurred import WIDE_RATIO, blob_width_ratio, blurred_stage
-    from chic_register.detect.blobs import detect_blobs
-    from chic_register.fit.refine import _assign, refine
-    from chic_register.verify.trust import _to_xy_mm
+    from chic_register.detect.blobs import centres_xy_mm, detect_blobs
+    from chic_register.detect.wide_blobs import WIDE_RATIO, blob_width_ratio
+    from chic_register.fit.blurred import blurred_stage
+    from chic_register.fit.refine import assign_blobs, refine
     from chic_register.model.tube_model import plane_crossings
     from chic_register.verify.pixels import verify_fit
 
@@ -202,13 +208,13 @@ def _fit_and_verify(geom, model, X: np.ndarray, all_slices, opts: SolveOptions, 
     slices = [all_slices[k] for k in pick]
     Ss = [Ss_all[k] for k in pick]
     blob_sets = [detect_blobs(sl.pixels, sl.pixel_spacing_mm, model.diameter_mm) for sl in slices]
-    xys = [_to_xy_mm(b, sl) for sl, b in zip(slices, blob_sets)]
+    xys = [centres_xy_mm(b, sl) for sl, b in zip(slices, blob_sets)]
     gate = 1.5 * float(model.diameter_mm.max())
-    assign = [_assign(*plane_crossings(model, X @ S)[0:4:3], xy, gate) for xy, S in zip(xys, Ss)]
+    assign = [assign_blobs(*plane_crossings(model, X @ S)[0:4:3], xy, gate) for xy, S in zip(xys, Ss)]
     if blob_width_ratio(model, slices, blob_sets, assign) < WIDE_RATIO:
         return None  # sharp sections: the slices' own refusal is the answer
     for _ in range(2):  # from the voxels' pose; once more from where the pixels took it, if that was over 1 mm / 1 deg
-        assign = [_assign(*plane_crossings(model, X @ S)[0:4:3], xy, gate) for xy, S in zip(xys, Ss)]
+        assign = [assign_blobs(*plane_crossings(model, X @ S)[0:4:3], xy, gate) for xy, S in zip(xys, Ss)]
         start = dataclasses.replace(refine(model, xys, Ss, X, gates_mm=(), final_iters=0, assign0=assign),
                                     T_F_from_scanner=X)
         best, precision, blurred = blurred_stage(model, start, xys, Ss, slices, blob_sets, len(slices))  # NoLock: a stretch
@@ -266,12 +272,12 @@ def _mid_body(model, T_F_from_I: np.ndarray) -> bool:
 def _far(T1: np.ndarray, T2: np.ndarray, model) -> bool:
     """Two poses another solution apart, not one pose found twice: more than a channel's width at a tube end, or
     more than 5 degrees."""
-    from chic_register.verify.trust import _rotation_deg
+    from chic_register.model.pose import rotation_deg
 
     L = model.length_mm
     rmax = float(np.max(model.axis_radius_mm)) if model.axis_radius_mm.size else 0.0
     pts = np.array([[rmax, 0, 0], [-rmax, 0, L], [0, rmax, L / 2], [0, 0, 0], [0, 0, L]])
     a = pts @ T1[:3, :3].T + T1[:3, 3]
     b = pts @ T2[:3, :3].T + T2[:3, 3]
-    return (_rotation_deg(T1[:3, :3], T2[:3, :3]) > 5.0
+    return (rotation_deg(T1[:3, :3], T2[:3, :3]) > 5.0
             or float(np.max(np.linalg.norm(a - b, axis=1))) > float(model.diameter_mm.max()))

@@ -42,14 +42,20 @@ import numpy as np
 
 from chic_register.model.geometry import FiducialGeometry
 from chic_register.model.pose import rigid, slice_angles, slice_frame, wrap_deg
-from chic_register.model.pose_params import PARAMETER_FRAME, PARAMETER_ORDER, default_target, target_jacobian, tre_rms_mm  # noqa: F401
-from chic_register.model.pose_params import deg_mm_scale as _scale
+from chic_register.model.pose_params import (
+    PARAMETER_FRAME,
+    PARAMETER_ORDER,
+    default_target,
+    deg_mm_scale,
+    target_jacobian,
+    tre_rms_mm,
+)
 
 NOISE_MODELS = ("rician", "gaussian")
 #: Sampling of the renderer: (supersample, thickness_samples).
 QUALITY = {"default": (4, 5), "fast": (3, 3)}
-_STEP_RAD = 1e-3  # central-difference steps: ~0.03 mm at the tubes for rotations
-_STEP_MM = 0.02
+STEP_RAD = 1e-3  # central-difference steps: ~0.03 mm at the tubes for rotations
+STEP_MM = 0.02
 
 
 @dataclass(frozen=True)
@@ -196,7 +202,7 @@ def image_shape(geom: FiducialGeometry, T_F_from_S: np.ndarray, protocol: Protoc
     return size, size
 
 
-def _slice_frames(depth_mm, tilt_deg, azimuth_deg, twist_deg, protocol: Protocol) -> list[np.ndarray]:
+def slice_frames(depth_mm, tilt_deg, azimuth_deg, twist_deg, protocol: Protocol) -> list[np.ndarray]:
     T0 = slice_frame(depth_mm, tilt_deg, azimuth_deg, twist_deg)
     return [T0 @ rigid(np.eye(3), (0.0, 0.0, float(o))) for o in protocol.offsets_mm()]
 
@@ -235,7 +241,7 @@ def image_jacobian(geom: FiducialGeometry, T_F_from_S: np.ndarray, protocol: Pro
     c = np.asarray(T_F_from_S, dtype=float)[:3, 3]
     Dc = np.empty((6,) + mu.shape)
     for i in range(6):
-        h = _STEP_RAD if i < 3 else _STEP_MM
+        h = STEP_RAD if i < 3 else STEP_MM
         imgs = []
         for sign in (1.0, -1.0):
             e = np.zeros(6)
@@ -289,7 +295,7 @@ def fisher_information(geom: FiducialGeometry, depth_mm: float, tilt_deg: float,
 
     F = np.zeros((7, 7))
     s2 = protocol.sigma ** 2
-    for T in _slice_frames(depth_mm, tilt_deg, azimuth_deg, twist_deg, protocol):
+    for T in slice_frames(depth_mm, tilt_deg, azimuth_deg, twist_deg, protocol):
         shape = image_shape(geom, T, protocol)
         tubes = counted_tubes(geom, T, sections)
         mu, D = image_jacobian(geom if len(tubes) == len(geom.tubes) else dataclasses.replace(geom, tubes=tubes),
@@ -328,7 +334,7 @@ def angle_jacobian(T_F_from_S: np.ndarray) -> np.ndarray:
 
 def summarise(cov_deg_mm: np.ndarray, T_F_from_S: np.ndarray, target_F_mm) -> dict:
     """RMS normal angle (deg), SD of twist (deg) and depth (mm), TRE (mm) of a pose covariance."""
-    s = _scale()
+    s = deg_mm_scale()
     C = np.asarray(cov_deg_mm) / np.outer(s, s)
     J = angle_jacobian(T_F_from_S)
     A = J @ C @ J.T
@@ -365,7 +371,7 @@ def pose_crlb(geom: FiducialGeometry, depth_mm: float, tilt_deg: float, azimuth_
         raise ValueError(f"the slices at depth {depth_mm:g} mm, tilt {tilt_deg:g} deg do not determine the pose")
     C = np.linalg.inv(F)[:6, :6]
     C = 0.5 * (C + C.T)
-    s = _scale()
+    s = deg_mm_scale()
     cov = C * np.outer(s, s)
     T = slice_frame(depth_mm, tilt_deg, azimuth_deg, twist_deg)
     return PrecisionBound(float(depth_mm), float(tilt_deg), float(azimuth_deg), float(twist_deg), cov,

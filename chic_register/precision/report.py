@@ -8,8 +8,8 @@ from pathlib import Path
 
 import numpy as np
 
-from chic_register.util.atomic import save_figure
 from chic_register.precision.crlb import PrecisionMap
+from chic_register.util.atomic import save_figure
 
 #: (column, heading, format) of the tables.
 _COLUMNS = (("depth_mm", "depth mm", "{:.1f}"), ("tilt_deg", "tilt deg", "{:.0f}"),

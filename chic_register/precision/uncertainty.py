@@ -33,21 +33,18 @@ from dataclasses import dataclass
 
 import numpy as np
 
-from chic_register.model.pose_params import PARAMETER_FRAME, PARAMETER_ORDER, default_target, tre_rms_mm
 from chic_register.detect.blobs import median
-from chic_register.detect.noise import (  # noqa: F401  (the noise model, importable from here as before)
-    CORRELATION_BLOCK_PX,
-    INTERPOLATED_CORRELATION,
-    MAX_NOISE_CORRELATION,
-    RAYLEIGH_MEDIAN,
+from chic_register.detect.noise import (
     NoiseEstimate,
     background_noise,
-    clear_blocks,
-    clear_of_blobs,
-    correlation_inflation,
-    noise_correlation,
-    noise_correlation_axes,
 )
+from chic_register.model.pose_params import (
+    PARAMETER_FRAME,
+    PARAMETER_ORDER,
+    default_target,
+    tre_rms_mm,
+)
+
 
 @dataclass(frozen=True)
 class PoseUncertainty:
@@ -347,12 +344,12 @@ def registration_uncertainty(model, fit, xys, Ss, slices, blob_sets, target_F_mm
     information ``L`` (K, 2, 2) the fit was weighted by, the noise sigma ``L`` assumed); ``xys`` the blob
     centroids (image mm) per slice, ``Ss`` the slices' ``T_scanner_from_image``.
     """
-    from chic_register.model.pose import invert
     from chic_register.fit.refine import scanner_crossing_jacobian, whitened_residuals
-    from chic_register.model.tube_model import _adjoint, plane_crossings
+    from chic_register.model.pose import invert
+    from chic_register.model.tube_model import adjoint, plane_crossings
 
     X = fit.T_F_from_scanner
-    Ad_sf = _adjoint(invert(X))
+    Ad_sf = adjoint(invert(X))
     meas = getattr(fit, "measurements", None)
     Js, rs, blocks, noises = [], [], [], []
     for j, (sl, S, b) in enumerate(zip(slices, Ss, blob_sets)):

@@ -15,8 +15,10 @@ from dataclasses import dataclass
 
 import numpy as np
 
-from chic_register.model.geometry import Body, FiducialGeometry, LineTube
+from chic_register.model.body import Body
+from chic_register.model.geometry import FiducialGeometry
 from chic_register.model.pose import invert
+from chic_register.model.tubes import LineTube
 
 
 def z001_geometry(diameter_mm: float = 3.0) -> FiducialGeometry:
@@ -63,11 +65,17 @@ def run_calibration(geom: FiducialGeometry, poses, draws_per_pose: int, seed: in
     the reported covariance. ``solver``: ``"register"`` (the full solver) or ``"refine"`` (detection and the
     solver's Gauss-Newton refinement started at the truth). ``prior``: give ``register`` the true pose as its
     orientation prior (what resolves a self-symmetric layout such as the Z-frame; see ``SolveOptions.prior``)."""
-    from chic_register.detect.blobs import detect_blobs
+    from chic_register.detect.blobs import centres_xy_mm, detect_blobs
     from chic_register.errors import NoLock
+    from chic_register.fit.refine import refine
     from chic_register.imaging.simulate import simulate_slice
-    from chic_register.pipeline.register import _to_xy_mm, prepare_geometry, refine, register
-    from chic_register.precision.uncertainty import mahalanobis2, registration_uncertainty, target_point
+    from chic_register.model.tube_model import prepare_geometry
+    from chic_register.pipeline.register import register
+    from chic_register.precision.uncertainty import (
+        mahalanobis2,
+        registration_uncertainty,
+        target_point,
+    )
 
     model, _ = prepare_geometry(geom)
     target = target_point(geom, target_F_mm)
@@ -87,7 +95,7 @@ def run_calibration(geom: FiducialGeometry, poses, draws_per_pose: int, seed: in
                 T_est, u = reg.T_scanner_from_fiducial, reg.uncertainty
             else:
                 blobs = detect_blobs(sl.pixels, sl.pixel_spacing_mm, float(np.median(model.diameter_mm)))
-                xy, S = _to_xy_mm(blobs, sl), sl.T_scanner_from_image()
+                xy, S = centres_xy_mm(blobs, sl), sl.T_scanner_from_image()
                 fit = refine(model, [xy], [S], invert(sim.truth.T_scanner_from_fiducial))
                 u = registration_uncertainty(model, fit, [xy], [S], [sl], [blobs], target)
                 T_est = invert(fit.T_F_from_scanner)

@@ -32,10 +32,16 @@ from dataclasses import dataclass
 
 import numpy as np
 
-from chic_register.precision.crlb import Protocol, _slice_frames, counted_tubes, default_target, pose_crlb
 from chic_register.errors import NoLock
 from chic_register.model.geometry import FiducialGeometry
 from chic_register.model.pose import apply, invert, wrap_deg
+from chic_register.model.pose_params import default_target
+from chic_register.precision.crlb import (
+    Protocol,
+    counted_tubes,
+    pose_crlb,
+    slice_frames,
+)
 
 #: Samples per pixel side of the simulated truth image (the simulator's default, 4, is off by up to ~2e-3 px
 #: in a section's position, which is 0.3 of the twist bound at SNR 50; 16 is within ~1e-4 px of the converged
@@ -143,7 +149,7 @@ def pose_efficiency(geom: FiducialGeometry, depth_mm: float, tilt_deg: float, az
     crlb = np.array([bound.sd_normal_deg, bound.sd_twist_deg, bound.sd_depth_mm, bound.tre_mm])
     crlb_all = None
     if any(len(counted_tubes(geom, T, "crossing")) < len(geom.tubes)
-           for T in _slice_frames(depth_mm, tilt_deg, azimuth_deg, twist_deg, protocol)):
+           for T in slice_frames(depth_mm, tilt_deg, azimuth_deg, twist_deg, protocol)):
         b = pose_crlb(geom, depth_mm, tilt_deg, azimuth_deg, twist_deg, protocol, target, quality=crlb_quality,
                       sections="all")
         crlb_all = np.array([b.sd_normal_deg, b.sd_twist_deg, b.sd_depth_mm, b.tre_mm])

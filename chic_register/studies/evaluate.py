@@ -34,10 +34,10 @@ from pathlib import Path
 
 import numpy as np
 
-from chic_register.util.atomic import atomic_path, write_json
 from chic_register.errors import NoLock
 from chic_register.model.geometry import FiducialGeometry
 from chic_register.model.pose import invert, wrap_deg
+from chic_register.util.atomic import atomic_path, write_json
 
 #: The paper's simulation results: group -> (max error, standard deviation) and unit.
 PAPER = {

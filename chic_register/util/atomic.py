@@ -25,7 +25,7 @@ from typing import Iterator
 from chic_register.errors import OutputError
 
 
-def _umask() -> int:
+def current_umask() -> int:
     """The process umask (read by setting it and putting it back: there is no getter)."""
     mask = os.umask(0o022)
     os.umask(mask)
@@ -58,7 +58,7 @@ def atomic_path(path, suffix: str | None = None) -> Iterator[Path]:
     try:
         yield Path(tmp)
         if Path(tmp).is_file():
-            os.chmod(tmp, 0o666 & ~_umask())
+            os.chmod(tmp, 0o666 & ~current_umask())
         os.replace(tmp, path)
     except BaseException:
         Path(tmp).unlink(missing_ok=True)

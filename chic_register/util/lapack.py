@@ -19,7 +19,7 @@ try:  # a private module: another numpy may lack it (then the public wrappers be
 except ImportError:  # pragma: no cover - the public wrappers
     _umath_linalg = None
 
-_solve1 = getattr(_umath_linalg, "solve1", None)
+GUFUNC_SOLVE1 = getattr(_umath_linalg, "solve1", None)
 _EPS = float(np.finfo(float).eps)
 
 
@@ -39,9 +39,9 @@ def solve_vector(H: np.ndarray, g: np.ndarray) -> list[float]:
     """``np.linalg.solve(H, g)`` (float64 (n, n) and (n,)) as a list: the same LAPACK gufunc without the wrapper's
     checks and error-state switch (~5 us a call of ~7); NaNs (and a RuntimeWarning) where np.linalg.solve raises
     LinAlgError for a singular H (the public wrapper, with the same NaNs, where numpy has no such gufunc)."""
-    if _solve1 is not None:
+    if GUFUNC_SOLVE1 is not None:
         try:
-            return _solve1(H, g, signature="dd->d").tolist()
+            return GUFUNC_SOLVE1(H, g, signature="dd->d").tolist()
         except TypeError:  # pragma: no cover - a numpy whose private gufunc takes other arguments
             pass
     try:

@@ -26,7 +26,7 @@ SPAN_STRIDE = 16
 SPAN_SIGMAS = 3.0
 
 
-def _unique_ints(values) -> np.ndarray:
+def unique_ints(values) -> np.ndarray:
     """The distinct integers of ``values``, sorted (``np.unique`` imports ``numpy.ma``: ~40 ms of a one-shot
     solve's start-up)."""
     return np.array(sorted(set(np.ravel(values).tolist())), dtype=np.intp)
@@ -76,7 +76,7 @@ def order_statistics(values: np.ndarray, ranks: np.ndarray) -> np.ndarray:
         groups = np.split(np.arange(ranks.size), np.flatnonzero(np.diff(ranks) > 2 * margin * n / m) + 1)
         edges = [(int(ranks[g[0]] * m / n) - margin, int(ranks[g[-1]] * m / n) + margin) for g in groups]
         if edges[0][0] >= 0 and edges[-1][1] < m:
-            part = np.partition(sample, _unique_ints(edges))
+            part = np.partition(sample, unique_ints(edges))
             for g, (s_lo, s_hi) in zip(groups, edges):
                 lo_v, hi_v = part[s_lo], part[s_hi]
                 below = int(np.count_nonzero(x < lo_v))
@@ -84,10 +84,10 @@ def order_statistics(values: np.ndarray, ranks: np.ndarray) -> np.ndarray:
                 r = ranks[g] - below
                 if r[0] < 0 or r[-1] >= mid.size:
                     break  # the sample missed: the whole array
-                out[g] = np.partition(mid, _unique_ints(r))[r]
+                out[g] = np.partition(mid, unique_ints(r))[r]
             else:
                 return out
-    return np.partition(x, _unique_ints(ranks))[ranks]
+    return np.partition(x, unique_ints(ranks))[ranks]
 
 
 def percentiles(values: np.ndarray, q) -> np.ndarray:
@@ -102,7 +102,7 @@ def percentiles(values: np.ndarray, q) -> np.ndarray:
     prev = np.floor(virtual).astype(np.intp)
     nxt = np.minimum(prev + 1, n - 1)
     prev = np.clip(prev, 0, n - 1)
-    ranks = _unique_ints(np.concatenate([prev, nxt]))
+    ranks = unique_ints(np.concatenate([prev, nxt]))
     at = order_statistics(x, ranks)
     a, b = at[np.searchsorted(ranks, prev)], at[np.searchsorted(ranks, nxt)]
     gamma = virtual - np.floor(virtual)

@@ -73,29 +73,31 @@ from dataclasses import dataclass
 
 import numpy as np
 
-from chic_register.detect.blobs import Blobs, median
-from chic_register.model.envelope import plane_status
+from chic_register.detect.blobs import Blobs, centres_xy_mm, median
+from chic_register.detect.noise import correlation_inflation, noise_correlation_axes
 from chic_register.errors import ImprecisePose, NoLock, SliceRefused
-from chic_register.fit.checks import (  # noqa: F401
+from chic_register.fit.checks import (
     PRECISION_SIGMAS,
-    ROT_TOL_DEG,
     STRETCH_MIN,
     STRETCH_MOVE_SHARE,
     STRETCH_P,
-    TRE_TOL_MM,
-    gamma_p,
-    gamma_p_inverse,
     pose_precision,
     stretch_test,
 )
-from chic_register.model.pose import slice_angles
 from chic_register.imaging.psf import blurred_windows, fit_psf
+from chic_register.model.envelope import plane_status
+from chic_register.model.pose import slice_angles
+from chic_register.model.tube_model import plane_crossings, section_extent
 from chic_register.verify.rivals import check_rivals, slice_contenders
-from chic_register.verify.trust import _to_xy_mm
-from chic_register.model.tube_model import _section_extent, plane_crossings
-from chic_register.detect.noise import correlation_inflation, noise_correlation_axes
-from chic_register.verify.windows import (  # noqa: F401  (_TubeWindow: the windows' type, for tests)
-    _TubeWindow, _aspect_se, _fit_window, _shape_excess, _spread, _windows, section_shift)
+from chic_register.verify.windows import (
+    MODEL_FLOOR,
+    aspect_error,
+    fit_window,
+    section_shift,
+    shape_excess,
+    tube_windows,
+    window_spread,
+)
 
 #: A present tube's fitted fluid level, as a share of the median of the tubes the solver matched. A correctly
 #: placed section (partial volume and slab smear are in the model) gives ~1 at any SNR above a few; a section
@@ -112,9 +114,6 @@ POSITION_TOL_PX = 0.75
 SHIFT_TOL_PX = 1.0
 #: ... beyond this many standard errors of the shift's estimate (a faint or small section locates itself poorly).
 SHIFT_SIGMAS = 4.0
-#: Relative error of the rendered model itself (supersampling 2 x 2, a few sub-planes): a residual energy this
-#: share of the section's energy is model error, not misfit.
-MODEL_FLOOR = 0.03
 #: Anisotropic scale between the sections seen and predicted above which the pixel spacing is called wrong.
 #: A 3 mm tube is 6 px across at 0.5 mm: the moment estimate of its width is good to ~1 %; 4 % leaves room for
 #: the rendered model's error and slab smear and still catches a 5 % spacing error.
@@ -196,12 +195,12 @@ def verify_slice(geom, model, T_F_from_I: np.ndarray, pixels: np.ndarray, spacin
     sigma = max(float(blobs.noise_sigma), 1e-12)
     L = model.length_mm
     q, tan, zF, _ = plane_crossings(model, T_F_from_I, margin_mm=5.0)
-    half_len = _section_extent(model, tan, thickness_mm)[0]
+    half_len = section_extent(model, tan, thickness_mm)[0]
 
     def assess(wins, canvas, psf_px):
         fits = {}
         for w in wins:
-            f = _fit_window(pixels, w)
+            f = fit_window(pixels, w)
             if f is not None:
                 fits[w.k] = (w, *f)
         matched = [k for k in fits if assignment[k] >= 0]
@@ -227,7 +226,7 @@ def verify_slice(geom, model, T_F_from_I: np.ndarray, pixels: np.ndarray, spacin
             hh, ww = w.own.shape
             # judged against this tube's own fluid level when it is brighter than the median (rods differ: fill,
             # bubbles, coil); a dimmer one as before, against the median (never a stricter test)
-            excess, chi_tol, sup = _shape_excess(w, y, fit, sigma, max(a, level))
+            excess, chi_tol, sup = shape_excess(w, y, fit, sigma, max(a, level))
             r_px = 0.5 * float(model.diameter_mm[k]) / px
             if excess > shape_tolerance(r_px) + chi_tol:
                 raise NoLock(f"{source}: tube {tid}'s section does not have the shape and place the pose ({where}) "
@@ -242,13 +241,13 @@ def verify_slice(geom, model, T_F_from_I: np.ndarray, pixels: np.ndarray, spacin
             if w.others.max() < 0.05:
                 obs = np.clip((y - coef[0]), 0.0, None).reshape(hh, ww) * sup.reshape(hh, ww)
                 mod = (fit - coef[0]).reshape(hh, ww) * sup.reshape(hh, ww)
-                so, sm = _spread(obs), _spread(mod)
+                so, sm = window_spread(obs), window_spread(mod)
                 if so is not None and sm is not None:
                     scales.append(np.sqrt(so / sm))
                     # (every pixel of the support counts as noisy, those clipped at zero too: at low SNR the clip
                     # biases the aspect along an elongated support, and counting them covers that bias; with only
                     # the unclipped ones, hunt slices with the right spacing read 4-6 % stretched)
-                    aspect_se.append(_aspect_se(obs, sup.reshape(hh, ww), so, sigma))
+                    aspect_se.append(aspect_error(obs, sup.reshape(hh, ww), so, sigma))
         if cut_missing:
             raise NoLock(f"{source}: tube(s) {', '.join(cut_missing)} predicted near an end face at the pose ({where}) "
                          f"are not in the image: a cut tube and a wrong pose look alike there",
@@ -279,7 +278,7 @@ def verify_slice(geom, model, T_F_from_I: np.ndarray, pixels: np.ndarray, spacin
         return SliceCheck(tuple(present), tuple(missing), scale, envelope, merged, canvas, level, sigma,
                           0.5 * (psf_rc[0] + psf_rc[1]), strays=tuple(strays), psf_rc_px=psf_rc)
 
-    wins, canvas = _windows(geom, model, T_F_from_I, shape, (rs, cs), float(thickness_mm))
+    wins, canvas = tube_windows(geom, model, T_F_from_I, shape, (rs, cs), float(thickness_mm))
     try:
         return assess(wins, canvas, 0.0)
     except NoLock as exc:
@@ -294,10 +293,10 @@ def verify_slice(geom, model, T_F_from_I: np.ndarray, pixels: np.ndarray, spacin
         r_px = 0.5 * median(model.diameter_mm) / px
         # the windows reach three sigmas of the widest blur tried (of the blur given, when a pixel fit found it)
         reach_px = 3.0 * (PSF_SIGMAS_RADII[-1] * r_px if psf_px is None else float(np.max(psf_px)))
-        wide, wide_canvas = _windows(geom, model, T_F_from_I, shape, (rs, cs), float(thickness_mm),
+        wide, wide_canvas = tube_windows(geom, model, T_F_from_I, shape, (rs, cs), float(thickness_mm),
                                      margin_px=2.0 + math.ceil(reach_px))
         def misfit(w):  # the squared residual over the whole window: the same pixels for every blur tried
-            f = _fit_window(pixels, w)
+            f = fit_window(pixels, w)
             return math.inf if f is None else float(np.sum((f[1] - f[2]) ** 2))
 
         # the point spread is round in millimetres: in pixels that are not square it is not (sigma along rows, columns)
@@ -395,7 +394,7 @@ def verify_fit(geom, model, fit, rivals, slices, Ss, blob_sets, opts, precision=
     naming them all (a volume's registration leaves them out). Raises
     :class:`NoLock` with the first failure; returns one :class:`SliceCheck` per slice.
     """
-    xys = [_to_xy_mm(b, sl) for sl, b in zip(slices, blob_sets)]
+    xys = [centres_xy_mm(b, sl) for sl, b in zip(slices, blob_sets)]
     out, contenders, refused = [], [], []
     for j, (sl, S, b) in enumerate(zip(slices, Ss, blob_sets)):
         T_F_from_I = fit.T_F_from_scanner @ S

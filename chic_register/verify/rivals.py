@@ -6,14 +6,14 @@ pixels nearly as well. The rivals are the first-guess stage's other refined
 hypotheses, the pose turned about the axis by each near-symmetry of the
 straight tubes (:func:`_turned_rivals`), and, when a bright blob on the
 tubes' circle is left unexplained, the slice solved again without each
-blob the pose matched (:func:`_stray_rivals`), and the slice solved again
+blob the pose matched (:func:`stray_rivals`), and the slice solved again
 on the blobs the pose leaves over (a second copy of the pattern, a motion
-ghost: :func:`_second_copy_rivals`). In a series a rival is
+ghost: :func:`second_copy_rivals`). In a series a rival is
 refined on all slices' blobs, each distinct one compared once, and the
 evidence of all slices adds up (:func:`check_rivals`). A rival that the
 pixels do not reject gets the pose's own refinement, the section fit,
 before it is called one: started there, it may fall back onto the pose
-(:func:`_falls_onto_pose`).
+(:func:`falls_onto_pose`).
 """
 
 from __future__ import annotations
@@ -23,13 +23,13 @@ import math
 
 import numpy as np
 
-from chic_register.fit.accuracy import _section_refine
-from chic_register.detect.blobs import _dilate
+from chic_register.detect.filters import dilate
 from chic_register.errors import NoLock
-from chic_register.model.pose import slice_angles
-from chic_register.imaging.psf import gaussian_blur
+from chic_register.fit.accuracy import section_refine
 from chic_register.fit.refine import match_gate_mm, refine
-from chic_register.verify.trust import _distinct, _near_prior
+from chic_register.imaging.psf import gaussian_blur
+from chic_register.model.pose import near_prior, slice_angles
+from chic_register.model.tube_model import poses_distinct
 
 #: A rival pose must explain the pixels worse by this many noise variances (a log-likelihood margin of half of
 #: it) plus the model's own error, else the slice is ambiguous.
@@ -50,13 +50,13 @@ def slice_contenders(model, fit, rivals, strays, xy: np.ndarray, S: np.ndarray, 
     px = float(max(sl.pixel_spacing_mm))
     turned = _turned_rivals(model, fit.T_F_from_scanner, xy, S, px)
     if strays:
-        turned += _stray_rivals(model, xy, S, fit.assignments[j], opts, px)
-    turned += _second_copy_rivals(model, xy, S, fit.assignments[j], opts, px)
+        turned += stray_rivals(model, xy, S, fit.assignments[j], opts, px)
+    turned += second_copy_rivals(model, xy, S, fit.assignments[j], opts, px)
     out = []
     for other in list(rivals) + turned:
         if (other.n_matched < opts.min_tubes or other.rms_mm > opts.max_rms_px * px
-                or not _distinct(other.T_F_from_scanner, fit.T_F_from_scanner, model)
-                or not _near_prior(other.T_F_from_scanner, opts)):  # the user's prior orientation excludes it
+                or not poses_distinct(other.T_F_from_scanner, fit.T_F_from_scanner, model)
+                or not near_prior(other.T_F_from_scanner, opts)):  # the user's prior orientation excludes it
             continue
         out.append(other.T_F_from_scanner)
     return out
@@ -79,18 +79,18 @@ def check_rivals(geom, model, fit, contenders, checks, slices, xys, Ss, opts, bl
         px_min = min(float(max(sl.pixel_spacing_mm)) for sl in slices)
         contenders = [r.T_F_from_scanner for r in refined
                       if r.n_matched >= opts.min_tubes and r.rms_mm <= opts.max_rms_px * px_min
-                      and _distinct(r.T_F_from_scanner, fit.T_F_from_scanner, model)
-                      and _near_prior(r.T_F_from_scanner, opts)]
+                      and poses_distinct(r.T_F_from_scanner, fit.T_F_from_scanner, model)
+                      and near_prior(r.T_F_from_scanner, opts)]
     # one comparison per distinct rival (a volume's slices offer the same turned pose dozens of times)
     unique = []
     for T in contenders:
-        if all(_distinct(T, U, model) for U in unique):
+        if all(poses_distinct(T, U, model) for U in unique):
             unique.append(T)
     for T_rival in unique:
         scores = [_compare_rival(geom, model, check, T_rival @ S, sl) for check, S, sl in zip(checks, Ss, slices)]
         gap, margin = sum(g for g, _ in scores), sum(m for _, m in scores)
         if gap < margin and not (blob_sets is not None
-                                 and _falls_onto_pose(model, fit, T_rival, xys, Ss, slices, blob_sets, opts)):
+                                 and falls_onto_pose(model, fit, T_rival, xys, Ss, slices, blob_sets, opts)):
             a = slice_angles(T_rival @ Ss[0])
             where = slices[0].source if len(slices) == 1 else f"{len(slices)} slices"
             raise NoLock(f"{where}: ambiguous: a distinct pose (depth {a.depth_mm:.1f} mm, tilt {a.tilt_deg:.1f} deg) "
@@ -98,11 +98,11 @@ def check_rivals(geom, model, fit, contenders, checks, slices, xys, Ss, opts, bl
                          f"{gap:.3g}; margin needed {margin:.3g})", {"n_tubes": int(fit.n_matched)})
 
 
-def _falls_onto_pose(model, fit, T_rival: np.ndarray, xys, Ss, slices, blob_sets, opts) -> bool:
+def falls_onto_pose(model, fit, T_rival: np.ndarray, xys, Ss, slices, blob_sets, opts) -> bool:
     """Does the section fit started at a rival pose (``T_F_from_scanner``) end on the pose ``fit``?
 
     The pose was refined on the tube sections themselves
-    (:func:`~chic_register.fit.accuracy._section_refine`), a rival only on the
+    (:func:`~chic_register.fit.accuracy.section_refine`), a rival only on the
     blob centres; the pixels may tell the two apart only by a few per cent of
     their energy (a slice near normal to the axis, its tilt mirrored). Given
     the same refinement, a rival in the pose's basin (1-10 deg away in the
@@ -112,12 +112,12 @@ def _falls_onto_pose(model, fit, T_rival: np.ndarray, xys, Ss, slices, blob_sets
     """
     gate = match_gate_mm(model, min(float(max(sl.pixel_spacing_mm)) for sl in slices))
     start = refine(model, xys, Ss, T_rival, gates_mm=(gate, 0.6 * gate))
-    fine = _section_refine(model, start, xys, Ss, slices, blob_sets, opts)
-    return fine is not None and not _distinct(fine.T_F_from_scanner, fit.T_F_from_scanner, model,
+    fine = section_refine(model, start, xys, Ss, slices, blob_sets, opts)
+    return fine is not None and not poses_distinct(fine.T_F_from_scanner, fit.T_F_from_scanner, model,
                                               FALLBACK_SHARE * opts.trust_tre_mm, FALLBACK_SHARE * opts.trust_rot_deg)
 
 
-def _stray_rivals(model, xy: np.ndarray, S: np.ndarray, assignment: np.ndarray, opts, pixel_mm: float) -> list:
+def stray_rivals(model, xy: np.ndarray, S: np.ndarray, assignment: np.ndarray, opts, pixel_mm: float) -> list:
     """Poses that put a tube on a stray blob: the slice solved again without each blob the pose matched.
 
     A bright blob on the tubes' circle that the pose leaves unexplained may be
@@ -126,19 +126,21 @@ def _stray_rivals(model, xy: np.ndarray, S: np.ndarray, assignment: np.ndarray, 
     each matched blob removed in turn, it does. Each such fit is a rival for
     :func:`_compare_rival`.
     """
-    from chic_register.fit.lock import _solve_one  # the first-guess stage (imported here: it imports the trust checks)
+    from chic_register.fit.lock import (
+        lock_slice,  # the first-guess stage (imported here: it imports the trust checks)
+    )
 
     out = []
     for m in sorted({int(i) for i in assignment if i >= 0}):
         try:
-            fits, _ = _solve_one(model, np.delete(xy, m, axis=0), S, opts, pixel_mm)
+            fits, _ = lock_slice(model, np.delete(xy, m, axis=0), S, opts, pixel_mm)
         except NoLock:
             continue
         out.extend(fits)
     return out
 
 
-def _second_copy_rivals(model, xy: np.ndarray, S: np.ndarray, assignment: np.ndarray, opts,
+def second_copy_rivals(model, xy: np.ndarray, S: np.ndarray, assignment: np.ndarray, opts,
                         pixel_mm: float) -> list:
     """Poses fitted to the blobs the pose leaves unmatched: a second copy of the whole pattern.
 
@@ -150,7 +152,7 @@ def _second_copy_rivals(model, xy: np.ndarray, S: np.ndarray, assignment: np.nda
     such fit is a rival for :func:`_compare_rival`, where the copy that
     explains less of the pixels (the ghost) loses.
     """
-    from chic_register.fit.lock import _solve_one  # (as in _stray_rivals)
+    from chic_register.fit.lock import lock_slice  # (as in stray_rivals)
 
     unused = np.ones(len(xy), bool)
     unused[assignment[assignment >= 0]] = False
@@ -158,7 +160,7 @@ def _second_copy_rivals(model, xy: np.ndarray, S: np.ndarray, assignment: np.nda
     if rest.size < opts.min_tubes:
         return []
     try:
-        fits, _ = _solve_one(model, xy[rest], S, opts, pixel_mm)
+        fits, _ = lock_slice(model, xy[rest], S, opts, pixel_mm)
     except NoLock:
         return []
     return fits
@@ -214,19 +216,19 @@ def _compare_rival(geom, model, check, T_F_from_I_rival: np.ndarray, sl) -> tupl
     fixed floor refuses (``benchmarks/hunt_print.py --kind scale``), so the
     floor stays fixed.
     """
-    from chic_register.verify.pixels import MODEL_FLOOR  # (the verification imports this module)
-    from chic_register.verify.windows import _lstsq, _windows
+    from chic_register.util.lapack import lstsq
+    from chic_register.verify.windows import MODEL_FLOOR, tube_windows
 
     pixels = np.asarray(sl.pixels, float)
-    _, rival = _windows(geom, model, T_F_from_I_rival, pixels.shape, tuple(float(v) for v in sl.pixel_spacing_mm),
+    _, rival = tube_windows(geom, model, T_F_from_I_rival, pixels.shape, tuple(float(v) for v in sl.pixel_spacing_mm),
                         float(sl.slice_thickness_mm), canvas_only=True)
     rival = gaussian_blur(rival, check.psf_rc_px)  # drawn as the pose's model was
-    region = _dilate((check.canvas > 0.02) | (rival > 0.02), 1)
+    region = dilate((check.canvas > 0.02) | (rival > 0.02), 1)
     y = pixels[region]
     sse = []
     for img in (check.canvas, rival):
         A = np.stack([np.ones(y.size), img[region]], axis=1)
-        coef = _lstsq(A, y)[0]
+        coef = lstsq(A, y)[0]
         r = y - A @ coef
         sse.append(float(r @ r))
     signal = check.level ** 2 * float(np.sum(check.canvas[region] ** 2))

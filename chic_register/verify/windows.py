@@ -1,7 +1,7 @@
 """The verification's tube windows (:mod:`chic_register.verify.pixels`): the model rendered around each tube's section
-with its neighbours (:func:`_windows`), fitted to the pixels (:func:`_fit_window`), and what the fit says: the
-residual energy beyond the noise (:func:`_shape_excess`), where the section lies against where the pose puts it
-(:func:`section_shift`), and its spread along rows and columns (:func:`_spread`)."""
+with its neighbours (:func:`tube_windows`), fitted to the pixels (:func:`fit_window`), and what the fit says: the
+residual energy beyond the noise (:func:`shape_excess`), where the section lies against where the pose puts it
+(:func:`section_shift`), and its spread along rows and columns (:func:`window_spread`)."""
 
 from __future__ import annotations
 
@@ -10,10 +10,10 @@ from dataclasses import dataclass
 
 import numpy as np
 
-from chic_register.detect.blobs import _dilate
-from chic_register.util.lapack import lstsq as _lstsq
+from chic_register.detect.filters import dilate
 from chic_register.imaging.render import render_windows
-from chic_register.model.tube_model import _section_box, _section_extent, plane_crossings
+from chic_register.model.tube_model import plane_crossings, section_box, section_extent
+from chic_register.util.lapack import lstsq
 
 #: Render settings: one sample a pixel (:func:`chic_register.imaging.render.render_windows`; the renderer's coverage ramp
 #: anti-aliases edges already) and at most this many sub-planes over the slab.
@@ -24,7 +24,7 @@ SMEAR_PX_PER_SAMPLE = 4.0
 
 
 @dataclass
-class _TubeWindow:
+class TubeWindow:
     k: int
     r0: int
     c0: int
@@ -32,21 +32,21 @@ class _TubeWindow:
     others: np.ndarray  # other tubes' sections in the window
 
 
-def _windows(geom, model, T_F_from_I, shape, spacing, thickness_mm, margin_px: float = 2.0,
+def tube_windows(geom, model, T_F_from_I, shape, spacing, thickness_mm, margin_px: float = 2.0,
              canvas_only: bool = False):
     """``(windows, canvas)``: per tube whose section lies wholly inside the image its window with its own and
     its neighbours' renders, and the whole model image (shape of the image, every section pasted in);
     ``canvas_only``: no windows (``[]``), the canvas alone (a rival pose's model image).
 
     Each tube is rendered once, in its own window (its section's extent,
-    :func:`chic_register.pipeline.register._section_extent`, plus ``margin_px``); a window's
+    :func:`chic_register.pipeline.register.section_extent`, plus ``margin_px``); a window's
     neighbours are the other tubes' renders pasted where they overlap it.
     """
     rs, cs = spacing
     px = max(rs, cs)
     q, tan, _, found = plane_crossings(model, T_F_from_I, margin_mm=0.5 * float(model.diameter_mm.max()) + thickness_mm)
-    half_len, half_wid, u = _section_extent(model, tan, thickness_mm)
-    ex, ey = (e + margin_px * px for e in _section_box(half_len, half_wid, u))
+    half_len, half_wid, u = section_extent(model, tan, thickness_mm)
+    ex, ey = (e + margin_px * px for e in section_box(half_len, half_wid, u))
     txy = np.hypot(tan[:, 0], tan[:, 1])
     smear_px = float(np.max(thickness_mm * txy / np.maximum(np.abs(tan[:, 2]), 1e-3))) / px if txy.size else 0.0
     ts = int(min(MAX_THICKNESS_SAMPLES, max(1, math.ceil(smear_px / SMEAR_PX_PER_SAMPLE) + 1)))
@@ -80,11 +80,11 @@ def _windows(geom, model, T_F_from_I, shape, spacing, thickness_mm, margin_px: f
             if a0 < a1 and b0 < b1:
                 sub = others[a0 - r0:a1 - r0, b0 - c0:b1 - c0]
                 np.maximum(sub, oimg[a0 - R0:a1 - R0, b0 - C0:b1 - C0], out=sub)
-        out.append(_TubeWindow(k, r0, c0, img, others))
+        out.append(TubeWindow(k, r0, c0, img, others))
     return out, canvas
 
 
-def _fit_window(pixels, w: _TubeWindow):
+def fit_window(pixels, w: TubeWindow):
     """Least squares over the window: ``(coef, y, fit)`` of ``pixels = b + a section + a' neighbours``
     (the gains apart: presence) and ``fit1`` of ``pixels = b + a max(section, neighbours)`` (one fluid level,
     composited as the image is: the shape test). None when degenerate."""
@@ -94,11 +94,11 @@ def _fit_window(pixels, w: _TubeWindow):
     o = w.others.ravel()
     cols = [np.ones_like(m), m] + ([o] if o.max() > 0.05 else [])
     A = np.stack(cols, axis=1)
-    coef, rank = _lstsq(A, y)
+    coef, rank = lstsq(A, y)
     if rank < A.shape[1]:
         return None
     A1 = np.stack([np.ones_like(m), np.maximum(m, o)], axis=1)
-    coef1 = _lstsq(A1, y)[0]
+    coef1 = lstsq(A1, y)[0]
     fit1 = A1 @ coef1
     if len(cols) == 3:  # a neighbour in the window: real rods differ in fluid level (fill, bubbles, coil)
         fit2 = _composite_two_levels(y, m, o, coef)
@@ -118,7 +118,7 @@ def _composite_two_levels(y, m, o, coef, rounds: int = 3):
             return fit  # the same split of the pixels: the same least squares, the same fit, every round from here on
         prev = mine
         A = np.stack([np.ones_like(m), np.where(mine, m, 0.0), np.where(mine, 0.0, o)], axis=1)
-        c, rank = _lstsq(A, y)
+        c, rank = lstsq(A, y)
         if rank < 3 or not (c[1] > 0 and c[2] > 0):
             return fit
         b, a, a2 = (float(v) for v in c)
@@ -126,13 +126,13 @@ def _composite_two_levels(y, m, o, coef, rounds: int = 3):
     return fit
 
 
-def _shape_excess(w: _TubeWindow, y: np.ndarray, fit: np.ndarray, sigma: float, level: float):
-    """``(excess, allowed_noise, support)`` of a fitted window (:func:`_fit_window`): the residual energy over
+def shape_excess(w: TubeWindow, y: np.ndarray, fit: np.ndarray, sigma: float, level: float):
+    """``(excess, allowed_noise, support)`` of a fitted window (:func:`fit_window`): the residual energy over
     the section (its support grown by a pixel) beyond the noise, as a share of the section's energy, and four
     noise sigmas of that term."""
     own = w.own.ravel()
     energy = max(float(own @ own), 1e-12)
-    sup = _dilate(w.own > 0.02, 1).ravel()
+    sup = dilate(w.own > 0.02, 1).ravel()
     res = (y - fit)[sup]
     excess = max(float(res @ res) - sup.sum() * sigma * sigma, 0.0) / (level * level * energy)
     chi_tol = 4.0 * math.sqrt(2.0 * sup.sum()) * sigma * sigma / (level * level * energy)
@@ -141,7 +141,7 @@ def _shape_excess(w: _TubeWindow, y: np.ndarray, fit: np.ndarray, sigma: float, 
 
 def section_shift(w, y: np.ndarray, coef: np.ndarray, sigma: float) -> tuple[float, float]:
     """``(shift, standard error)`` in pixels: the in-plane shift of a tube's rendered section that best explains the
-    residual of its window's fit (:func:`_fit_window`'s ``coef``), to first order (the section's gradient times its
+    residual of its window's fit (:func:`fit_window`'s ``coef``), to first order (the section's gradient times its
     gain, with an offset), and the standard error of its length under pixel noise ``sigma``. ``(0, inf)`` when
     degenerate."""
     own = w.own
@@ -168,7 +168,7 @@ def section_shift(w, y: np.ndarray, coef: np.ndarray, sigma: float) -> tuple[flo
     return n, sigma * math.sqrt(max(var, 0.0))
 
 
-def _spread(w: np.ndarray):
+def window_spread(w: np.ndarray):
     """Weighted variance along rows and columns (pixels^2) of weights ``w`` (h, w); None if empty."""
     total = float(w.sum())
     if not total > 0:
@@ -183,8 +183,8 @@ def _spread(w: np.ndarray):
     return np.array([vr, vc])
 
 
-def _aspect_se(w: np.ndarray, noisy: np.ndarray, spread: np.ndarray, sigma: float) -> float:
-    """Standard error of ``sqrt(vc / vr)`` (the aspect of :func:`_spread`'s variances ``spread``) of weights
+def aspect_error(w: np.ndarray, noisy: np.ndarray, spread: np.ndarray, sigma: float) -> float:
+    """Standard error of ``sqrt(vc / vr)`` (the aspect of :func:`window_spread`'s variances ``spread``) of weights
     ``w`` (h, w) when each pixel of ``noisy`` (h, w, bool) carries noise ``sigma``, to first order (relative):
     ``d vr / d w_i = ((r_i - m_r)^2 - vr) / sum w``, and likewise along the columns."""
     total = float(w.sum())
@@ -193,3 +193,8 @@ def _aspect_se(w: np.ndarray, noisy: np.ndarray, spread: np.ndarray, sigma: floa
     mr, mc = float(w.sum(axis=1) @ r[:, 0]) / total, float(w.sum(axis=0) @ c[0]) / total
     g = 0.5 * (((c - mc) ** 2 - spread[1]) / spread[1] - ((r - mr) ** 2 - spread[0]) / spread[0]) / total
     return sigma * float(np.sqrt(np.sum(g[noisy] ** 2)))
+
+
+#: Relative error of the rendered model itself (supersampling 2 x 2, a few sub-planes): a residual energy this
+#: share of the section's energy is model error, not misfit.
+MODEL_FLOOR = 0.03
