@@ -25,6 +25,9 @@ from chic_register.fit.refine import (
     scanner_crossing_jacobian,
     whitened_residuals,
 )
+from chic_register.fit.section import fit_sections
+from chic_register.imaging.render import render_tubes
+from chic_register.imaging.rician import rayleigh_sigma
 from chic_register.model.pose import invert
 from chic_register.model.tube_model import TubeModel, plane_crossings, section_extent
 
@@ -59,8 +62,6 @@ def centroid_offsets(tubes, model: TubeModel, T_F_from_I: np.ndarray, assignment
     a touching neighbour or a footprint split through the section, whose
     centre follows the pose only weakly), else ones.
     """
-    from chic_register.imaging.render import render_tubes
-
     q, tan, _, found = plane_crossings(model, T_F_from_I, margin_mm=5.0)
     K = q.shape[0]
     off = np.zeros((K, 2))
@@ -127,8 +128,6 @@ def template_shifts(tubes, model: TubeModel, T_F_from_I: np.ndarray, assignment:
     bias); ``fitted`` is False for unmatched tubes (gain 0), degenerate fits
     (gain NaN) and fits without a positive gain.
     """
-    from chic_register.imaging.render import render_tubes
-
     q, tan, _, found = plane_crossings(model, T_F_from_I, margin_mm=5.0)
     K = q.shape[0]
     shift, gain, fitted = np.zeros((K, 2)), np.zeros(K), np.zeros(K, bool)
@@ -301,9 +300,6 @@ def section_refine(model: TubeModel, fit: Fit, xys, Ss, slices, blob_sets, opts)
     (tubes in tissue, blobs much wider than the channels) return ``None``:
     the blob-centre pose then stands, and is verified like any other.
     """
-    from chic_register.fit.section import fit_sections
-    from chic_register.imaging.rician import rayleigh_sigma
-
     assign = [a.copy() for a in fit.assignments]
     wins = [None] * len(slices)  # each tube's pixels: chosen at the first pass, kept (the pose barely moves)
     px = min(pixel_mm(sl) for sl in slices)

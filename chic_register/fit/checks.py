@@ -15,7 +15,9 @@ import math
 
 import numpy as np
 
+from chic_register.errors import ImprecisePose
 from chic_register.fit.refine import scanner_crossing_jacobian
+from chic_register.model.pose import invert
 from chic_register.model.tube_model import plane_crossings, skew
 from chic_register.util.roots import bracketed_root
 
@@ -95,8 +97,6 @@ def check_noise_precision(unc, model, opts, sigmas: float = PRECISION_SIGMAS) ->
     2: a ghosted slice 0.61 deg off, and a thick slab 0.52 deg off, passed on
     residuals at a third of their noise). The pose must pass both.
     """
-    from chic_register.errors import ImprecisePose
-
     to_rad = np.array([math.radians(1.0)] * 3 + [1.0] * 3)  # the covariance's (deg, mm) as the twist's (rad, mm)
     tre, rot = worst_errors(unc.covariance * np.outer(to_rad, to_rad), np.array([0.0, 0.0, 0.5 * model.length_mm]))
     if sigmas * tre > opts.trust_tre_mm or sigmas * rot > opts.trust_rot_deg:
@@ -109,7 +109,6 @@ def check_noise_precision(unc, model, opts, sigmas: float = PRECISION_SIGMAS) ->
 
 def _frame_centre_scanner(model, fit) -> np.ndarray:
     """(3,) the frame centre (0, 0, L/2) of F in the scanner frame at the fit's pose (mm)."""
-    from chic_register.model.pose import invert
     T_sf = invert(fit.T_F_from_scanner)
     return T_sf[:3, :3] @ np.array([0.0, 0.0, 0.5 * model.length_mm]) + T_sf[:3, 3]
 

@@ -165,7 +165,7 @@ def volume_first_guesses(voxels: np.ndarray, affine_lps: np.ndarray, model: Tube
 def _refine(vol, to_index, P, wts, X0):
     """The pose near ``X0`` (T_F_from_scanner) of the highest centreline score (trilinear), by Nelder-Mead over a
     scanner-frame twist (deg, mm) about the samples' mean."""
-    from scipy.optimize import minimize
+    from scipy.optimize import minimize  # deferred: loads scipy only when used (one-shot start-up)
 
     T0 = invert(X0)
     centre = T0[:3, :3] @ P.mean(axis=0) + T0[:3, 3]

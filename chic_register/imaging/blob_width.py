@@ -9,10 +9,12 @@ volumes (:func:`chic_register.io.volumes.simulate_volume`); see :class:`BlobWidt
 
 from __future__ import annotations
 
-from dataclasses import dataclass
+from dataclasses import dataclass, replace
 from functools import lru_cache
 
 import numpy as np
+
+from chic_register.imaging.render import render_tubes
 
 #: Allowed blob-width factors: real blobs are 0.7-2.5x the nominal diameter.
 BLOB_WIDTH_RANGE = (0.2, 5.0)
@@ -24,14 +26,14 @@ def _disc_profile(c_mm, radius_mm: float, sigma_mm: float):
     The share of a 2-D normal distribution centred at distance c that falls
     inside the disc: a non-central chi-square CDF.
     """
-    from scipy.stats import ncx2
+    from scipy.stats import ncx2  # deferred: loads scipy only when used (one-shot start-up)
 
     return ncx2.cdf((radius_mm / sigma_mm) ** 2, 2, (np.asarray(c_mm, dtype=float) / sigma_mm) ** 2)
 
 
 def _blurred_disc_fwhm_mm(radius_mm: float, sigma_mm: float) -> float:
     """Full width at half maximum (mm) of a disc blurred by a Gaussian of ``sigma_mm``."""
-    from scipy.optimize import brentq
+    from scipy.optimize import brentq  # deferred: loads scipy only when used (one-shot start-up)
 
     half = 0.5 * float(_disc_profile(0.0, radius_mm, sigma_mm))
     return 2.0 * brentq(lambda c: float(_disc_profile(c, radius_mm, sigma_mm)) - half, 0.0, radius_mm + 10 * sigma_mm)
@@ -64,7 +66,7 @@ class BlobWidth:
             raise ValueError(f"blob width factor must be {lo:g}..{hi:g}, got {factor:g}")
         if factor <= 1.0:
             return cls(diameter_mm, factor, factor * diameter_mm)
-        from scipy.optimize import brentq
+        from scipy.optimize import brentq  # deferred: loads scipy only when used (one-shot start-up)
 
         r = diameter_mm / 2
         target = factor * diameter_mm
@@ -84,14 +86,11 @@ def render_tubes_widened(tubes, T_F_from_S: np.ndarray, shape, pixel_spacing_mm,
     Tubes of one diameter are rendered and blurred together; groups are
     max-composited. ``blob_width = 1`` is :func:`render_tubes` exactly.
     """
-    from chic_register.imaging.render import render_tubes
-
     if blob_width == 1.0:
         return render_tubes(tubes, T_F_from_S, shape, pixel_spacing_mm, slice_thickness_mm, center_px,
                             supersample, thickness_samples)
-    from dataclasses import replace
 
-    from scipy.ndimage import gaussian_filter
+    from scipy.ndimage import gaussian_filter  # deferred: loads scipy only when used (one-shot start-up)
 
     rs, cs = (float(v) for v in pixel_spacing_mm)
     out = None

@@ -33,8 +33,9 @@ from dataclasses import dataclass
 import numpy as np
 import pyigtl
 
-from chic_register.errors import ChicRegisterError, OutputError
+from chic_register.errors import ChicRegisterError, ImageReadError, OutputError
 from chic_register.io.transforms import ras_matrix, slicer_matrix
+from chic_register.model.slices import Slice
 
 DEFAULT_PORT = 18944
 MAX_DEVICE_NAME = 20  # bytes in the OpenIGTLink header
@@ -320,9 +321,6 @@ def image_to_slices(msg, source: str | None = None) -> list:
     Columns run along i, rows along j (OpenIGTLink's ijk); a RAS image is
     turned to LPS; each plane's thickness is the k spacing.
     """
-    from chic_register.errors import ImageReadError
-    from chic_register.model.slices import Slice
-
     name = source or f"igtl:{msg.device_name or 'IMAGE'}"
     img = np.asarray(msg.image)
     if img.ndim == 4:

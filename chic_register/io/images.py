@@ -152,7 +152,7 @@ def _read_npy(path) -> np.ndarray:
 
 
 def _read_tiff(path) -> np.ndarray:
-    import tifffile
+    import tifffile  # deferred: loads tifffile only when used (one-shot start-up)
 
     try:
         with tifffile.TiffFile(path) as tif:
@@ -171,7 +171,7 @@ def _read_tiff(path) -> np.ndarray:
 
 def _read_pillow(path, kind: str, known: bool = False) -> np.ndarray:
     """Any 2-D image Pillow reads; ``known``: the file has that format's magic bytes."""
-    from PIL import Image, UnidentifiedImageError
+    from PIL import Image, UnidentifiedImageError  # deferred: loads PIL only when used (one-shot start-up)
 
     try:
         with Image.open(path) as img:
@@ -283,7 +283,7 @@ def _rescale(path, ds, frame: int | None) -> tuple[float, float]:
 
 def _no_pixels_reason(ds) -> str:
     """Why a DICOM data set without pixel data is not a slice: truncated image, or a non-image object."""
-    from pydicom.uid import UID
+    from pydicom.uid import UID  # deferred: loads pydicom only when used (one-shot start-up)
 
     meta = getattr(ds, "file_meta", None)
     sop = ds.get("SOPClassUID") or (meta.get("MediaStorageSOPClassUID") if meta is not None else None)
@@ -297,12 +297,12 @@ def _no_pixels_reason(ds) -> str:
 
 def _guess_transfer_syntax(ds) -> None:
     """A raw data set (no file meta) is decoded with the encoding it was read in."""
-    from pydicom.dataset import FileMetaDataset
+    from pydicom.dataset import FileMetaDataset  # deferred: loads pydicom only when used (one-shot start-up)
     from pydicom.uid import (
         ExplicitVRBigEndian,
         ExplicitVRLittleEndian,
         ImplicitVRLittleEndian,
-    )
+    )  # deferred: loads pydicom only when used (one-shot start-up)
 
     meta = getattr(ds, "file_meta", None)
     if meta is not None and "TransferSyntaxUID" in meta:
@@ -325,7 +325,7 @@ def _decode_with_gdcm(path, ds, frames: int, syntax: str, why: str) -> np.ndarra
              f"decompress it first (dcmdjpeg, gdcmconv --raw)")
     if frames != 1:
         raise ImageReadError(path, fault)
-    import SimpleITK as sitk
+    import SimpleITK as sitk  # deferred: loads SimpleITK only when used (one-shot start-up)
 
     try:
         img = sitk.ReadImage(str(path))
@@ -341,8 +341,8 @@ def _decode_with_gdcm(path, ds, frames: int, syntax: str, why: str) -> np.ndarra
 
 
 def _read_dicom(path, has_preamble: bool) -> list[Slice]:
-    import pydicom
-    from pydicom.errors import InvalidDicomError
+    import pydicom  # deferred: loads pydicom only when used (one-shot start-up)
+    from pydicom.errors import InvalidDicomError  # deferred: loads pydicom only when used (one-shot start-up)
 
     try:
         with warnings.catch_warnings():
@@ -486,14 +486,14 @@ def write_plain_image(pixels: np.ndarray, path) -> dict:
             with open(tmp, "wb") as fh:
                 np.save(fh, a)
         elif suffix == ".png":
-            from PIL import Image
+            from PIL import Image  # deferred: loads PIL only when used (one-shot start-up)
 
             peak = float(a.max())
             scale = 65535.0 / peak if peak > 0 else 1.0
             stored = np.clip(np.rint(a * scale), 0, 65535).astype(np.uint16)
             Image.fromarray(stored).save(tmp, format="PNG")
         else:
-            import tifffile
+            import tifffile  # deferred: loads tifffile only when used (one-shot start-up)
 
             tifffile.imwrite(tmp, a.astype(np.float32))
     return {"format": suffix.lstrip("."), "scale": scale}

@@ -25,10 +25,11 @@ from typing import TYPE_CHECKING
 import numpy as np
 
 from chic_register.errors import ChicRegisterError, ImageReadError, InputFileError
+from chic_register.io.images import MAX_SPACING_MM, MIN_SPACING_MM, file_suffix
 from chic_register.io.images import VOLUME_SUFFIXES as FILE_SUFFIXES
-from chic_register.io.images import file_suffix
 from chic_register.model.slices import Slice
 from chic_register.util.atomic import atomic_path
+from chic_register.util.safeload import open_regular_file
 
 if TYPE_CHECKING:  # annotations only: SimpleITK is imported where it is used
     import SimpleITK as sitk
@@ -123,13 +124,12 @@ class Volume:
 
 def volume_from_sitk(img: sitk.Image, source: str = "<sitk>", slice_thickness_mm: float | None = None) -> Volume:
     """A :class:`Volume` from a 3-D scalar SimpleITK image."""
-    import SimpleITK as sitk
+    import SimpleITK as sitk  # deferred: loads SimpleITK only when used (one-shot start-up)
 
     if img.GetDimension() != 3:
         raise ImageReadError(source, f"expected a 3-D volume, got {img.GetDimension()}-D")
     if img.GetNumberOfComponentsPerPixel() != 1:
         raise ImageReadError(source, f"expected scalar voxels, got {img.GetNumberOfComponentsPerPixel()} components")
-    from chic_register.io.images import MAX_SPACING_MM, MIN_SPACING_MM
 
     spacing, origin = np.array(img.GetSpacing()), np.array(img.GetOrigin())
     if not np.all(np.isfinite(spacing) & (spacing >= MIN_SPACING_MM) & (spacing <= MAX_SPACING_MM)):
@@ -151,8 +151,6 @@ def volume_from_sitk(img: sitk.Image, source: str = "<sitk>", slice_thickness_mm
 def _dicom_thickness_mm(reader, spacing_k_mm: float) -> float | None:
     """SliceThickness (0018,0050) of a series' first file when it differs from the slice spacing (gaps between
     slices, or overlapping slices) and is a plausible thickness; else None (the spacing serves)."""
-    from chic_register.io.images import MAX_SPACING_MM, MIN_SPACING_MM
-
     try:
         t = float(str(reader.GetMetaData("0018|0050")).strip()) if reader.HasMetaDataKey("0018|0050") else None
     except (ValueError, RuntimeError):
@@ -185,7 +183,7 @@ def read_volume(path, series_id: str | None = None) -> Volume:
     ``series_id``, a SeriesInstanceUID or a SeriesNumber, to pick one; the
     message lists them).
     """
-    import SimpleITK as sitk
+    import SimpleITK as sitk  # deferred: loads SimpleITK only when used (one-shot start-up)
 
     path = Path(path)
     if not path.exists():
@@ -231,7 +229,6 @@ def read_volume(path, series_id: str | None = None) -> Volume:
             raise ImageReadError(path, "--series applies to a folder of DICOM files, not a volume file")
         if file_suffix(path) not in FILE_SUFFIXES:
             raise ImageReadError(path, f"not a volume file; allowed: {', '.join(FILE_SUFFIXES)} or a DICOM series folder")
-        from chic_register.util.safeload import open_regular_file
 
         try:
             open_regular_file(path, "volume file").close()  # a FIFO or device is refused, not waited on
@@ -257,7 +254,7 @@ LISTED_SERIES = 8
 def _series_tags(reader, folder: Path, series_id: str) -> tuple[str, str, int]:
     """``(SeriesNumber, SeriesDescription, file count)`` of one DICOM series in ``folder`` (from its first file's
     header; empty strings where it has none)."""
-    import SimpleITK as sitk
+    import SimpleITK as sitk  # deferred: loads SimpleITK only when used (one-shot start-up)
 
     files = reader.GetGDCMSeriesFileNames(str(folder), series_id)
     first = sitk.ImageFileReader()
@@ -324,8 +321,14 @@ def _ds(x: float) -> str:
 
 def _write_dicom_series(volume: Volume, folder: Path) -> None:
     """One MR Image Storage file per k-slice (pydicom), the volume's geometry in IPP/IOP."""
-    from pydicom.dataset import FileDataset, FileMetaDataset
-    from pydicom.uid import ExplicitVRLittleEndian, generate_uid
+    from pydicom.dataset import (  # deferred: loads pydicom only when used (one-shot start-up)
+        FileDataset,
+        FileMetaDataset,
+    )
+    from pydicom.uid import (  # deferred: loads pydicom only when used (one-shot start-up)
+        ExplicitVRLittleEndian,
+        generate_uid,
+    )
 
     stored, intercept, slope = _dicom_quantise(volume.voxels)
     now = datetime.datetime.now()
@@ -379,7 +382,7 @@ def write_volume(volume: Volume, path) -> Path:
     path.parent.mkdir(parents=True, exist_ok=True)
     suffix = file_suffix(path)
     if suffix in WRITE_SUFFIXES:
-        import SimpleITK as sitk
+        import SimpleITK as sitk  # deferred: loads SimpleITK only when used (one-shot start-up)
 
         try:
             with atomic_path(path, suffix=suffix) as tmp:

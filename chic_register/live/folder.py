@@ -18,6 +18,7 @@ modification instead (the part the scanner cannot hide).
 
 from __future__ import annotations
 
+import importlib
 import os
 import sys
 import time
@@ -27,6 +28,9 @@ from pathlib import Path
 import numpy as np
 
 from chic_register.errors import ChicRegisterError, ImageReadError, NoLock
+from chic_register.io.images import read_slices
+from chic_register.outputs.deliver import quality, tool_pose
+from chic_register.pipeline.register import register as register_slices
 
 IGNORED_SUFFIXES = (".tmp", ".part", ".partial", "~", ".json", ".swp")
 RETRY_FIRST_S = 1.0
@@ -148,16 +152,17 @@ class Publisher:
         self.geometry_path = geometry_path
 
     def tool_pose(self, reg):
-        from chic_register.outputs.deliver import tool_pose
-
         return None if reg is None else tool_pose(reg, self.geom)
 
     def send(self, reg, reason: str = "") -> tuple[str, list[str]]:
         """Pose messages (or STATUS no_lock): returns ("" | "sent" | error, failures)."""
         if self.link is None:
             return "", []
-        from chic_register.io.igtl import NoPeer, no_lock_messages, pose_messages
-        from chic_register.outputs.deliver import quality
+        from chic_register.io.igtl import (  # deferred: loads SimpleITK, pyigtl only when used (one-shot start-up)
+            NoPeer,
+            no_lock_messages,
+            pose_messages,
+        )
 
         try:
             if reg is None:
@@ -174,7 +179,9 @@ class Publisher:
     def scene(self, reg, slices, stem: str) -> list[str]:
         if self.scene_dir is None or reg is None:
             return []
-        from chic_register.outputs.scene import write_scene
+        from chic_register.outputs.scene import (
+            write_scene,  # deferred: loads SimpleITK only when used (one-shot start-up)
+        )
 
         try:
             write_scene(self.scene_dir / stem, reg, self.geom, slices, name=self.name,
@@ -222,8 +229,6 @@ def _scan(folder: Path) -> dict[str, tuple]:
 
 def warm_up() -> None:
     """Import the image readers now, so the first file's latency does not include loading them."""
-    import importlib
-
     for name in ("pydicom", "pydicom.pixels", "PIL.Image", "PIL.PngImagePlugin", "tifffile"):
         try:
             importlib.import_module(name)
@@ -275,10 +280,8 @@ def track(
     Stops after ``max_files`` registered files, after ``timeout_s`` seconds,
     or on Ctrl-C (KeyboardInterrupt), and returns a :class:`TrackSummary`.
     """
-    from chic_register.io.images import read_slices
-
     if register is None:
-        from chic_register.pipeline.register import register
+        register = register_slices
     on_event = on_event or (lambda event: None)
     on_message = on_message or (lambda text: None)
     folder = Path(folder)
@@ -288,7 +291,9 @@ def track(
         raise ValueError("poll_s must be > 0 and settle_s >= 0")
     sender = link
     if sender is None and igtl is not None:
-        from chic_register.io.igtl import IgtlClient
+        from chic_register.io.igtl import (
+            IgtlClient,  # deferred: loads SimpleITK, pyigtl only when used (one-shot start-up)
+        )
 
         sender = IgtlClient(igtl)
     publish = Publisher(geom, sender, igtl_name, scene_dir, geometry_path)

@@ -28,6 +28,7 @@ from chic_register.io.igtl import (
 )
 from chic_register.live.folder import Publisher, TrackEvent, TrackSummary, warm_up
 from chic_register.outputs.deliver import quality, tool_pose
+from chic_register.pipeline.register import register as register_slices
 
 
 def _connect(connect, listen, deadline):
@@ -56,7 +57,7 @@ def track_images(geom, *, connect=None, listen=None, name: str = "CHIC", max_ima
     if (connect is None) == (listen is None):
         raise ValueError("give one of connect and listen")
     if register is None:
-        from chic_register.pipeline.register import register
+        register = register_slices
     on_event = on_event or (lambda event: None)
     on_message = on_message or (lambda text: None)
     warm_up()

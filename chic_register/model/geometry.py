@@ -34,6 +34,7 @@ from chic_register.errors import GeometryFileError, InputFileError
 from chic_register.model.body import BODY_SHAPES, Body, ToolFrame, rigid_4x4
 from chic_register.model.tubes import HelixTube, LineTube, Tube
 from chic_register.util.atomic import write_text
+from chic_register.util.safeload import load_yaml_file
 
 #: Plausibility bounds of a geometry file (mm): a fiducial that fits in an MRI bore.
 MAX_EXTENT_MM = 1000.0
@@ -370,8 +371,6 @@ def load_geometry(path, check_hash: bool = True) -> FiducialGeometry:
     Raises :class:`GeometryFileError` with a one-line message naming the file
     and the fault.
     """
-    from chic_register.util.safeload import load_yaml_file
-
     p = Path(path)
     try:
         data = load_yaml_file(p, "geometry file")

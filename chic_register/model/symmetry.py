@@ -24,6 +24,7 @@ from dataclasses import dataclass
 import numpy as np
 
 from chic_register.model.geometry import FiducialGeometry
+from chic_register.model.tube_model import GeometryKey
 
 _N_SAMPLES = 65
 _COARSE_SAMPLES = 9  # every 8th of the 65: the solver's up-front test, before the full one (when it may pass)
@@ -111,8 +112,6 @@ def _memo_candidates(key) -> tuple[tuple[str, float, tuple[int, ...]], ...]:
 
 def frame_symmetries(geom: FiducialGeometry, tolerance_mm: float) -> tuple[tuple[FrameSymmetry, ...], float | None]:
     """Symmetries within ``tolerance_mm``, and the smallest mismatch of any candidate (None if none maps)."""
-    from chic_register.model.tube_model import GeometryKey
-
     try:
         candidates = _memo_candidates(GeometryKey(geom))
     except TypeError:  # an unhashable value somewhere: no memo
@@ -135,8 +134,6 @@ def prior_needed(geom: FiducialGeometry, tolerance_mm: float) -> str | None:
     end in an ambiguous fit (or, worse, a coin toss). Memoised per distinct
     geometry and tolerance (the solver asks on every call without a prior).
     """
-    from chic_register.model.tube_model import GeometryKey
-
     try:
         return _memo_prior_needed(GeometryKey(geom), float(tolerance_mm))
     except TypeError:  # an unhashable value somewhere: no memo

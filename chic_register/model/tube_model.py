@@ -18,6 +18,7 @@ from dataclasses import dataclass
 import numpy as np
 
 from chic_register.model.geometry import FiducialGeometry, content_sha256
+from chic_register.model.tubes import HelixTube, LineTube
 
 
 @dataclass(frozen=True, eq=False)
@@ -177,8 +178,6 @@ def tubes_repr(tubes) -> str:
 def immutable_tubes(tubes) -> bool:
     """Whether ``tubes`` is a tuple of the frozen tube classes holding only str, bool, int, float and tuples of
     floats (nothing a caller could change in place)."""
-    from chic_register.model.tubes import HelixTube, LineTube
-
     if type(tubes) is not tuple:
         return False
     for t in tubes:

@@ -9,6 +9,7 @@ locked.
 from __future__ import annotations
 
 import math
+import re
 
 import numpy as np
 
@@ -118,8 +119,6 @@ def joint_fit(model: TubeModel, slices, xys, Ss, res_mm, per_slice, opts: SolveO
 
 def no_slice_locked(skipped: list) -> str:
     """One line for slices of which none locked: how many, the commonest reasons, and one in full."""
-    import re
-
     groups: dict[str, list] = {}
     for s in skipped:
         key = re.sub(r"\d+(\.\d+)?", "N", s.reason.split(":")[0]).strip()

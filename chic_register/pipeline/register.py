@@ -44,10 +44,12 @@ from chic_register.detect.blobs import Blobs, centres_xy_mm, detect_blobs, resol
 from chic_register.detect.dropout import fill_slice_dropouts
 from chic_register.detect.filters import SAFE_MAGNITUDE
 from chic_register.detect.magnitude import refuse_signed
+from chic_register.detect.noise import difference_sigma
 from chic_register.detect.wide_blobs import blobs_wide
 from chic_register.errors import AmbiguousFit, ImprecisePose, NoLock, SliceRefused
 from chic_register.fit.accuracy import (
     centroid_refine,
+    drop_section_outliers,
     section_refine,
 )
 from chic_register.fit.checks import (
@@ -61,6 +63,7 @@ from chic_register.guess.ellipse import Ellipse
 from chic_register.model.geometry import FiducialGeometry
 from chic_register.model.pose import invert, slice_angles
 from chic_register.model.slices import Slice
+from chic_register.model.symmetry import EXACT_SHARE, prior_needed
 from chic_register.model.tube_model import (
     TubeModel,
     plane_crossings,
@@ -74,6 +77,8 @@ from chic_register.pipeline.joint import (
     solve_order,
     track_pose,
 )
+from chic_register.precision.uncertainty import pixel_fit_uncertainty, registration_uncertainty, target_point
+from chic_register.verify.pixels import verify_fit
 from chic_register.verify.trust import check_trust
 
 # --------------------------------------------------------------------------- public API
@@ -185,7 +190,6 @@ def register(slices: list[Slice], geom: FiducialGeometry, *, options: SolveOptio
     if not slices:
         raise NoLock("no slices given")
     if opts.prior is None:  # a self-symmetric frame (z001): no image can choose; say so before any work
-        from chic_register.model.symmetry import EXACT_SHARE, prior_needed
 
         # only a symmetry within the channels' own print tolerance: a near-twin a pixel or so away (the needle
         # guide's half turn, 0.63 mm) is for the pixels and the rival poses to decide, as every other ambiguity
@@ -281,7 +285,7 @@ def register(slices: list[Slice], geom: FiducialGeometry, *, options: SolveOptio
     blurred = None  # that pixel fit (chic_register.fit.blurred.BlurredFit)
     wide = opts.blurred_fit and not opts.centroid_model and blobs_wide(model, slices, blob_sets, best.assignments)
     if wide:  # the sections are blurred: the sharp section model does not describe them, a blurred one does
-        from chic_register.fit.blurred import blurred_stage
+        from chic_register.fit.blurred import blurred_stage  # deferred: only wide blobs need it (one-shot start-up)
 
         best, precision, blurred = blurred_stage(model, best, xys, Ss, slices, blob_sets)
     elif opts.section_fit and not opts.centroid_model:
@@ -308,8 +312,6 @@ def register(slices: list[Slice], geom: FiducialGeometry, *, options: SolveOptio
         best = corrected
     checks = None
     if opts.verify:  # the last word: the pose proved against the pixels (chic_register.verify.pixels)
-        from chic_register.verify.pixels import verify_fit
-
         try:
             while True:
                 try:
@@ -400,12 +402,6 @@ def build_registration(geom: FiducialGeometry, model: TubeModel, geom_sha: str, 
     t3 = time.perf_counter()
     unc = None
     if opts.uncertainty or opts.verify or math.isfinite(opts.max_tre_mm):
-        from chic_register.precision.uncertainty import (
-            pixel_fit_uncertainty,
-            registration_uncertainty,
-            target_point,
-        )
-
         target = target_point(geom, target_F_mm)
         if pixel_fit is not None:
             unc = pixel_fit_uncertainty(pixel_fit, slices, blob_sets, target)
@@ -440,9 +436,6 @@ def _without_outlier_sections(geom, model: TubeModel, fit, rivals, slices, Ss, b
     (:func:`~chic_register.fit.accuracy.drop_section_outliers`) when that pose verifies at
     :data:`~chic_register.fit.checks.OUTLIER_PRECISION_SIGMAS` and lies within 1 mm and 1 deg of ``fit``
     (:func:`~chic_register.verify.trust.poses_distinct`); else ``(None, fit)``."""
-    from chic_register.fit.accuracy import drop_section_outliers
-    from chic_register.verify.pixels import verify_fit
-
     dropped = drop_section_outliers(model, fit, Ss, opts)
     if dropped is fit or poses_distinct(dropped.T_F_from_scanner, fit.T_F_from_scanner, model):
         return None, fit
@@ -484,8 +477,6 @@ def _worth_flattening(blobs: Blobs, model: TubeModel, pixels: np.ndarray) -> boo
     of neighbouring pixels do (:func:`chic_register.detect.noise.difference_sigma`): the detector's background mixes a
     dark and a bright region when a fiducial lies in a water bath (the median is the water, the tubes sit in dark
     plastic), and its noise then reads ten times too large. (A NaN estimate compares false.)"""
-    from chic_register.detect.noise import difference_sigma
-
     if not (math.isfinite(blobs.threshold) and blobs.noise_sigma > 0 and len(blobs) < 3 * len(model.ids)):
         return False
     split = blobs.threshold - blobs.background

@@ -16,9 +16,16 @@ import time
 
 import numpy as np
 
+from chic_register.detect.blobs import centres_xy_mm, detect_blobs, median
+from chic_register.detect.wide_blobs import WIDE_RATIO, blob_width_ratio
 from chic_register.errors import ChicRegisterError, NoLock, SliceRefused
+from chic_register.fit.blurred import blurred_stage
+from chic_register.fit.refine import assign_blobs, refine
+from chic_register.guess.volume_search import volume_first_guesses
 from chic_register.io.volumes import Volume
 from chic_register.model.geometry import FiducialGeometry
+from chic_register.model.pose import near_prior, rotation_deg, slice_angles
+from chic_register.model.tube_model import plane_crossings, prepare_geometry
 from chic_register.options import SolveOptions
 from chic_register.pipeline.register import (
     Registration,
@@ -26,6 +33,7 @@ from chic_register.pipeline.register import (
     build_registration,
     register,
 )
+from chic_register.verify.pixels import verify_fit
 
 #: A volume whose slices give no pose, with wide blobs: the pixels of this many slices, spread over those that
 #: cross the fiducial, are fitted through the blurred model (CPU grows with them; 6 slices carry ~60 sections).
@@ -103,8 +111,6 @@ LOOKS_WIDE_RATIO = 1.8
 
 def _looks_wide(volume: Volume, geom: FiducialGeometry) -> bool:
     """Whether about eight slices spread over the volume show blobs much wider than the channels."""
-    from chic_register.detect.blobs import detect_blobs, median
-
     d = float(np.median([t.diameter for t in geom.tubes]))
     nk = volume.shape[0]
     ratios = []
@@ -126,10 +132,6 @@ def _register_wide(volume: Volume, geom: FiducialGeometry, opts: SolveOptions, t
     as well (:data:`RIVAL_SHARE`) is fitted and verified too: two distinct poses that both verify are refused as
     ambiguous. None when the blobs are not wide or no pose is found (the slices' own reason stands);
     :class:`NoLock` when the poses found fail their checks."""
-    from chic_register.guess.volume_search import volume_first_guesses
-    from chic_register.model.pose import near_prior
-    from chic_register.model.tube_model import prepare_geometry
-
     t0 = time.perf_counter()
     model, geom_sha = prepare_geometry(geom)
     guesses = [g for g in volume_first_guesses(volume.voxels, volume.affine_lps, model) if near_prior(g[1], opts)]
@@ -193,13 +195,6 @@ def _fit_and_verify(geom, model, X: np.ndarray, all_slices, opts: SolveOptions, 
     ``(fit, slices, Ss, blob_sets, xys, checks, skipped, BlurredFit)``; None when the blobs are not wide or too few slices cross
     the body; :class:`NoLock` when it does not converge or fails its verification (its detail then holds the fit's
     ``residual_sigma``). ``verify`` False: fitted only (``checks`` None)."""
-    from chic_register.detect.blobs import centres_xy_mm, detect_blobs
-    from chic_register.detect.wide_blobs import WIDE_RATIO, blob_width_ratio
-    from chic_register.fit.blurred import blurred_stage
-    from chic_register.fit.refine import assign_blobs, refine
-    from chic_register.model.tube_model import plane_crossings
-    from chic_register.verify.pixels import verify_fit
-
     Ss_all = [sl.T_scanner_from_image() for sl in all_slices]
     crossing = [k for k in range(len(all_slices)) if _mid_body(model, X @ Ss_all[k])]
     if len(crossing) < 2:
@@ -261,9 +256,6 @@ END_SHARE = 0.15
 
 def _mid_body(model, T_F_from_I: np.ndarray) -> bool:
     """The slice crosses the fiducial's axis away from its end faces, with every tube's section in it."""
-    from chic_register.model.pose import slice_angles
-    from chic_register.model.tube_model import plane_crossings
-
     depth = float(slice_angles(T_F_from_I).depth_mm)
     L = model.length_mm
     return END_SHARE * L <= depth <= (1 - END_SHARE) * L and bool(plane_crossings(model, T_F_from_I)[3].all())
@@ -272,8 +264,6 @@ def _mid_body(model, T_F_from_I: np.ndarray) -> bool:
 def _far(T1: np.ndarray, T2: np.ndarray, model) -> bool:
     """Two poses another solution apart, not one pose found twice: more than a channel's width at a tube end, or
     more than 5 degrees."""
-    from chic_register.model.pose import rotation_deg
-
     L = model.length_mm
     rmax = float(np.max(model.axis_radius_mm)) if model.axis_radius_mm.size else 0.0
     pts = np.array([[rmax, 0, 0], [-rmax, 0, L], [0, rmax, L / 2], [0, 0, 0], [0, 0, L]])

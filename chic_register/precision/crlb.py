@@ -34,12 +34,14 @@ costs D*T*A such calls.
 
 from __future__ import annotations
 
+import dataclasses
 import functools
 import math
 from dataclasses import dataclass, field
 
 import numpy as np
 
+from chic_register.imaging.render import render_slice
 from chic_register.model.geometry import FiducialGeometry
 from chic_register.model.pose import rigid, slice_angles, slice_frame, wrap_deg
 from chic_register.model.pose_params import (
@@ -149,7 +151,7 @@ class PrecisionBound:
 @functools.lru_cache(maxsize=1)
 def _rician_table():
     """Rician information factor w(a) on a grid of a = signal / sigma (w -> 1 at high a, 0 at a = 0)."""
-    from scipy.special import i0e, i1e
+    from scipy.special import i0e, i1e  # deferred: loads scipy only when used (one-shot start-up)
 
     a = np.concatenate([np.linspace(0.0, 10.0, 201), np.linspace(10.25, 40.0, 120)])
     w = np.empty_like(a)
@@ -179,7 +181,7 @@ def noise_weights(mu: np.ndarray, protocol: Protocol) -> np.ndarray:
 
 def perturbation(delta) -> np.ndarray:
     """4x4 rigid motion of the fiducial in F for ``delta = (rx, ry, rz (rad), tx, ty, tz (mm))``."""
-    from scipy.spatial.transform import Rotation
+    from scipy.spatial.transform import Rotation  # deferred: loads scipy only when used (one-shot start-up)
 
     d = np.asarray(delta, dtype=float)
     return rigid(Rotation.from_rotvec(d[:3]).as_matrix(), d[3:])
@@ -210,8 +212,6 @@ def slice_frames(depth_mm, tilt_deg, azimuth_deg, twist_deg, protocol: Protocol)
 def model_image(geom: FiducialGeometry, T_F_from_S: np.ndarray, protocol: Protocol, shape, delta=None,
                 quality: str = "default") -> np.ndarray:
     """Noise-free image (gain 1) of the slice ``T_F_from_S`` with the fiducial moved by ``delta`` (see :func:`perturbation`)."""
-    from chic_register.imaging.render import render_slice
-
     ss, ts = QUALITY[quality]
     T = np.asarray(T_F_from_S, dtype=float)
     if delta is not None:
@@ -235,7 +235,7 @@ def image_jacobian(geom: FiducialGeometry, T_F_from_S: np.ndarray, protocol: Pro
     (turning about ``c`` the bound changes by < 2 % for steps of 1e-4 to
     3e-3 rad and renderer sampling of 4 or 12).
     """
-    from scipy.spatial.transform import Rotation
+    from scipy.spatial.transform import Rotation  # deferred: loads scipy only when used (one-shot start-up)
 
     mu = model_image(geom, T_F_from_S, protocol, shape, quality=quality)
     c = np.asarray(T_F_from_S, dtype=float)[:3, 3]
@@ -291,8 +291,6 @@ def fisher_information(geom: FiducialGeometry, depth_mm: float, tilt_deg: float,
                        sections: str = "crossing") -> np.ndarray:
     """7x7 Fisher information of (delta (rad, mm), gain) from every slice of the protocol (the tubes of
     :func:`counted_tubes`)."""
-    import dataclasses
-
     F = np.zeros((7, 7))
     s2 = protocol.sigma ** 2
     for T in slice_frames(depth_mm, tilt_deg, azimuth_deg, twist_deg, protocol):

@@ -8,7 +8,7 @@ from pathlib import Path
 
 import numpy as np
 
-from chic_register.precision.crlb import PrecisionMap
+from chic_register.precision.crlb import PrecisionMap, Protocol, precision_map
 from chic_register.util.atomic import save_figure
 
 #: (column, heading, format) of the tables.
@@ -52,10 +52,10 @@ def markdown_map(pm: PrecisionMap) -> str:
 
 def plot_map(pm: PrecisionMap, path, title: str = "") -> Path:
     """Normal angle, twist, depth and TRE bounds against depth, one line per tilt (PNG, written atomically)."""
-    import matplotlib
+    import matplotlib  # deferred: loads matplotlib only when used (one-shot start-up)
 
     matplotlib.use("Agg", force=False)
-    import matplotlib.pyplot as plt
+    import matplotlib.pyplot as plt  # deferred: loads matplotlib only when used (one-shot start-up)
 
     depth = pm.column("depth_mm")
     tilt = pm.column("tilt_deg")
@@ -87,8 +87,6 @@ def design_precision(geometry, pixel_size_mm: float, slice_thickness_mm: float, 
                      tilts_deg=DESIGN_TILTS_DEG, n_azimuths: int = 2, depth_fractions=(0.1, 0.3, 0.5, 0.7, 0.9)):
     """The coarse precision map of a design for its imaging protocol (one slice, Rician noise); None when
     the protocol has ideal (0 mm) pixels, for which no noise model applies."""
-    from chic_register.precision.crlb import Protocol, precision_map
-
     if not pixel_size_mm > 0:
         return None
     L = float(geometry.body.length)

@@ -38,12 +38,15 @@ from chic_register.detect.noise import (
     NoiseEstimate,
     background_noise,
 )
+from chic_register.fit.refine import scanner_crossing_jacobian, whitened_residuals
+from chic_register.model.pose import invert
 from chic_register.model.pose_params import (
     PARAMETER_FRAME,
     PARAMETER_ORDER,
     default_target,
     tre_rms_mm,
 )
+from chic_register.model.tube_model import adjoint, plane_crossings
 
 
 @dataclass(frozen=True)
@@ -344,10 +347,6 @@ def registration_uncertainty(model, fit, xys, Ss, slices, blob_sets, target_F_mm
     information ``L`` (K, 2, 2) the fit was weighted by, the noise sigma ``L`` assumed); ``xys`` the blob
     centroids (image mm) per slice, ``Ss`` the slices' ``T_scanner_from_image``.
     """
-    from chic_register.fit.refine import scanner_crossing_jacobian, whitened_residuals
-    from chic_register.model.pose import invert
-    from chic_register.model.tube_model import adjoint, plane_crossings
-
     X = fit.T_F_from_scanner
     Ad_sf = adjoint(invert(X))
     meas = getattr(fit, "measurements", None)

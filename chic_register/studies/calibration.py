@@ -15,10 +15,17 @@ from dataclasses import dataclass
 
 import numpy as np
 
+from chic_register.detect.blobs import centres_xy_mm, detect_blobs
+from chic_register.errors import NoLock
+from chic_register.fit.refine import refine
+from chic_register.imaging.simulate import simulate_slice
 from chic_register.model.body import Body
 from chic_register.model.geometry import FiducialGeometry
 from chic_register.model.pose import invert
+from chic_register.model.tube_model import prepare_geometry
 from chic_register.model.tubes import LineTube
+from chic_register.pipeline.register import register
+from chic_register.precision.uncertainty import mahalanobis2, registration_uncertainty, target_point
 
 
 def z001_geometry(diameter_mm: float = 3.0) -> FiducialGeometry:
@@ -34,7 +41,7 @@ def z001_geometry(diameter_mm: float = 3.0) -> FiducialGeometry:
 
 def pose_error(T_true: np.ndarray, T_est: np.ndarray) -> np.ndarray:
     """``delta`` (deg, mm) with ``T_est = T_true @ exp(delta)`` (rotation vector, then translation)."""
-    from scipy.spatial.transform import Rotation
+    from scipy.spatial.transform import Rotation  # deferred: loads scipy only when used (one-shot start-up)
 
     D = invert(np.asarray(T_true, float)) @ np.asarray(T_est, float)
     return np.concatenate([np.degrees(Rotation.from_matrix(D[:3, :3]).as_rotvec()), D[:3, 3]])
@@ -65,18 +72,6 @@ def run_calibration(geom: FiducialGeometry, poses, draws_per_pose: int, seed: in
     the reported covariance. ``solver``: ``"register"`` (the full solver) or ``"refine"`` (detection and the
     solver's Gauss-Newton refinement started at the truth). ``prior``: give ``register`` the true pose as its
     orientation prior (what resolves a self-symmetric layout such as the Z-frame; see ``SolveOptions.prior``)."""
-    from chic_register.detect.blobs import centres_xy_mm, detect_blobs
-    from chic_register.errors import NoLock
-    from chic_register.fit.refine import refine
-    from chic_register.imaging.simulate import simulate_slice
-    from chic_register.model.tube_model import prepare_geometry
-    from chic_register.pipeline.register import register
-    from chic_register.precision.uncertainty import (
-        mahalanobis2,
-        registration_uncertainty,
-        target_point,
-    )
-
     model, _ = prepare_geometry(geom)
     target = target_point(geom, target_F_mm)
     rng = np.random.default_rng(seed)

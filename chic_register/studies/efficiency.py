@@ -33,9 +33,11 @@ from dataclasses import dataclass
 import numpy as np
 
 from chic_register.errors import NoLock
+from chic_register.imaging.simulate import add_rician_noise, simulate_slice
 from chic_register.model.geometry import FiducialGeometry
-from chic_register.model.pose import apply, invert, wrap_deg
+from chic_register.model.pose import apply, invert, slice_angles, wrap_deg
 from chic_register.model.pose_params import default_target
+from chic_register.pipeline.register import register
 from chic_register.precision.crlb import (
     Protocol,
     counted_tubes,
@@ -114,8 +116,6 @@ def ratio_interval(errors: np.ndarray, crlb: np.ndarray, *, level: float = 0.95,
 def pose_errors(T_scanner_from_fiducial_est: np.ndarray, T_scanner_from_fiducial_true: np.ndarray,
                 T_scanner_from_image: np.ndarray, target_F_mm) -> np.ndarray:
     """Errors (4,) in :data:`METRICS` order: |normal angle|, signed twist, signed depth, |target error|."""
-    from chic_register.model.pose import slice_angles
-
     T_est = invert(T_scanner_from_fiducial_est) @ T_scanner_from_image
     T_true = invert(T_scanner_from_fiducial_true) @ T_scanner_from_image
     normal = math.degrees(math.acos(min(1.0, abs(float(T_est[:3, 2] @ T_true[:3, 2])))))
@@ -137,8 +137,6 @@ def pose_efficiency(geom: FiducialGeometry, depth_mm: float, tilt_deg: float, az
     ``draws`` up to ``draws_max`` in all while any metric's 95 % interval
     (:func:`ratio_interval`) contains ``target_ratio``.
     """
-    from chic_register.imaging.simulate import add_rician_noise, simulate_slice
-    from chic_register.pipeline.register import register
 
     # the pose's own precision test would refuse whole poses (those predicted worse than its limits): here the
     # question is how precise the fit is, so that refusal is off unless asked for (the verification still runs)

@@ -35,8 +35,10 @@ from pathlib import Path
 import numpy as np
 
 from chic_register.errors import NoLock
+from chic_register.imaging.simulate import simulate_slice
 from chic_register.model.geometry import FiducialGeometry
 from chic_register.model.pose import invert, wrap_deg
+from chic_register.pipeline.register import register
 from chic_register.util.atomic import atomic_path, write_json
 
 #: The paper's simulation results: group -> (max error, standard deviation) and unit.
@@ -159,9 +161,6 @@ def run_study(geom: FiducialGeometry, draws: int = 20, seed: int = 0, *, noise: 
     (default :data:`STUDY_REGISTER_OPTIONS`). Seeded: the same arguments give
     the same result.
     """
-    from chic_register.imaging.simulate import simulate_slice
-    from chic_register.pipeline.register import register
-
     if draws < 1:
         raise ValueError(f"draws must be >= 1, got {draws}")
     reg_opts = dict(STUDY_REGISTER_OPTIONS if register_options is None else register_options)
@@ -171,7 +170,7 @@ def run_study(geom: FiducialGeometry, draws: int = 20, seed: int = 0, *, noise: 
     axial, normal, twist, ms = (np.full((n, draws), np.nan) for _ in range(4))
     bar = None
     if progress:
-        from tqdm import tqdm
+        from tqdm import tqdm  # deferred: loads tqdm only when used (one-shot start-up)
 
         bar = tqdm(total=n * draws, desc=f"paper study ({noise})", unit="slice")
     for i, c in enumerate(cases):
@@ -233,10 +232,10 @@ def format_summary(result: StudyResult) -> str:
 
 def save_plots(result: StudyResult, out_dir, tag: str = "") -> list[Path]:
     """Figures like the paper's Fig. 7 (axial errors) and Fig. 8 (normal and twist errors)."""
-    import matplotlib
+    import matplotlib  # deferred: loads matplotlib only when used (one-shot start-up)
 
     matplotlib.use("Agg", force=False)
-    import matplotlib.pyplot as plt
+    import matplotlib.pyplot as plt  # deferred: loads matplotlib only when used (one-shot start-up)
 
     out_dir = Path(out_dir)
     out_dir.mkdir(parents=True, exist_ok=True)

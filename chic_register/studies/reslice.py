@@ -32,6 +32,7 @@ import SimpleITK as sitk
 from chic_register.errors import NoLock
 from chic_register.model.pose import invert, slice_angles, slice_frame, wrap_deg
 from chic_register.model.slices import Slice
+from chic_register.pipeline.register import register as register_slices
 
 AXES = ("x_mm", "y_mm", "z_mm", "tilt_deg", "twist_deg")
 
@@ -239,7 +240,7 @@ def reslice_study(
     without lock counts in the table's footer, not in its numbers.
     """
     if register is None:
-        from chic_register.pipeline.register import register
+        register = register_slices
     img = _as_sitk(volume)
     T_true = np.asarray(T_scanner_from_fiducial_true, dtype=float)
     depths = default_depths(geom, tilt_deg) if depths_mm is None else np.atleast_1d(np.asarray(depths_mm, float))

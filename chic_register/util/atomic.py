@@ -86,7 +86,7 @@ def write_json(path, doc) -> Path:
 
 def save_figure(fig, path, dpi: int = 110) -> Path:
     """Save a matplotlib figure to ``path`` as PNG atomically, then close it (also on failure)."""
-    import matplotlib.pyplot as plt
+    import matplotlib.pyplot as plt  # deferred: loads matplotlib only when used (one-shot start-up)
 
     try:
         with atomic_path(path) as tmp:

@@ -26,10 +26,13 @@ import numpy as np
 from chic_register.detect.filters import dilate
 from chic_register.errors import NoLock
 from chic_register.fit.accuracy import section_refine
+from chic_register.fit.lock import lock_slice
 from chic_register.fit.refine import match_gate_mm, refine
 from chic_register.imaging.psf import gaussian_blur
 from chic_register.model.pose import near_prior, slice_angles
 from chic_register.model.tube_model import poses_distinct
+from chic_register.util.lapack import lstsq
+from chic_register.verify.windows import MODEL_FLOOR, tube_windows
 
 #: A rival pose must explain the pixels worse by this many noise variances (a log-likelihood margin of half of
 #: it) plus the model's own error, else the slice is ambiguous.
@@ -126,10 +129,6 @@ def stray_rivals(model, xy: np.ndarray, S: np.ndarray, assignment: np.ndarray, o
     each matched blob removed in turn, it does. Each such fit is a rival for
     :func:`_compare_rival`.
     """
-    from chic_register.fit.lock import (
-        lock_slice,  # the first-guess stage (imported here: it imports the trust checks)
-    )
-
     out = []
     for m in sorted({int(i) for i in assignment if i >= 0}):
         try:
@@ -152,8 +151,6 @@ def second_copy_rivals(model, xy: np.ndarray, S: np.ndarray, assignment: np.ndar
     such fit is a rival for :func:`_compare_rival`, where the copy that
     explains less of the pixels (the ghost) loses.
     """
-    from chic_register.fit.lock import lock_slice  # (as in stray_rivals)
-
     unused = np.ones(len(xy), bool)
     unused[assignment[assignment >= 0]] = False
     rest = np.flatnonzero(unused)  # (np.setdiff1d's unique imports numpy.ma: ~40 ms of a one-shot solve)
@@ -216,9 +213,6 @@ def _compare_rival(geom, model, check, T_F_from_I_rival: np.ndarray, sl) -> tupl
     fixed floor refuses (``benchmarks/hunt_print.py --kind scale``), so the
     floor stays fixed.
     """
-    from chic_register.util.lapack import lstsq
-    from chic_register.verify.windows import MODEL_FLOOR, tube_windows
-
     pixels = np.asarray(sl.pixels, float)
     _, rival = tube_windows(geom, model, T_F_from_I_rival, pixels.shape, tuple(float(v) for v in sl.pixel_spacing_mm),
                         float(sl.slice_thickness_mm), canvas_only=True)
