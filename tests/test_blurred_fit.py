@@ -8,6 +8,7 @@ import pytest
 from scipy import ndimage as ndi
 
 from chic_register.detect.blobs import detect_blobs
+from chic_register.detect.detected import DetectedSlice
 from chic_register.detect.wide_blobs import WIDE_RATIO, blob_width_ratio
 from chic_register.errors import NoLock
 from chic_register.fit.blurred import blurred_fit
@@ -83,7 +84,7 @@ def test_blob_width_ratio_reads_the_blur(neuro_geometry, width, lo, hi):
     reg = register([sl], neuro_geometry, verify=False, blurred_fit=False)
     b = detect_blobs(sl.pixels, sl.pixel_spacing_mm, model.diameter_mm)
     a = np.array([reg.slices[0].assignment.get(t, -1) for t in model.ids])
-    ratio = blob_width_ratio(model, [sl], [b], [a])
+    ratio = blob_width_ratio(model, [DetectedSlice.of(sl, b)], [a])
     assert lo < ratio < hi
     assert (ratio >= WIDE_RATIO) == (width > 1)
 

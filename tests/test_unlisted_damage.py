@@ -126,12 +126,12 @@ def test_a_signed_image_is_refused(monkeypatch, seed, index):
     """The real part of a complex image under a phase ramp (the hunt's signed_phase): its sections are shaded by
     the cosine of the phase, and the three such slices of seeds 2 and 3 locked 0.52-0.90 deg off with residuals
     like noise. The background's blocks averaging below zero in one part and above it in another refuse them."""
-    from chic_register.pipeline import register as solve
+    from chic_register.pipeline import detection
 
     sl, _, geom = damaged_case(seed, index, "signed_phase")
     with pytest.raises(NoLock, match="signed"):
         register([sl], geom)
-    monkeypatch.setattr(solve, "refuse_signed", lambda *a: None)
+    monkeypatch.setattr(detection, "refuse_signed", lambda *a: None)
     assert false_lock(outcome(seed, index, "signed_phase"))
 
 

@@ -362,7 +362,7 @@ def test_the_pose_is_never_more_precise_than_its_pixel_noise_allows(monkeypatch)
     """Hunt seed 2, case 146 (a ghosted needle-guide slice, 0.61 deg off): its nine residuals scatter at a third
     of their noise, so the scatter-based precision passed; the covariance from the pixel noise puts 3 sigma at
     0.82 deg and the pose is refused as imprecise. Without that test it false-locks."""
-    import chic_register.pipeline.register as so
+    import chic_register.pipeline.results as so
 
     out = _run_hunt_case(146, 2)
     assert out["outcome"] == "no_lock" and "predicted from the pixel noise" in out["reason"], out

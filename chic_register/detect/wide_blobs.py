@@ -12,6 +12,7 @@ import math
 import numpy as np
 
 from chic_register.detect.blobs import float_range, median
+from chic_register.detect.detected import DetectedSlice
 from chic_register.model.tube_model import TubeModel
 
 #: Blobs this many times wider than the channels (median over the slices' measured widths) take the blurred fit
@@ -19,7 +20,7 @@ from chic_register.model.tube_model import TubeModel
 WIDE_RATIO = 1.15
 
 
-def blob_width_ratio(model: TubeModel, slices, blob_sets, assignments) -> float:
+def blob_width_ratio(model: TubeModel, seen: list[DetectedSlice], assignments) -> float:
     """Median over the matched blobs of their width across (4 x the minor standard deviation of the intensity
     above the background over the blob's footprint, less a pixel's own spread) over their tube's diameter.
 
@@ -28,6 +29,8 @@ def blob_width_ratio(model: TubeModel, slices, blob_sets, assignments) -> float:
     footprint cuts the tails). Intensity-weighted, not thresholded, so a
     brighter object elsewhere in the image does not shrink it.
     """
+    slices = [d.slice for d in seen]
+    blob_sets = [d.blobs for d in seen]
     ratios = []
     for sl, b, a in zip(slices, blob_sets, assignments):
         img = np.asarray(sl.pixels, float)
@@ -61,7 +64,7 @@ def blob_width_ratio(model: TubeModel, slices, blob_sets, assignments) -> float:
     return median(ratios) if len(ratios) >= 3 else float("nan")
 
 
-def blobs_wide(model: TubeModel, slices, blob_sets, assignments) -> bool:
+def blobs_wide(model: TubeModel, seen: list[DetectedSlice], assignments) -> bool:
     """Whether the blurred fit is for these slices: their matched blobs :data:`WIDE_RATIO` times the channels' width
     or wider (:func:`blob_width_ratio`)."""
-    return blob_width_ratio(model, slices, blob_sets, assignments) >= WIDE_RATIO
+    return blob_width_ratio(model, seen, assignments) >= WIDE_RATIO

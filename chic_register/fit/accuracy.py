@@ -17,6 +17,7 @@ import math
 import numpy as np
 
 from chic_register.detect.blobs import median, pixel_mm
+from chic_register.detect.detected import DetectedSlice
 from chic_register.detect.filters import dilate
 from chic_register.errors import NoLock
 from chic_register.fit.refine import (
@@ -190,7 +191,7 @@ def template_shifts(tubes, model: TubeModel, T_F_from_I: np.ndarray, assignment:
     return shift, gain, fitted
 
 
-def centroid_refine(model: TubeModel, tubes, fit: Fit, xys, Ss, slices, blob_sets, opts) -> Fit:
+def centroid_refine(model: TubeModel, tubes, fit: Fit, seen: list[DetectedSlice], opts) -> Fit:
     """Refit ``fit`` with the centroid model (:func:`centroid_offsets`).
 
     A fixed-point iteration: offsets at the current pose, refit, repeated
@@ -201,6 +202,10 @@ def centroid_refine(model: TubeModel, tubes, fit: Fit, xys, Ss, slices, blob_set
     follows the pose only weakly, which the fixed point follows slowly,
     and a split's boundary moves with the noise.
     """
+    slices = [d.slice for d in seen]
+    xys = [d.xy_mm for d in seen]
+    Ss = [d.T_scanner_from_image for d in seen]
+    blob_sets = [d.blobs for d in seen]
     assign = [a.copy() for a in fit.assignments]
     for it in range(opts.centroid_iterations):
         X0 = fit.T_F_from_scanner
@@ -287,7 +292,7 @@ def _template_refine(model: TubeModel, tubes, fit: Fit, assign, xys, Ss, slices,
     return fit
 
 
-def section_refine(model: TubeModel, fit: Fit, xys, Ss, slices, blob_sets, opts) -> Fit | None:
+def section_refine(model: TubeModel, fit: Fit, seen: list[DetectedSlice], opts) -> Fit | None:
     """Refit ``fit`` on section-fitted tube positions (:func:`~chic_register.fit.section.fit_sections`).
 
     Up to ``section_iterations`` passes: fit every matched tube's section
@@ -300,6 +305,10 @@ def section_refine(model: TubeModel, fit: Fit, xys, Ss, slices, blob_sets, opts)
     (tubes in tissue, blobs much wider than the channels) return ``None``:
     the blob-centre pose then stands, and is verified like any other.
     """
+    slices = [d.slice for d in seen]
+    xys = [d.xy_mm for d in seen]
+    Ss = [d.T_scanner_from_image for d in seen]
+    blob_sets = [d.blobs for d in seen]
     assign = [a.copy() for a in fit.assignments]
     wins = [None] * len(slices)  # each tube's pixels: chosen at the first pass, kept (the pose barely moves)
     px = min(pixel_mm(sl) for sl in slices)

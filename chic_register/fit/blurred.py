@@ -32,6 +32,7 @@ from dataclasses import dataclass
 import numpy as np
 
 from chic_register.detect.blobs import median
+from chic_register.detect.detected import DetectedSlice
 from chic_register.errors import NoLock
 from chic_register.fit.checks import STRETCH_MIN, worst_errors
 from chic_register.fit.refine import refine
@@ -345,7 +346,7 @@ def spread_slices(n_slices: int, n_max: int = BLURRED_MAX_SLICES) -> list[int]:
     return sorted({int(round(v)) for v in np.linspace(0, n_slices - 1, n_max + 2)[1:-1]})
 
 
-def blurred_stage(model: TubeModel, fit, xys, Ss, slices, blob_sets, max_slices: int = BLURRED_MAX_SLICES):
+def blurred_stage(model: TubeModel, fit, seen: list[DetectedSlice], max_slices: int = BLURRED_MAX_SLICES):
     """``(fit, precision, blurred)``: the solver's pose (a ``refine._Fit``) refitted through the blurred model (on
     at most ``max_slices`` of the slices, :func:`spread_slices`), with
     its 1-sigma ``(TRE mm, rotation deg)`` and the :class:`BlurredFit` (point spread, residual noise);
@@ -353,6 +354,10 @@ def blurred_stage(model: TubeModel, fit, xys, Ss, slices, blob_sets, max_slices:
     than 1 mm or 1 degree from the blob pose (something in the boxes the model does not have: tissue, another
     object; the blobs' pose then stands, judged as it is). A significant stretch of the image (a wrong pixel
     spacing) raises :class:`~chic_register.errors.NoLock`."""
+    xys = [d.xy_mm for d in seen]
+    slices = [d.slice for d in seen]
+    Ss = [d.T_scanner_from_image for d in seen]
+    blob_sets = [d.blobs for d in seen]
     pick = spread_slices(len(slices), max_slices)
     blurred = blurred_fit(model, fit.T_F_from_scanner, [slices[j] for j in pick], [Ss[j] for j in pick],
                           [blob_sets[j] for j in pick], [fit.assignments[j] for j in pick])

@@ -13,8 +13,9 @@ import re
 
 import numpy as np
 
+from chic_register.detect.detected import DetectedSlice
 from chic_register.errors import AmbiguousFit, NoLock
-from chic_register.fit.refine import match_gate_mm, refine, reject_outliers
+from chic_register.fit.refine import Fit, match_gate_mm, refine, reject_outliers
 from chic_register.model.slices import Slice
 from chic_register.model.tube_model import TubeModel, plane_crossings, poses_distinct
 from chic_register.options import SolveOptions
@@ -58,8 +59,8 @@ def _decide(model: TubeModel, first, others, opts: SolveOptions, res_mm) -> "obj
     return best
 
 
-def joint_fit(model: TubeModel, slices, xys, Ss, res_mm, per_slice, opts: SolveOptions, skip_failed: bool,
-           starts=()):
+def joint_fit(model: TubeModel, seen: list[DetectedSlice], own_fits: list[Fit], opts: SolveOptions,
+              skip_failed: bool, starts=()):
     """The joint fit of every slice's correspondences; ``(fit, dropped)``.
 
     Without ``skip_failed`` any disagreement is :class:`NoLock`. With it, a
@@ -69,9 +70,11 @@ def joint_fit(model: TubeModel, slices, xys, Ss, res_mm, per_slice, opts: SolveO
     ``fit`` then covers the remaining slices, in their order. ``starts``:
     more starting poses (the distinct fits of slices that alone were
     ambiguous); each is refined on all slices, and the series must single
-    one out (:func:`_decide`).
+    one out (:func:`_decide`). ``own_fits``: each slice's fit alone.
     """
-    start = min(per_slice, key=lambda fe: fe[0].rms_mm)[0].T_F_from_scanner
+    slices, xys = [d.slice for d in seen], [d.xy_mm for d in seen]
+    Ss, res_mm = [d.T_scanner_from_image for d in seen], [d.resolution_mm for d in seen]
+    start = min(own_fits, key=lambda f: f.rms_mm).T_F_from_scanner
     active = list(range(len(slices)))
     dropped = []
     while True:
@@ -83,7 +86,7 @@ def joint_fit(model: TubeModel, slices, xys, Ss, res_mm, per_slice, opts: SolveO
                                          for T in starts], opts, res_mm)
         if not skip_failed:
             check_trust(best, [], model, slices, opts, Ss, res_mm)
-            if best.n_matched < sum(f.n_matched for f, _ in per_slice):
+            if best.n_matched < sum(f.n_matched for f in own_fits):
                 raise NoLock("the slices disagree: the joint pose matches fewer tubes than the slices alone",
                              {"n_tubes": best.n_matched})
             return best, dropped
@@ -92,10 +95,10 @@ def joint_fit(model: TubeModel, slices, xys, Ss, res_mm, per_slice, opts: SolveO
             a, r = best.assignments[n], best.residuals[n]
             rms = math.sqrt(float(np.mean(r[a >= 0] ** 2))) if (a >= 0).any() else math.inf
             score = rms / (opts.max_rms_px * res_mm[j])
-            if (a >= 0).sum() < per_slice[j][0].n_matched:
+            if (a >= 0).sum() < own_fits[j].n_matched:
                 score, reason = max(score, 1.0 + 1e-9) + 10.0, (
                     f"disagrees with the other slices: {int((a >= 0).sum())} tubes matched under the joint pose, "
-                    f"{per_slice[j][0].n_matched} alone")
+                    f"{own_fits[j].n_matched} alone")
             else:
                 reason = (f"disagrees with the other slices: residual RMS {rms:.3f} mm under the joint pose "
                           f"(limit {opts.max_rms_px * res_mm[j]:.3f} mm)")
@@ -106,7 +109,7 @@ def joint_fit(model: TubeModel, slices, xys, Ss, res_mm, per_slice, opts: SolveO
                          [res_mm[j] for j in active])
             return best, dropped
         j = active[worst]
-        own = per_slice[j][0].assignments[0]  # the slice's own correspondences, at the joint pose
+        own = own_fits[j].assignments[0]  # the slice's own correspondences, at the joint pose
         q = plane_crossings(model, best.T_F_from_scanner @ Ss[j], margin_mm=5.0)[0]
         k = np.flatnonzero(own >= 0)
         rms = math.sqrt(float(np.mean(np.sum((q[k] - xys[j][own[k]]) ** 2, axis=1)))) if k.size else float("nan")

@@ -16,7 +16,8 @@ import time
 
 import numpy as np
 
-from chic_register.detect.blobs import centres_xy_mm, detect_blobs, median
+from chic_register.detect.blobs import detect_blobs, median
+from chic_register.detect.detected import DetectedSlice
 from chic_register.detect.wide_blobs import WIDE_RATIO, blob_width_ratio
 from chic_register.errors import ChicRegisterError, NoLock, SliceRefused
 from chic_register.fit.blurred import blurred_stage
@@ -27,12 +28,8 @@ from chic_register.model.geometry import FiducialGeometry
 from chic_register.model.pose import near_prior, rotation_deg, slice_angles
 from chic_register.model.tube_model import plane_crossings, prepare_geometry
 from chic_register.options import SolveOptions
-from chic_register.pipeline.register import (
-    Registration,
-    SkippedSlice,
-    build_registration,
-    register,
-)
+from chic_register.pipeline.register import register
+from chic_register.pipeline.results import Registration, SkippedSlice, build_registration
 from chic_register.verify.pixels import verify_fit
 
 #: A volume whose slices give no pose, with wide blobs: the pixels of this many slices, spread over those that
@@ -173,15 +170,15 @@ def _register_wide(volume: Volume, geom: FiducialGeometry, opts: SolveOptions, t
     if unfitted:  # a distinct pose the voxels rate nearly as well was neither fitted nor refused by the pixels
         raise NoLock(f"ambiguous fit: the volume's wide blobs fit a pose, but a distinct one the voxels rate nearly as "
                      f"well (centreline score {max(unfitted):.3f}) could not be fitted to the pixels to rule it out")
-    best, slices, Ss, blob_sets, xys, checks, skipped, blurred = passed
+    best, seen, checks, skipped, blurred = passed
     t2 = time.perf_counter()
-    used = {sl.source for sl in slices} | {s.source for s in skipped}
-    skipped += [SkippedSlice(sl.source, f"not fitted: the volume's wide blobs were fitted on {len(slices)} slices "
+    used = {d.source for d in seen} | {s.source for s in skipped}
+    skipped += [SkippedSlice(sl.source, f"not fitted: the volume's wide blobs were fitted on {len(seen)} slices "
                                         "spread over the fiducial") for sl in all_slices if sl.source not in used]
     order = {sl.source: k for k, sl in enumerate(all_slices)}
     skipped.sort(key=lambda s: order.get(s.source, 0))
-    return build_registration(geom, model, geom_sha, best, slices, Ss, blob_sets, xys, [None] * len(slices), checks,
-                         {}, skipped, opts, target_F_mm, (t0, t1, t2), pixel_fit=blurred)
+    return build_registration(geom, model, geom_sha, best, seen, [None] * len(seen), checks, {}, skipped, opts,
+                              target_F_mm, (t0, t1, t2), pixel_fit=blurred)
 
 
 #: Poses from the voxels scoring at least this share of the best are fitted and verified as well.
@@ -192,7 +189,7 @@ RIVAL_VARIANCE_RATIO = 1.1
 
 def _fit_and_verify(geom, model, X: np.ndarray, all_slices, opts: SolveOptions, verify: bool = True):
     """The pose near ``X`` (T_F_from_scanner) fitted through the blurred model to spread slices and verified:
-    ``(fit, slices, Ss, blob_sets, xys, checks, skipped, BlurredFit)``; None when the blobs are not wide or too few slices cross
+    ``(fit, seen, checks, skipped, BlurredFit)`` (``seen``: the slices fitted, with their blobs); None when the blobs are not wide or too few slices cross
     the body; :class:`NoLock` when it does not converge or fails its verification (its detail then holds the fit's
     ``residual_sigma``). ``verify`` False: fitted only (``checks`` None)."""
     Ss_all = [sl.T_scanner_from_image() for sl in all_slices]
@@ -200,19 +197,18 @@ def _fit_and_verify(geom, model, X: np.ndarray, all_slices, opts: SolveOptions, 
     if len(crossing) < 2:
         return None
     pick = sorted({crossing[int(round(i))] for i in np.linspace(0, len(crossing) - 1, min(WIDE_SLICES, len(crossing)))})
-    slices = [all_slices[k] for k in pick]
-    Ss = [Ss_all[k] for k in pick]
-    blob_sets = [detect_blobs(sl.pixels, sl.pixel_spacing_mm, model.diameter_mm) for sl in slices]
-    xys = [centres_xy_mm(b, sl) for sl, b in zip(slices, blob_sets)]
+    seen = [DetectedSlice.of(all_slices[k], detect_blobs(all_slices[k].pixels, all_slices[k].pixel_spacing_mm,
+                                                          model.diameter_mm), Ss_all[k]) for k in pick]
+    xys, Ss = [d.xy_mm for d in seen], [d.T_scanner_from_image for d in seen]
     gate = 1.5 * float(model.diameter_mm.max())
     assign = [assign_blobs(*plane_crossings(model, X @ S)[0:4:3], xy, gate) for xy, S in zip(xys, Ss)]
-    if blob_width_ratio(model, slices, blob_sets, assign) < WIDE_RATIO:
+    if blob_width_ratio(model, seen, assign) < WIDE_RATIO:
         return None  # sharp sections: the slices' own refusal is the answer
     for _ in range(2):  # from the voxels' pose; once more from where the pixels took it, if that was over 1 mm / 1 deg
         assign = [assign_blobs(*plane_crossings(model, X @ S)[0:4:3], xy, gate) for xy, S in zip(xys, Ss)]
         start = dataclasses.replace(refine(model, xys, Ss, X, gates_mm=(), final_iters=0, assign0=assign),
                                     T_F_from_scanner=X)
-        best, precision, blurred = blurred_stage(model, start, xys, Ss, slices, blob_sets, len(slices))  # NoLock: a stretch
+        best, precision, blurred = blurred_stage(model, start, seen, len(seen))  # NoLock: a stretch
         if precision is not None or blurred is None:
             break
         X = blurred.T_F_from_scanner
@@ -224,25 +220,26 @@ def _fit_and_verify(geom, model, X: np.ndarray, all_slices, opts: SolveOptions, 
                      {"residual_sigma": round(blurred.noise_sigma, 6)})
     skipped = []
     if not verify:
-        return best, slices, Ss, blob_sets, xys, None, skipped, blurred
-    rivals = [[] for _ in slices]
+        return best, seen, None, skipped, blurred
+    rivals = [[] for _ in seen]
     while True:
         try:
-            checks = verify_fit(geom, model, best, rivals, slices, Ss, blob_sets, opts, precision=precision,
-                                name_slice=True, psf_px=blurred.psf_px)
-            return best, slices, Ss, blob_sets, xys, checks, skipped, blurred
+            checks = verify_fit(geom, model, best, rivals, seen, opts, precision=precision, name_slice=True,
+                                psf_px=blurred.psf_px)
+            return best, seen, checks, skipped, blurred
         except SliceRefused as exc:
             out = {j for j, _ in exc.refused}
             for j, reason in exc.refused:
-                skipped.append(SkippedSlice(slices[j].source, reason.removeprefix(f"{slices[j].source}: ")))
-            keep = [i for i in range(len(slices)) if i not in out]
+                skipped.append(SkippedSlice(seen[j].source, reason.removeprefix(f"{seen[j].source}: ")))
+            keep = [i for i in range(len(seen)) if i not in out]
             if len(keep) < 2:
                 raise NoLock(f"the volume's wide blobs: the pose fitted to them fails in {len(out)} of its "
-                             f"{len(slices)} slices; e.g. {exc.refused[0][1]}",
+                             f"{len(seen)} slices; e.g. {exc.refused[0][1]}",
                              {"residual_sigma": round(blurred.noise_sigma, 6)}) from None
-            slices, Ss, blob_sets, xys = ([seq[i] for i in keep] for seq in (slices, Ss, blob_sets, xys))
+            seen = [seen[i] for i in keep]
             rivals = rivals[:len(keep)]
-            best = dataclasses.replace(refine(model, xys, Ss, best.T_F_from_scanner, gates_mm=(), final_iters=0,
+            best = dataclasses.replace(refine(model, [d.xy_mm for d in seen], [d.T_scanner_from_image for d in seen],
+                                              best.T_F_from_scanner, gates_mm=(), final_iters=0,
                                               assign0=[best.assignments[i] for i in keep]),
                                        T_F_from_scanner=best.T_F_from_scanner)
         except NoLock as exc:  # the pose as a whole refused: its residual still ranks it against the others

@@ -34,6 +34,7 @@ from dataclasses import dataclass
 import numpy as np
 
 from chic_register.detect.blobs import median
+from chic_register.detect.detected import DetectedSlice
 from chic_register.detect.noise import (
     NoiseEstimate,
     background_noise,
@@ -307,11 +308,11 @@ def pose_uncertainty(J_F: np.ndarray, S: np.ndarray, residuals: np.ndarray, nois
     return PoseUncertainty(cov, tuple(noise), chi, dof, k, target, tre_rms_mm(cov, target), measurement)
 
 
-def pixel_fit_uncertainty(blurred, slices, blob_sets, target_F_mm) -> PoseUncertainty:
+def pixel_fit_uncertainty(blurred, seen: list[DetectedSlice], target_F_mm) -> PoseUncertainty:
     """The uncertainty of a pose fitted to the pixels through the blurred model (a
     :class:`chic_register.fit.blurred.BlurredFit`): its sandwich covariance, in F's parameters. The residual
     chi-square per degree of freedom is the fit's residual variance over the background's."""
-    noises = tuple(background_noise(sl.pixels, b.footprints) for sl, b in zip(slices, blob_sets))
+    noises = tuple(background_noise(d.slice.pixels, d.blobs.footprints) for d in seen)
     bg = float(np.mean([n.sigma for n in noises]))
     chi = (blurred.noise_sigma / bg) ** 2 if bg > 0 else float("nan")
     cov = blurred.covariance_F()
@@ -337,21 +338,23 @@ def detection_diameter_mm(blobs, model) -> float:
     return d_mid
 
 
-def registration_uncertainty(model, fit, xys, Ss, slices, blob_sets, target_F_mm,
+def registration_uncertainty(model, fit, seen: list[DetectedSlice], target_F_mm,
                              measurement: str = "centroid") -> PoseUncertainty:
     """The covariance of a solver fit (``chic_register.pipeline.register``): its Jacobian at the solution, the measured
     positions' covariances, and the residuals' check.
 
     ``fit`` holds ``T_F_from_scanner``, per-slice ``assignments`` (tube -> blob index or -1) and, when its
     positions were not the blob centroids, ``measurements``: per slice (positions (N, 2) mm, square-root
-    information ``L`` (K, 2, 2) the fit was weighted by, the noise sigma ``L`` assumed); ``xys`` the blob
-    centroids (image mm) per slice, ``Ss`` the slices' ``T_scanner_from_image``.
+    information ``L`` (K, 2, 2) the fit was weighted by, the noise sigma ``L`` assumed); ``seen``: the slices
+    with their blobs (the blob centroids are the positions otherwise).
     """
+    xys = [d.xy_mm for d in seen]
     X = fit.T_F_from_scanner
     Ad_sf = adjoint(invert(X))
     meas = getattr(fit, "measurements", None)
     Js, rs, blocks, noises = [], [], [], []
-    for j, (sl, S, b) in enumerate(zip(slices, Ss, blob_sets)):
+    for j, d in enumerate(seen):
+        sl, S, b = d.slice, d.T_scanner_from_image, d.blobs
         noise = background_noise(sl.pixels, b.footprints)
         noises.append(noise)
         a = fit.assignments[j]

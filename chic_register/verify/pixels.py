@@ -73,7 +73,8 @@ from dataclasses import dataclass
 
 import numpy as np
 
-from chic_register.detect.blobs import Blobs, centres_xy_mm, median
+from chic_register.detect.blobs import Blobs, median
+from chic_register.detect.detected import DetectedSlice
 from chic_register.detect.noise import correlation_inflation, noise_correlation_axes
 from chic_register.errors import ImprecisePose, NoLock, SliceRefused
 from chic_register.fit.checks import (
@@ -379,7 +380,7 @@ def _check_stretch(model, fit, xys, Ss, opts, slices) -> None:
                  f"({test}): the pixel spacing looks wrong; check --pixel-spacing or the file's PixelSpacing", detail)
 
 
-def verify_fit(geom, model, fit, rivals, slices, Ss, blob_sets, opts, precision=None,
+def verify_fit(geom, model, fit, rivals, seen: list[DetectedSlice], opts, precision=None,
                name_slice: bool = False, psf_px: float | None = None,
                precision_sigmas: float = PRECISION_SIGMAS) -> list[SliceCheck]:
     """Verify a solved pose (a ``solve._Fit``) in every slice, and that no distinct rival verifies as well.
@@ -394,7 +395,10 @@ def verify_fit(geom, model, fit, rivals, slices, Ss, blob_sets, opts, precision=
     naming them all (a volume's registration leaves them out). Raises
     :class:`NoLock` with the first failure; returns one :class:`SliceCheck` per slice.
     """
-    xys = [centres_xy_mm(b, sl) for sl, b in zip(slices, blob_sets)]
+    slices = [d.slice for d in seen]
+    xys = [d.xy_mm for d in seen]
+    Ss = [d.T_scanner_from_image for d in seen]
+    blob_sets = [d.blobs for d in seen]
     out, contenders, refused = [], [], []
     for j, (sl, S, b) in enumerate(zip(slices, Ss, blob_sets)):
         T_F_from_I = fit.T_F_from_scanner @ S
@@ -415,7 +419,7 @@ def verify_fit(geom, model, fit, rivals, slices, Ss, blob_sets, opts, precision=
         raise SliceRefused(refused[0][1], {"n_refused": len(refused)}, refused)
     # a rival gets the section fit when the pose had it (not one fitted through a blurred or a centroid model)
     section_pose = precision is None and opts.section_fit and not opts.centroid_model
-    check_rivals(geom, model, fit, contenders, out, slices, xys, Ss, opts, blob_sets if section_pose else None)
+    check_rivals(geom, model, fit, contenders, out, seen, opts, section_pose)
     if precision is not None:  # a pose fitted through a blurred model is weaker evidence: only inside the envelope
         outside = [(j, f"{sl.source}: the pose fitted to the blurred sections lies outside the design's usable "
                        f"envelope ({c.envelope}): wide blobs there cannot be told apart")

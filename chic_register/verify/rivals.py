@@ -23,6 +23,7 @@ import math
 
 import numpy as np
 
+from chic_register.detect.detected import DetectedSlice
 from chic_register.detect.filters import dilate
 from chic_register.errors import NoLock
 from chic_register.fit.accuracy import section_refine
@@ -65,16 +66,19 @@ def slice_contenders(model, fit, rivals, strays, xy: np.ndarray, S: np.ndarray, 
     return out
 
 
-def check_rivals(geom, model, fit, contenders, checks, slices, xys, Ss, opts, blob_sets=None) -> None:
+def check_rivals(geom, model, fit, contenders, checks, seen: list[DetectedSlice], opts, section_pose: bool = False) -> None:
     """:class:`NoLock` ("ambiguous") when a distinct rival explains the pixels of the slices nearly as well.
 
     A rival pose must explain every slice of a series nearly as well: the
     evidence of all slices adds up; a rival one slice offered is first
     refined on the blobs of all of them (it may fall back onto the pose).
-    ``blob_sets``: the slices' blobs when ``fit`` is the section fit's pose;
+    ``section_pose``: ``fit`` is the section fit's pose;
     a rival that explains the pixels nearly as well is then section-fitted
     too, and is no rival when that lands on the pose.
     """
+    slices = [d.slice for d in seen]
+    xys = [d.xy_mm for d in seen]
+    Ss = [d.T_scanner_from_image for d in seen]
     if len(slices) > 1 and contenders:
         gate = match_gate_mm(model, max(float(max(sl.pixel_spacing_mm)) for sl in slices))
         refined = [refine(model, xys, Ss, T, gates_mm=(gate, 0.6 * gate)) for T in contenders]
@@ -92,8 +96,7 @@ def check_rivals(geom, model, fit, contenders, checks, slices, xys, Ss, opts, bl
     for T_rival in unique:
         scores = [_compare_rival(geom, model, check, T_rival @ S, sl) for check, S, sl in zip(checks, Ss, slices)]
         gap, margin = sum(g for g, _ in scores), sum(m for _, m in scores)
-        if gap < margin and not (blob_sets is not None
-                                 and falls_onto_pose(model, fit, T_rival, xys, Ss, slices, blob_sets, opts)):
+        if gap < margin and not (section_pose and falls_onto_pose(model, fit, T_rival, seen, opts)):
             a = slice_angles(T_rival @ Ss[0])
             where = slices[0].source if len(slices) == 1 else f"{len(slices)} slices"
             raise NoLock(f"{where}: ambiguous: a distinct pose (depth {a.depth_mm:.1f} mm, tilt {a.tilt_deg:.1f} deg) "
@@ -101,7 +104,7 @@ def check_rivals(geom, model, fit, contenders, checks, slices, xys, Ss, opts, bl
                          f"{gap:.3g}; margin needed {margin:.3g})", {"n_tubes": int(fit.n_matched)})
 
 
-def falls_onto_pose(model, fit, T_rival: np.ndarray, xys, Ss, slices, blob_sets, opts) -> bool:
+def falls_onto_pose(model, fit, T_rival: np.ndarray, seen: list[DetectedSlice], opts) -> bool:
     """Does the section fit started at a rival pose (``T_F_from_scanner``) end on the pose ``fit``?
 
     The pose was refined on the tube sections themselves
@@ -113,9 +116,12 @@ def falls_onto_pose(model, fit, T_rival: np.ndarray, xys, Ss, slices, blob_sets,
     was never a second answer; one that stays away is (a distinct rival that
     verifies by every check of the pose, as the hunt's mirrored tilts do).
     """
+    slices = [d.slice for d in seen]
+    xys = [d.xy_mm for d in seen]
+    Ss = [d.T_scanner_from_image for d in seen]
     gate = match_gate_mm(model, min(float(max(sl.pixel_spacing_mm)) for sl in slices))
     start = refine(model, xys, Ss, T_rival, gates_mm=(gate, 0.6 * gate))
-    fine = section_refine(model, start, xys, Ss, slices, blob_sets, opts)
+    fine = section_refine(model, start, seen, opts)
     return fine is not None and not poses_distinct(fine.T_F_from_scanner, fit.T_F_from_scanner, model,
                                               FALLBACK_SHARE * opts.trust_tre_mm, FALLBACK_SHARE * opts.trust_rot_deg)
 
