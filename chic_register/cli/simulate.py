@@ -168,6 +168,7 @@ def _run_volume(args) -> int:
     geom = load_geometry(args.geometry)
     # axis-aligned volume centred on the scanner origin: the middle k-plane's frame is the identity
     T = invert(slice_frame(args.depth, args.tilt, args.azimuth, args.twist))
+    status(f"simulating {nx}x{ny}x{nz} voxels")  # seconds for a large volume
     try:
         sv = simulate_volume(geom, T, (nx, ny, nz), vs, noise=args.noise, noise_level=args.noise_level,
                              snr=args.snr, rng=np.random.default_rng(args.seed), blob_width=args.blob_width)

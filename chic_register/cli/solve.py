@@ -66,6 +66,7 @@ def _report_failures(delivery) -> None:
 def run(args) -> int:
     """Register the slices; print the pose before any output is written or sent."""
     # here, not at the top: keeps chic-register's start-up fast (every command module is imported)
+    from chic_register.io.images import is_volume_path
     from chic_register.model.geometry import load_geometry
     from chic_register.outputs.deliver import EXIT_OUTPUT_FAILED, Delivery, OutputPlan, deliver, deliver_no_lock
     from chic_register.pipeline.register import register
@@ -101,6 +102,9 @@ def run(args) -> int:
     if plan.igtl_listen is not None and link is not None:
         status(f"OpenIGTLink server listening on port {link.port} (a peer may connect now; "
                f"the pose waits up to {plan.igtl_wait_s:g} s for one)")
+    if skip and len(slices) > 1:  # a whole volume: one register call over every slice, seconds without a word
+        status(f"registering {len(slices)} slices of {', '.join(p for p in args.images if is_volume_path(p))} "
+               "(those that do not show the fiducial are skipped)")
     try:
         try:
             reg = register(slices, geom, skip_failed=skip, **options, **extra)
