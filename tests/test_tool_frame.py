@@ -17,7 +17,7 @@ from .conftest import NEURO, TOOL_TIP_MM as TIP_MM
 
 def test_geometry_without_tool_keeps_its_hash_and_with_tool_covers_it(neuro_geometry, tool_geometry, tmp_path):
     plain = neuro_geometry.to_dict()
-    assert "tool" not in plain  # files without the key: same content, same hash as before the tool existed
+    assert "tool" not in plain  # files without the key keep the content and hash of a design without a tool
     with_tool = tool_geometry.to_dict()
     assert {k: v for k, v in with_tool.items() if k not in ("tool", "sha256")} == \
         {k: v for k, v in plain.items() if k != "sha256"}

@@ -50,7 +50,7 @@ def run(args) -> int:
     studies = {}
     for kind in kinds:
         result = run_study(geom, args.draws, args.seed, noise=kind, noise_level=args.noise_level, snr=args.snr,
-                           slice_thickness_mm=args.slice_thickness, progress=not args.json)
+                           slice_thickness_mm=args.slice_thickness, progress=True)  # the bar is on stderr
         studies[kind] = result
         if args.out:
             written = save_plots(result, args.out, tag=f"-{kind}")

@@ -10,7 +10,7 @@ import json
 import sys
 from pathlib import Path
 
-from chic_register.cli.console import status
+from chic_register.cli.console import note, status
 from chic_register.cli.inputs import add_igtl_args, check_spacing_flag
 from chic_register.errors import ChicRegisterError
 
@@ -77,8 +77,17 @@ def run(args) -> int:
     if args.scene and not Path(args.scene).is_dir():
         Path(args.scene).mkdir()  # its parent exists (checked above)
 
+    count = 0
+
     def on_event(event):
+        nonlocal count
+        count += 1
         print(json.dumps(event.to_dict()) if args.json else event.text(), flush=True)
+        if args.scene and event.status == "ok" and not any(f.startswith("--scene") for f in event.failed):
+            # the scene of each image is DIR/<image name>/ (an IMAGE message's name: image_NNNNN, by arrival)
+            mrml = Path(args.scene) / (f"image_{count:05d}" if images else Path(event.source).name) / "scene.mrml"
+            if mrml.is_file():
+                note(args, f"wrote {mrml}")
 
     def on_message(text):
         status(text)

@@ -1,6 +1,6 @@
 """Where a pose goes besides stdout: ``--tfm``, ``--scene``, ``--overlay``, OpenIGTLink (client or server).
 
-No lost results (issue 10): every output is tried on its own; one that
+No lost results: every output is tried on its own; one that
 fails (a closed viewer, a full disk) is reported as one line and the others
 still happen; the pose itself is printed by the CLI whatever happened here,
 and the exit code is :data:`EXIT_OUTPUT_FAILED` (4) when the pose is fine but

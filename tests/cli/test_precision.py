@@ -15,7 +15,7 @@ def test_precision_command(tmp_path, neuro_geometry_file, capsys):
     doc = json.loads(capsys.readouterr().out)
     assert [r["tilt_deg"] for r in doc["rows"]] == [0.0, 30.0]
     normal = [r["sd_normal_deg"] for r in doc["rows"]]
-    assert 0.1 < normal[0] < 0.4 and normal[1] < normal[0]  # issue 9: about 0.21 deg at tilt 0, 0.07 at 30
+    assert 0.1 < normal[0] < 0.4 and normal[1] < normal[0]  # about 0.21 deg at tilt 0, 0.07 at 30
     assert plot.read_bytes()[:8] == b"\x89PNG\r\n\x1a\n"
     assert main(args) == 0
     assert "TRE mm" in capsys.readouterr().out
