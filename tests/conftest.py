@@ -31,3 +31,16 @@ def needle_geometry():
 @pytest.fixture()
 def neuro_geometry_file(tmp_path, neuro_geometry):
     return write_geometry(neuro_geometry, tmp_path / "geometry.yaml")
+
+
+#: the tip of the tool added to the neuro design for the tool-frame and scene tests: on the axis, 60 mm below F
+TOOL_TIP_MM = -60.0
+
+
+@pytest.fixture(scope="session")
+def tool_geometry(neuro_spec):
+    """The neuro design with a tool whose tip is on the axis at z = TOOL_TIP_MM."""
+    from chic_design.spec import ToolSpec
+
+    spec = neuro_spec.model_copy(update={"tool": ToolSpec(tip_offset_mm=TOOL_TIP_MM)})
+    return fiducial_geometry(spec, source={"spec": "designs/neuro.yaml"})

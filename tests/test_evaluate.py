@@ -1,18 +1,9 @@
-"""The paper's simulation study: cases, error bookkeeping, summary beside the paper, the CLI."""
-
-import json
+"""The paper's simulation study: cases, error bookkeeping, summary beside the paper."""
 
 import numpy as np
 import pytest
 
-from chic_register.cli.main import main
-from chic_register.studies.evaluate import (
-    PAPER,
-    StudyCase,
-    format_summary,
-    paper_cases,
-    run_study,
-)
+from chic_register.studies.evaluate import PAPER, StudyCase, format_summary, paper_cases, run_study
 
 
 def test_paper_cases_follow_the_paper(neuro_geometry):
@@ -40,14 +31,3 @@ def test_noise_free_study_is_accurate_and_reproducible(neuro_geometry):
     assert "normal sections" in format_summary(a)
 
 
-def test_cli_evaluate_writes_plots_and_json(tmp_path, neuro_geometry_file, capsys):
-    out = tmp_path / "study"
-    rc = main(["evaluate", "--geometry", str(neuro_geometry_file), "--draws", "1", "--noise", "uniform",
-               "--out", str(out), "--json"])
-    assert rc == 0
-    doc = json.loads(capsys.readouterr().out)
-    assert set(doc) == {"uniform"} and len(doc["uniform"]["cases"]) == 18
-    assert doc["uniform"]["summary"]["twist"]["paper_max"] == 0.032
-    for name in ("fig7-uniform.png", "fig8-uniform.png", "study-uniform.json"):
-        assert (out / name).stat().st_size > 0
-    assert main(["evaluate", "--geometry", str(neuro_geometry_file), "--draws", "0"]) == 2

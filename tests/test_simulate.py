@@ -1,23 +1,19 @@
-"""The slice simulator: rendering against analytic crossings and areas, noise statistics, truth, CLI."""
+"""The slice simulator: rendering against analytic crossings and areas, noise statistics, truth."""
 
-import json
 import math
 
 import numpy as np
 import pytest
 from scipy import ndimage
 
-from chic_register.cli.main import main
 from chic_register.imaging.render import render_slice
 from chic_register.imaging.simulate import (
     add_rician_noise,
     add_uniform_noise,
     crossings_px,
     simulate_slice,
-    truth_path,
 )
-from chic_register.io.images import read_slices
-from chic_register.model.geometry import FiducialGeometry, load_geometry
+from chic_register.model.geometry import FiducialGeometry
 from chic_register.model.pose import apply, invert, slice_frame
 from chic_register.model.tubes import LineTube
 
@@ -278,72 +274,6 @@ def test_noise_is_seeded(neuro_geometry):
     assert np.abs(diff).max() <= 0.2 and diff.std() > 0.05
     with pytest.raises(ValueError, match="noise"):
         simulate_slice(neuro_geometry, 25.0, 10.0, noise="gaussian")
-
-
-# --------------------------------------------------------------------------- CLI
-
-
-def _simulate_args(geometry_file, out, *extra):
-    return ["simulate", "--geometry", str(geometry_file), "--depth", "22", "--tilt", "15", "--azimuth", "60",
-            "--twist", "20", "--slice-thickness", "1", "--out", str(out), *extra]
-
-
-@pytest.mark.parametrize("suffix", [".dcm", ".npy", ".png", ".tif"])
-def test_cli_simulate_writes_image_and_truth(neuro_geometry_file, tmp_path, capsys, suffix):
-    out = tmp_path / f"slice{suffix}"
-    extra = ["--noise", "rician", "--snr", "30", "--seed", "4", "--distractors", "2", "--missing", "O1"]
-    if suffix == ".dcm":
-        extra += ["--image-position", "-40", "-50", "10", "--image-orientation", "1", "0", "0", "0", "0", "-1"]
-    assert main(_simulate_args(neuro_geometry_file, out, *extra)) == 0
-    assert "wrote" in capsys.readouterr().out
-    truth = json.loads(truth_path(out).read_text())
-    assert truth["depth_mm"] == pytest.approx(22) and truth["tilt_deg"] == pytest.approx(15)
-    assert "O1" not in truth["centres_px"] and len(truth["centres_px"]) == 8
-    sl = read_slices([out], pixel_spacing=(0.5, 0.5))[0]
-    assert sl.shape == (256, 256)
-    T = np.array(truth["T_scanner_from_fiducial"])
-    T_F_from_S = np.array(truth["T_F_from_S"])
-    geom = load_geometry(neuro_geometry_file)
-    for tid, (row, col) in truth["centres_px"].items():
-        crossing = geom.tube(tid).intersect_plane(T_F_from_S[:3, 3], T_F_from_S[:3, 2])[0]
-        assert np.allclose(sl.pixel_to_scanner(row, col)[0], apply(T, crossing), atol=1e-4)
-        assert sl.pixels[round(row), round(col)] > 0.4 * sl.pixels.max()
-    if suffix == ".dcm":
-        assert np.allclose(sl.origin_mm, (-40, -50, 10)) and np.allclose(sl.row_dir, (0, 0, -1))
-        assert sl.slice_thickness_mm == pytest.approx(1.0)
-    else:
-        assert truth["file"]["frame"] == "image"
-
-
-@pytest.mark.parametrize("extra, fragment", [
-    (["--missing", "Q9"], "Q9"),
-    (["--size", "2"], "--size"),
-    (["--pixel-size", "0"], "--pixel-size"),
-    (["--snr", "-1"], "--snr"),
-    (["--noise-level", "-0.1"], "--noise-level"),
-    (["--slice-thickness", "-1"], "--slice-thickness"),
-    (["--distractors", "-2"], "--distractors"),
-    (["--image-position", "0", "0", "0"], "DICOM output only"),
-])
-def test_cli_simulate_bad_options_exit_2(neuro_geometry_file, tmp_path, capsys, extra, fragment):
-    out = tmp_path / ("x.npy" if "--image-position" in extra else "x.dcm")
-    assert main(_simulate_args(neuro_geometry_file, out, *extra)) == 2
-    err = capsys.readouterr().err.strip()
-    assert fragment in err and len(err.splitlines()) == 1
-    assert not out.exists()
-
-
-def test_cli_simulate_bad_files_exit_2(neuro_geometry_file, tmp_path, capsys):
-    assert main(_simulate_args(tmp_path / "none.yaml", tmp_path / "a.dcm")) == 2
-    assert "no such geometry file" in capsys.readouterr().err
-    tampered = tmp_path / "tampered.yaml"
-    tampered.write_text(neuro_geometry_file.read_text().replace("12.5", "12.6", 1))
-    assert main(_simulate_args(tampered, tmp_path / "a.dcm")) == 2
-    assert "sha256" in capsys.readouterr().err
-    assert main(_simulate_args(neuro_geometry_file, tmp_path / "a.jpg")) == 2
-    assert "unsupported suffix" in capsys.readouterr().err
-    assert main(_simulate_args(neuro_geometry_file, tmp_path)) == 2
-    assert "directory" in capsys.readouterr().err
 
 
 @pytest.mark.parametrize("seed", range(4))

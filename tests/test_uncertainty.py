@@ -74,23 +74,6 @@ def test_solve_json_covariance_target_and_max_tre(tmp_path, neuro_geometry_file,
         assert capsys.readouterr().err.count("\n") == 1
 
 
-def test_precision_command(tmp_path, neuro_geometry_file, capsys):
-    plot = tmp_path / "map.png"
-    args = ["precision", "--geometry", str(neuro_geometry_file), "--depths", "25", "--tilts", "0", "30",
-            "--azimuths", "1"]
-    assert main(args + ["--json", "--plot", str(plot)]) == 0
-    doc = json.loads(capsys.readouterr().out)
-    assert [r["tilt_deg"] for r in doc["rows"]] == [0.0, 30.0]
-    normal = [r["sd_normal_deg"] for r in doc["rows"]]
-    assert 0.1 < normal[0] < 0.4 and normal[1] < normal[0]  # issue 9: about 0.21 deg at tilt 0, 0.07 at 30
-    assert plot.read_bytes()[:8] == b"\x89PNG\r\n\x1a\n"
-    assert main(args) == 0
-    assert "TRE mm" in capsys.readouterr().out
-    for bad in (["--snr", "0"], ["--tilts", "95"], ["--plot", str(tmp_path / "x.jpg")], ["--slices", "0"]):
-        assert main(args + bad) == 2, bad
-        assert capsys.readouterr().err.count("\n") == 1
-
-
 def test_default_target_is_the_tool_tip(needle_geometry, neuro_geometry):
     from chic_register.precision.uncertainty import target_point
 

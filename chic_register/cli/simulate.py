@@ -1,31 +1,74 @@
-"""``chic-register simulate`` (the command layer): a synthetic slice or volume at a known pose, and its truth file."""
+"""chic-register simulate: a synthetic slice or volume at a known pose, and its truth file beside it."""
 
 from __future__ import annotations
 
-import sys
+from pathlib import Path
 
+from chic_register.cli.console import note, status
 from chic_register.errors import ChicRegisterError
+
+HELP = "write a synthetic slice at a known pose, with its truth"
+DESCRIPTION = ("Write a synthetic slice (or volume) at a known pose and, beside it, its truth file (the pose, the "
+               "tube crossings in pixels and, with a tool, the tool tip).")
+
+
+def add_parser(subparsers) -> None:
+    """The simulate subcommand and its flags."""
+    m = subparsers.add_parser("simulate", help=HELP, description=DESCRIPTION)
+    m.set_defaults(run=run)
+    m.add_argument("--geometry", required=True, help="geometry.yaml")
+    m.add_argument("--depth", type=float, required=True, metavar="MM", help="depth of the axis crossing (mm)")
+    m.add_argument("--tilt", type=float, default=0.0, metavar="DEG", help="tilt (deg, default 0)")
+    m.add_argument("--azimuth", type=float, default=0.0, metavar="DEG", help="azimuth (deg, default 0)")
+    m.add_argument("--twist", type=float, default=0.0, metavar="DEG", help="twist (deg, default 0)")
+    m.add_argument("--out", required=True, help="output file: .dcm (DICOM MR), .npy, .png or .tif")
+    m.add_argument("--noise", default="none", choices=["none", "uniform", "rician"],
+                   help="none, the paper's uniform white noise, or MRI magnitude (Rician) noise")
+    m.add_argument("--noise-level", type=float, default=0.1, metavar="X",
+                   help="uniform noise amplitude, fluid = 1 (default 0.1)")
+    m.add_argument("--snr", type=float, default=20.0, metavar="S", help="Rician noise SNR of fluid (default 20)")
+    m.add_argument("--slice-thickness", type=float, default=2.0, metavar="MM", help="slice thickness (default 2)")
+    m.add_argument("--pixel-size", type=float, default=0.5, metavar="MM", help="square pixel size (default 0.5)")
+    m.add_argument("--size", type=int, default=256, metavar="N", help="image size N x N pixels (default 256)")
+    m.add_argument("--seed", type=int, default=None, metavar="N", help="random seed (noise, distractors)")
+    m.add_argument("--distractors", type=int, default=0, metavar="N",
+                   help="N anatomy-like bright blobs outside the fiducial (default 0)")
+    m.add_argument("--bore-signal", type=float, default=0.0, metavar="X",
+                   help="brightness of a tool in the bore (default 0: none)")
+    m.add_argument("--missing", nargs="+", default=[], metavar="ID", help="tube ids left unfilled")
+    m.add_argument("--allow-empty", action="store_true",
+                   help="write the slice even when no tube crosses it (a missed slice, to test refusals)")
+    m.add_argument("--center-offset", nargs=2, type=float, default=(0.0, 0.0), metavar=("X", "Y"),
+                   help="axis crossing from the image centre, mm along columns and rows (default 0 0)")
+    m.add_argument("--image-position", nargs=3, type=float, metavar=("X", "Y", "Z"),
+                   help="DICOM only: scanner (LPS) position of pixel (0, 0) (default: image centre at 0)")
+    m.add_argument("--image-orientation", nargs=6, type=float, metavar="V",
+                   help="DICOM only: col_dir and row_dir in the scanner (default 1 0 0 0 1 0)")
+    m.add_argument("--blob-width", type=float, default=1.0, metavar="FACTOR",
+                   help="draw each blob FACTOR x its tube's nominal width, as real images do (0.7-2.5; "
+                        "> 1 blurs, < 1 narrows; default 1)")
+    m.add_argument("--volume-shape", nargs=3, type=int, metavar=("NX", "NY", "NZ"),
+                   help="volume mode: write a 3-D volume of NX x NY x NZ voxels (--out .nii, .nii.gz, .nrrd, "
+                        ".mha or a folder for a DICOM series); its middle k-plane cuts the fiducial at "
+                        "--depth/--tilt/--azimuth/--twist")
+    m.add_argument("--voxel-size", nargs="+", type=float, metavar="MM",
+                   help="volume mode: voxel size, one value (isotropic) or three (i j k) (default 0.5 0.5 1)")
 
 
 def _blob_width_check(factor: float) -> tuple[bool, str]:
-    from chic_register.imaging.blob_width import BLOB_WIDTH_RANGE
+    from chic_register.imaging.blob_width import BLOB_WIDTH_RANGE  # here, not at the top: keeps start-up fast
 
     lo, hi = BLOB_WIDTH_RANGE
     return lo <= factor <= hi, f"--blob-width must be {lo:g}..{hi:g} (x the nominal diameter), got {factor:g}"
 
 
-def run_simulate(args) -> int:
+def run(args) -> int:
+    """Simulate one slice (or, with --volume-shape, a volume) and write it with its truth."""
     if args.volume_shape is not None:
-        return _run_simulate_volume(args)
-    from pathlib import Path
+        return _run_volume(args)
+    import numpy as np  # here, not at the top: keeps chic-register's start-up fast (every command module is imported)
 
-    import numpy as np
-
-    from chic_register.imaging.simulate import (
-        DICOM_SUFFIXES,
-        simulate_slice,
-        write_simulated,
-    )
+    from chic_register.imaging.simulate import DICOM_SUFFIXES, simulate_slice, write_simulated
     from chic_register.io.images import MAX_SPACING_MM, MIN_SPACING_MM, PLAIN_SUFFIXES
     from chic_register.model.geometry import load_geometry
 
@@ -71,7 +114,7 @@ def run_simulate(args) -> int:
             rng=np.random.default_rng(args.seed), blob_width=args.blob_width,
         )
         n_in_view = len(sim.truth.centres_px)
-        if n_in_view == 0 and not args.allow_empty:  # issue 10: an empty image was written with exit 0 in silence
+        if n_in_view == 0 and not args.allow_empty:  # an empty image is a mistake unless asked for
             raise ChicRegisterError(
                 f"--depth {args.depth:g} --tilt {args.tilt:g}: no tube crosses the image (the body spans "
                 f"z = 0..{geom.body.length:g} mm; check --depth, --tilt, --center-offset, or pass --allow-empty "
@@ -83,23 +126,19 @@ def run_simulate(args) -> int:
     except OSError as exc:
         raise ChicRegisterError(f"{out}: cannot write ({exc.strerror or exc})") from None
     a = sim.truth.angles
-    print(
-        f"wrote {image_path} ({args.size}x{args.size}, {args.pixel_size:g} mm pixels, "
-        f"depth {a.depth_mm:.3f} mm, tilt {a.tilt_deg:.3f}, azimuth {a.azimuth_deg:.3f}, twist {a.twist_deg:.3f} deg, "
-        f"{n_in_view} tubes in view) and {truth_file}"
-    )
+    note(args, f"wrote {image_path} ({args.size}x{args.size}, {args.pixel_size:g} mm pixels, "
+               f"depth {a.depth_mm:.3f} mm, tilt {a.tilt_deg:.3f}, azimuth {a.azimuth_deg:.3f}, "
+               f"twist {a.twist_deg:.3f} deg, {n_in_view} tubes in view) and {truth_file}")
     if n_in_view < len(geom.tubes):
-        print(f"chic-register: warning: only {n_in_view} of {len(geom.tubes)} tubes in view", file=sys.stderr)
+        status(f"warning: only {n_in_view} of {len(geom.tubes)} tubes in view")
     return 0
 
 
-def _run_simulate_volume(args) -> int:
+def _run_volume(args) -> int:
     """simulate --volume-shape: a synthetic volume and <out>.truth.json."""
-    from pathlib import Path
+    import numpy as np  # here, not at the top: keeps chic-register's start-up fast (every command module is imported)
 
-    import numpy as np
-
-    from chic_register.imaging.simulate import simulate_volume, truth_path
+    from chic_register.imaging.simulate import simulate_volume, tool_truth, truth_path
     from chic_register.io.images import MAX_SPACING_MM, MIN_SPACING_MM
     from chic_register.io.volumes import MAX_VOXELS, write_volume
     from chic_register.model.geometry import load_geometry
@@ -129,6 +168,7 @@ def _run_simulate_volume(args) -> int:
     geom = load_geometry(args.geometry)
     # axis-aligned volume centred on the scanner origin: the middle k-plane's frame is the identity
     T = invert(slice_frame(args.depth, args.tilt, args.azimuth, args.twist))
+    status(f"simulating {nx}x{ny}x{nz} voxels")  # seconds for a large volume
     try:
         sv = simulate_volume(geom, T, (nx, ny, nz), vs, noise=args.noise, noise_level=args.noise_level,
                              snr=args.snr, rng=np.random.default_rng(args.seed), blob_width=args.blob_width)
@@ -139,7 +179,9 @@ def _run_simulate_volume(args) -> int:
                                                "azimuth_deg": args.azimuth, "twist_deg": args.twist},
            "volume": Path(out).name, "geometry_file": str(args.geometry),
            "geometry_sha256": geom.to_dict()["sha256"], "seed": args.seed}
+    if geom.tool is not None:
+        doc.update(tool_truth(geom.tool.T_fiducial_from_tool, sv.T_scanner_from_fiducial))
     tp = write_json(truth_path(out), doc)
-    print(f"wrote {out} ({nx}x{ny}x{nz} voxels of {' x '.join(f'{v:g}' for v in vs)} mm; middle plane at depth "
-          f"{args.depth:g} mm, tilt {args.tilt:g} deg) and {tp}")
+    note(args, f"wrote {out} ({nx}x{ny}x{nz} voxels of {' x '.join(f'{v:g}' for v in vs)} mm; middle plane at "
+               f"depth {args.depth:g} mm, tilt {args.tilt:g} deg) and {tp}")
     return 0

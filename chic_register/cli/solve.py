@@ -1,7 +1,7 @@
-"""``chic-register solve`` (the command layer): read the slices, register them, print the pose, deliver outputs.
+"""chic-register solve: read the slices, register them, print the pose, then write or send the outputs.
 
-Exit codes as :mod:`chic_register.cli.main`: 0, 2 bad input, 3 no lock, 4 when an
-output (``--tfm``, ``--scene``, ``--overlay``, OpenIGTLink) failed after the pose was printed.
+Exit codes: 0, 2 bad input, 3 no lock, 4 when an output (--tfm, --scene,
+--overlay, OpenIGTLink) failed after the pose was printed.
 """
 
 from __future__ import annotations
@@ -11,24 +11,64 @@ import math
 import sys
 from pathlib import Path
 
-from chic_register.cli.inputs import check_spacing_flag, load_prior
+from chic_register.cli.console import note, status
+from chic_register.cli.inputs import add_igtl_args, check_spacing_flag, load_prior
 from chic_register.errors import ChicRegisterError, NoLock
+
+HELP = "register one or more slices: one pose from all of them"
+DESCRIPTION = ("Register one or more slices: one pose from all of them. Exit codes: 0 ok, 2 bad input, 3 no_lock (no "
+               "trustworthy pose), 4 the pose is printed but an output failed.")
+
+
+def add_parser(subparsers) -> None:
+    """The solve subcommand and its flags."""
+    s = subparsers.add_parser("solve", help=HELP, description=DESCRIPTION)
+    s.set_defaults(run=run)
+    s.add_argument("images", nargs="+", metavar="IMAGE", help="DICOM, PNG, TIFF or NPY slices")
+    s.add_argument("--geometry", required=True, help="geometry.yaml written by chic-design build")
+    s.add_argument("--json", action="store_true", help="print one JSON object (docs/interfaces.md section 4)")
+    s.add_argument("--pixel-spacing", nargs=2, type=float, metavar=("ROW", "COL"),
+                   help="pixel spacing (mm) for PNG/TIFF/NPY images")
+    s.add_argument("--overlay", metavar="PNG", help="draw the slice with detections, ellipse and labels")
+    s.add_argument("--series", metavar="ID", default=None,
+                   help="the DICOM series to read from a folder holding several (its SeriesNumber or SeriesInstanceUID)")
+    s.add_argument("--slices", nargs="+", metavar="K",
+                   help="for a volume IMAGE (.nii, .nii.gz, .nrrd, .mha or a DICOM series folder): "
+                        "indices (5) or ranges (5-11) of its slices to register jointly; each must lock. "
+                        "Default: every slice that shows the fiducial (the others are listed as skipped)")
+    s.add_argument("--prior", metavar="FILE",
+                   help="an approximate pose of the fiducial (JSON with T_scanner_from_fiducial, or .tfm), or "
+                        "'identity' (the frame's x, y, z roughly along the scanner's LPS axes): only poses turned "
+                        "less than --prior-max-deg from it are considered. Needed for a geometry that maps onto "
+                        "itself under a rotation (the classic Z-frame)")
+    s.add_argument("--prior-max-deg", type=float, default=60.0, metavar="DEG",
+                   help="largest rotation from --prior (default 60)")
+    s.add_argument("--tfm", metavar="FILE", help="also write the pose as an ITK transform file for 3D Slicer "
+                   "(holds T_fiducial_from_scanner, LPS; see docs/interfaces.md)")
+    s.add_argument("--scene", metavar="DIR", help="also write a 3D Slicer scene (DIR/scene.mrml with the slices, "
+                   "the fiducial and tool models under their transforms, detected and predicted tube centres)")
+    add_igtl_args(s)
+    s.add_argument("--target", nargs=3, type=float, metavar=("X", "Y", "Z"),
+                   help="point of F (mm) whose predicted TRE is reported (default: the tool tip, else the body centre)")
+    s.add_argument("--max-tre", type=float, metavar="MM",
+                   help="refuse (no_lock, reason 'imprecise') a pose whose predicted TRE exceeds MM")
+    s.add_argument("--trust", nargs=2, type=float, metavar=("MM", "DEG"),
+                   help="the verification's precision limits: refuse a pose whose 3-sigma predicted error exceeds "
+                        "MM at the frame centre or DEG in rotation (default 1 0.75; a single near-normal slice "
+                        "of a CHIC fiducial knows its tilt to ~0.2-0.25 deg at 1 sigma)")
 
 
 def _report_failures(delivery) -> None:
-    for note in delivery.failed:
-        print(f"chic-register: output failed: {note}", file=sys.stderr, flush=True)
+    for failure in delivery.failed:
+        status(f"output failed: {failure}")
 
 
-def run_solve(args) -> int:
+def run(args) -> int:
+    """Register the slices; print the pose before any output is written or sent."""
+    # here, not at the top: keeps chic-register's start-up fast (every command module is imported)
+    from chic_register.io.images import is_volume_path
     from chic_register.model.geometry import load_geometry
-    from chic_register.outputs.deliver import (
-        EXIT_OUTPUT_FAILED,
-        Delivery,
-        OutputPlan,
-        deliver,
-        deliver_no_lock,
-    )
+    from chic_register.outputs.deliver import EXIT_OUTPUT_FAILED, Delivery, OutputPlan, deliver, deliver_no_lock
     from chic_register.pipeline.register import register
 
     plan = OutputPlan.from_args(args).check()
@@ -60,8 +100,11 @@ def run_solve(args) -> int:
     except ChicRegisterError as exc:
         early.failed.append(f"{plan.igtl_flag}: {exc}")
     if plan.igtl_listen is not None and link is not None:
-        print(f"chic-register: OpenIGTLink server listening on port {link.port} (a peer may connect now; "
-              f"the pose waits up to {plan.igtl_wait_s:g} s for one)", file=sys.stderr, flush=True)
+        status(f"OpenIGTLink server listening on port {link.port} (a peer may connect now; "
+               f"the pose waits up to {plan.igtl_wait_s:g} s for one)")
+    if skip and len(slices) > 1:  # a whole volume: one register call over every slice, seconds without a word
+        status(f"registering {len(slices)} slices of {', '.join(p for p in args.images if is_volume_path(p))} "
+               "(those that do not show the fiducial are skipped)")
     try:
         try:
             reg = register(slices, geom, skip_failed=skip, **options, **extra)
@@ -80,15 +123,15 @@ def run_solve(args) -> int:
         if link is not None:
             link.close()
     out.failed[:0] = early.failed
-    for note in out.done:
-        print(f"chic-register: {note}" if args.json else note, file=sys.stderr if args.json else sys.stdout)
+    for done in out.done:
+        note(args, done)
     _report_failures(out)
     return EXIT_OUTPUT_FAILED if out.failed else 0
 
 
 def _print_pose(args, reg, geom) -> None:
-    """The pose of ``solve``: one JSON object (``--json``) or the human summary."""
-    from chic_register.outputs.deliver import registration_json, tool_pose
+    """The pose of solve: one JSON object (--json) or the human summary."""
+    from chic_register.outputs.deliver import registration_json, tool_pose  # here, not at the top: as in run
 
     if args.json:
         print(json.dumps(registration_json(reg, geom), indent=2), flush=True)
@@ -136,13 +179,13 @@ def _series_hint(args, slices, skip: bool) -> str:
 
 
 def _read_solve_inputs(args) -> tuple[list, bool]:
-    """The slices of ``solve`` and whether failing ones may be skipped.
+    """The slices of solve and whether failing ones may be skipped.
 
-    2-D image files as they are; a volume by its ``--slices`` indices and
+    2-D image files as they are; a volume by its --slices indices and
     ranges, or, without them, every native slice (those that do not lock are
     then skipped and reported).
     """
-    from chic_register.io.images import is_volume_path, read_slices
+    from chic_register.io.images import is_volume_path, read_slices  # here, not at the top: as in run
 
     check_spacing_flag(args)
     volumes = [p for p in args.images if is_volume_path(p)]
@@ -153,6 +196,7 @@ def _read_solve_inputs(args) -> tuple[list, bool]:
     slices = []
     for path in args.images:
         if is_volume_path(path):
+            # here, not in run: a one-shot solve of 2-D slices stays fast without the volume readers (SimpleITK)
             from chic_register.io.volumes import read_volume
             from chic_register.pipeline.volume import parse_slice_indices
 

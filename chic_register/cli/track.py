@@ -1,23 +1,55 @@
-"""``chic-register track`` (the command layer): a watched folder (:mod:`~chic_register.live.folder`) or IMAGE
-messages from a scanner bridge (:mod:`~chic_register.live.igtl_track`), with the same outputs as ``solve``.
+"""chic-register track: register each new slice as it arrives, from a watched folder or as OpenIGTLink IMAGE
+messages from a scanner bridge, with the same outputs as solve.
 
-Exit codes as ``solve``: 0, 2 bad input, 4 when an output (OpenIGTLink, a scene) failed for any image.
+Exit codes as solve: 0, 2 bad input, 4 when an output (OpenIGTLink, a scene) failed for any image.
 """
 
 from __future__ import annotations
 
 import json
 import sys
+from pathlib import Path
 
-from chic_register.cli.inputs import check_spacing_flag
+from chic_register.cli.console import note, status
+from chic_register.cli.inputs import add_igtl_args, check_spacing_flag
 from chic_register.errors import ChicRegisterError
 
+HELP = "register each new slice as it arrives (a watched folder or OpenIGTLink IMAGEs)"
+DESCRIPTION = ("Register each new slice as it arrives (a watched folder or OpenIGTLink IMAGEs), with the outputs of "
+               "solve. Exit code 4 when an output failed for any image.")
 
-def run_track(args) -> int:
-    """``chic-register track``: a watched folder, or IMAGE messages from a scanner bridge."""
-    from pathlib import Path
 
+def add_parser(subparsers) -> None:
+    """The track subcommand and its flags."""
+    t = subparsers.add_parser("track", help=HELP, description=DESCRIPTION)
+    t.set_defaults(run=run)
+    t.add_argument("folder", metavar="FOLDER", nargs="?", help="folder the scanner writes slices into "
+                   "('-' or none with --igtl-images)")
+    t.add_argument("--geometry", required=True, help="geometry.yaml")
+    t.add_argument("--pixel-spacing", nargs=2, type=float, metavar=("ROW", "COL"),
+                   help="pixel spacing (mm) for PNG/TIFF/NPY images")
+    add_igtl_args(t)
+    t.add_argument("--igtl-images", metavar="HOST:PORT",
+                   help="instead of watching FOLDER (give '-'), connect to a scanner bridge at HOST:PORT, register "
+                        "every IMAGE message it sends and send the pose back on the same connection")
+    t.add_argument("--igtl-images-listen", type=int, metavar="PORT",
+                   help="as --igtl-images, but listen on PORT for the scanner bridge to connect")
+    t.add_argument("--scene", metavar="DIR", help="write a 3D Slicer scene of each pose into DIR/<image name>/")
+    t.add_argument("--existing", action="store_true", help="also register files already in the folder")
+    t.add_argument("--poll", type=float, default=0.05, metavar="S", help="polling interval (default 0.05 s)")
+    t.add_argument("--settle", type=float, default=0.2, metavar="S",
+                   help="a file must keep its size this long before it is read (default 0.2 s)")
+    t.add_argument("--max-files", type=int, metavar="N", help="stop after N files")
+    t.add_argument("--timeout", type=float, metavar="S", help="stop after S seconds")
+    t.add_argument("--json", action="store_true", help="print one JSON object per file, then a summary object")
+
+
+def run(args) -> int:
+    """Watch the folder (or the scanner bridge) until stopped; one line (or JSON object) per image."""
+    # here, not at the top: keeps chic-register's start-up fast (every command module is imported)
     from chic_register.io.igtl import IgtlServer, check_port, parse_address
+    from chic_register.live.folder import track
+    from chic_register.live.igtl_track import track_images
     from chic_register.model.geometry import load_geometry
     from chic_register.outputs.deliver import EXIT_OUTPUT_FAILED, OutputPlan
 
@@ -45,16 +77,23 @@ def run_track(args) -> int:
     if args.scene and not Path(args.scene).is_dir():
         Path(args.scene).mkdir()  # its parent exists (checked above)
 
+    count = 0
+
     def on_event(event):
+        nonlocal count
+        count += 1
         print(json.dumps(event.to_dict()) if args.json else event.text(), flush=True)
+        if args.scene and event.status == "ok" and not any(f.startswith("--scene") for f in event.failed):
+            # the scene of each image is DIR/<image name>/ (an IMAGE message's name: image_NNNNN, by arrival)
+            mrml = Path(args.scene) / (f"image_{count:05d}" if images else Path(event.source).name) / "scene.mrml"
+            if mrml.is_file():
+                note(args, f"wrote {mrml}")
 
     def on_message(text):
-        print(f"chic-register: {text}", file=sys.stderr, flush=True)
+        status(text)
 
     common = dict(scene_dir=args.scene, geometry_path=args.geometry, on_event=on_event, on_message=on_message)
     if images:
-        from chic_register.live.igtl_track import track_images
-
         listen = IgtlServer(args.igtl_images_listen) if args.igtl_images_listen is not None else None
         where = f"port {listen.port}" if listen else args.igtl_images
         on_message(f"registering IMAGE messages from the scanner bridge at {where} (Ctrl-C to stop)")
@@ -65,8 +104,6 @@ def run_track(args) -> int:
             if listen is not None:
                 listen.close()
     else:
-        from chic_register.live.folder import track
-
         link = plan.open_link()
         if plan.igtl_listen is not None:
             on_message(f"OpenIGTLink server listening on port {link.port}")

@@ -87,6 +87,24 @@ def add_rician_noise(image: np.ndarray, snr: float, rng: np.random.Generator, si
 # --------------------------------------------------------------------------- simulated slices
 
 
+def tool_truth(T_fiducial_from_tool, T_scanner_from_fiducial) -> dict:
+    """The truth of a geometry's tool frame at a known pose, with the keys ``solve --json`` uses.
+
+    ``T_fiducial_from_tool`` and ``T_scanner_from_tool`` (4x4), the tip in F
+    (``tool_tip_F_mm``) and in the scanner (``tool_tip_mm``): the tool frame's
+    origin is the tip (docs/interfaces.md section 2).
+    """
+    T_F_tool = np.asarray(T_fiducial_from_tool, dtype=float)
+    T_scanner_tool = np.asarray(T_scanner_from_fiducial, dtype=float) @ T_F_tool
+    return {
+        "T_fiducial_from_tool": T_F_tool.tolist(),
+        "T_scanner_from_tool": T_scanner_tool.tolist(),
+        "tool_tip_F_mm": [float(v) for v in T_F_tool[:3, 3]],
+        "tool_tip_mm": [float(v) for v in T_scanner_tool[:3, 3]],
+    }
+
+
+
 @dataclass(frozen=True)
 class SliceTruth:
     """The known pose of a simulated slice.
@@ -95,7 +113,9 @@ class SliceTruth:
     ``centres_px`` holds ``(row, col)`` of each visible tube's crossing (the
     one nearest the axis crossing when a helix crosses more than once);
     ``crossings_px`` every crossing inside the image; ``center_px`` is the
-    pixel where the fiducial axis crosses the plane (S origin).
+    pixel where the fiducial axis crosses the plane (S origin);
+    ``T_fiducial_from_tool`` the geometry's tool frame, if it has one (the
+    truth file then holds the tool tip, :func:`tool_truth`).
     """
 
     angles: SliceAngles
@@ -109,10 +129,13 @@ class SliceTruth:
     slice_thickness_mm: float = 0.0
     shape: tuple[int, int] = (256, 256)
     settings: dict = field(default_factory=dict)
+    T_fiducial_from_tool: np.ndarray | None = None
 
     def to_dict(self) -> dict:
         """JSON-ready dictionary (angles in degrees, lengths in mm, pixels as (row, col))."""
         a = self.angles
+        tool = {} if self.T_fiducial_from_tool is None else tool_truth(self.T_fiducial_from_tool,
+                                                                       self.T_scanner_from_fiducial)
         return {
             "depth_mm": float(a.depth_mm),
             "tilt_deg": float(a.tilt_deg),
@@ -128,6 +151,7 @@ class SliceTruth:
             "pixel_spacing_mm": [float(v) for v in self.pixel_spacing_mm],
             "slice_thickness_mm": float(self.slice_thickness_mm),
             "settings": dict(self.settings),
+            **tool,
         }
 
 
@@ -339,6 +363,7 @@ def simulate_slice(
         slice_thickness_mm=float(slice_thickness_mm),
         shape=(rows, cols),
         settings=settings,
+        T_fiducial_from_tool=None if geom.tool is None else geom.tool.T_fiducial_from_tool,
     )
     return SimulatedSlice(sl, truth)
 

@@ -1,6 +1,6 @@
 """Where a pose goes besides stdout: ``--tfm``, ``--scene``, ``--overlay``, OpenIGTLink (client or server).
 
-No lost results (issue 10): every output is tried on its own; one that
+No lost results: every output is tried on its own; one that
 fails (a closed viewer, a full disk) is reported as one line and the others
 still happen; the pose itself is printed by the CLI whatever happened here,
 and the exit code is :data:`EXIT_OUTPUT_FAILED` (4) when the pose is fine but
@@ -172,7 +172,8 @@ def deliver(plan: OutputPlan, reg, geom, slices, link=None) -> Delivery:
     if plan.overlay:
         from chic_register.outputs.overlay import draw_overlay
 
-        out.attempt("--overlay", lambda: f"wrote {draw_overlay(plan.overlay, slices, reg)}")
+        radius = 0.5 * max(t.diameter for t in geom.tubes)
+        out.attempt("--overlay", lambda: f"wrote {draw_overlay(plan.overlay, slices, reg, tube_radius_mm=radius)}")
     if plan.tfm:
         from chic_register.io.transforms import write_tfm
 
@@ -181,8 +182,12 @@ def deliver(plan: OutputPlan, reg, geom, slices, link=None) -> Delivery:
     if plan.scene:
         from chic_register.outputs.scene import write_scene
 
-        out.attempt("--scene", lambda: "wrote " + str(write_scene(plan.scene, reg, geom, slices, name=plan.igtl_name,
-                                                                   geometry_path=plan.geometry_path)))
+        def scene():
+            mrml = write_scene(plan.scene, reg, geom, slices, name=plan.igtl_name, geometry_path=plan.geometry_path)
+            beside = sorted(p.name for p in mrml.parent.iterdir() if p.name != mrml.name)
+            return f"wrote {mrml} and beside it {', '.join(beside)}"
+
+        out.attempt("--scene", scene)
     if link is not None:
         from chic_register.io.igtl import pose_messages
 
@@ -202,7 +207,7 @@ def deliver_no_lock(plan: OutputPlan, reason: str, geom, slices, link=None) -> D
         def overlay():
             d_mm = min(t.diameter for t in geom.tubes)
             blobs = [detect_blobs(sl.pixels, sl.pixel_spacing_mm, d_mm) for sl in slices]
-            return f"wrote {draw_overlay(plan.overlay, slices, None, blobs)}"
+            return f"wrote {draw_overlay(plan.overlay, slices, None, blobs, tube_radius_mm=0.5 * d_mm)}"
 
         out.attempt("--overlay", overlay)
     if link is not None:

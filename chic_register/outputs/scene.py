@@ -25,6 +25,7 @@ from __future__ import annotations
 
 import json
 import os
+import secrets
 import shutil
 import tempfile
 import xml.etree.ElementTree as ET
@@ -36,7 +37,7 @@ from chic_register.errors import OutputError
 from chic_register.io.stl import declare_space, write_stl
 from chic_register.io.transforms import write_tfm
 from chic_register.model.tubes import sample_centreline
-from chic_register.util.atomic import check_parent, current_umask, write_json
+from chic_register.util.atomic import check_parent, write_json
 
 SCENE_FILE = "scene.mrml"
 MARKUPS_SCHEMA = ("https://raw.githubusercontent.com/slicer/slicer/master/Modules/Loadable/Markups/"
@@ -213,6 +214,17 @@ def _fill(folder: Path, reg, geom, slices, name: str, geometry_path) -> None:
     (folder / "registration.json").write_text(json.dumps(reg.to_dict(), indent=2) + "\n", encoding="utf-8")
 
 
+def _new_folder(parent: Path, prefix: str) -> Path:
+    """A new, uniquely named folder in ``parent`` with the permissions of the umask (as ``mkdir`` gives)."""
+    while True:
+        path = parent / f"{prefix}{secrets.token_hex(4)}"
+        try:
+            path.mkdir()  # mode 0o777 less the umask, unlike mkdtemp's private 0o700
+            return path
+        except FileExistsError:
+            continue
+
+
 def write_scene(folder, reg, geom, slices, *, name: str = "CHIC", geometry_path=None) -> Path:
     """Write the scene of ``reg`` (a Registration of ``slices`` with ``geom``) into ``folder``; returns the .mrml.
 
@@ -224,10 +236,9 @@ def write_scene(folder, reg, geom, slices, *, name: str = "CHIC", geometry_path=
     if folder.exists() and (not folder.is_dir() or (any(folder.iterdir()) and not (folder / SCENE_FILE).is_file())):
         raise OutputError(f"{folder}: exists and is not an earlier scene (no {SCENE_FILE}); "
                           "give a new folder name")
-    tmp = Path(tempfile.mkdtemp(prefix=f".{folder.name}.tmp-", dir=folder.parent))
+    tmp = _new_folder(folder.parent, f".{folder.name}.tmp-")
     try:
         _fill(tmp, reg, geom, slices, name, geometry_path)
-        os.chmod(tmp, 0o777 & ~current_umask())
         old = None
         if folder.exists():
             old = Path(tempfile.mkdtemp(prefix=f".{folder.name}.old-", dir=folder.parent))

@@ -1,80 +1,23 @@
-"""The tool frame, and the Slicer scene of a registration, loaded back with Slicer's MRML libraries."""
+"""The Slicer scene of a registration (solve --scene), loaded back with Slicer's MRML libraries, and its picture."""
 
 from __future__ import annotations
 
+import importlib.util
 import json
 import stat
+from pathlib import Path
 
 import numpy as np
 import pytest
-import yaml
 
-from chic_design.errors import SpecError
-from chic_design.layout import fiducial_geometry
-from chic_design.spec import ToolSpec, parse_spec
 from chic_register.cli.main import main
 from chic_register.imaging.simulate import simulate_slice, write_simulated
 from chic_register.io.stl import stl_bytes, stl_header
 from chic_register.io.transforms import LPS_TO_RAS, slicer_matrix
-from chic_register.model.geometry import (
-    content_sha256,
-    geometry_from_dict,
-    load_geometry,
-    write_geometry,
-)
-from chic_register.model.pose import rigid, rot_y
-
-from .conftest import NEURO
-from .test_slicer import needs_slicer, run_probe
-
-TIP_MM = -60.0
-
-
-@pytest.fixture(scope="module")
-def tool_geometry(neuro_spec):
-    spec = neuro_spec.model_copy(update={"tool": ToolSpec(tip_offset_mm=TIP_MM)})
-    return fiducial_geometry(spec, source={"spec": "designs/neuro.yaml"})
-
-
-def test_geometry_without_tool_keeps_its_hash_and_with_tool_covers_it(neuro_geometry, tool_geometry, tmp_path):
-    plain = neuro_geometry.to_dict()
-    assert "tool" not in plain  # files without the key: same content, same hash as before the tool existed
-    with_tool = tool_geometry.to_dict()
-    assert {k: v for k, v in with_tool.items() if k not in ("tool", "sha256")} == \
-        {k: v for k, v in plain.items() if k != "sha256"}
-    assert with_tool["tool"]["T_fiducial_from_tool"][2][3] == TIP_MM
-    path = write_geometry(tool_geometry, tmp_path / "geometry.yaml")
-    back = load_geometry(path)
-    np.testing.assert_allclose(back.tool.tip_mm, [0.0, 0.0, TIP_MM])
-    data = yaml.safe_load(path.read_text())
-    data["tool"]["T_fiducial_from_tool"][2][3] = -50.0  # an edited tool is caught by the hash
-    with pytest.raises(Exception, match="sha256 does not match"):
-        geometry_from_dict(data, path)
-    data["tool"]["T_fiducial_from_tool"][0][0] = 2.0
-    data["sha256"] = content_sha256(data)
-    with pytest.raises(Exception, match="rigid 4x4"):
-        geometry_from_dict(data, path)
-
-
-@pytest.mark.parametrize("tool, message", [
-    ({}, "exactly one"),
-    ({"tip_offset_mm": -60, "T_fiducial_from_tool": np.eye(4).tolist()}, "exactly one"),
-    ({"T_fiducial_from_tool": (2 * np.eye(4)).tolist()}, "rigid 4x4"),
-    ({"tip_offset_mm": -60, "colour": "red"}, "colour"),
-])
-def test_spec_tool_section_is_validated(tool, message):
-    data = yaml.safe_load(NEURO.read_text())
-    data["tool"] = tool
-    with pytest.raises(SpecError, match=message):
-        parse_spec(data, "neuro.yaml")
-
-
-def test_full_tool_transform_from_the_spec(neuro_spec):
-    T = rigid(rot_y(90.0), (1.0, 2.0, -40.0))
-    data = yaml.safe_load(NEURO.read_text())
-    data["tool"] = {"T_fiducial_from_tool": T.tolist()}
-    geom = fiducial_geometry(parse_spec(data, "neuro.yaml"))
-    np.testing.assert_allclose(geom.tool.T_fiducial_from_tool, T)
+from chic_register.model.geometry import write_geometry
+from chic_register.model.pose import rigid
+from tests.conftest import TOOL_TIP_MM as TIP_MM
+from tests.test_slicer import needs_slicer, run_probe
 
 
 @pytest.fixture(scope="module")
@@ -177,3 +120,56 @@ def test_scene_refuses_to_replace_a_foreign_folder(solved_scene, tool_geometry, 
     with pytest.raises(OutputError, match="not an earlier scene"):
         write_scene(tmp_path / "mine", None, tool_geometry, [])
     assert (tmp_path / "mine" / "thesis.tex").read_text() == "x"
+
+
+def _render_scene_module():
+    """docs/render_scene.py, the script that draws the README's picture of the scene."""
+    path = Path(__file__).resolve().parents[2] / "docs" / "render_scene.py"
+    spec = importlib.util.spec_from_file_location("render_scene", path)
+    module = importlib.util.module_from_spec(spec)
+    spec.loader.exec_module(module)
+    return module
+
+
+def test_scene_picture_grid_puts_every_detected_centre_on_its_blob(solved_scene):
+    """The slice as the picture draws it: each detected point (matched tubes and rejected blobs) lies on the grid
+    at a bright pixel, the very pixel of its blob centre (a transposed grid puts them on background)."""
+    import SimpleITK as sitk
+
+    folder, doc, sim = solved_scene
+    rs = _render_scene_module()
+    grid = rs.slice_grid(folder / "slice_1.nrrd")
+    img = sitk.ReadImage(str(folder / "slice_1.nrrd"))
+    pixels = sitk.GetArrayFromImage(img)[0]  # the slice as the scene holds it (as read from the DICOM file)
+    assert grid.dimensions == (pixels.shape[1], pixels.shape[0], 1)
+    for i, j in ((0, 0), (17, 201), (255, 3)):  # the grid's geometry is the volume's (LPS -> RAS)
+        k = grid.find_closest_point(np.array(img.TransformIndexToPhysicalPoint((i, j, 0))) * [-1, -1, 1])
+        np.testing.assert_allclose(grid.points[k], np.array(img.TransformIndexToPhysicalPoint((i, j, 0))) * [-1, -1, 1],
+                                   atol=1e-4)
+        assert grid["signal"][k] == pixels[j, i]
+    xyz, labels, _ = rs.markup_points(folder / "detected.mrk.json")
+    s = doc["slices"][0]
+    candidates = np.array(s["candidates_rc"])
+    index = {**{tid: b for tid, b in s["assignment"].items()}, **{f"extra{b}": b for b in range(len(candidates))}}
+    bright = np.percentile(pixels, 99.0)
+    assert len(labels) == len(candidates) and any(t.startswith("extra") for t in labels)
+    for p, label in zip(xyz, labels):
+        k = grid.find_closest_point(p)
+        assert np.linalg.norm(grid.points[k] - p) < 0.5 * np.hypot(*sim.slice.pixel_spacing_mm), label
+        r, c = np.rint(candidates[index[label]]).astype(int)
+        assert grid["signal"][k] == pytest.approx(pixels[r, c]), label  # the pixel of that blob's centre ...
+        assert grid["signal"][k] > 0.4 * bright, label  # ... a bright one
+
+
+def test_scene_picture_renders_off_screen(solved_scene, tmp_path):
+    rs = _render_scene_module()
+    png = tmp_path / "scene.png"
+    rs.render(solved_scene[0] / "scene.mrml", png)
+    from PIL import Image
+
+    with Image.open(png) as im:
+        assert im.size == (1000, 800)
+        rgb = np.asarray(im.convert("RGB")).reshape(-1, 3).astype(int)
+    yellow = (rgb[:, 0] > 150) & (rgb[:, 1] > 150) & (rgb[:, 2] < 100)  # the detected centres
+    red = (rgb[:, 0] > 150) & (rgb[:, 1] < 100) & (rgb[:, 2] < 100)  # the tube channels
+    assert yellow.sum() > 50 and red.sum() > 1000
