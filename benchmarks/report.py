@@ -258,13 +258,19 @@ class _Geometries:
 
     def __call__(self, name: str) -> str:
         if name not in self.files:
-            from chic_design.layout import design_geometry
             from chic_design.spec import load_spec
             from chic_register.model.geometry import write_geometry
 
+            spec = load_spec(ROOT / "designs" / f"{name}.yaml")
+            source = {"spec": f"designs/{name}.yaml"}
+            try:
+                from chic_design.layout import design_geometry
+                geometry = design_geometry(spec, source=source)
+            except ImportError:  # the family interface
+                from chic_design.families import family_named
+                geometry = family_named(getattr(spec, "family", "chic")).geometry(spec, source)
             out = self.folder / f"{name}-geometry.yaml"
-            write_geometry(design_geometry(load_spec(ROOT / "designs" / f"{name}.yaml"),
-                                           source={"spec": f"designs/{name}.yaml"}), out)
+            write_geometry(geometry, out)
             self.files[name] = str(out)
         return self.files[name]
 

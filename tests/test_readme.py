@@ -172,22 +172,36 @@ def _trim(lines: list[str]) -> list[str]:
     return lines
 
 
+def design_geometry(spec_path: Path, source: dict):
+    """The geometry of a design spec through the library (no CAD), or None when the library has no such call."""
+    from chic_design.spec import load_spec
+
+    spec = load_spec(spec_path)
+    try:
+        from chic_design.layout import design_geometry as make
+    except ImportError:
+        try:
+            from chic_design.families import family_named
+        except ImportError:
+            return None
+        return family_named(getattr(spec, "family", "chic")).geometry(spec, source)
+    return make(spec, source=source)
+
+
 def _seed_geometry(work: Path, name: str) -> None:
     """``exports/NAME/geometry.yaml`` from ``designs/NAME.yaml`` without the CAD build."""
     out = work / "exports" / name / "geometry.yaml"
     spec_path = ROOT / "designs" / f"{name}.yaml"
     if out.exists() or not spec_path.exists():
         return
-    out.parent.mkdir(parents=True)
-    try:
-        from chic_design.layout import design_geometry
-        from chic_design.spec import load_spec
-        from chic_register.model.geometry import write_geometry
-    except ImportError:  # the library moved: build it the slow way
+    from chic_register.model.geometry import write_geometry
+
+    geometry = design_geometry(spec_path, {"spec": f"designs/{name}.yaml"})
+    if geometry is None:  # the library moved: build it the slow way
         subprocess.run([str(Path(sys.executable).parent / "chic-design"), "build", f"designs/{name}.yaml",
                         "--quiet"], cwd=work, check=True, capture_output=True, timeout=COMMAND_TIMEOUT_S)
         return
-    geometry = design_geometry(load_spec(spec_path), source={"spec": f"designs/{name}.yaml"})
+    out.parent.mkdir(parents=True)
     write_geometry(geometry, out)
 
 
