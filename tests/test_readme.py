@@ -148,7 +148,7 @@ def line_matches(expected_line: str, actual_line: str) -> bool:
     m = regex.fullmatch(actual_line.rstrip())
     if m is None:
         return False
-    return all(_number_ok(e, a) for e, a in zip(numbers, m.groups()))
+    return all(_number_ok(e, a) for e, a in zip(numbers, m.groups(), strict=True))
 
 
 def output_matches(expected: list[str], actual: list[str]) -> bool:
@@ -278,3 +278,23 @@ def _run(example: Example, work: Path) -> None:
     "example", [pytest.param(ex, id=ex.name, marks=[pytest.mark.slow] if ex.slow else []) for ex in EXAMPLES])
 def test_readme_example(example, workspace):
     _run(example, workspace)
+
+
+def test_benchmarks_file_matches_its_script():
+    """docs/benchmarks.md has one section per benchmarks/report.py section, and the README names real ones."""
+    import importlib.util
+
+    spec = importlib.util.spec_from_file_location("chic_benchmarks_report", ROOT / "benchmarks" / "report.py")
+    report = importlib.util.module_from_spec(spec)
+    sys.modules[spec.name] = report  # its dataclasses look their module up
+    spec.loader.exec_module(report)
+    text = (ROOT / "docs" / "benchmarks.md").read_text(encoding="utf-8")
+    sections, notes = report.split_file(text)
+    assert list(sections) == [s.name for s in report.SECTIONS]
+    assert notes.startswith(report.NOTES_MARKER)
+    assert report.assemble(sections, notes) == text, "docs/benchmarks.md is not as report.py would write it"
+    table = README.read_text(encoding="utf-8").split("## Measured figures", 1)[1].split("\n## ", 1)[0]
+    named = set(re.findall(r"`([a-z_]+)`", "".join(ln.rsplit("|", 2)[-2] for ln in table.splitlines()
+                                                    if ln.startswith("|") and ln.count("|") > 3)))
+    unknown = named - set(report.BY_NAME)
+    assert named and not unknown, f"README's figures name unknown benchmark sections: {unknown}"
