@@ -24,6 +24,7 @@ import numpy as np
 
 from chic_register.imaging.blob_width import render_tubes_widened
 from chic_register.imaging.render import check_grid, render_tubes, sample_offsets
+from chic_register.io.images import PLAIN_SUFFIXES, write_plain_image
 from chic_register.io.volumes import Volume, plane_frame
 from chic_register.model.geometry import FiducialGeometry
 from chic_register.model.pose import (
@@ -388,8 +389,7 @@ def write_simulated(sim: SimulatedSlice, path, extra: dict | None = None):
     orientation). Both files are written atomically. Returns
     ``(image_path, truth_path)``.
     """
-    from chic_register.io.dicom import write_dicom
-    from chic_register.io.images import PLAIN_SUFFIXES, write_plain_image
+    from chic_register.io.dicom import write_dicom  # deferred: loads pydicom only when used (one-shot start-up)
 
     p = Path(path)
     suffix = p.suffix.lower()
@@ -462,7 +462,6 @@ def simulate_volume(
     scanner origin. ``blob_width`` widens every blob in each k-plane as
     :func:`chic_register.imaging.blob_width.render_tubes_widened` does.
     """
-
     nx, ny, nz = (int(n) for n in shape_vox)
     if min(nx, ny, nz) < 1:
         raise ValueError(f"shape_vox must be three positive integers, got {tuple(shape_vox)}")

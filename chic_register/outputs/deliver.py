@@ -15,7 +15,10 @@ from pathlib import Path
 
 import numpy as np
 
+from chic_register.detect.blobs import detect_blobs
 from chic_register.errors import ChicRegisterError
+from chic_register.outputs.overlay import draw_overlay
+from chic_register.util.atomic import check_parent
 
 EXIT_OUTPUT_FAILED = 4
 
@@ -88,12 +91,10 @@ class OutputPlan:
 
     def check(self) -> "OutputPlan":
         """Reject bad output arguments before any work (bad input, exit 2)."""
-        from chic_register.util.atomic import check_parent
-
         if self.tfm:
             from chic_register.io.transforms import (
                 SUFFIXES,  # (only with --tfm: it imports SimpleITK, slow to load)
-            )
+            )  # deferred: loads SimpleITK only when used (one-shot start-up)
 
             if Path(self.tfm).suffix.lower() not in SUFFIXES:
                 raise ChicRegisterError(f"--tfm {self.tfm}: transform file must end in {', '.join(SUFFIXES)}")
@@ -113,7 +114,7 @@ class OutputPlan:
                 check_name,
                 check_port,
                 parse_address,
-            )
+            )  # deferred: loads SimpleITK, pyigtl only when used (one-shot start-up)
 
             if self.igtl:
                 parse_address(self.igtl)
@@ -130,7 +131,10 @@ class OutputPlan:
         """The OpenIGTLink end: a server listening now (peers may connect while we solve), a client, or None."""
         if self.igtl_listen is None and not self.igtl:
             return None
-        from chic_register.io.igtl import IgtlClient, IgtlServer
+        from chic_register.io.igtl import (  # deferred: loads SimpleITK, pyigtl only when used (one-shot start-up)
+            IgtlClient,
+            IgtlServer,
+        )
 
         if self.igtl_listen is not None:
             return IgtlServer(self.igtl_listen)
@@ -157,7 +161,7 @@ class Delivery:
 
 
 def _send(link, messages, wait_s: float, what: str) -> str:
-    from chic_register.io.igtl import IgtlServer
+    from chic_register.io.igtl import IgtlServer  # deferred: loads SimpleITK, pyigtl only when used (one-shot start-up)
 
     if isinstance(link, IgtlServer):
         link.accept(wait_s)
@@ -170,17 +174,19 @@ def deliver(plan: OutputPlan, reg, geom, slices, link=None) -> Delivery:
     out = Delivery()
     T = reg.T_scanner_from_fiducial
     if plan.overlay:
-        from chic_register.outputs.overlay import draw_overlay
-
         radius = 0.5 * max(t.diameter for t in geom.tubes)
         out.attempt("--overlay", lambda: f"wrote {draw_overlay(plan.overlay, slices, reg, tube_radius_mm=radius)}")
     if plan.tfm:
-        from chic_register.io.transforms import write_tfm
+        from chic_register.io.transforms import (
+            write_tfm,  # deferred: loads SimpleITK only when used (one-shot start-up)
+        )
 
         out.attempt("--tfm",
                     lambda: f"wrote {write_tfm(T, plan.tfm)} (T_fiducial_from_scanner, ITK/LPS)")
     if plan.scene:
-        from chic_register.outputs.scene import write_scene
+        from chic_register.outputs.scene import (
+            write_scene,  # deferred: loads SimpleITK only when used (one-shot start-up)
+        )
 
         def scene():
             mrml = write_scene(plan.scene, reg, geom, slices, name=plan.igtl_name, geometry_path=plan.geometry_path)
@@ -189,7 +195,9 @@ def deliver(plan: OutputPlan, reg, geom, slices, link=None) -> Delivery:
 
         out.attempt("--scene", scene)
     if link is not None:
-        from chic_register.io.igtl import pose_messages
+        from chic_register.io.igtl import (
+            pose_messages,  # deferred: loads SimpleITK, pyigtl only when used (one-shot start-up)
+        )
 
         msgs = pose_messages(T, plan.igtl_name, tool_pose(reg, geom), quality(reg))
         names = ", ".join(f"{m.message_type} {m.device_name}" for m in msgs)
@@ -201,9 +209,6 @@ def deliver_no_lock(plan: OutputPlan, reason: str, geom, slices, link=None) -> D
     """On no lock: the overlay of the candidates and the OpenIGTLink STATUS ``no_lock``; nothing else."""
     out = Delivery()
     if plan.overlay:
-        from chic_register.detect.blobs import detect_blobs
-        from chic_register.outputs.overlay import draw_overlay
-
         def overlay():
             d_mm = min(t.diameter for t in geom.tubes)
             blobs = [detect_blobs(sl.pixels, sl.pixel_spacing_mm, d_mm) for sl in slices]
@@ -211,7 +216,9 @@ def deliver_no_lock(plan: OutputPlan, reason: str, geom, slices, link=None) -> D
 
         out.attempt("--overlay", overlay)
     if link is not None:
-        from chic_register.io.igtl import no_lock_messages
+        from chic_register.io.igtl import (
+            no_lock_messages,  # deferred: loads SimpleITK, pyigtl only when used (one-shot start-up)
+        )
 
         out.attempt(plan.igtl_flag,
                     lambda: _send(link, no_lock_messages(reason, plan.igtl_name), plan.igtl_wait_s,

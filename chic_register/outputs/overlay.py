@@ -69,7 +69,7 @@ def scale_bar_mm(view_width_mm: float) -> float:
 
 def _draw_scale_bar(ax, lo, hi, col_spacing_mm: float):
     """A white bar of a round length in mm at the view's lower left; returns its (x0, y0, x1, y1) data box."""
-    import matplotlib.patheffects as pe
+    import matplotlib.patheffects as pe  # deferred: loads matplotlib only when used (one-shot start-up)
 
     width_px, height_px = hi[1] - lo[1], hi[0] - lo[0]
     length_mm = scale_bar_mm(width_px * col_spacing_mm)
@@ -113,7 +113,7 @@ def place_labels(ax, labels: dict, blobs_rc, radius_px: float, obstacles=(), fon
     ``obstacles`` ((x0, y0, x1, y1) data boxes) are kept free. Returns the
     text artists (gid :data:`LABEL_GID`).
     """
-    import matplotlib.patheffects as pe
+    import matplotlib.patheffects as pe  # deferred: loads matplotlib only when used (one-shot start-up)
 
     if not labels:
         return []
@@ -162,11 +162,11 @@ def place_labels(ax, labels: dict, blobs_rc, radius_px: float, obstacles=(), fon
 def overlay_figure(slices, registration=None, blobs=None, title: str | None = None,
                    tube_radius_mm: float = DEFAULT_TUBE_RADIUS_MM):
     """The overlay figure of ``slices`` (a list of Slice), not yet saved; see :func:`draw_overlay`."""
-    import matplotlib
+    import matplotlib  # deferred: loads matplotlib only when used (one-shot start-up)
 
     matplotlib.use("Agg", force=False)
-    import matplotlib.pyplot as plt
-    from matplotlib.patches import Rectangle
+    import matplotlib.pyplot as plt  # deferred: loads matplotlib only when used (one-shot start-up)
+    from matplotlib.patches import Rectangle  # deferred: loads matplotlib only when used (one-shot start-up)
 
     n = len(slices)
     fig, axes = plt.subplots(n, 2, figsize=(10, 5.2 * n), squeeze=False, gridspec_kw={"width_ratios": [1, 1.25]})

@@ -32,12 +32,13 @@ import xml.etree.ElementTree as ET
 from pathlib import Path
 
 import numpy as np
+import SimpleITK as sitk
 
 from chic_register.errors import OutputError
 from chic_register.io.stl import declare_space, write_stl
 from chic_register.io.transforms import write_tfm
 from chic_register.model.tubes import sample_centreline
-from chic_register.util.atomic import check_parent, write_json
+from chic_register.util.atomic import atomic_path, check_parent, write_json
 
 SCENE_FILE = "scene.mrml"
 MARKUPS_SCHEMA = ("https://raw.githubusercontent.com/slicer/slicer/master/Modules/Loadable/Markups/"
@@ -47,7 +48,7 @@ TOOL_SHAFT_DIAMETER_MM = 1.0
 
 def _tube_mesh(geom, sides: int = 12):
     """Vertices and triangles of every tube channel (diameter as in the geometry), frame F."""
-    import pyvista as pv
+    import pyvista as pv  # deferred: loads pyvista only when used (one-shot start-up)
 
     meshes = []
     for tube in geom.tubes:
@@ -58,7 +59,7 @@ def _tube_mesh(geom, sides: int = 12):
 
 def _tool_mesh(geom):
     """A shaft along the tool's z axis from the tip to past the far end of the body, and a tip sphere (tool frame)."""
-    import pyvista as pv
+    import pyvista as pv  # deferred: loads pyvista only when used (one-shot start-up)
 
     T_tool_from_F = np.linalg.inv(geom.tool.T_fiducial_from_tool)
     ends_z = [(T_tool_from_F @ [0.0, 0.0, z, 1.0])[2] for z in (0.0, geom.body.length)]
@@ -81,10 +82,6 @@ def _merge(meshes):
 
 def _write_slice_volume(sl, path: Path) -> None:
     """One slice as a one-plane NRRD volume with its LPS geometry (SimpleITK writes ``space: LPS``)."""
-    import SimpleITK as sitk
-
-    from chic_register.util.atomic import atomic_path
-
     img = sitk.GetImageFromArray(np.asarray(sl.pixels, dtype=np.float32)[None])
     thickness = sl.slice_thickness_mm if sl.slice_thickness_mm > 0 else 1.0
     img.SetSpacing((float(sl.pixel_spacing_mm[1]), float(sl.pixel_spacing_mm[0]), float(thickness)))
