@@ -70,6 +70,7 @@ def run(args) -> int:
     from chic_register.model.geometry import load_geometry
     from chic_register.outputs.deliver import EXIT_OUTPUT_FAILED, Delivery, OutputPlan, deliver, deliver_no_lock
     from chic_register.pipeline.register import register
+    from chic_register.pipeline.volume import register_volume
 
     plan = OutputPlan.from_args(args).check()
     geom = load_geometry(args.geometry)
@@ -78,7 +79,7 @@ def run(args) -> int:
         if not (0 < args.prior_max_deg <= 180):
             raise ChicRegisterError(f"--prior-max-deg must be in (0, 180] deg, got {args.prior_max_deg:g}")
         options = {"prior": load_prior(args.prior), "prior_max_deg": args.prior_max_deg}
-    slices, skip = _read_solve_inputs(args)
+    slices, skip, volume = _read_solve_inputs(args)
     extra = {}
     if args.target is not None:
         if not all(math.isfinite(v) for v in args.target):
@@ -107,7 +108,10 @@ def run(args) -> int:
                "(those that do not show the fiducial are skipped)")
     try:
         try:
-            reg = register(slices, geom, skip_failed=skip, **options, **extra)
+            if volume is not None:  # one volume: the library's volume registration, wide blobs and all
+                reg = register_volume(volume[0], geom, volume[1], **options, **extra)
+            else:
+                reg = register(slices, geom, skip_failed=skip, **options, **extra)
         except NoLock as exc:
             hint = _series_hint(args, slices, skip)
             if hint and hint not in exc.reason:
@@ -178,12 +182,13 @@ def _series_hint(args, slices, skip: bool) -> str:
             f"give the series' folder as one volume: chic-register solve {Path(files[0]).parent} ...)")
 
 
-def _read_solve_inputs(args) -> tuple[list, bool]:
-    """The slices of solve and whether failing ones may be skipped.
+def _read_solve_inputs(args) -> tuple[list, bool, tuple | None]:
+    """The slices of solve, whether failing ones may be skipped, and ``(volume, indices)`` when the input is one
+    volume (registered by :func:`~chic_register.pipeline.volume.register_volume`, as the library does; indices
+    None: every native slice, those that do not lock skipped and reported).
 
     2-D image files as they are; a volume by its --slices indices and
-    ranges, or, without them, every native slice (those that do not lock are
-    then skipped and reported).
+    ranges, or, without them, every native slice.
     """
     from chic_register.io.images import is_volume_path, read_slices  # here, not at the top: as in run
 
@@ -193,7 +198,7 @@ def _read_solve_inputs(args) -> tuple[list, bool]:
         raise ChicRegisterError("--slices applies to volume inputs (.nii, .nii.gz, .nrrd, .mha, DICOM series folder)")
     if args.series is not None and not any(Path(p).is_dir() for p in args.images):
         raise ChicRegisterError("--series applies to a folder of DICOM files (the series to read from it)")
-    slices = []
+    slices, volume = [], None
     for path in args.images:
         if is_volume_path(path):
             # here, not in run: a one-shot solve of 2-D slices stays fast without the volume readers (SimpleITK)
@@ -204,6 +209,7 @@ def _read_solve_inputs(args) -> tuple[list, bool]:
             nk = vol.shape[0]
             ks = parse_slice_indices(args.slices, nk) if args.slices else range(nk)
             slices.extend(vol.native_slice(k) for k in ks)
+            volume = (vol, list(ks) if args.slices else None)
         else:
             slices.extend(read_slices([path], args.pixel_spacing))
-    return slices, bool(volumes) and not args.slices
+    return slices, bool(volumes) and not args.slices, volume if len(args.images) == 1 else None

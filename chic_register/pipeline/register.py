@@ -73,7 +73,7 @@ def register(slices: list[Slice], geom: FiducialGeometry, *, options: SolveOptio
     opts = dataclasses.replace(options or SolveOptions(), **overrides)
     if not slices:
         raise NoLock("no slices given")
-    _refuse_self_symmetric(geom, opts)
+    refuse_self_symmetric(geom, opts)
     t0 = time.perf_counter()
     slices, filled = fill_slice_dropouts(slices)
     lows = check_pixel_range(slices)
@@ -92,7 +92,7 @@ def register(slices: list[Slice], geom: FiducialGeometry, *, options: SolveOptio
                               pixel_fit=refined.blurred if refined.precision is not None else None)
 
 
-def _refuse_self_symmetric(geom: FiducialGeometry, opts: SolveOptions) -> None:
+def refuse_self_symmetric(geom: FiducialGeometry, opts: SolveOptions) -> None:
     """A frame that maps onto itself (z001) needs a prior: no image can choose; say so before any work."""
     if opts.prior is not None:
         return

@@ -28,7 +28,7 @@ from chic_register.model.geometry import FiducialGeometry
 from chic_register.model.pose import near_prior, rotation_deg, slice_angles
 from chic_register.model.tube_model import plane_crossings, prepare_geometry
 from chic_register.options import SolveOptions
-from chic_register.pipeline.register import register
+from chic_register.pipeline.register import refuse_self_symmetric, register
 from chic_register.pipeline.results import Registration, SkippedSlice, build_registration
 from chic_register.verify.pixels import verify_fit
 
@@ -76,7 +76,9 @@ def register_volume(volume: Volume, geom: FiducialGeometry, indices=None, **opti
     nk = volume.shape[0]
     ks = range(nk) if indices is None else indices
     slices = [volume.native_slice(k) for k in ks]
-    opts = dataclasses.replace(SolveOptions(), **{k: v for k, v in options.items() if k not in _NOT_OPTIONS})
+    opts = dataclasses.replace(options.get("options") or SolveOptions(),
+                               **{k: v for k, v in options.items() if k not in _NOT_OPTIONS})
+    refuse_self_symmetric(geom, opts)  # before any work: no image can choose between the twins
     may_widen = indices is None and opts.blurred_fit and opts.verify and not opts.centroid_model
     wide_refusal = None
     if may_widen and _looks_wide(volume, geom):  # the slices' own solve would mostly fail, at a cost: this first
