@@ -34,7 +34,7 @@ def add_igtl_args(p) -> None:
 
 def check_spacing_flag(args) -> None:
     """A --pixel-spacing outside the physical range is refused before any file is read."""
-    from chic_register.io.images import spacing_fault  # here, not at the top: keeps start-up fast
+    from chic_register.io.limits import spacing_fault  # here, not at the top: keeps start-up fast
 
     if getattr(args, "pixel_spacing", None) is not None:
         fault = spacing_fault(args.pixel_spacing)

@@ -43,7 +43,7 @@ def add_parser(subparsers) -> None:
 def run(args) -> int:
     """Reslice, register every slice (with a progress bar on stderr), print the table or the JSON."""
     # here, not at the top: keeps chic-register's start-up fast (every command module is imported)
-    from chic_register.io.images import MAX_SPACING_MM, MIN_SPACING_MM
+    from chic_register.io.limits import MAX_SPACING_MM, MIN_SPACING_MM
     from chic_register.io.volumes import read_volume
     from chic_register.model.geometry import load_geometry
     from chic_register.pipeline.register import register

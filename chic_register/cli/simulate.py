@@ -69,7 +69,8 @@ def run(args) -> int:
     import numpy as np  # here, not at the top: keeps chic-register's start-up fast (every command module is imported)
 
     from chic_register.imaging.simulate import DICOM_SUFFIXES, simulate_slice, write_simulated
-    from chic_register.io.images import MAX_SPACING_MM, MIN_SPACING_MM, PLAIN_SUFFIXES
+    from chic_register.io.images import PLAIN_SUFFIXES
+    from chic_register.io.limits import MAX_SPACING_MM, MIN_SPACING_MM
     from chic_register.model.geometry import load_geometry
 
     out = Path(args.out)
@@ -139,8 +140,8 @@ def _run_volume(args) -> int:
     import numpy as np  # here, not at the top: keeps chic-register's start-up fast (every command module is imported)
 
     from chic_register.imaging.simulate import simulate_volume, tool_truth, truth_path
-    from chic_register.io.images import MAX_SPACING_MM, MIN_SPACING_MM
-    from chic_register.io.volumes import MAX_VOXELS, write_volume
+    from chic_register.io.limits import MAX_SPACING_MM, MAX_VOXELS, MIN_SPACING_MM
+    from chic_register.io.volumes import write_volume
     from chic_register.model.geometry import load_geometry
     from chic_register.model.pose import invert, slice_frame
     from chic_register.util.atomic import write_json

@@ -70,7 +70,6 @@ def run(args) -> int:
     from chic_register.model.geometry import load_geometry
     from chic_register.outputs.deliver import EXIT_OUTPUT_FAILED, Delivery, OutputPlan, deliver, deliver_no_lock
     from chic_register.pipeline.register import register
-    from chic_register.pipeline.volume import register_volume
 
     plan = OutputPlan.from_args(args).check()
     geom = load_geometry(args.geometry)
@@ -109,6 +108,8 @@ def run(args) -> int:
     try:
         try:
             if volume is not None:  # one volume: the library's volume registration, wide blobs and all
+                from chic_register.pipeline.volume import register_volume  # here: 2-D solves never load it
+
                 reg = register_volume(volume[0], geom, volume[1], **options, **extra)
             else:
                 reg = register(slices, geom, skip_failed=skip, **options, **extra)

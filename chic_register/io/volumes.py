@@ -13,7 +13,6 @@ Index convention: ``voxels[k, j, i]`` (SimpleITK's array order, z slowest);
 
 from __future__ import annotations
 
-import datetime
 import math
 import os
 import shutil
@@ -25,8 +24,9 @@ from typing import TYPE_CHECKING
 import numpy as np
 
 from chic_register.errors import ChicRegisterError, ImageReadError, InputFileError
-from chic_register.io.images import MAX_SPACING_MM, MIN_SPACING_MM, file_suffix
 from chic_register.io.images import VOLUME_SUFFIXES as FILE_SUFFIXES
+from chic_register.io.images import file_suffix
+from chic_register.io.limits import MAX_SPACING_MM, MIN_SPACING_MM, check_voxels, last_line
 from chic_register.model.slices import Slice
 from chic_register.util.atomic import atomic_path
 from chic_register.util.safeload import open_regular_file
@@ -34,9 +34,7 @@ from chic_register.util.safeload import open_regular_file
 if TYPE_CHECKING:  # annotations only: SimpleITK is imported where it is used
     import SimpleITK as sitk
 
-MAX_VOXELS = 2**26  # 64 M voxels (512 x 512 x 256): 256 MiB as float32, read and copied once
 WRITE_SUFFIXES = (".nii", ".nii.gz", ".nrrd", ".mha")
-MR_IMAGE_STORAGE = "1.2.840.10008.5.1.4.1.1.4"  # MR Image Storage SOP class
 
 
 @dataclass(frozen=True, eq=False)
@@ -148,33 +146,6 @@ def volume_from_sitk(img: sitk.Image, source: str = "<sitk>", slice_thickness_mm
     )
 
 
-def _dicom_thickness_mm(reader, spacing_k_mm: float) -> float | None:
-    """SliceThickness (0018,0050) of a series' first file when it differs from the slice spacing (gaps between
-    slices, or overlapping slices) and is a plausible thickness; else None (the spacing serves)."""
-    try:
-        t = float(str(reader.GetMetaData("0018|0050")).strip()) if reader.HasMetaDataKey("0018|0050") else None
-    except (ValueError, RuntimeError):
-        return None
-    if t is None or not (math.isfinite(t) and MIN_SPACING_MM <= t <= MAX_SPACING_MM):
-        return None
-    return None if abs(t - spacing_k_mm) <= 1e-3 * spacing_k_mm else t
-
-
-def _last_line(exc: Exception) -> str:
-    lines = [ln.strip() for ln in str(exc).strip().splitlines() if ln.strip()]
-    return lines[-1] if lines else type(exc).__name__
-
-
-def _check_voxels(path, size, components: int) -> None:
-    """Refuse a volume too large to read (from its header, before any voxel is decoded)."""
-    n = components
-    for v in size:
-        n *= int(v)
-    if n > MAX_VOXELS:
-        raise ImageReadError(path, f"volume of size {tuple(int(v) for v in size)} is too large "
-                                   f"(at most {MAX_VOXELS} voxels)")
-
-
 def read_volume(path, series_id: str | None = None) -> Volume:
     """Read a NIfTI / NRRD / MetaImage file, or a folder holding one DICOM series.
 
@@ -189,41 +160,11 @@ def read_volume(path, series_id: str | None = None) -> Volume:
     if not path.exists():
         raise ImageReadError(path, "no such file or folder")
     if path.is_dir():
-        reader = sitk.ImageSeriesReader()
-        ids = list(reader.GetGDCMSeriesIDs(str(path)))
-        if not ids:
-            raise ImageReadError(path, "folder holds no DICOM series")
-        if series_id is None and len(ids) > 1:
-            tags = {i: _series_tags(reader, path, i) for i in ids[:LISTED_SERIES]}
-            raise ImageReadError(path, f"folder holds {len(ids)} DICOM series: {_series_list(tags, ids)}; "
-                                       f"pick one with --series (its number or UID)")
-        if series_id is None:
-            series_id = ids[0]
-        elif series_id not in ids:
-            tags = {i: _series_tags(reader, path, i) for i in ids}  # each series' first header, read once
-            by_number = [i for i in ids if _same_number(tags[i][0], series_id)]
-            if len(by_number) > 1:
-                raise ImageReadError(path, f"SeriesNumber {series_id} names {len(by_number)} DICOM series here; give "
-                                           f"the SeriesInstanceUID: {_series_list(tags, by_number)}")
-            if not by_number:
-                raise ImageReadError(path, f"no DICOM series {series_id!r} (a SeriesNumber or SeriesInstanceUID); "
-                                           f"found: {_series_list(tags, ids)}")
-            series_id = by_number[0]
-        files = reader.GetGDCMSeriesFileNames(str(path), series_id)
-        if len(files) < 2:
-            raise ImageReadError(path, "DICOM series has a single slice: read it as a slice, not a volume")
-        reader.SetFileNames(files)
-        try:
-            first = sitk.ImageFileReader()
-            first.SetFileName(files[0])
-            first.ReadImageInformation()
-            _check_voxels(path, (*first.GetSize()[:2], len(files)), first.GetNumberOfComponents())
-            img = reader.Execute()
-        except RuntimeError as exc:
-            raise ImageReadError(path, f"cannot read DICOM series: {_last_line(exc)}") from None
+        from chic_register.io.dicom import read_dicom_series  # deferred: loads pydicom only for a DICOM folder
+
+        img, thickness_mm = read_dicom_series(path, series_id)
         if img.GetDimension() == 3:
-            return volume_from_sitk(img, source=str(path),
-                                    slice_thickness_mm=_dicom_thickness_mm(first, float(img.GetSpacing()[2])))
+            return volume_from_sitk(img, source=str(path), slice_thickness_mm=thickness_mm)
     else:
         if series_id is not None:
             raise ImageReadError(path, "--series applies to a folder of DICOM files, not a volume file")
@@ -238,53 +179,13 @@ def read_volume(path, series_id: str | None = None) -> Volume:
             reader = sitk.ImageFileReader()
             reader.SetFileName(str(path))
             reader.ReadImageInformation()
-            _check_voxels(path, reader.GetSize(), reader.GetNumberOfComponents())
+            check_voxels(path, reader.GetSize(), reader.GetNumberOfComponents())
             img = reader.Execute()
         except RuntimeError as exc:
-            raise ImageReadError(path, f"cannot read volume: {_last_line(exc)}") from None
+            raise ImageReadError(path, f"cannot read volume: {last_line(exc)}") from None
     if img.GetDimension() == 4 and img.GetSize()[3] == 1:
         img = img[:, :, :, 0]
     return volume_from_sitk(img, source=str(path))
-
-
-#: A refusal lists at most this many of a folder's series (an export folder may hold dozens).
-LISTED_SERIES = 8
-
-
-def _series_tags(reader, folder: Path, series_id: str) -> tuple[str, str, int]:
-    """``(SeriesNumber, SeriesDescription, file count)`` of one DICOM series in ``folder`` (from its first file's
-    header; empty strings where it has none)."""
-    import SimpleITK as sitk  # deferred: loads SimpleITK only when used (one-shot start-up)
-
-    files = reader.GetGDCMSeriesFileNames(str(folder), series_id)
-    first = sitk.ImageFileReader()
-    first.SetFileName(files[0])
-    try:
-        first.ReadImageInformation()
-    except RuntimeError:
-        return "", "", len(files)
-    tag = lambda key: first.GetMetaData(key).strip() if first.HasMetaDataKey(key) else ""  # noqa: E731
-    return tag("0020|0011"), tag("0008|103e"), len(files)
-
-
-def _same_number(number: str, wanted) -> bool:
-    """A SeriesNumber read from a header against the one a user gave ("05" is 5)."""
-    try:
-        return int(str(number).strip()) == int(str(wanted).strip())
-    except ValueError:
-        return False
-
-
-def _series_list(tags: dict, ids) -> str:
-    """One line naming each series (the first :data:`LISTED_SERIES`): number, description, file count and UID, from
-    ``tags`` (:func:`_series_tags` by series UID)."""
-    out = []
-    for i in list(ids)[:LISTED_SERIES]:
-        number, description, n = tags[i]
-        name = " ".join(v for v in (f"#{number}" if number else "", f"'{description}'" if description else "") if v)
-        out.append(f"{name + ' ' if name else ''}({n} file{'s' if n != 1 else ''}, {i})")
-    more = len(ids) - LISTED_SERIES
-    return "; ".join(out) + (f"; and {more} more" if more > 0 else "")
 
 
 def _replace_dir(tmp: Path, path: Path) -> None:
@@ -296,79 +197,6 @@ def _replace_dir(tmp: Path, path: Path) -> None:
         shutil.rmtree(old, ignore_errors=True)
     else:
         os.replace(tmp, path)
-
-
-def _dicom_quantise(voxels: np.ndarray) -> tuple[np.ndarray, float, float]:
-    """Stored int16 values plus (intercept, slope) so that voxels ~ stored * slope + intercept."""
-    v = np.asarray(voxels)
-    if np.issubdtype(v.dtype, np.integer) and v.min() >= -32768 and v.max() <= 32767:
-        return v.astype(np.int16), 0.0, 1.0
-    lo, hi = float(np.min(v)), float(np.max(v))
-    intercept = 0.5 * (lo + hi)
-    slope = max(0.5 * (hi - lo), 1e-6) / 32000.0
-    stored = np.clip(np.rint((v - intercept) / slope), -32768, 32767).astype(np.int16)
-    return stored, intercept, slope
-
-
-def _ds(x: float) -> str:
-    """A DICOM decimal string (at most 16 characters)."""
-    for digits in range(12, 4, -1):
-        text = f"{x:.{digits}g}"
-        if len(text) <= 16:
-            return text
-    return f"{x:.4g}"
-
-
-def _write_dicom_series(volume: Volume, folder: Path) -> None:
-    """One MR Image Storage file per k-slice (pydicom), the volume's geometry in IPP/IOP."""
-    from pydicom.dataset import (  # deferred: loads pydicom only when used (one-shot start-up)
-        FileDataset,
-        FileMetaDataset,
-    )
-    from pydicom.uid import (  # deferred: loads pydicom only when used (one-shot start-up)
-        ExplicitVRLittleEndian,
-        generate_uid,
-    )
-
-    stored, intercept, slope = _dicom_quantise(volume.voxels)
-    now = datetime.datetime.now()
-    study_uid, series_uid, frame_uid = generate_uid(), generate_uid(), generate_uid()
-    si, sj, sk = volume.spacing_mm
-    d = volume.direction
-    for k in range(stored.shape[0]):
-        meta = FileMetaDataset()
-        meta.MediaStorageSOPClassUID = MR_IMAGE_STORAGE
-        meta.MediaStorageSOPInstanceUID = generate_uid()
-        meta.TransferSyntaxUID = ExplicitVRLittleEndian
-        ds = FileDataset(str(folder / f"slice_{k:04d}.dcm"), {}, file_meta=meta, preamble=b"\0" * 128)
-        ds.SOPClassUID = MR_IMAGE_STORAGE
-        ds.SOPInstanceUID = meta.MediaStorageSOPInstanceUID
-        ds.Modality = "MR"
-        ds.ImageType = ["DERIVED", "SECONDARY", "OTHER"]
-        ds.StudyDate = ds.SeriesDate = ds.ContentDate = now.strftime("%Y%m%d")
-        ds.StudyTime = ds.SeriesTime = ds.ContentTime = now.strftime("%H%M%S")
-        ds.SeriesDescription = f"CHIC volume {Path(volume.source).name}"[:64]
-        ds.PatientName = "CHIC^PHANTOM"
-        ds.PatientID = "CHIC"
-        ds.PatientBirthDate, ds.PatientSex, ds.PatientPosition = "", "O", "HFS"
-        ds.ReferringPhysicianName, ds.StudyID, ds.AccessionNumber = "", "1", ""
-        ds.PositionReferenceIndicator, ds.Manufacturer = "", "CHIC"
-        ds.ScanningSequence, ds.SequenceVariant, ds.ScanOptions, ds.MRAcquisitionType = "RM", "NONE", "", "3D"
-        ds.RepetitionTime, ds.EchoTime, ds.EchoTrainLength = "", "", ""
-        ds.StudyInstanceUID, ds.SeriesInstanceUID, ds.FrameOfReferenceUID = study_uid, series_uid, frame_uid
-        ds.SeriesNumber = 1
-        ds.InstanceNumber = k + 1
-        ds.ImagePositionPatient = [_ds(x) for x in volume.origin_mm + k * sk * d[:, 2]]
-        ds.ImageOrientationPatient = [_ds(x) for x in (*d[:, 0], *d[:, 1])]
-        ds.PixelSpacing = [_ds(sj), _ds(si)]
-        ds.SliceThickness, ds.SpacingBetweenSlices = _ds(volume.thickness_mm), _ds(sk)
-        ds.SamplesPerPixel = 1
-        ds.PhotometricInterpretation = "MONOCHROME2"
-        ds.Rows, ds.Columns = stored.shape[1], stored.shape[2]
-        ds.BitsAllocated, ds.BitsStored, ds.HighBit, ds.PixelRepresentation = 16, 16, 15, 1
-        ds.RescaleIntercept, ds.RescaleSlope, ds.RescaleType = _ds(intercept), _ds(slope), "US"
-        ds.PixelData = np.ascontiguousarray(stored[k]).tobytes()
-        ds.save_as(folder / f"slice_{k:04d}.dcm", enforce_file_format=True)
 
 
 def write_volume(volume: Volume, path) -> Path:
@@ -388,7 +216,7 @@ def write_volume(volume: Volume, path) -> Path:
             with atomic_path(path, suffix=suffix) as tmp:
                 sitk.WriteImage(volume.to_sitk(), str(tmp))
         except RuntimeError as exc:
-            raise ChicRegisterError(f"{path}: cannot write volume: {_last_line(exc)}") from None
+            raise ChicRegisterError(f"{path}: cannot write volume: {last_line(exc)}") from None
         return path
     if suffix in (".dcm", ".gz", ".nhdr", ".mhd", ".png", ".tif", ".tiff", ".npy", ".json"):
         raise ChicRegisterError(
@@ -396,11 +224,13 @@ def write_volume(volume: Volume, path) -> Path:
         )
     tmp = Path(tempfile.mkdtemp(prefix=f".{path.name}-", dir=path.parent))
     try:
-        _write_dicom_series(volume, tmp)
+        from chic_register.io.dicom import write_dicom_series  # deferred: loads pydicom only for a DICOM folder
+
+        write_dicom_series(volume, tmp)
         _replace_dir(tmp, path)
     except RuntimeError as exc:
         shutil.rmtree(tmp, ignore_errors=True)
-        raise ChicRegisterError(f"{path}: cannot write DICOM series: {_last_line(exc)}") from None
+        raise ChicRegisterError(f"{path}: cannot write DICOM series: {last_line(exc)}") from None
     except BaseException:
         shutil.rmtree(tmp, ignore_errors=True)
         raise
