@@ -17,9 +17,9 @@ import numpy as np
 
 from chic_register.studies.evaluate import StudyCase
 
-from ..layout import fiducial_geometry
-from ..spec import parse_spec
-from .requirements import Requirements
+from chic_design.families import family_of
+from chic_design.optimize.requirements import Requirements
+from chic_design.spec import parse_spec
 
 DEPTHS = 3
 
@@ -86,7 +86,7 @@ def confirm_design(spec_data: dict, req_data: dict, draws: int, seed: int) -> di
 
     req = Requirements.model_validate(req_data)
     spec = parse_spec(spec_data, "<candidate>")
-    geom = fiducial_geometry(spec)
+    geom = family_of(spec).geometry(spec)
     im = req.imaging
     spacing = im.slice_spacing if im.slice_spacing is not None else im.slice_thickness
     shape = image_shape(spec.body.outer_diameter, req.required.tilt_deg[1], im.pixel_size)

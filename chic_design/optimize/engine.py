@@ -12,7 +12,7 @@ from __future__ import annotations
 import os
 from concurrent.futures import ProcessPoolExecutor, as_completed
 
-from .errors import RequirementsError
+from chic_design.optimize.errors import RequirementsError
 
 
 class SerialEngine:

@@ -8,8 +8,8 @@ import numpy as np
 
 from chic_register.util.atomic import save_figure
 
-from .choose import LABELS
-from .score import OBJECTIVES
+from chic_design.optimize.choose import LABELS
+from chic_design.optimize.score import OBJECTIVES
 
 
 def _plt():

@@ -15,8 +15,8 @@ import numpy as np
 
 from chic_register.model.geometry import FiducialGeometry
 
-from .requirements import Requirements
-from .trust import SOLVER_OVER_CRLB, predicted_solver_error, solver_limits
+from chic_design.optimize.requirements import Requirements
+from chic_design.optimize.trust import SOLVER_OVER_CRLB, predicted_solver_error, solver_limits
 
 DEPTH_SAMPLES = 3
 AZIMUTHS_DEG = (0.0, 90.0)

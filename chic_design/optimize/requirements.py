@@ -16,8 +16,10 @@ from typing import Annotated
 
 from pydantic import BaseModel, ConfigDict, Field, ValidationError, model_validator
 
-from .errors import RequirementsError
-from ..spec import format_validation_error
+from chic_design.optimize.errors import RequirementsError
+from chic_design.spec import format_validation_error
+from chic_register.errors import InputFileError
+from chic_register.util.safeload import load_yaml_file
 
 PositiveMM = Annotated[float, Field(gt=0)]
 
@@ -203,9 +205,6 @@ def parse_requirements(data, path="<requirements>") -> Requirements:
 
 def load_requirements(path) -> Requirements:
     """Read and validate a requirements file."""
-    from chic_register.errors import InputFileError
-    from chic_register.util.safeload import load_yaml_file
-
     path = Path(path)
     try:
         data = load_yaml_file(path, "requirements file")  # the loader of specs and geometry files
