@@ -9,9 +9,10 @@ import numpy as np
 import pytest
 import yaml
 
-from chic_design.layout import fiducial_geometry
 from chic_design.errors import SpecError
-from chic_design.spec import ToolSpec, parse_spec
+from chic_design.families import family_of
+from chic_design.families.sections import ToolSpec
+from chic_design.spec import parse_spec
 from chic_register.cli.main import main
 from chic_register.model.geometry import content_sha256, geometry_from_dict, load_geometry, write_geometry
 from chic_register.model.pose import rigid, rot_y
@@ -28,7 +29,7 @@ TIP_MM = -60.0
 @pytest.fixture(scope="module")
 def tool_geometry(neuro_spec):
     spec = neuro_spec.model_copy(update={"tool": ToolSpec(tip_offset_mm=TIP_MM)})
-    return fiducial_geometry(spec, source={"spec": "designs/neuro.yaml"})
+    return family_of(spec).geometry(spec, source={"spec": "designs/neuro.yaml"})
 
 
 def test_geometry_without_tool_keeps_its_hash_and_with_tool_covers_it(neuro_geometry, tool_geometry, tmp_path):
@@ -68,7 +69,8 @@ def test_full_tool_transform_from_the_spec(neuro_spec):
     T = rigid(rot_y(90.0), (1.0, 2.0, -40.0))
     data = yaml.safe_load(NEURO.read_text())
     data["tool"] = {"T_fiducial_from_tool": T.tolist()}
-    geom = fiducial_geometry(parse_spec(data, "neuro.yaml"))
+    spec = parse_spec(data, "neuro.yaml")
+    geom = family_of(spec).geometry(spec)
     np.testing.assert_allclose(geom.tool.T_fiducial_from_tool, T)
 
 

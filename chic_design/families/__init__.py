@@ -29,3 +29,8 @@ def family_named(name, where: str = "family") -> Family:
 def family_of(spec) -> Family:
     """The family of a validated spec (its ``family`` key)."""
     return family_named(spec.family)
+
+
+def geometry_of(spec, source: dict | None = None):
+    """The geometry model of a validated spec of any family: ``family_of(spec).geometry(spec, source)``."""
+    return family_of(spec).geometry(spec, source)

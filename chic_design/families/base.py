@@ -7,7 +7,7 @@ report) asks the family through this interface and never tests which family
 it has.
 
 To add a family, make a folder ``chic_design/families/<name>/`` with a
-subclass of :class:`Family` that sets the four class attributes and
+subclass of :class:`Family` that sets the class attributes and
 implements the abstract methods, and add one line to
 :data:`chic_design.families.FAMILIES`. (The solver also checks the
 ``family`` key of a geometry file against its own list,
@@ -60,10 +60,13 @@ class Family(ABC):
     spec_model: ClassVar[type[BaseModel]]
     #: The spec key of the body's length along z, as messages name it ("body.length").
     length_key: ClassVar[str]
+    #: A complete spec of this family (its reference design), as parsed YAML: every family's
+    #: geometry, check and parts are tested on it.
+    preset: ClassVar[dict]
 
     def __init_subclass__(cls, **kwargs):
         super().__init_subclass__(**kwargs)
-        missing = [a for a in ("name", "title", "spec_model", "length_key") if not hasattr(cls, a)]
+        missing = [a for a in ("name", "title", "spec_model", "length_key", "preset") if not hasattr(cls, a)]
         if missing:
             raise TypeError(f"family {cls.__name__} does not set {', '.join(missing)}")
 
@@ -126,13 +129,9 @@ class Family(ABC):
         """
         geom = self.geometry(spec)
         pixel = spec.imaging.pixel_size if pixel_size_mm is None else float(pixel_size_mm)
-        report = check_geometry(
-            geom, self,
-            pixel_size_mm=pixel,
-            slice_thickness_mm=spec.imaging.slice_thickness if slice_thickness_mm is None else float(slice_thickness_mm),
-            min_wall_mm=spec.print.min_wall,
-            max_overhang_deg=spec.print.max_overhang_deg,
-        )
+        thickness = spec.imaging.slice_thickness if slice_thickness_mm is None else float(slice_thickness_mm)
+        report = check_geometry(geom, self, pixel_size_mm=pixel, slice_thickness_mm=thickness,
+                                min_wall_mm=spec.print.min_wall, max_overhang_deg=spec.print.max_overhang_deg)
         extra = build_violations(spec, geom, pixel, self.length_key)
         return replace(report, violations=report.violations + tuple(extra)) if extra else report
 

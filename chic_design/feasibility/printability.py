@@ -32,6 +32,7 @@ from __future__ import annotations
 import math
 
 import numpy as np
+from scipy.spatial import cKDTree
 
 from chic_design.feasibility.contacts import channel_contacts
 from chic_design.feasibility.depth_precision import depth_sensitivity
@@ -90,8 +91,6 @@ def _samples(tube, spacing_mm: float):
 
 def _pair_gap(ta, tb, min_wall_mm: float, spacing_mm: float):
     """Surface gap between two channels: min (refined), z there, intersect / thin z-ranges on ``ta``."""
-    from scipy.spatial import cKDTree
-
     ra, rb = ta.diameter / 2, tb.diameter / 2
     sa, pa, _ = _samples(ta, spacing_mm)
     sb, pb, _ = _samples(tb, spacing_mm)

@@ -15,7 +15,7 @@ def save_tilt_plot(report: FeasibilityReport, png_path) -> Path:
 
     Written atomically (temporary file, then rename).
     """
-    import matplotlib
+    import matplotlib  # matplotlib, and its backend choice, only when a plot is drawn
 
     matplotlib.use("Agg")
     import matplotlib.pyplot as plt

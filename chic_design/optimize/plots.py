@@ -13,7 +13,7 @@ from chic_design.optimize.score import OBJECTIVES
 
 
 def _plt():
-    import matplotlib
+    import matplotlib  # matplotlib, and its backend choice, only when a plot is drawn
 
     matplotlib.use("Agg")
     import matplotlib.pyplot as plt

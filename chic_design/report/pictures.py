@@ -95,7 +95,7 @@ def tilt_plot_job(feasibility_report, folder) -> float:
 
 def precision_job(geometry: FiducialGeometry, pixel_size_mm: float, slice_thickness_mm: float, folder) -> float:
     """Write ``folder/precision.png`` and ``folder/precision.md`` (the report's precision section); returns the wall time (s)."""
-    from chic_register.precision.report import design_precision, plot_map, report_section  # in the worker only
+    from chic_register.precision.report import design_precision, plot_map, report_section  # by the drawing worker
 
     t0 = time.perf_counter()
     pm = design_precision(geometry, pixel_size_mm, slice_thickness_mm)

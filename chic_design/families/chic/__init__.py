@@ -1,4 +1,4 @@
-"""The CHIC family (``family: chic``, the default): the paper's cylinder with diametric tubes, helices and orientation tubes.
+"""The CHIC family (``family: chic``, the default): the paper's cylinder of diametric, helical and orientation tubes.
 
 Modules: :mod:`.spec` (the spec model), :mod:`.layout` (its tubes in F),
 :mod:`.cad` (annular body and round caps), :mod:`.check` (its unambiguity
@@ -22,6 +22,8 @@ class ChicFamily(Family):
     title = "CHIC fiducial"
     spec_model = ChicSpec
     length_key = "body.length"
+    preset = {"name": "chic-prototype", "description": "The paper's prototype (Ma et al., Fig. 1-2)",
+              "body": {"length": 50.0, "outer_diameter": 30.0, "inner_diameter": 20.0}, "channels": {"diameter": 3.0}}
 
     def body(self, spec):
         return chic_body(spec)

@@ -22,6 +22,7 @@ class ZFrameFamily(Family):
     title = "Z-frame fiducial"
     spec_model = ZFrameSpec
     length_key = "frame.height"
+    preset = {"family": "zframe", "name": "zframe-z001", "description": "Slicer's z001: seven rods on a 60 mm cube"}
 
     def body(self, spec):
         return zframe_body(spec)

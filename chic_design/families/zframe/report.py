@@ -9,7 +9,7 @@ from chic_register.model.geometry import FiducialGeometry
 
 
 def zframe_report_head(spec: ZFrameSpec, geometry: FiducialGeometry, dims) -> ReportHead:
-    """The Z-frame build's head; ``dims`` are its square caps' :class:`~chic_design.families.zframe.cad.SquareCapDims`."""
+    """The Z-frame build's head; ``dims``: its caps' :class:`~chic_design.families.zframe.cad.SquareCapDims`."""
     b = geometry.body
     ports = len(fill_ports_xy(geometry)) if dims.port_diameter > 0 else 0
     rows = (

@@ -7,34 +7,30 @@ import numpy as np
 import pytest
 from build123d import CenterOf, GeomType
 
-from chic_design.cad import (
-    CapDims,
-    annulus_volume_mm3,
-    build_parts,
-    centreline_edge,
-    channel_openings_xy,
-    channel_volume_mm3,
-    extended_tube,
-)
-from chic_design.layout import fiducial_geometry
+from chic_design.cad.channels import blank_volume_mm3, channel_openings_xy, channel_volume_mm3, extended_tube
+from chic_design.cad.parts import centreline_edge
+from chic_design.families import FAMILIES
+from chic_design.families.chic.cad import RoundCapDims
 from chic_design.spec import load_spec
 from chic_register.model.geometry import HelixTube, LineTube
 
-from .conftest import NEEDLE, NEURO
+from ...conftest import NEEDLE, NEURO
+
+CHIC = FAMILIES["chic"]
 
 
 @pytest.fixture(scope="module")
 def needle():
     spec = load_spec(NEEDLE)
-    geom = fiducial_geometry(spec)
-    return spec, geom, build_parts(spec, geom)
+    geom = CHIC.geometry(spec)
+    return spec, geom, CHIC.parts(spec, geom)
 
 
 @pytest.fixture(scope="module")
 def neuro():
     spec = load_spec(NEURO)
-    geom = fiducial_geometry(spec)
-    return spec, geom, build_parts(spec, geom)
+    geom = CHIC.geometry(spec)
+    return spec, geom, CHIC.parts(spec, geom)
 
 
 LEFT_HELIX = HelixTube("H9", "helix", radius=7.0, theta0_deg=200.0, pitch_deg_per_mm=-3.0,
@@ -82,13 +78,13 @@ def test_channel_volume_hand_worked(neuro_geometry):
     s = 50 * math.hypot(1, 12.5 * math.radians(1.4))
     assert channel_volume_mm3(neuro_geometry.tube("H0"), 0, 50) == pytest.approx(math.pi * a * a * s)
     assert channel_volume_mm3(neuro_geometry.tube("H0"), 10, 20) == pytest.approx(math.pi * a * a * s / 5)
-    assert annulus_volume_mm3(neuro_geometry) == pytest.approx(math.pi / 4 * (900 - 400) * 50)
+    assert blank_volume_mm3(neuro_geometry) == pytest.approx(math.pi / 4 * (900 - 400) * 50)
 
 
 def test_body_volume_is_annulus_minus_channels_needle_guide(needle):
     """needle-guide's channels touch only over 0.25 mm at the ends: the sum is nearly exact."""
     _, geom, parts = needle
-    want = annulus_volume_mm3(geom) - sum(channel_volume_mm3(t, 0, geom.body.length) for t in geom.tubes)
+    want = blank_volume_mm3(geom) - sum(channel_volume_mm3(t, 0, geom.body.length) for t in geom.tubes)
     assert parts.body.volume == pytest.approx(want, rel=1e-4)
 
 
@@ -96,7 +92,7 @@ def test_body_volume_neuro_within_channel_overlap(neuro):
     """neuro's helices meet the diametric tubes for ~3 mm at each end; that shared volume is small."""
     _, geom, parts = neuro
     channels = sum(channel_volume_mm3(t, 0, 50) for t in geom.tubes)
-    cut = annulus_volume_mm3(geom) - parts.body.volume
+    cut = blank_volume_mm3(geom) - parts.body.volume
     assert 0 < channels - cut < 0.01 * channels  # overlap counted twice in the sum, removed once
     one_channel = math.pi * 1.5**2 * 50
     assert channels - cut < 0.1 * one_channel  # not a missing channel
@@ -115,7 +111,7 @@ def test_bounding_boxes(neuro):
     bb = parts.body.bounding_box()
     assert np.allclose([bb.min.X, bb.min.Y, bb.min.Z], [-15, -15, 0], atol=1e-5)
     assert np.allclose([bb.max.X, bb.max.Y, bb.max.Z], [15, 15, 50], atol=1e-5)
-    dims = CapDims.from_spec(spec, geom)
+    dims = RoundCapDims.from_spec(spec, geom)
     assert dims.outer_radius == pytest.approx(15 + 0.2 + 1.6)
     for end, part in (("top", parts.cap_top), ("bottom", parts.cap_bottom)):
         lo, hi = dims.bbox(50.0, end)
@@ -126,7 +122,7 @@ def test_bounding_boxes(neuro):
 
 def test_cap_volumes_hand_worked(neuro):
     spec, geom, parts = neuro
-    d = CapDims.from_spec(spec, geom)
+    d = RoundCapDims.from_spec(spec, geom)
     plate = math.pi * (d.outer_radius**2 - d.inner_radius**2) * d.thickness
     skirt = math.pi * (d.outer_radius**2 - d.skirt_inner_radius**2) * d.skirt_height
     ports = len(geom.tubes) * math.pi * (d.port_diameter / 2) ** 2 * d.thickness
@@ -177,6 +173,6 @@ def test_shifted_tube_changes_the_body(neuro_geometry):
     moved = LineTube("D0", "diametric", np.add(d0.p0, (0, 0.5, 0)), np.add(d0.p1, (0, 0.5, 0)), d0.diameter)
     geom = replace(neuro_geometry, tubes=(moved,) + neuro_geometry.tubes[1:])
     spec = load_spec(NEURO)
-    body = build_parts(spec, geom).body
+    body = CHIC.parts(spec, geom).body
     assert not body.is_inside((12.5, 0.5, 25.0))
     assert body.is_inside((12.5, -1.3, 25.0))

@@ -9,11 +9,19 @@ import numpy as np
 import pytest
 import yaml
 
-from chic_design import feasibility as F
-from chic_design.cli import main
-from chic_design.layout import fiducial_geometry
+from chic_design.cli.main import main
+from chic_design.families import FAMILIES
+from chic_design.feasibility.contacts import touching_channels
+from chic_design.feasibility.depth_precision import depth_sensitivity
+from chic_design.feasibility.engine import check_geometry
+from chic_design.feasibility.printability import channel_clearances, channel_overhangs
+from chic_design.feasibility.tilt_search import tilt_limits
+from chic_design.feasibility.unambiguity import pattern_symmetries
 from chic_design.spec import load_spec, parse_spec
+from chic_register.model.envelope import OUTSIDE, clipped_disc_distance, plane_crossings, plane_normals, section_gap
 from chic_register.model.geometry import Body, FiducialGeometry, HelixTube, LineTube
+
+CHIC = FAMILIES["chic"]
 
 NEURO = "designs/neuro.yaml"
 NEEDLE = "designs/needle-guide.yaml"
@@ -36,7 +44,7 @@ def _spec(path=NEURO, **changes):
 
 @pytest.fixture(scope="module")
 def neuro_ideal():
-    return F.check_design(load_spec(NEURO), pixel_size_mm=0.0, slice_thickness_mm=0.0)
+    return CHIC.check(load_spec(NEURO), pixel_size_mm=0.0, slice_thickness_mm=0.0)
 
 
 # ------------------------------------------------------------------ plane crossings
@@ -45,17 +53,17 @@ def neuro_ideal():
 def test_plane_through_straight_tube_matches_hand_and_intersect_plane():
     tube = LineTube("D0", "diametric", (12.5, 0, 0), (12.5, 0, 50), 3.0)
     tilt, az = 30.0, 0.0
-    n = F.plane_normals(tilt, az)[None, :]
+    n = plane_normals(tilt, az)[None, :]
     o = np.array([[0.0, 0.0, 25.0]])
-    t, p, tg, cnt = F.plane_crossings(tube, o, n)
+    t, p, tg, cnt = plane_crossings(tube, o, n)
     # plane z = 25 - tan(30) x  ->  z = 25 - 12.5 tan 30 at x = 12.5
     assert cnt[0] == 1
     assert p[0] == pytest.approx([12.5, 0.0, 25 - 12.5 * math.tan(math.radians(30))], abs=1e-9)
     assert p[0] == pytest.approx(tube.intersect_plane(o[0], n[0])[0], abs=1e-9)
     assert tg[0] == pytest.approx([0, 0, 1])
     # a plane steep enough to pass the tube's end misses it: tan(tilt) > 25 / 12.5
-    n2 = F.plane_normals(64.0, 0.0)[None, :]
-    t2, p2, _, cnt2 = F.plane_crossings(tube, o, n2)
+    n2 = plane_normals(64.0, 0.0)[None, :]
+    t2, p2, _, cnt2 = plane_crossings(tube, o, n2)
     assert cnt2[0] == 0 and np.isnan(t2[0]) and np.isnan(p2[0]).all()
     assert tube.intersect_plane(o[0], n2[0]).shape == (0, 3)
 
@@ -67,10 +75,10 @@ def test_helix_crossings_match_intersect_plane():
     tilt = rng.uniform(0, 60, P)
     az = rng.uniform(0, 360, P)
     z = rng.uniform(5, 45, P)
-    n = F.plane_normals(tilt, az)
+    n = plane_normals(tilt, az)
     o = np.zeros((P, 3))
     o[:, 2] = z
-    _, pts, tg, cnt = F.plane_crossings(helix, o, n)
+    _, pts, tg, cnt = plane_crossings(helix, o, n)
     for k in range(P):
         ref = helix.intersect_plane(o[k], n[k])
         assert cnt[k] == len(ref)
@@ -95,7 +103,7 @@ def test_visibility_limit_is_atan_half_length_over_radius(neuro_ideal):
             assert lim.visibility_tilt_deg == pytest.approx(expect, abs=0.1)
     # the full limit can only be lower, and names what sets it
     assert mid.max_tilt_deg <= mid.visibility_tilt_deg + 1e-9
-    assert mid.limited_by.startswith(("tubes_merge:", F.OUTSIDE))
+    assert mid.limited_by.startswith(("tubes_merge:", OUTSIDE))
     text = neuro_ideal.summary_text()
     assert "mid-depth z = 25 mm" in text and mid.limited_by in text and "63.4 deg" in text
 
@@ -105,9 +113,9 @@ def test_straight_tubes_only_are_limited_by_visibility():
         LineTube(f"D{i}", "diametric", (12.5 * math.cos(a), 12.5 * math.sin(a), 0),
                  (12.5 * math.cos(a), 12.5 * math.sin(a), 50), 3.0)
         for i, a in enumerate(np.radians([0, 90, 180, 270]))))
-    lims = F.tilt_limits(geom, 0.0, 0.0, depths_mm=[10.0, 25.0])
+    lims = tilt_limits(geom, 0.0, 0.0, depths_mm=[10.0, 25.0])
     for lim in lims:
-        assert lim.limited_by == F.OUTSIDE
+        assert lim.limited_by == OUTSIDE
         assert lim.max_tilt_deg == pytest.approx(math.degrees(math.atan(min(lim.depth_mm, 50 - lim.depth_mm) / 12.5)),
                                                  abs=0.1)
 
@@ -126,7 +134,7 @@ def test_two_tubes_merge_at_hand_worked_tilt():
     (d/2)/cos(T) + (s/2) tan(T) toward the other, so they touch when
     5 - 3 = s sin(T): sin(T) = 0.5, T = 30 deg.
     """
-    lim = F.tilt_limits(_two_parallel_tubes(), 0.0, 4.0, depths_mm=[100.0])[0]
+    lim = tilt_limits(_two_parallel_tubes(), 0.0, 4.0, depths_mm=[100.0])[0]
     assert lim.max_tilt_deg == pytest.approx(30.0, abs=0.1)
     assert lim.limited_by == "tubes_merge:A/B"
     assert math.cos(math.radians(lim.azimuth_deg)) ** 2 == pytest.approx(1.0, abs=1e-3)
@@ -136,16 +144,16 @@ def test_pixel_gap_enters_merge_condition():
     """Same pair, s = 4, pixel 0.5: 2 - 4 sin T = 0.5 cos T."""
     expect = math.degrees(next(t for t in np.linspace(0, 1.2, 1_200_001)
                                if 2 - 4 * math.sin(t) - 0.5 * math.cos(t) <= 0))
-    lim = F.tilt_limits(_two_parallel_tubes(), 0.5, 4.0, depths_mm=[100.0])[0]
+    lim = tilt_limits(_two_parallel_tubes(), 0.5, 4.0, depths_mm=[100.0])[0]
     assert lim.max_tilt_deg == pytest.approx(expect, abs=0.1)
     # no smear: an oblique cut stretches gaps, the pair never merges; visibility sets the limit
-    lim0 = F.tilt_limits(_two_parallel_tubes(), 0.5, 0.0, depths_mm=[100.0])[0]
-    assert lim0.limited_by == F.OUTSIDE
+    lim0 = tilt_limits(_two_parallel_tubes(), 0.5, 0.0, depths_mm=[100.0])[0]
+    assert lim0.limited_by == OUTSIDE
     assert lim0.max_tilt_deg == pytest.approx(math.degrees(math.atan(100 / 15)), abs=0.1)
 
 
 def test_overlapping_tubes_fail_at_tilt_zero():
-    lim = F.tilt_limits(_two_parallel_tubes(d=5.2), 0.0, 0.0, depths_mm=[100.0])[0]
+    lim = tilt_limits(_two_parallel_tubes(d=5.2), 0.0, 0.0, depths_mm=[100.0])[0]
     assert not lim.usable_at_zero_tilt and lim.max_tilt_deg == 0.0
     assert lim.limited_by == "tubes_merge:A/B"
 
@@ -167,8 +175,8 @@ def test_ends_are_unusable_and_usable_depth_shrinks_with_tilt(neuro_ideal):
 
 def test_thicker_slice_lowers_the_limit():
     spec = load_spec(NEURO)
-    thin = F.tilt_limits(fiducial_geometry(spec), 0.5, 0.0, depths_mm=[25.0])[0]
-    thick = F.tilt_limits(fiducial_geometry(spec), 0.5, 3.0, depths_mm=[25.0])[0]
+    thin = tilt_limits(CHIC.geometry(spec), 0.5, 0.0, depths_mm=[25.0])[0]
+    thick = tilt_limits(CHIC.geometry(spec), 0.5, 3.0, depths_mm=[25.0])[0]
     assert thick.max_tilt_deg < thin.max_tilt_deg
 
 
@@ -192,8 +200,8 @@ def _solid_overlap_top_mm(helix, x_mm: float, r_mm: float) -> float:
 def test_helix_diametric_intersection_z_range_matches_hand():
     """H0 at 10 + 1.4 z deg, D0 at 0 deg on r = 12.5: closest where 25 sin(5 deg) - 3 (hand); the
     z-range of the touch is the solids' overlap, checked against a 3-D brute force."""
-    geom = fiducial_geometry(load_spec(NEURO))
-    clear, viol, warn = F.channel_clearances(geom, 0.8)
+    geom = CHIC.geometry(load_spec(NEURO))
+    clear, viol, warn = channel_clearances(geom, 0.8)
     c = next(c for c in clear if (c.a, c.b) == ("H0", "D0"))
     assert c.status == "intersect"
     assert c.gap_mm == pytest.approx(25 * math.sin(math.radians(5)) - 3, abs=1e-3)
@@ -203,8 +211,6 @@ def test_helix_diametric_intersection_z_range_matches_hand():
     assert len(c.intersect_z_mm) == 1
     assert c.intersect_z_mm[0][0] == 0.0 and c.intersect_z_mm[0][1] == pytest.approx(z_end, abs=0.06)
     # one answer: the report's touching channels are the same pairs and ranges
-    from chic_design.verify import touching_channels
-
     assert ("D0", "H0", 0.0, c.intersect_z_mm[0][1]) in touching_channels(geom)
     assert any(w.code == "channels_intersect" and w.where == "H0/D0" for w in warn)
     assert not viol  # the prototype's walls are fine: 12.5 - 10 - 1.5 = 1.0 mm
@@ -218,7 +224,7 @@ def test_helix_diametric_intersection_z_range_matches_hand():
 def test_wall_exactly_at_minimum_passes_thinner_fails(inner, ok):
     # channel circle 25 mm, d = 3: bore wall = 12.5 - inner/2 - 1.5 = 0.8 mm for inner 20.4
     spec = _spec(body__inner_diameter=inner, channels__circle_diameter=25.0)
-    _, viol, _ = F.channel_clearances(fiducial_geometry(spec), spec.print.min_wall)
+    _, viol, _ = channel_clearances(CHIC.geometry(spec), spec.print.min_wall)
     assert (not viol) == ok
     if not ok:
         assert {v.code for v in viol} == {"wall_too_thin"}
@@ -229,7 +235,7 @@ def test_channel_ending_inside_the_body_is_checked_against_its_face():
     body = Body(50, 30, 20)
     tubes = (LineTube("A", "other", (12.5, 0, 2.0), (12.5, 0, 50), 3.0),
              LineTube("B", "other", (-12.5, 0, 2.4), (-12.5, 0, 50), 3.0))
-    clear, viol, _ = F.channel_clearances(FiducialGeometry("ends", body, tubes), 0.8)
+    clear, viol, _ = channel_clearances(FiducialGeometry("ends", body, tubes), 0.8)
     by = {(c.a, c.b): c for c in clear}
     assert by[("A", "bottom_face")].gap_mm == pytest.approx(0.5) and by[("A", "bottom_face")].status == "too_thin"
     assert by[("B", "bottom_face")].gap_mm == pytest.approx(0.9) and by[("B", "bottom_face")].status == "ok"
@@ -238,13 +244,13 @@ def test_channel_ending_inside_the_body_is_checked_against_its_face():
 
 
 def test_overhang_of_helix_is_its_lead_angle():
-    geom = fiducial_geometry(load_spec(NEURO))
+    geom = CHIC.geometry(load_spec(NEURO))
     expect = math.degrees(math.atan(12.5 * math.radians(1.4)))
-    ov, viol = F.channel_overhangs(geom, 45.0)
+    ov, viol = channel_overhangs(geom, 45.0)
     by = {o.tube_id: o.max_overhang_deg for o in ov}
     assert by["H0"] == pytest.approx(expect, abs=1e-6) and by["D0"] == pytest.approx(0.0, abs=1e-6)
     assert not viol
-    _, viol = F.channel_overhangs(geom, 15.0)
+    _, viol = channel_overhangs(geom, 15.0)
     assert {v.where for v in viol} == {"H0", "H1", "H2"}
     assert all(v.code == "overhang_too_steep" for v in viol)
 
@@ -253,7 +259,7 @@ def test_overhang_of_helix_is_its_lead_angle():
 
 
 def test_depth_sensitivity_hand_values():
-    ds = F.depth_sensitivity(fiducial_geometry(load_spec(NEURO)), 0.5)
+    ds = depth_sensitivity(CHIC.geometry(load_spec(NEURO)), 0.5)
     assert dict(ds.per_helix_mm_per_deg)["H0"] == pytest.approx(1 / 1.4)
     sigma_z = math.degrees(0.5 / math.sqrt(12) / 12.5) / 1.4
     assert dict(ds.per_helix_sigma_z_mm)["H1"] == pytest.approx(sigma_z)
@@ -269,17 +275,17 @@ def test_symmetry_detector_on_hand_patterns():
                      (12.5 * math.cos(math.radians(a)), 12.5 * math.sin(math.radians(a)), 10), 1.0)
             for i, a in enumerate(angles)))
 
-    syms, _ = F.pattern_symmetries(ring([0, 120, 240]), [5.0], 0.1)
+    syms, _ = pattern_symmetries(ring([0, 120, 240]), [5.0], 0.1)
     assert syms and syms[0].mismatch_mm == pytest.approx(0, abs=1e-9)
-    syms, _ = F.pattern_symmetries(ring([0, 90, 225]), [5.0], 0.1)  # isosceles: mirror about 45/225
+    syms, _ = pattern_symmetries(ring([0, 90, 225]), [5.0], 0.1)  # isosceles: mirror about 45/225
     assert [s.kind for s in syms] == ["reflection"] and syms[0].angle_deg == pytest.approx(45.0)
-    syms, m = F.pattern_symmetries(ring([0, 70, 160, 250]), [5.0], 0.1)  # scalene: no symmetry
+    syms, m = pattern_symmetries(ring([0, 70, 160, 250]), [5.0], 0.1)  # scalene: no symmetry
     assert not syms and m > 1.0
 
 
 def test_symmetric_orientation_tubes_are_rejected():
     """orientation [300, 330] with diametric at 270/360: mirror about the 135/315 deg line at mid-depth."""
-    rep = F.check_design(_spec(markers__orientation_deg=[300, 330]))
+    rep = CHIC.check(_spec(markers__orientation_deg=[300, 330]))
     assert not rep.feasible
     sym = [v for v in rep.violations if v.code == "symmetric_pattern"]
     assert sym
@@ -290,7 +296,7 @@ def test_symmetric_orientation_tubes_are_rejected():
 
 def test_helix_leaving_its_quadrant_is_rejected():
     # pitch 3 deg/mm from 10 deg: reaches D1 (90 deg) at z = 80/3 mm
-    rep = F.check_design(_spec(helix__pitch_deg_per_mm=3.0))
+    rep = CHIC.check(_spec(helix__pitch_deg_per_mm=3.0))
     found = [v for v in rep.violations if v.code == "helix_leaves_quadrant"]
     assert found and not rep.feasible
     h0 = next(v for v in found if v.where.startswith("H0/D1"))
@@ -298,7 +304,7 @@ def test_helix_leaving_its_quadrant_is_rejected():
 
 
 def test_prototype_is_feasible_and_unambiguous():
-    rep = F.check_design(load_spec(NEURO))
+    rep = CHIC.check(load_spec(NEURO))
     assert rep.feasible, rep.violations
     assert rep.unambiguity.min_mismatch_mm > rep.unambiguity.tolerance_mm
     d = rep.to_dict()
@@ -314,9 +320,9 @@ def test_prototype_is_feasible_and_unambiguous():
 
 def test_needle_guide_with_asymmetric_orientation_tubes_is_feasible():
     """Orientation tubes at [295, 320] make the needle-guide mirror-symmetric at z ~ 23.3 mm; the shipped [294, 330] does not."""
-    bad = F.check_design(_spec(NEEDLE, markers__orientation_deg=[295, 320]))
+    bad = CHIC.check(_spec(NEEDLE, markers__orientation_deg=[295, 320]))
     assert [v.code for v in bad.violations] == ["symmetric_pattern"]
-    rep = F.check_design(load_spec(NEEDLE))
+    rep = CHIC.check(load_spec(NEEDLE))
     assert list(load_spec(NEEDLE).markers.orientation_deg) == [294, 330]
     assert rep.feasible, rep.violations
 
@@ -355,15 +361,15 @@ def test_cli_prototype_ideal_imaging_and_plot(tmp_path, capsys):
 
 def test_batch_and_single_depth_evaluations_agree(neuro_ideal):
     """Regression: the limit at one depth must not depend on which other planes share the batch."""
-    geom = fiducial_geometry(load_spec(NEURO))
+    geom = CHIC.geometry(load_spec(NEURO))
     for z in (12.0, 25.0):
-        single = F.tilt_limits(geom, 0.0, 0.0, depths_mm=[z])[0]
+        single = tilt_limits(geom, 0.0, 0.0, depths_mm=[z])[0]
         batch = next(t for t in neuro_ideal.tilt_limits if t.depth_mm == z)
         assert single.max_tilt_deg == pytest.approx(batch.max_tilt_deg, abs=0.06)
 
 
 def test_no_usable_depth_is_a_violation():
-    rep = F.check_geometry(_two_parallel_tubes(d=5.2), pixel_size_mm=0.0, slice_thickness_mm=0.0,
+    rep = check_geometry(_two_parallel_tubes(d=5.2), CHIC, pixel_size_mm=0.0, slice_thickness_mm=0.0,
                            min_wall_mm=0.8, max_overhang_deg=45.0)
     assert "no_usable_depth" in {v.code for v in rep.violations} and not rep.feasible
     assert all(u.ranges_mm == () for u in rep.usable_depth)
@@ -397,12 +403,12 @@ def _brute_gap(ta, tb, o, n, length_mm, h=0.02, box=5.0):
 
 
 def test_section_gap_matches_brute_force_on_helix_and_line_at_steep_tilt():
-    geom = fiducial_geometry(load_spec(NEURO))
+    geom = CHIC.geometry(load_spec(NEURO))
     h0, d0 = geom.tube("H0"), geom.tube("D0")
     o = np.array([0.0, 0.0, 25.0])
     for tilt, az in ((55.0, 10.0), (60.0, 7.0), (61.0, 6.0)):
-        n = F.plane_normals(tilt, az)
-        gap = F.section_gap(h0, d0, o[None], n[None], 0.0, 50.0)[0][0]
+        n = plane_normals(tilt, az)
+        gap = section_gap(h0, d0, o[None], n[None], 0.0, 50.0)[0][0]
         lo, hi = _brute_gap(h0, d0, o, n, 50.0)
         if lo > 0:  # clearly separate: the distance itself
             assert lo - 0.01 <= gap <= hi + 0.01, (tilt, gap, lo, hi)
@@ -416,13 +422,13 @@ def test_exact_limit_brackets_brute_force_merge():
         HelixTube("H0", "helix", 12.5, 10.0, 1.4, 0.0, 50.0, 3.0),
         LineTube("D0", "diametric", (12.5, 0, 0), (12.5, 0, 50), 3.0)))
     pixel = 0.3
-    lim = F.tilt_limits(geom, pixel, 0.0, depths_mm=[25.0], exact=True)[0]
+    lim = tilt_limits(geom, pixel, 0.0, depths_mm=[25.0], exact=True)[0]
     assert lim.limited_by == "tubes_merge:H0/D0" and 45 < lim.max_tilt_deg < 63
     o = np.array([0.0, 0.0, 25.0])
-    lo, _ = _brute_gap(geom.tubes[0], geom.tubes[1], o, F.plane_normals(lim.max_tilt_deg, lim.azimuth_deg), 50.0)
-    _, hi = _brute_gap(geom.tubes[0], geom.tubes[1], o, F.plane_normals(lim.max_tilt_deg + 0.2, lim.azimuth_deg), 50.0)
+    lo, _ = _brute_gap(geom.tubes[0], geom.tubes[1], o, plane_normals(lim.max_tilt_deg, lim.azimuth_deg), 50.0)
+    _, hi = _brute_gap(geom.tubes[0], geom.tubes[1], o, plane_normals(lim.max_tilt_deg + 0.2, lim.azimuth_deg), 50.0)
     assert lo >= pixel - 0.03 and hi < pixel
-    fast = F.tilt_limits(geom, pixel, 0.0, depths_mm=[25.0])[0]
+    fast = tilt_limits(geom, pixel, 0.0, depths_mm=[25.0])[0]
     assert fast.max_tilt_deg <= lim.max_tilt_deg + 0.1  # the ellipse model is conservative here
 
 
@@ -431,15 +437,15 @@ def test_clipped_disc_distance_hand_cases():
     c1, c2 = np.array([0.0, 1.0, 0.0]), np.array([3.0, 1.0, 0.0])
     one = np.array(1.0)
     # both discs inside-ish: arc points on the centre line lie in y >= 0 -> 3 - 2
-    assert F.clipped_disc_distance(c1, one, c2, one, G, np.array(1.0), np.array(1.0)) == pytest.approx(1.0)
+    assert clipped_disc_distance(c1, one, c2, one, G, np.array(1.0), np.array(1.0)) == pytest.approx(1.0)
     # centres below the line at y = -0.6: caps with chords |x - cx| <= 0.8 on y = 0 -> 3 - 1.6
     c1b, c2b = c1 - [0, 1.6, 0], c2 - [0, 1.6, 0]
-    assert F.clipped_disc_distance(c1b, one, c2b, one, G, np.array(-0.6), np.array(-0.6)) == pytest.approx(1.4)
+    assert clipped_disc_distance(c1b, one, c2b, one, G, np.array(-0.6), np.array(-0.6)) == pytest.approx(1.4)
     # overlapping discs whose lens lies below the line: chords 0.8 wide at centres 1.2 apart -> no overlap
     c2c = c1b + [1.9, 0, 0]
-    assert F.clipped_disc_distance(c1b, one, c2c, one, G, np.array(-0.6), np.array(-0.6)) == pytest.approx(0.3)
+    assert clipped_disc_distance(c1b, one, c2c, one, G, np.array(-0.6), np.array(-0.6)) == pytest.approx(0.3)
     # a disc entirely below the line is empty
-    assert F.clipped_disc_distance(c1 - [0, 2.5, 0], one, c2, one, G, np.array(-1.5), np.array(1.0)) == np.inf
+    assert clipped_disc_distance(c1 - [0, 2.5, 0], one, c2, one, G, np.array(-1.5), np.array(1.0)) == np.inf
 
 
 def test_tube_crossings_are_plane_crossings_tube_by_tube(neuro_geometry, needle_geometry):

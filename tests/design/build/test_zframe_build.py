@@ -6,17 +6,17 @@ import numpy as np
 import pytest
 import trimesh
 
-from chic_design.build import build_design
-from chic_design.layout import design_geometry
+from chic_design.build.pipeline import build_design
+from chic_design.families import FAMILIES
 from chic_design.spec import load_spec
 from chic_design.verify import section_loops, verify_export
 from chic_register.model.geometry import load_geometry
 
-from .conftest import ROOT
+from ...conftest import ZFRAME
 
 pytestmark = pytest.mark.slow
 
-ZFRAME = ROOT / "designs" / "zframe.yaml"
+ZF = FAMILIES["zframe"]
 
 
 @pytest.fixture(scope="module")
@@ -44,7 +44,7 @@ def test_geometry_file_is_the_spec_layout(built):
     _, result = built
     geom = load_geometry(result.folder / "geometry.yaml")
     assert geom.family == "zframe"
-    assert geom.tubes == design_geometry(load_spec(ZFRAME)).tubes
+    assert geom.tubes == ZF.geometry(load_spec(ZFRAME)).tubes
     feas = json.loads((result.folder / "feasibility.json").read_text())
     assert feas["feasible"] and feas["unambiguity"]["unambiguous"] is False
     report = (result.folder / "report.md").read_text()
@@ -86,9 +86,7 @@ def test_verify_catches_a_rod_moved_in_geometry_yaml(built, tmp_path):
     data["sha256"] = content_sha256(data)
     (folder / "geometry.yaml").write_text(yaml.safe_dump(data))
     spec = load_spec(ZFRAME)
-    from chic_design.build import design_parts
-
-    parts = design_parts(spec, design_geometry(spec))
+    parts = ZF.parts(spec, ZF.geometry(spec))
     volumes = {name: float(p.volume) for name, p in parts.items()}
     res = verify_export(folder, volumes, raise_on_failure=False)
     failed = {c.name for c in res.failed}

@@ -13,24 +13,25 @@ import trimesh
 from build123d import Mesher
 from PIL import Image
 
-import chic_design.build as build_mod
-from chic_design.build import _replace_folder, _Steps, build_design
-from chic_design.cad import build_parts
-from chic_design.cli import main
+import chic_design.build.folders as folders_mod
+import chic_design.build.pipeline as pipeline_mod
+import chic_design.cad.export as export_mod
+from chic_design.build.folders import replace_folder
+from chic_design.build.pipeline import build_design
+from chic_design.cad.export import STL_ANGULAR_TOLERANCE_RAD, STL_TOLERANCE_MM
+from chic_design.cli.main import main
 from chic_design.errors import BuildCheckError, InfeasibleDesign, SpecError
-from chic_design.feasibility import Finding
-from chic_design.layout import fiducial_geometry
+from chic_design.families import FAMILIES
+from chic_design.families.chic import ChicFamily
+from chic_design.feasibility.records import Finding
+from chic_design.feasibility.sections import section_clearance_mm, section_heights
 from chic_design.spec import load_spec, spec_sha256
-from chic_design.verify import (
-    STL_ANGULAR_TOLERANCE_RAD,
-    STL_TOLERANCE_MM,
-    section_clearance_mm,
-    section_heights,
-    verify_export,
-)
+from chic_design.verify import verify_export
 from chic_register.model.geometry import LineTube, load_geometry
 
-from .conftest import NEURO
+from ...conftest import NEURO
+
+CHIC = FAMILIES["chic"]
 
 pytestmark = pytest.mark.slow
 
@@ -45,7 +46,7 @@ def built(tmp_path_factory):
     out = tmp_path_factory.mktemp("exports")
     result = build_design(NEURO, out_root=out, progress=False)
     spec = load_spec(NEURO)
-    parts = build_parts(spec, fiducial_geometry(spec))
+    parts = CHIC.parts(spec, CHIC.geometry(spec))
     volumes = {name: float(p.volume) for name, p in parts.items()}
     return out, result, volumes
 
@@ -84,7 +85,7 @@ def test_output_checks_pass_and_cover_every_tube(built):
 def test_geometry_file_is_the_spec_geometry(built):
     _, result, _ = built
     geom = load_geometry(result.folder / "geometry.yaml")
-    want = fiducial_geometry(load_spec(NEURO))
+    want = CHIC.geometry(load_spec(NEURO))
     assert geom.tubes == want.tubes
     assert geom.source["spec"] == str(NEURO)
     assert geom.source["spec_sha256"] == spec_sha256(NEURO)
@@ -103,7 +104,7 @@ def test_meshes_are_printable_and_in_frame_F(built):
 
 
 def test_stl_parts_declare_lps_for_slicer(built):
-    """Slicer reads SPACE= from the STL header: F is declared LPS, the convention of the .tfm (issue 10)."""
+    """Slicer reads SPACE= from the STL header: F is declared LPS, the convention of the .tfm."""
     _, result, _ = built
     for part in ("body", "cap_top", "cap_bottom"):
         assert (result.folder / f"{part}.stl").read_bytes()[:9] == b"SPACE=LPS"
@@ -137,17 +138,17 @@ def test_feasibility_is_in_the_export(built):
 
 
 def test_infeasible_design_is_refused_before_cad_unless_forced(tmp_path, monkeypatch):
-    real = build_mod.check_design
+    real = ChicFamily.check
 
-    def with_violation(spec, **kwargs):
-        report = real(spec, **kwargs)
+    def with_violation(self, spec, **kwargs):
+        report = real(self, spec, **kwargs)
         return replace(report, violations=(Finding("wall_too_thin", "0.5 mm wall", "D0"),))
 
     def no_cad(*args, **kwargs):
         raise AssertionError("CAD work started for an infeasible design")
 
-    monkeypatch.setattr(build_mod, "check_design", with_violation)
-    monkeypatch.setattr(build_mod, "build_parts", no_cad)
+    monkeypatch.setattr(ChicFamily, "check", with_violation)
+    monkeypatch.setattr(ChicFamily, "parts", no_cad)
     out = tmp_path / "exports"
     with pytest.raises(InfeasibleDesign, match="wall_too_thin") as err:
         build_design(NEURO, out_root=out, progress=False)
@@ -203,13 +204,13 @@ def test_verify_catches_a_shifted_channel(built, tmp_path):
     _, _, volumes = built
     folder = _copy_export(built, tmp_path)
     spec = load_spec(NEURO)
-    geom = fiducial_geometry(spec)
+    geom = CHIC.geometry(spec)
     d0 = geom.tube("D0")
     shift = (0.0, 0.2, 0.0)
     moved = LineTube("D0", "diametric", np.add(d0.p0, shift), np.add(d0.p1, shift), d0.diameter)
-    bad = fiducial_geometry(spec).__class__(geom.name, geom.body, (moved,) + geom.tubes[1:])
+    bad = replace(geom, tubes=(moved,) + geom.tubes[1:])
     mesher = Mesher()
-    mesher.add_shape(build_parts(spec, bad).body, linear_deflection=STL_TOLERANCE_MM,
+    mesher.add_shape(CHIC.parts(spec, bad).body, linear_deflection=STL_TOLERANCE_MM,
                      angular_deflection=STL_ANGULAR_TOLERANCE_RAD)
     mesher.write(str(folder / "body.stl"))
     result = verify_export(folder, volumes, raise_on_failure=False)
@@ -224,10 +225,10 @@ def test_verify_catches_a_missing_channel_in_the_mesh(built, tmp_path):
     _, _, volumes = built
     folder = _copy_export(built, tmp_path)
     spec = load_spec(NEURO)
-    geom = fiducial_geometry(spec)
-    fewer = geom.__class__(geom.name, geom.body, tuple(t for t in geom.tubes if t.id != "O1"))
+    geom = CHIC.geometry(spec)
+    fewer = replace(geom, tubes=tuple(t for t in geom.tubes if t.id != "O1"))
     mesher = Mesher()
-    mesher.add_shape(build_parts(spec, fewer).body, linear_deflection=STL_TOLERANCE_MM,
+    mesher.add_shape(CHIC.parts(spec, fewer).body, linear_deflection=STL_TOLERANCE_MM,
                      angular_deflection=STL_ANGULAR_TOLERANCE_RAD)
     mesher.write(str(folder / "body.stl"))
     with pytest.raises(BuildCheckError) as err:
@@ -242,13 +243,13 @@ def test_failed_build_leaves_earlier_export_untouched(built, tmp_path, monkeypat
     shutil.copytree(built[1].folder, out / "neuro")  # an earlier good export
     before = _tree_digest(out / "neuro")
 
-    real_export = build_mod.export_parts
+    real_export = pipeline_mod.export_parts
 
     def export_then_crash(parts, folder, name):
         real_export(parts, folder, name)  # the new files are all written in the temporary folder
         raise OSError("disk full")
 
-    monkeypatch.setattr(build_mod, "export_parts", export_then_crash)
+    monkeypatch.setattr(pipeline_mod, "export_parts", export_then_crash)
     with pytest.raises(OSError, match="disk full"):
         build_design(NEURO, out_root=out, progress=False, pictures_in_worker=False)
     assert _tree_digest(out / "neuro") == before
@@ -260,8 +261,8 @@ def test_failed_output_check_leaves_earlier_export_untouched(built, tmp_path, mo
     out.mkdir()
     shutil.copytree(built[1].folder, out / "neuro")
     before = _tree_digest(out / "neuro")
-    monkeypatch.setattr(build_mod, "STL_TOLERANCE_MM", 0.5)  # far too coarse a tessellation
-    monkeypatch.setattr(build_mod, "STL_ANGULAR_TOLERANCE_RAD", 0.8)
+    monkeypatch.setattr(export_mod, "STL_TOLERANCE_MM", 0.5)  # far too coarse a tessellation
+    monkeypatch.setattr(export_mod, "STL_ANGULAR_TOLERANCE_RAD", 0.8)
     with pytest.raises(BuildCheckError, match="volume matches CAD"):
         build_design(NEURO, out_root=out, progress=False, pictures_in_worker=False)
     assert _tree_digest(out / "neuro") == before
@@ -276,7 +277,7 @@ def test_invalid_spec_fails_before_cad_and_writes_nothing(tmp_path, monkeypatch)
     def no_cad(*args, **kwargs):
         raise AssertionError("CAD work started before validation")
 
-    monkeypatch.setattr(build_mod, "build_parts", no_cad)
+    monkeypatch.setattr(ChicFamily, "parts", no_cad)
     with pytest.raises(SpecError, match="body.length"):
         build_design(bad, out_root=out, progress=False)
     assert not out.exists() or not any(out.iterdir())
@@ -300,7 +301,7 @@ def test_replace_folder_swaps_and_cleans_up(tmp_path):
     new = tmp_path / ".neuro.tmp-1"
     new.mkdir()
     (new / "new.txt").write_text("new")
-    _replace_folder(new, final)
+    replace_folder(new, final)
     assert [p.name for p in final.iterdir()] == ["new.txt"]
     assert sorted(p.name for p in tmp_path.iterdir()) == ["neuro"]
 
@@ -311,7 +312,7 @@ def test_replace_folder_restores_the_old_export_if_the_rename_fails(tmp_path, mo
     (final / "old.txt").write_text("old")
     new = tmp_path / ".neuro.tmp-1"
     new.mkdir()
-    real_rename = build_mod.os.rename
+    real_rename = folders_mod.os.rename
     calls = []
 
     def flaky_rename(src, dst):
@@ -320,23 +321,7 @@ def test_replace_folder_restores_the_old_export_if_the_rename_fails(tmp_path, mo
             raise OSError("disk full")
         return real_rename(src, dst)
 
-    monkeypatch.setattr(build_mod.os, "rename", flaky_rename)
+    monkeypatch.setattr(folders_mod.os, "rename", flaky_rename)
     with pytest.raises(OSError, match="disk full"):
-        _replace_folder(new, final)
+        replace_folder(new, final)
     assert (final / "old.txt").read_text() == "old"
-
-
-def test_progress_lines_go_to_stderr_and_can_be_silenced(capsys):
-    steps = _Steps(progress=True, total=2)
-    with steps.step("CAD model"):
-        pass
-    with pytest.raises(ValueError), steps.step("export"):
-        raise ValueError("boom")
-    err = capsys.readouterr().err
-    assert err.startswith("chic-design: [1/2] CAD model ") and err.endswith(" s\n")
-    assert err.count("\n") == 1  # a failed step prints nothing (the CLI's error line follows)
-    quiet = _Steps(progress=False, total=2)
-    with quiet.step("CAD model"):
-        pass
-    assert capsys.readouterr().err == ""
-    assert set(quiet.timings) == {"CAD model"}

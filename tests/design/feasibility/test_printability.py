@@ -7,14 +7,15 @@ import math
 import pytest
 import yaml
 
-from chic_design.build import build_design
+from chic_design.build.pipeline import build_design
 from chic_design.errors import InfeasibleDesign
-from chic_design.feasibility import check_design
-from chic_design.layout import fiducial_geometry
-from chic_design.printability import HARD_CODES, MAX_DEPTH_SIGMA_MM, build_violations
+from chic_design.families import FAMILIES
+from chic_design.feasibility.printability import HARD_CODES, MAX_DEPTH_SIGMA_MM, build_violations
 from chic_design.spec import parse_spec
 
-from .conftest import NEURO
+from ...conftest import NEURO, ZFRAME
+
+CHIC = FAMILIES["chic"]
 
 
 def _spec(**edits):
@@ -26,7 +27,7 @@ def _spec(**edits):
 
 
 def _codes(spec):
-    return {f.code: f for f in build_violations(spec, fiducial_geometry(spec), spec.imaging.pixel_size)}
+    return {f.code: f for f in build_violations(spec, CHIC.geometry(spec), spec.imaging.pixel_size, CHIC.length_key)}
 
 
 def test_the_repository_designs_have_none():
@@ -34,13 +35,13 @@ def test_the_repository_designs_have_none():
 
 
 @pytest.mark.parametrize("edits, code, where", [
-    ({"caps__skirt_height": 25.0}, "caps_meet", "caps.skirt_height"),       # the skirt_height: 25
+    ({"caps__skirt_height": 25.0}, "caps_meet", "caps.skirt_height"),       # skirts of 2 x 25 mm on a 50 mm body
     ({"caps__thickness": 0.3}, "cap_wall_too_thin", "caps.thickness"),    # print.min_wall applies to the caps
     ({"caps__skirt_wall": 0.5}, "cap_wall_too_thin", "caps.skirt_wall"),
     # 0.2 mm walls on both sides of 3 mm channels: thicker than min_wall, but no clear section to check
     ({"body__inner_diameter": 21.6, "body__outer_diameter": 28.4, "print__min_wall": 0.15}, "no_clear_section",
      "all depths"),
-    ({"helix__offset_deg": 44.99}, "depth_imprecise", "helix"),          # "feasible" at 955 mm before
+    ({"helix__offset_deg": 44.99}, "depth_imprecise", "helix"),          # a depth sigma of 955 mm
 ])
 def test_each_rule(edits, code, where):
     found = _codes(_spec(**edits))
@@ -65,7 +66,7 @@ def test_check_reports_them_and_build_refuses_even_with_force(tmp_path):
     data["caps"]["thickness"] = 0.3
     data["helix"]["offset_deg"] = 44.99
     path.write_text(yaml.safe_dump(data))
-    report = check_design(parse_spec(data))
+    report = CHIC.check(parse_spec(data))
     assert not report.feasible
     assert {"cap_wall_too_thin", "depth_imprecise"} <= {v.code for v in report.violations}
     assert {v["code"] for v in report.to_dict()["violations"]} >= {"cap_wall_too_thin", "depth_imprecise"}
@@ -73,3 +74,13 @@ def test_check_reports_them_and_build_refuses_even_with_force(tmp_path):
         build_design(path, out_root=tmp_path / "exports", force=True, progress=False, pictures_in_worker=False)
     assert {v.code for v in err.value.violations} <= HARD_CODES
     assert not any((tmp_path / "exports").iterdir())
+
+
+@pytest.mark.parametrize("path, family, key", [(NEURO, "chic", "body.length"), (ZFRAME, "zframe", "frame.height")])
+def test_messages_name_the_familys_own_length_key(path, family, key):
+    data = yaml.safe_load(path.read_text())
+    data["caps"]["skirt_height"] = 30.0
+    spec = parse_spec(data)
+    fam = FAMILIES[family]
+    found = {f.code: f for f in build_violations(spec, fam.geometry(spec), spec.imaging.pixel_size, fam.length_key)}
+    assert f"must be less than half of {key} (" in found["caps_meet"].message

@@ -7,19 +7,23 @@ from pathlib import Path
 import pytest
 import yaml
 
-from chic_design.cli import main
-from chic_design.layout import fiducial_geometry
+from chic_design.cli.main import main
+from chic_design.errors import SpecError
+from chic_design.families import FAMILIES
 from chic_design.optimize import space
 from chic_design.optimize.choose import knee_order, weakly_dominating
 from chic_design.optimize.engine import SerialEngine, make_engine, parse_scheduler
 from chic_design.optimize.errors import RequirementsError
+from chic_design.optimize.report import write_spec
 from chic_design.optimize.requirements import load_requirements
 from chic_design.optimize.score import dominates, pareto_front
 from chic_design.optimize.search import run_search
 from chic_design.optimize.store import ResultStore
-from chic_design.spec import load_spec
+from chic_design.spec import load_spec, parse_spec
 
-ROOT = Path(__file__).resolve().parents[1]
+from ...conftest import ROOT
+
+CHIC = FAMILIES["chic"]
 SMALL = ROOT / "tests" / "data" / "optimize-small.yaml"
 NEURO_REQ = ROOT / "designs" / "requirements" / "neuro.yaml"
 #: a feasible start for the small requirements (the needle-guide layout on a 28 mm body)
@@ -76,10 +80,8 @@ def test_example_requirements_load_and_neuro_baseline_is_in_the_space():
     params = space.params_from_spec(spec, req)
     assert params is not None
     # the parameters rebuild exactly the hand-made design: same tube centrelines
-    from chic_design.spec import parse_spec
-
     again = parse_spec(space.spec_dict(params, req, "neuro"))
-    assert fiducial_geometry(again).tubes == fiducial_geometry(spec).tubes
+    assert CHIC.geometry(again).tubes == CHIC.geometry(spec).tubes
 
 
 # ----------------------------------------------------------------------------- Pareto logic
@@ -160,9 +162,6 @@ def test_dask_local_cluster_gives_the_same_pareto_set(serial_run):
 
 
 def test_write_spec_refuses_an_invalid_spec(tmp_path):
-    from chic_design.errors import SpecError
-    from chic_design.optimize.report import write_spec
-
     req = load_requirements(SMALL)
     good = space.spec_dict(SMALL_START, req, "ok")
     write_spec(good, tmp_path / "ok.yaml")
@@ -185,3 +184,35 @@ def test_impossible_requirements_write_no_design(tmp_path, capsys):
     assert "none of 4 candidates meets every requirement" in err and "\n" not in err
     assert (out / "candidates.sqlite").is_file()
     assert not (out / "specs").exists() and not (out / "report.md").exists()
+
+
+def test_the_progress_bar_counts_each_candidate_once_even_when_asked_twice(monkeypatch):
+    """A generation can ask the same design twice: the bar ends at the number of candidates, not above it."""
+    import chic_design.optimize.search as search_mod
+
+    counted = []
+
+    class Bar:
+        def __init__(self, total, **kwargs):
+            self.total, self.n = total, 0
+
+        def update(self, k):
+            self.n += k
+
+        def close(self):
+            counted.append((self.n, self.total))
+
+    def cheap(params, req_data):
+        return {"feasible": False, "reasons": ["cheap"], "constraints": [1.0, 0.0, 0.0, 0.0, 0.0],
+                "objectives": None, "precision": None, "spec": {}, "cpu_s": 0.0}
+
+    monkeypatch.setattr(search_mod, "tqdm", Bar)
+    monkeypatch.setattr(search_mod, "evaluate_candidate", cheap)
+    # two keys only: every generation asks the same designs several times
+    monkeypatch.setattr(search_mod.space, "candidate_key", lambda p, req, v: str(p["direction"]))
+    req = load_requirements(SMALL)
+    with ResultStore(None) as store:
+        res = run_search(req, SerialEngine(), store, trials=10, seed=1, population=5, progress=True)
+        again = run_search(req, SerialEngine(), store, trials=10, seed=1, population=5, progress=True)
+    assert len(res.candidates) == 10 and res.evaluated <= 2 and again.cached == 10
+    assert counted == [(10, 10), (10, 10)]

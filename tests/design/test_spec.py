@@ -5,12 +5,12 @@ import json
 import pytest
 import yaml
 
-from chic_design.cli import main
+from chic_design.cli.main import main
 from chic_design.errors import SpecError
-from chic_design.layout import fiducial_geometry
-from chic_design.spec import load_spec
+from chic_design.families import FAMILIES
+from chic_design.spec import json_schema, load_spec
 
-from .conftest import NEEDLE, NEURO
+from ..conftest import NEEDLE, NEURO
 
 
 def test_designs_load_with_paper_values():
@@ -24,7 +24,7 @@ def test_designs_load_with_paper_values():
 
 
 def test_default_pitch_runs_offset_to_quadrant_minus_offset(neuro_spec):
-    geom = fiducial_geometry(neuro_spec)
+    geom = FAMILIES["chic"].geometry(neuro_spec)
     for k, h in enumerate(geom.by_role("helix")):
         q = neuro_spec.markers.helix_quadrants[k]
         assert h.pitch_deg_per_mm == pytest.approx(70 / 50)  # the paper's omega = 1.4 deg/mm
@@ -107,3 +107,9 @@ def test_schema_is_json_schema_of_the_spec(capsys):
     assert schema["title"] == "CHIC fiducial design spec"
     assert set(schema["required"]) == {"name", "body", "channels"}
     assert schema["$defs"]["BodySpec"]["additionalProperties"] is False
+
+
+def test_schema_documents_the_physical_ranges():
+    body = json_schema()["$defs"]["BodySpec"]["properties"]
+    assert body["length"]["maximum"] == 200 and body["length"]["minimum"] == 2
+    assert json_schema()["properties"]["name"]["maxLength"] == 64

@@ -9,25 +9,25 @@ import sqlite3
 import subprocess
 import sys
 import time
-from pathlib import Path
 
 import numpy as np
 import pytest
 
-from chic_design.build import build_design
+from chic_design.build.pipeline import build_design
+from chic_design.cli.main import main
+from chic_design.families import family_of
 from chic_design.optimize import space
 from chic_design.optimize.engine import SerialEngine
 from chic_design.optimize.requirements import baseline_path, load_requirements
 from chic_design.optimize.search import run_search
 from chic_design.optimize.store import ResultStore
-from chic_design.cli import main
-from chic_design.feasibility import check_design
 from chic_design.spec import load_spec
-from chic_register.model.geometry import load_geometry
 from chic_register.imaging.simulate import simulate_slice
+from chic_register.model.geometry import load_geometry
 from chic_register.pipeline.register import register
 
-ROOT = Path(__file__).resolve().parents[1]
+from ...conftest import ROOT
+
 SMALL = ROOT / "tests" / "data" / "optimize-small.yaml"
 
 
@@ -43,7 +43,7 @@ def test_optimize_specs_validate_and_the_chosen_one_builds_and_registers(tmp_pat
     assert sorted(r["name"] for r in rows) == [p.stem for p in specs]
     for p in specs:  # every spec written validates and is feasible for its protocol
         spec = load_spec(p)
-        assert spec.name == p.stem and check_design(spec).feasible
+        assert spec.name == p.stem and family_of(spec).check(spec).feasible
     for f in ("report.md", "pareto.png", "chosen/preview.png", "chosen/tilt_limits.png",
               "chosen/precision_map.png", "confirm.json", "candidates.sqlite"):
         assert (out / f).is_file(), f

@@ -3,24 +3,24 @@
 from __future__ import annotations
 
 import math
-from pathlib import Path
 
 import numpy as np
 import yaml
 
-from chic_design.layout import fiducial_geometry
-from chic_design.optimize import space
+from chic_design.families import FAMILIES
+from chic_design.optimize import precision, space
 from chic_design.optimize.confirm import simulate_parallel
 from chic_design.optimize.requirements import load_requirements, parse_requirements
 from chic_design.optimize.score import N_CONSTRAINTS, score_spec
 from chic_design.optimize.trust import SOLVER_OVER_CRLB, solver_limits, solver_sds
 from chic_design.spec import load_spec, parse_spec
-from chic_register.precision.crlb import Protocol, pose_crlb
 from chic_register.errors import ImprecisePose, NoLock
-from chic_register.pipeline.register import SolveOptions, register
 from chic_register.fit.checks import PRECISION_SIGMAS
+from chic_register.pipeline.register import SolveOptions, register
+from chic_register.precision.crlb import Protocol, pose_crlb
 
-ROOT = Path(__file__).resolve().parents[1]
+from ...conftest import ROOT
+
 SMALL = ROOT / "tests" / "data" / "optimize-small.yaml"
 SMALL_START = {"od_halfmm": 32, "length_mm": 28, "channel_tenthmm": 16, "circle_pos": 10, "offset_deg": 15,
                "direction": 1, "free_quadrant": 3, "n_orientation": 2, "orient_a_deg": 24, "orient_b_deg": 60}
@@ -43,8 +43,6 @@ def test_solver_sds_hand_worked():
 
 
 def test_one_slice_of_a_slim_design_is_infeasible_three_are_not(monkeypatch):
-    from chic_design.optimize import precision
-
     monkeypatch.setattr(precision, "DEPTH_SAMPLES", 1)  # the lowest required depth only (a third of the cost)
     data = yaml.safe_load(SMALL.read_text(encoding="utf-8"))
     data["imaging"]["n_slices"] = 1
@@ -76,7 +74,7 @@ def test_neuro_baseline_stays_feasible():
 
 def test_factor_matches_the_solvers_estimate_on_simulated_slices():
     """The solver's own 1-sigma (refused at limit 0, so it reports it) over the bound's, near SOLVER_OVER_CRLB."""
-    geom = fiducial_geometry(load_spec(ROOT / "designs" / "neuro.yaml"))
+    geom = FAMILIES["chic"].geometry(load_spec(ROOT / "designs" / "neuro.yaml"))
     b = pose_crlb(geom, 24.0, 0.0, 0.0, 0.0, Protocol(0.5, 2.0, 20.0), quality="fast")
     c_tre, c_rot = solver_sds(b.covariance, geom.body.length)
     rng = np.random.default_rng(4)
