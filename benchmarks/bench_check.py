@@ -45,7 +45,7 @@ def main() -> int:
             cli.append(time.perf_counter() - t0)
             r1 = resource.getrusage(resource.RUSAGE_CHILDREN)
             cpu.append(r1.ru_utime - r0.ru_utime + r1.ru_stime - r0.ru_stime)
-        print(f"{path}: check_design median {statistics.median(times):.3f} s (min {min(times):.3f} s), "
+        print(f"{path}: check median {statistics.median(times):.3f} s (min {min(times):.3f} s), "
               f"CLI median {statistics.median(cli):.3f} s wall, {statistics.median(cpu):.3f} s CPU "
               f"over {args.runs} runs; "
               f"{len(report.tilt_limits)} depths, feasible={report.feasible}")

@@ -23,12 +23,18 @@ def run(args) -> int:
         raise ChicDesignError(f"--trials must be >= 1, got {args.trials}")
     if args.workers is not None and args.workers < 1:
         raise ChicDesignError(f"--workers must be >= 1, got {args.workers}")
-    from chic_design.optimize.engine import parse_scheduler  # optuna, dask and the solver: seconds to load
-    from chic_design.optimize.pipeline import optimize
+    from chic_design.optimize.engine import parse_scheduler  # the inputs first: a bad one is one line
+    from chic_design.optimize.requirements import load_requirements
 
+    scheduler = parse_scheduler(args.scheduler)
+    req = load_requirements(args.requirements)
     progress = not args.quiet
-    result = optimize(args.requirements, out_dir=args.out, trials=args.trials, seed=args.seed,
-                      scheduler=parse_scheduler(args.scheduler), workers=args.workers, progress=progress)
+    if progress:
+        status(f"optimizing {req.name} from {args.requirements} (loading the optimiser and the solver)")
+    from chic_design.optimize.pipeline import optimize  # optuna, dask and the solver: seconds to load
+
+    result = optimize(args.requirements, out_dir=args.out, trials=args.trials, seed=args.seed, scheduler=scheduler,
+                      workers=args.workers, progress=progress)
     if progress:
         for path in result.files:
             status(f"wrote {path}")

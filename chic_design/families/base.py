@@ -22,10 +22,10 @@ from typing import ClassVar
 
 from pydantic import BaseModel
 
+from chic_design.families.sections import DesignSpec
 from chic_design.feasibility.engine import check_geometry
 from chic_design.feasibility.printability import build_violations
 from chic_design.feasibility.records import FeasibilityReport, Finding, Symmetry, Unambiguity
-from chic_design.families.sections import DesignSpec
 from chic_register.model.geometry import Body, FiducialGeometry, ToolFrame, Tube
 from chic_register.version import __version__
 

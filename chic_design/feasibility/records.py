@@ -81,7 +81,7 @@ class Clearance:
     ``gap_mm`` < 0 means overlap. ``status``: ok, thin, intersect, open (a
     channel that runs through an end face by design), too_thin (a wall violation).
     ``intersect_z_mm``: z-ranges where they intersect (where their sections by
-    planes z = const overlap: :func:`chic_design.contacts.channel_contacts`, the
+    planes z = const overlap: :func:`chic_design.feasibility.contacts.channel_contacts`, the
     answer the report gives too); ``thin_z_mm``: z-ranges (on channel ``a``)
     where they are closer than the minimum wall.
     """

@@ -1,6 +1,6 @@
 """Tilt limits and usable depth: the largest image tilt at each depth, searched over azimuths.
 
-Items 1 and 2 of :mod:`chic_design.feasibility`: for planes through the axis
+Items 1 and 2 of :mod:`chic_design.feasibility.engine`: for planes through the axis
 point ``(0, 0, z)``, the first tilt at which a plane check of
 :class:`chic_register.model.envelope.PlaneChecker` fails (tube outside the body,
 crossed twice, sections merging), on a tilt grid then by bisection, the worst
@@ -13,11 +13,10 @@ import math
 
 import numpy as np
 
-from chic_register.model.envelope import PlaneChecker
-from chic_register.model.geometry import FiducialGeometry
-
 from chic_design.feasibility.records import TiltLimit, UsableDepth
 from chic_design.feasibility.runs import true_runs
+from chic_register.model.envelope import PlaneChecker
+from chic_register.model.geometry import FiducialGeometry
 
 USABLE_TILTS_DEG = (0.0, 15.0, 30.0, 45.0)
 TILT_CAP_DEG = 89.0
@@ -79,7 +78,7 @@ def tilt_limits(geom: FiducialGeometry, pixel_size_mm: float, slice_thickness_mm
     ``exact=True`` replaces the ellipse gap of pairs with a helix or a blob cut
     by an end face, where it is within ``0.1 mm`` of one pixel, by the exact
     :func:`~chic_register.model.envelope.section_gap` (about 15x slower; for designs/neuro.yaml it gives the
-    same limits to 0.1 deg, so :func:`~chic_design.feasibility.check_geometry` uses the ellipse model).
+    same limits to 0.1 deg, so :func:`~chic_design.feasibility.engine.check_geometry` uses the ellipse model).
     """
     checker = PlaneChecker(geom, pixel_size_mm, slice_thickness_mm, merges=merges, exact=exact)
     zs = depth_samples(geom.body.length) if depths_mm is None else np.asarray(depths_mm, dtype=float)

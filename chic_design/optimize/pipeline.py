@@ -90,8 +90,10 @@ def _no_feasible_message(req: Requirements, search: SearchResult) -> str:
             "parallel slices (imaging.n_slices), or search longer")
 
 
-def _chosen_pictures(req: Requirements, name: str, result: dict, folder: Path) -> list[Path]:
+def _chosen_pictures(req: Requirements, name: str, result: dict, folder: Path, progress: bool) -> list[Path]:
     """Preview, tilt plot and precision map (CRLB over depth x tilt) of the chosen design; returns the files."""
+    if progress:
+        status(f"chosen design {name}: preview and tilt limits")
     spec = parse_spec(result["spec"], name)
     family = family_of(spec)
     geom = family.geometry(spec)
@@ -104,8 +106,11 @@ def _chosen_pictures(req: Requirements, name: str, result: dict, folder: Path) -
     t1 = req.required.tilt_deg[1]
     tilts = sorted({0.0, float(t1), round(1.5 * t1, 1)}) if t1 > 0 else [0.0, 10.0, 20.0]
     L = spec.body.length
-    pmap = precision_map(geom, protocol_of(req), depths_mm=[round(L * f, 1) for f in (0.1, 0.3, 0.5, 0.7, 0.9)],
-                         tilts_deg=tilts, target_F_mm=req.required.target_mm)
+    depths = [round(L * f, 1) for f in (0.1, 0.3, 0.5, 0.7, 0.9)]
+    if progress:
+        status(f"chosen design {name}: precision map (Cramer-Rao bound at {len(depths)} depths x {len(tilts)} tilts)")
+    pmap = precision_map(geom, protocol_of(req), depths_mm=depths, tilts_deg=tilts,
+                         target_F_mm=req.required.target_mm)
     write_json(folder / "precision_map.json", pmap.to_dict())
     save_precision_map(pmap, report.tilt_limits, folder / "precision_map.png",
                        f"{name}: predicted TRE at {list(req.required.target_mm)} mm (CRLB)")
@@ -191,10 +196,10 @@ def optimize(req_path, out_dir=None, trials: int | None = None, seed: int = 0, s
     files.append(write_csv(rows, out / "pareto.csv"))
     if pictures:
         if progress:
-            status(f"drawing the Pareto set and the chosen design {named[0][0]} (preview, tilt limits, precision map)")
+            status(f"drawing the Pareto set of {len(named)} designs")
         files.append(save_pareto_plot(search.candidates, [r for _, r in named], named[0][1], baseline,
                                       out / "pareto.png"))
-        files += _chosen_pictures(req, named[0][0], named[0][1], out / "chosen")
+        files += _chosen_pictures(req, named[0][0], named[0][1], out / "chosen", progress)
     files.append(write_json(out / "confirm.json", confirmed))
     dist = [float(d) for d in ideal_distances([r for _, r in named])]
     ctx = {"req": req, "req_path": str(req_path), "search": search, "named": named, "rows": rows,

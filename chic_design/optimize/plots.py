@@ -6,10 +6,9 @@ from pathlib import Path
 
 import numpy as np
 
-from chic_register.util.atomic import save_figure
-
 from chic_design.optimize.choose import LABELS
 from chic_design.optimize.score import OBJECTIVES
+from chic_register.util.atomic import save_figure
 
 
 def _plt():

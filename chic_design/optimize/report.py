@@ -8,12 +8,11 @@ from pathlib import Path
 
 import yaml
 
-from chic_register.util.atomic import write_text
-
 from chic_design.optimize.choose import LABELS, compare
 from chic_design.optimize.score import OBJECTIVES
 from chic_design.optimize.trust import SOLVER_OVER_CRLB, trust_excess
 from chic_design.spec import parse_spec
+from chic_register.util.atomic import write_text
 
 TABLE_COLUMNS = ("name", "outer_diameter_mm", "envelope_od_mm", "length_mm", "usable_region_deg_mm",
                  "usable_15deg_mm", "tre_mm", "sd_depth_mm", "sd_normal_deg", "sd_twist_deg", "solver_rot_deg",

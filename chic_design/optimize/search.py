@@ -17,8 +17,8 @@ import optuna
 from tqdm import tqdm
 
 from chic_design.optimize import space
-from chic_design.optimize.score import DIRECTIONS, OBJECTIVES, SCORER_VERSION, evaluate_candidate, pareto_front
 from chic_design.optimize.requirements import Requirements
+from chic_design.optimize.score import DIRECTIONS, OBJECTIVES, SCORER_VERSION, evaluate_candidate, pareto_front
 
 _WORST = {"minimize": 1e9, "maximize": -1e9}
 
