@@ -18,6 +18,7 @@ from chic_design.errors import SpecError
 from chic_design.families import DEFAULT_FAMILY, family_named
 from chic_design.families.sections import DesignSpec
 from chic_register.errors import InputFileError
+from chic_register.model.geometry import FORMAT as GEOMETRY_FORMAT
 from chic_register.util.safeload import MAX_YAML_BYTES, load_yaml_file, read_regular_file
 
 
@@ -60,6 +61,9 @@ def parse_spec(data, path="<spec>") -> DesignSpec:
     path = Path(path)
     if not isinstance(data, dict):
         raise SpecError(f"{path}: the spec must be a YAML mapping of keys, got {type(data).__name__}")
+    if data.get("format") == GEOMETRY_FORMAT:
+        raise SpecError(f"{path}: this is a geometry file (chic-design build writes it), not a design spec; "
+                        "give a spec such as designs/neuro.yaml")
     model = family_named(data.get("family", DEFAULT_FAMILY), f"{path}: family").spec_model
     try:
         return model.model_validate(data)

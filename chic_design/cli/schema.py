@@ -16,5 +16,5 @@ def run(args) -> int:
     from chic_design.families import DEFAULT_FAMILY  # the families load here, so that --help starts fast
     from chic_design.spec import json_schema
 
-    print(json.dumps(json_schema(args.family or DEFAULT_FAMILY), indent=2))
+    print(json.dumps(json_schema(DEFAULT_FAMILY if args.family is None else args.family), indent=2))
     return 0

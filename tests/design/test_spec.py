@@ -84,6 +84,13 @@ def test_bad_specs_are_rejected_with_one_line_messages(tmp_path, data, expected)
         assert fragment in msg
 
 
+def test_a_geometry_file_given_as_a_spec_gets_a_hint(tmp_path, neuro_geometry_file):
+    with pytest.raises(SpecError) as err:
+        load_spec(neuro_geometry_file)
+    assert str(err.value) == (f"{neuro_geometry_file}: this is a geometry file (chic-design build writes it), not a "
+                              "design spec; give a spec such as designs/neuro.yaml")
+
+
 def test_not_yaml_and_missing_file(tmp_path):
     with pytest.raises(SpecError, match="no such spec file"):
         load_spec(tmp_path / "nope.yaml")

@@ -92,3 +92,23 @@ def test_infeasible_build_lists_one_violation_per_line():
     lines = text.splitlines()
     assert len(lines) == 19 and "18 violations" in lines[0] and lines[5] == "  - c4 (w4): m4"
     assert max(len(x) for x in lines) < 200
+
+
+def test_an_export_root_that_cannot_be_made_is_one_line(tmp_path, capsys):
+    blocker = tmp_path / "a-file"
+    blocker.write_text("x")
+    assert design_main(["build", str(NEURO), "--out", str(blocker / "exports"), "--quiet"]) == 1
+    assert str(blocker) in _one_line_error(capsys, "chic-design: error: ")
+
+
+@pytest.mark.parametrize("argv, fragment", [
+    (["optimize", "designs/requirements/neuro.yaml", "--scheduler", "udp://x"], "--scheduler 'udp://x': allowed are"),
+    (["optimize", "designs/requirements/neuro.yaml", "--trials", "0"], "--trials must be >= 1, got 0"),
+    (["check", str(NEURO), "--precision", "--snr", "-1"], "--snr must be > 0, got -1"),
+    (["check", str(NEURO), "--precision", "--precision-plot", "p.txt"], "the plot is a PNG file"),
+    (["schema", "--family", "nlocalizer"], "--family: unknown family 'nlocalizer'; allowed: chic, zframe"),
+])
+def test_bad_flags_are_one_line_before_any_work(argv, fragment, capsys, monkeypatch):
+    monkeypatch.chdir(NEURO.parents[1])
+    assert design_main(argv) == 2
+    assert fragment in _one_line_error(capsys, "chic-design: error: ")
