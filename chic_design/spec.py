@@ -24,7 +24,7 @@ from chic_register.util.safeload import MAX_YAML_BYTES, load_yaml_file, read_reg
 
 def json_schema(family: str = DEFAULT_FAMILY) -> dict:
     """JSON Schema of the spec of ``family`` (for editors)."""
-    fam = family_named(family, "--family")
+    fam = family_named(family)
     schema = fam.spec_model.model_json_schema()
     schema["$schema"] = "https://json-schema.org/draft/2020-12/schema"
     schema["title"] = f"{fam.title} design spec"

@@ -13,8 +13,9 @@ def add_parser(subparsers):
 
 
 def run(args) -> int:
-    from chic_design.families import DEFAULT_FAMILY  # the families load here, so that --help starts fast
+    from chic_design.families import DEFAULT_FAMILY, family_named  # the families load here: --help starts fast
     from chic_design.spec import json_schema
 
-    print(json.dumps(json_schema(DEFAULT_FAMILY if args.family is None else args.family), indent=2))
+    family = family_named(DEFAULT_FAMILY if args.family is None else args.family, "--family")
+    print(json.dumps(json_schema(family.name), indent=2))
     return 0

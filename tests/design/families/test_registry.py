@@ -65,7 +65,7 @@ def test_an_unknown_family_is_a_one_line_error_naming_the_file_and_what_is_allow
     with pytest.raises(SpecError) as err:
         parse_spec({"family": value, "name": "x"}, "t.yaml")
     assert str(err.value) == f"t.yaml: family: unknown family {value!r}; allowed: chic, zframe"
-    with pytest.raises(SpecError, match=r"^--family: unknown family 'tripod'; allowed: chic, zframe$"):
+    with pytest.raises(SpecError, match=r"^family: unknown family 'tripod'; allowed: chic, zframe$"):
         json_schema("tripod")
     assert family_named("zframe") is FAMILIES["zframe"]
 
