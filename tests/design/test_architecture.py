@@ -157,8 +157,8 @@ def test_no_family_switch_outside_the_families():
     names = {"chic", "zframe"}
     for module in _outside_families():
         for node in ast.walk(TREES[module]):
-            if isinstance(node, ast.Compare):
-                sides = [node.left, *node.comparators]
+            if isinstance(node, ast.Compare) and not all(isinstance(op, (ast.Is, ast.IsNot)) for op in node.ops):
+                sides = [node.left, *node.comparators]  # `x.family is None` asks whether one was given: no switch
                 if any(isinstance(s, (ast.Attribute, ast.Name)) and (getattr(s, "attr", None) or getattr(s, "id", None))
                        == "family" for s in sides) or any(isinstance(s, ast.Constant) and s.value in names
                                                           for s in sides):
