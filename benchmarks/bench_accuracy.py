@@ -41,7 +41,7 @@ from pathlib import Path
 
 import numpy as np
 
-from chic_design.layout import fiducial_geometry
+from chic_design.families import geometry_of
 from chic_design.spec import load_spec
 from chic_register.studies.efficiency import METRICS, pose_efficiency
 from chic_register.studies.evaluate import PAPER, format_summary, paper_cases, run_study
@@ -150,7 +150,7 @@ def main() -> None:
     args.snr_given = args.snr is not None
     if args.snr is None:
         args.snr = [20.0, 50.0]
-    geom = fiducial_geometry(load_spec(args.design))
+    geom = geometry_of(load_spec(args.design))
     if args.crlb:
         run_efficiency(args, geom)
         return

@@ -15,7 +15,7 @@ from pathlib import Path
 
 import numpy as np
 
-from chic_design.layout import fiducial_geometry
+from chic_design.families import geometry_of
 from chic_design.spec import load_spec
 from chic_register.errors import NoLock
 from chic_register.imaging.simulate import simulate_slice
@@ -32,7 +32,7 @@ def main() -> None:
     ap.add_argument("--centroid-model", choices=("on", "off", "default"), default="default")
     ap.add_argument("--design", default=str(ROOT / "designs" / "neuro.yaml"))
     args = ap.parse_args()
-    geom = fiducial_geometry(load_spec(args.design))
+    geom = geometry_of(load_spec(args.design))
     L = geom.body.length
     kw = {} if args.centroid_model == "default" else {"centroid_model": args.centroid_model == "on"}
     print(f"{'tilt':>5} {'n':>3} {'nolock':>6} {'depth mm':>9} {'normal deg':>10} {'twist deg':>9}")

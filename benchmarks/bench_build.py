@@ -4,7 +4,7 @@ Two figures:
 
 - cold: ``chic-design build SPEC --quiet`` as a fresh process, as a user runs it
   (includes importing build123d/OCCT, about 2.5 s);
-- warm: :func:`chic_design.build.build_design` called repeatedly in one process
+- warm: :func:`chic_design.build.pipeline.build_design` called repeatedly in one process
   (the per-step times come from these runs).
 
 Each is the median of ``--runs`` runs. The export goes to a temporary folder.
@@ -38,7 +38,7 @@ def cold_runs(spec: Path, runs: int, out: Path) -> list[float]:
 
 def warm_runs(spec: Path, runs: int, out: Path) -> tuple[list[float], dict[str, list[float]]]:
     """Wall times (s) of ``build_design`` in this process, and per-step times."""
-    from chic_design.build import build_design
+    from chic_design.build.pipeline import build_design
 
     build_design(spec, out_root=out, progress=False)  # first call: imports and caches
     walls, steps = [], {}

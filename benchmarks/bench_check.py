@@ -1,7 +1,7 @@
 """Benchmark of ``chic-design check``: wall time of the feasibility checks (target < 2 s for neuro).
 
 Run: ``.venv/bin/python benchmarks/bench_check.py [SPEC ...] [--runs N]``. Prints, per
-spec, the median and min over N in-process runs of :func:`check_design`, and
+spec, the median and min over N in-process runs of ``family_of(spec).check``, and
 the median wall and CPU (user + sys) time of the full CLI in a fresh
 interpreter (imports included). On a shared machine the CPU time is the
 steadier figure.
@@ -20,7 +20,7 @@ from pathlib import Path
 ROOT = Path(__file__).resolve().parents[1]
 sys.path.insert(0, str(ROOT))
 
-from chic_design.feasibility import check_design  # noqa: E402
+from chic_design.families import family_of  # noqa: E402
 from chic_design.spec import load_spec  # noqa: E402
 
 
@@ -34,7 +34,7 @@ def main() -> int:
         times = []
         for _ in range(args.runs):
             t0 = time.perf_counter()
-            report = check_design(spec)
+            report = family_of(spec).check(spec)
             times.append(time.perf_counter() - t0)
         cli, cpu = [], []
         for _ in range(args.runs):
@@ -45,7 +45,7 @@ def main() -> int:
             cli.append(time.perf_counter() - t0)
             r1 = resource.getrusage(resource.RUSAGE_CHILDREN)
             cpu.append(r1.ru_utime - r0.ru_utime + r1.ru_stime - r0.ru_stime)
-        print(f"{path}: check_design median {statistics.median(times):.3f} s (min {min(times):.3f} s), "
+        print(f"{path}: check median {statistics.median(times):.3f} s (min {min(times):.3f} s), "
               f"CLI median {statistics.median(cli):.3f} s wall, {statistics.median(cpu):.3f} s CPU "
               f"over {args.runs} runs; "
               f"{len(report.tilt_limits)} depths, feasible={report.feasible}")

@@ -31,7 +31,7 @@ from pathlib import Path  # noqa: E402
 
 import numpy as np  # noqa: E402
 
-from chic_design.layout import fiducial_geometry  # noqa: E402
+from chic_design.families import geometry_of  # noqa: E402
 from chic_design.spec import load_spec  # noqa: E402
 from chic_register.imaging.simulate import simulate_slice  # noqa: E402
 from chic_register.io.igtl import read_message, slice_to_image_message  # noqa: E402
@@ -52,7 +52,7 @@ def main() -> None:
 
     options = SolveOptions(verify=args.verify == "on")
 
-    geom = fiducial_geometry(load_spec(args.design))
+    geom = geometry_of(load_spec(args.design))
     rng = np.random.default_rng(0)
     msgs = []
     for k in range(args.distinct):

@@ -25,7 +25,7 @@ import numpy as np
 ROOT = Path(__file__).resolve().parents[1]
 sys.path.insert(0, str(ROOT))
 
-from chic_design.layout import fiducial_geometry  # noqa: E402
+from chic_design.families import geometry_of  # noqa: E402
 from chic_design.spec import load_spec  # noqa: E402
 from chic_register.errors import NoLock  # noqa: E402
 from chic_register.imaging.simulate import simulate_slice  # noqa: E402
@@ -53,7 +53,7 @@ def main(argv=None) -> int:
     p.add_argument("--json", metavar="FILE", help="also write the results as JSON")
     args = p.parse_args(argv)
 
-    geom = fiducial_geometry(load_spec(args.design))
+    geom = geometry_of(load_spec(args.design))
     T_true = rigid(rot_z(35.0) @ rot_y(20.0), (12.0, -30.0, 55.0))  # the fiducial in the scanner
     depths = [args.depth - args.gap, args.depth, args.depth + args.gap]
     frames = [slice_frame(d, args.tilt, args.azimuth, args.twist) for d in depths]

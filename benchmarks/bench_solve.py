@@ -32,7 +32,7 @@ from pathlib import Path  # noqa: E402
 
 import numpy as np  # noqa: E402
 
-from chic_design.layout import fiducial_geometry  # noqa: E402
+from chic_design.families import geometry_of  # noqa: E402
 from chic_design.spec import load_spec  # noqa: E402
 from chic_register.errors import NoLock  # noqa: E402
 from chic_register.imaging.simulate import simulate_slice  # noqa: E402
@@ -68,7 +68,7 @@ def main() -> None:
         threadpool_limits(1)
     except ImportError:
         pass
-    geom = fiducial_geometry(load_spec(args.design))
+    geom = geometry_of(load_spec(args.design))
     L = geom.body.length
     rng = np.random.default_rng(0)
     poses = [(f * L, t, a, w) for f in (0.2, 0.5, 0.8) for t in (0, 20, 40) for a, w in ((0, 0), (130, 45))]

@@ -41,14 +41,14 @@ def main() -> None:
     ap = argparse.ArgumentParser(description=__doc__.splitlines()[0])
     ap.add_argument("--runs", type=int, default=10)
     args = ap.parse_args()
-    from chic_design.layout import fiducial_geometry
+    from chic_design.families import geometry_of
     from chic_design.spec import load_spec
     from chic_register.imaging.simulate import simulate_slice, write_simulated
     from chic_register.model.geometry import write_geometry
 
     compileall.compile_dir(str(ROOT / "chic_register"), quiet=1)
     with tempfile.TemporaryDirectory() as tmp:
-        geom = fiducial_geometry(load_spec(ROOT / "designs" / "neuro.yaml"))
+        geom = geometry_of(load_spec(ROOT / "designs" / "neuro.yaml"))
         gpath = write_geometry(geom, Path(tmp) / "geometry.yaml")
         dcm = Path(tmp) / "slice.dcm"
         write_simulated(simulate_slice(geom, 22, 20, 30, 15, noise="rician", snr=20, rng=3), dcm)

@@ -25,7 +25,7 @@ from pathlib import Path  # noqa: E402
 
 import numpy as np  # noqa: E402
 
-from chic_design.layout import fiducial_geometry  # noqa: E402
+from chic_design.families import geometry_of  # noqa: E402
 from chic_design.spec import load_spec  # noqa: E402
 from chic_register.imaging.simulate import simulate_slice  # noqa: E402
 from chic_register.pipeline.register import register  # noqa: E402
@@ -43,7 +43,7 @@ def main() -> None:
     ap.add_argument("--snr", type=float, default=20.0)
     args = ap.parse_args()
     print(f"load average at start: {os.getloadavg()[0]:.2f} (2 cores shared)")
-    neuro = fiducial_geometry(load_spec(ROOT / "designs" / "neuro.yaml"))
+    neuro = geometry_of(load_spec(ROOT / "designs" / "neuro.yaml"))
     for name, geom, poses, prior in (("neuro", neuro, CHIC_POSES, False),
                                      ("zframe-z001", z001_geometry(), Z_POSES, True)):
         all_m2, ratios = [], []

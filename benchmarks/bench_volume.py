@@ -24,7 +24,7 @@ from pathlib import Path  # noqa: E402
 
 import numpy as np  # noqa: E402
 
-from chic_design.layout import fiducial_geometry  # noqa: E402
+from chic_design.families import geometry_of  # noqa: E402
 from chic_design.spec import load_spec  # noqa: E402
 from chic_register.imaging.simulate import simulate_volume
 from chic_register.model.body import Body  # noqa: E402
@@ -56,7 +56,7 @@ def main() -> None:
         threadpool_limits(1)
     except ImportError:
         pass
-    neuro = fiducial_geometry(load_spec(ROOT / "designs" / "neuro.yaml"))
+    neuro = geometry_of(load_spec(ROOT / "designs" / "neuro.yaml"))
     zf = zframe()
     R = rot_z(20) @ rot_y(8)
     cases = [

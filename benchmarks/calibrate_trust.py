@@ -32,7 +32,7 @@ CASES = (
 
 
 def main(argv=None) -> int:
-    from chic_design.layout import fiducial_geometry
+    from chic_design.families import geometry_of
     from chic_design.optimize.confirm import simulate_parallel
     from chic_design.optimize.trust import solver_sds
     from chic_design.spec import load_spec
@@ -52,7 +52,7 @@ def main(argv=None) -> int:
     print(f"{'design':<17} {'n':>2} {'depth':>5} {'tilt':>4} {'az':>3} {'crlb rot':>8} {'crlb tre':>8} "
           f"{'locks':>5} {'rot ratio med/max':>17} {'tre ratio med/max':>17}")
     for name, spec_path, px, thick, depths, tilts in CASES:
-        geom = fiducial_geometry(load_spec(spec_path))
+        geom = geometry_of(load_spec(spec_path))
         for n in args.n_slices:
             proto = Protocol(pixel_size_mm=px, slice_thickness_mm=thick, snr=args.snr, n_slices=n,
                              slice_spacing_mm=thick)

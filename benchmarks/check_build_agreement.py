@@ -1,7 +1,7 @@
 """Does ``check`` agree with ``build``? Random specs: every design check calls feasible must build.
 
 Draws seeded random specs around the repository's designs (sizes, channel
-layout, caps, printer limits, protocol), runs :func:`check_design` on each,
+layout, caps, printer limits, protocol), runs ``family_of(spec).check`` on each,
 and builds those it calls feasible into a scratch folder. Reports every
 disagreement (a feasible design whose build fails) and how many specs were
 refused at the door, infeasible, or built. Slow: a build is 10-30 s.
@@ -23,9 +23,9 @@ import yaml
 ROOT = Path(__file__).resolve().parents[1]
 sys.path.insert(0, str(ROOT))
 
-from chic_design.build import build_design  # noqa: E402
+from chic_design.build.pipeline import build_design  # noqa: E402
 from chic_design.errors import ChicDesignError  # noqa: E402
-from chic_design.feasibility import check_design  # noqa: E402
+from chic_design.families import family_of  # noqa: E402
 from chic_design.spec import load_spec  # noqa: E402
 
 
@@ -65,7 +65,7 @@ def main(argv=None) -> int:
             except ChicDesignError:
                 counts["refused"] += 1
                 continue
-            report = check_design(spec)
+            report = family_of(spec).check(spec)
             if not report.feasible:
                 counts["infeasible"] += 1
                 print(f"{n:3d} infeasible: {', '.join(sorted({v.code for v in report.violations}))}", flush=True)

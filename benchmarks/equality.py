@@ -71,11 +71,11 @@ def _hunt_case(index: int) -> dict:
 
 
 def bench_records() -> list[dict]:
-    from chic_design.layout import fiducial_geometry
+    from chic_design.families import geometry_of
     from chic_design.spec import load_spec
     from chic_register.imaging.simulate import simulate_slice
 
-    geom = fiducial_geometry(load_spec(ROOT / "designs" / "neuro.yaml"))
+    geom = geometry_of(load_spec(ROOT / "designs" / "neuro.yaml"))
     L = geom.body.length
     rng = np.random.default_rng(0)
     poses = [(f * L, t, a, w) for f in (0.2, 0.5, 0.8) for t in (0, 20, 40) for a, w in ((0, 0), (130, 45))]

@@ -240,12 +240,12 @@ def load_geometries(paths=None) -> dict:
             g = load_geometry(p)
             out[g.name] = g
         return out
-    from chic_design.layout import fiducial_geometry
+    from chic_design.families import geometry_of
     from chic_design.spec import load_spec
 
     for name, spec in DESIGNS.items():
         export = ROOT / "exports" / name / "geometry.yaml"
-        out[name] = load_geometry(export) if export.exists() else fiducial_geometry(load_spec(spec))
+        out[name] = load_geometry(export) if export.exists() else geometry_of(load_spec(spec))
     return out
 
 

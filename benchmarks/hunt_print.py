@@ -55,13 +55,13 @@ REACH_RADII = 2.5
 
 def offset_geometry(name: str, change_deg: float):
     """The geometry of design ``name`` (``designs/<name>.yaml``) with its helix offset ``change_deg`` larger."""
-    from chic_design.layout import fiducial_geometry
+    from chic_design.families import geometry_of
     from chic_design.spec import load_spec
 
     spec = load_spec(hunt.DESIGNS[name])
     d = spec.model_dump()
     d["helix"]["offset_deg"] += change_deg
-    return fiducial_geometry(type(spec).model_validate(d))
+    return geometry_of(type(spec).model_validate(d))
 
 
 def change(kind: str, img: np.ndarray, sl, geom, T_true: np.ndarray, rng: np.random.Generator) -> np.ndarray:

@@ -32,7 +32,7 @@ DESIGNS = {"neuro": ROOT / "designs" / "neuro.yaml", "needle-guide": ROOT / "des
 def main(argv=None) -> int:
     from hunt import FALSE_LOCK_DEG, FALSE_LOCK_MM, pose_error
 
-    from chic_design.layout import design_geometry
+    from chic_design.families import geometry_of
     from chic_design.optimize.confirm import simulate_parallel
     from chic_design.spec import load_spec
     from chic_register.errors import NoLock
@@ -42,7 +42,7 @@ def main(argv=None) -> int:
     ap.add_argument("--cases", type=int, default=300)
     ap.add_argument("--seed", type=int, default=11)
     args = ap.parse_args(argv)
-    geoms = {name: design_geometry(load_spec(path)) for name, path in DESIGNS.items()}
+    geoms = {name: geometry_of(load_spec(path)) for name, path in DESIGNS.items()}
     out, worst = Counter(), (0.0, 0.0)
     t0, c0, load0 = time.perf_counter(), time.process_time(), os.getloadavg()[0]
     for i in range(args.cases):

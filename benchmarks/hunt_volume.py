@@ -33,7 +33,7 @@ PROTOCOL = {"neuro": ((0.5, 0.5, 2.0), (128, 128, 40)), "needle-guide": ((0.3, 0
 def main(argv=None) -> int:
     from hunt import FALSE_LOCK_DEG, FALSE_LOCK_MM, pose_error
 
-    from chic_design.layout import design_geometry
+    from chic_design.families import geometry_of
     from chic_design.spec import load_spec
     from chic_register.errors import NoLock
     from chic_register.imaging.simulate import simulate_volume
@@ -45,7 +45,7 @@ def main(argv=None) -> int:
     ap.add_argument("--seed", type=int, default=3)
     ap.add_argument("--blob-width", nargs=2, type=float, default=(1.5, 2.5), metavar=("LO", "HI"))
     args = ap.parse_args(argv)
-    geoms = {name: design_geometry(load_spec(ROOT / "designs" / f"{name}.yaml")) for name in PROTOCOL}
+    geoms = {name: geometry_of(load_spec(ROOT / "designs" / f"{name}.yaml")) for name in PROTOCOL}
     out, worst, cpu = Counter(), (0.0, 0.0), []
     t0, c0 = time.perf_counter(), time.process_time()
     for i in range(args.cases):

@@ -266,12 +266,9 @@ class _Geometries:
 
             spec = load_spec(ROOT / "designs" / f"{name}.yaml")
             source = {"spec": f"designs/{name}.yaml"}
-            try:
-                from chic_design.layout import design_geometry
-                geometry = design_geometry(spec, source=source)
-            except ImportError:  # the family interface
-                from chic_design.families import family_named
-                geometry = family_named(getattr(spec, "family", "chic")).geometry(spec, source)
+            from chic_design.families import geometry_of
+
+            geometry = geometry_of(spec, source)
             out = self.folder / f"{name}-geometry.yaml"
             write_geometry(geometry, out)
             self.files[name] = str(out)

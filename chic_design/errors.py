@@ -23,7 +23,7 @@ class InfeasibleDesign(ChicDesignError):
 
     def __init__(self, spec_path, violations, forceable: bool = True):
         self.violations = list(violations)
-        # one line per violation: 18 of them on one line were unreadable (issue 10)
+        # one line per violation: a long list on a single line is unreadable
         lines = "".join(f"\n  - {v.code} ({v.where}): {v.message}" for v in self.violations)
         n = len(self.violations)
         hint = "fix the spec or build anyway with --force" if forceable else "fix the spec; --force cannot build it"

@@ -7,9 +7,11 @@ Python's start-up time, not after the CAD or plotting imports.
 
 from __future__ import annotations
 
+import ctypes
 import os
 import signal
 import sys
+import threading
 import time
 
 
@@ -21,11 +23,7 @@ def die_with_parent(parent_pid: int) -> None:
     worker left behind would keep the caller's stderr pipe open (and a caller
     waiting for it would hang).
     """
-    import threading
-
     if sys.platform.startswith("linux"):
-        import ctypes
-
         try:
             ctypes.CDLL(None, use_errno=True).prctl(1, int(signal.SIGKILL), 0, 0, 0)  # PR_SET_PDEATHSIG = 1
         except (OSError, AttributeError):

@@ -5,7 +5,7 @@ Checks (each a named :class:`Check`):
 - every STL (and 3MF) mesh is watertight, consistently wound and a volume;
 - every mesh volume agrees with its CAD solid within :data:`VOLUME_REL_TOL`;
 - cross-sections of ``body.stl`` at heights where no two channels touch
-  (:func:`section_heights`) show exactly the bore plus one hole per tube of
+  (:func:`~chic_design.feasibility.sections.section_heights`) show exactly the bore plus one hole per tube of
   ``geometry.yaml``, each hole's centroid within :data:`CENTROID_TOL_MM` of
   ``tube.point_at_z(z)`` and its area within :data:`AREA_REL_TOL` of the
   channel's section ``pi a^2 / cos(tilt)``;
@@ -21,32 +21,25 @@ import math
 from dataclasses import dataclass
 from pathlib import Path
 
+import manifold3d
 import numpy as np
 import trimesh
 
+from chic_design.cad import PART_NAMES
+from chic_design.errors import BuildCheckError
+from chic_design.feasibility.sections import section_heights, tube_slope_cos
 from chic_register.model.geometry import FiducialGeometry, load_geometry
-from chic_register.model.tubes import Tube
 
-from .errors import BuildCheckError
-
-PARTS = ("body", "cap_top", "cap_bottom")
-
-#: Export tessellation: chord deviation <= 0.01 mm, angle between facet normals <= 0.15 rad.
-STL_TOLERANCE_MM = 0.01
-STL_ANGULAR_TOLERANCE_RAD = 0.15
-
-#: Mesh vs CAD volume. Facets inscribed in a circle of radius R with chord deviation delta
-#: span alpha = 2 acos(1 - delta / R) and lose alpha^2 / 6 of its area: 0.09 % for R = 15 mm,
+#: Mesh vs CAD volume, for the export's tessellation (:data:`chic_design.cad.export.STL_TOLERANCE_MM`).
+#: Facets inscribed in a circle of radius R with chord deviation delta span alpha = 2 acos(1 - delta / R) and lose alpha^2 / 6 of its area: 0.09 % for R = 15 mm,
 #: 0.17 % for R = 8 mm at delta = 0.01 mm (measured: -0.06 % for the neuro body). 0.5 % leaves
 #: headroom and still catches a missing or extra channel (one 3 mm channel is 2 % of the neuro
 #: body, one 1.6 mm channel 1.5 % of the needle-guide body).
 VOLUME_REL_TOL = 0.005
-#: Hole centroid vs tube centreline (the issue's requirement); measured < 0.005 mm.
+#: Hole centroid vs tube centreline: the printed channel must sit where geometry.yaml says; measured < 0.005 mm.
 CENTROID_TOL_MM = 0.05
 #: Hole area vs pi a^2 / cos(tilt): a 0.1 mm error in a 3 mm channel's diameter is 6.7 % in area.
 AREA_REL_TOL = 0.03
-#: Two channels' sections (and a channel and the walls) must be this far apart at a check height.
-SECTION_MARGIN_MM = 0.3
 #: Largest allowed cap/body intersection volume (mm^3) for solids that only touch.
 OVERLAP_TOL_MM3 = 1e-3
 
@@ -87,79 +80,6 @@ class VerifyResult:
         lines = ["| check | result | detail |", "|---|---|---|"]
         lines += [f"| {c.name} | {'pass' if c.ok else 'FAIL'} | {c.detail} |" for c in self.checks]
         return "\n".join(lines)
-
-
-# ---------------------------------------------------------------- section geometry
-
-
-def tube_slope_cos(tube: Tube, z_mm) -> np.ndarray:
-    """cos of the angle between the tube's centreline and +z at heights ``z_mm``; shape (N,)."""
-    return np.abs(tube.tangents_at_z(z_mm)[:, 2])
-
-
-def _section_circles(geometry: FiducialGeometry, z: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
-    """Centres (N, T, 2) and bounding radii a / cos(tilt) (N, T) of every channel's section."""
-    centres = np.stack([t.point_at_z(z)[:, :2] for t in geometry.tubes], axis=1)
-    half = np.stack([t.diameter / 2 / tube_slope_cos(t, z) for t in geometry.tubes], axis=1)
-    return centres, half
-
-
-def pair_gaps_mm(geometry: FiducialGeometry, z_mm) -> dict[tuple[str, str], np.ndarray]:
-    """Gap between the section circles of every pair of channels at ``z_mm``: ``{(id, id): (N,)}``."""
-    z = np.atleast_1d(np.asarray(z_mm, dtype=float))
-    centres, half = _section_circles(geometry, z)
-    ids = geometry.ids
-    return {
-        (ids[i], ids[j]): np.linalg.norm(centres[:, i] - centres[:, j], axis=1) - half[:, i] - half[:, j]
-        for i in range(len(ids)) for j in range(i + 1, len(ids))
-    }
-
-
-def section_clearance_mm(geometry: FiducialGeometry, z_mm) -> np.ndarray:
-    """Smallest gap between channel sections (and between a section and the walls) at ``z_mm``.
-
-    Each channel's section by the plane z is bounded by a circle of radius
-    ``a / cos(tilt)`` (the half major axis of its ellipse) around ``point_at_z``;
-    the gap is measured between those circles. Shape (N,) for N heights.
-    Negative: two channels touch there.
-    """
-    z = np.atleast_1d(np.asarray(z_mm, dtype=float))
-    body = geometry.body
-    centres, half = _section_circles(geometry, z)
-    flat = centres.reshape(-1, 2)
-    wall = np.minimum(body.outside_gap_mm(flat), body.bore_gap_mm(flat)).reshape(half.shape) - half
-    gap = wall.min(axis=1)
-    for d in pair_gaps_mm(geometry, z).values():
-        gap = np.minimum(gap, d)
-    return gap
-
-
-def touching_channels(geometry: FiducialGeometry, step_mm: float = 0.05) -> list[tuple[str, str, float, float]]:
-    """Pairs of channels that touch: ``[(id, id, z_lo, z_hi)]`` (mm, sampled), from :mod:`chic_design.contacts`.
-
-    Such channels are connected where they meet (they fill together) and
-    their images merge there. The same answer as the feasibility report's.
-    """
-    from .contacts import channel_contacts
-
-    return [(c.a, c.b, c.z_lo, c.z_hi) for c in channel_contacts(geometry, step_mm)]
-
-
-def section_heights(geometry: FiducialGeometry, n: int = 5, margin_mm: float = SECTION_MARGIN_MM) -> np.ndarray:
-    """``n`` heights (mm, increasing, shape (<= n,)) spread over the body where channels are apart.
-
-    Candidates are a 0.25 mm grid strictly inside the body; those with
-    :func:`section_clearance_mm` >= ``margin_mm`` are kept and ``n`` of them
-    picked nearest to evenly spaced targets. Empty if the channels touch everywhere.
-    """
-    length = geometry.body.length
-    z = np.linspace(0, length, max(int(round(length / 0.25)), 8) + 1)[1:-1]
-    good = z[section_clearance_mm(geometry, z) >= margin_mm]
-    if good.size == 0:
-        return good
-    targets = np.linspace(good[0], good[-1], n) if good.size > n else good
-    picked = sorted({float(good[np.argmin(np.abs(good - t))]) for t in targets})
-    return np.array(picked)
 
 
 def section_loops(mesh: trimesh.Trimesh, z_mm: float) -> list[tuple[float, np.ndarray]]:
@@ -266,8 +186,6 @@ def check_body_sections(mesh: trimesh.Trimesh, geometry: FiducialGeometry, heigh
 
 
 def _manifold(mesh: trimesh.Trimesh):
-    import manifold3d
-
     return manifold3d.Manifold(manifold3d.Mesh(
         vert_properties=np.asarray(mesh.vertices, dtype=np.float32),
         tri_verts=np.asarray(mesh.faces, dtype=np.uint32),
@@ -320,7 +238,7 @@ def verify_export(folder, cad_volumes_mm3: dict[str, float],
     geometry = load_geometry(folder / "geometry.yaml")
     checks.append(Check("geometry.yaml loads and its hash checks", True, f"{len(geometry.tubes)} tubes"))
     meshes: dict[str, trimesh.Trimesh] = {}
-    for part in PARTS:
+    for part in PART_NAMES:
         for ext in ("stl", "step", "3mf"):
             path = folder / f"{part}.{ext}"
             if not path.is_file() or path.stat().st_size == 0:

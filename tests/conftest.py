@@ -4,13 +4,14 @@ from pathlib import Path
 
 import pytest
 
-from chic_design.layout import fiducial_geometry
+from chic_design.families import family_of, geometry_of
 from chic_design.spec import load_spec
 from chic_register.model.geometry import write_geometry
 
 ROOT = Path(__file__).resolve().parents[1]
 NEURO = ROOT / "designs" / "neuro.yaml"
 NEEDLE = ROOT / "designs" / "needle-guide.yaml"
+ZFRAME = ROOT / "designs" / "zframe.yaml"
 
 
 @pytest.fixture(scope="session")
@@ -20,12 +21,13 @@ def neuro_spec():
 
 @pytest.fixture(scope="session")
 def neuro_geometry(neuro_spec):
-    return fiducial_geometry(neuro_spec, source={"spec": "designs/neuro.yaml"})
+    return family_of(neuro_spec).geometry(neuro_spec, source={"spec": "designs/neuro.yaml"})
 
 
 @pytest.fixture(scope="session")
 def needle_geometry():
-    return fiducial_geometry(load_spec(NEEDLE), source={"spec": "designs/needle-guide.yaml"})
+    spec = load_spec(NEEDLE)
+    return family_of(spec).geometry(spec, source={"spec": "designs/needle-guide.yaml"})
 
 
 @pytest.fixture()
@@ -40,7 +42,7 @@ TOOL_TIP_MM = -60.0
 @pytest.fixture(scope="session")
 def tool_geometry(neuro_spec):
     """The neuro design with a tool whose tip is on the axis at z = TOOL_TIP_MM."""
-    from chic_design.spec import ToolSpec
+    from chic_design.families.sections import ToolSpec
 
     spec = neuro_spec.model_copy(update={"tool": ToolSpec(tip_offset_mm=TOOL_TIP_MM)})
-    return fiducial_geometry(spec, source={"spec": "designs/neuro.yaml"})
+    return geometry_of(spec, source={"spec": "designs/neuro.yaml"})

@@ -21,8 +21,8 @@ from hypothesis import HealthCheck, given, settings
 from hypothesis import strategies as st
 
 from chic_design.errors import SpecError
-from chic_design.layout import fiducial_geometry
-from chic_design.printability import build_violations
+from chic_design.families import family_of
+from chic_design.feasibility.printability import build_violations
 from chic_design.spec import load_spec, parse_spec
 from chic_register.errors import GeometryFileError, ImageReadError, NoLock
 from chic_register.imaging.simulate import simulate_slice, write_simulated
@@ -103,8 +103,9 @@ def test_mutated_specs_give_a_spec_or_a_one_line_error(edits):
         return
     assert _finite_numbers(spec.model_dump())
     assert 1 <= len(spec.name) <= 64
-    geom = fiducial_geometry(spec)
-    build_violations(spec, geom, spec.imaging.pixel_size)  # the printability rules run on any valid spec
+    family = family_of(spec)
+    geom = family.geometry(spec)
+    build_violations(spec, geom, spec.imaging.pixel_size, family.length_key)  # the printability rules run on any valid spec
 
 
 @FUZZ

@@ -6,9 +6,6 @@ from __future__ import annotations
 import copy
 import json
 import os
-import signal
-import subprocess
-import sys
 import time
 from pathlib import Path
 
@@ -17,7 +14,6 @@ import pydicom
 import pytest
 import yaml
 
-from chic_design.cli import main as design_main
 from chic_register.cli.main import main as register_main
 from chic_register.errors import GeometryFileError, NoLock
 from chic_register.imaging.simulate import simulate_slice, write_simulated
@@ -25,7 +21,6 @@ from chic_register.live.folder import track
 from chic_register.model.geometry import content_sha256, load_geometry
 
 ROOT = Path(__file__).resolve().parents[1]
-NEURO_TEXT = (ROOT / "designs" / "neuro.yaml").read_text()
 
 
 def _one_line_error(capsys, prefix: str) -> str:
@@ -33,73 +28,6 @@ def _one_line_error(capsys, prefix: str) -> str:
     assert "Traceback" not in err and "\n" not in err, err
     assert err.startswith(prefix), err
     return err
-
-
-def _spec(tmp_path, keys, value, name="spec.yaml") -> Path:
-    data = yaml.safe_load(NEURO_TEXT)
-    node = data
-    for k in keys[:-1]:
-        node = node[k]
-    node[keys[-1]] = value
-    path = tmp_path / name
-    path.write_text(yaml.safe_dump(data))
-    return path
-
-
-# ----------------------------------------------------------------------------- specs
-
-@pytest.mark.parametrize("keys, value, fragment", [
-    (["body", "length"], float("inf"), "body.length: Input should be a finite number"),
-    (["helix", "pitch_deg_per_mm"], float("inf"), "helix.pitch_deg_per_mm: Input should be a finite number"),
-    (["helix", "pitch_deg_per_mm"], float("nan"), "helix.pitch_deg_per_mm: Input should be a finite number"),
-    (["body", "length"], 1e9, "body.length: Input should be less than or equal to 200"),
-    (["body", "length"], 100000, "body.length: Input should be less than or equal to 200"),
-    (["helix", "pitch_deg_per_mm"], 1e6, "helix.pitch_deg_per_mm: Input should be less than or equal to 90"),
-    (["helix", "pitch_deg_per_mm"], 30.0, "turns the helix 1500 deg"),
-    (["caps", "thickness"], float("inf"), "caps.thickness: Input should be a finite number"),
-    (["caps", "skirt_wall"], 1e6, "caps.skirt_wall: Input should be less than or equal to 20"),
-    (["name"], "a" * 255, "name: String should have at most 64 characters"),
-    (["body", "length"], True, "body.length: Input should be a valid number"),
-    (["print", "min_wall"], 0.01, "print.min_wall: Input should be greater than or equal to 0.1"),
-])
-def test_spec_values_out_of_range_are_one_line_errors(tmp_path, capsys, keys, value, fragment):
-    path = _spec(tmp_path, keys, value)
-    assert design_main(["check", str(path)]) == 2
-    err = _one_line_error(capsys, f"chic-design: error: {path}: ")
-    assert fragment in err
-
-
-@pytest.mark.parametrize("text, fragment", [
-    (NEURO_TEXT + "\nname: other\n", "duplicate key 'name'"),
-    (NEURO_TEXT.replace("length: 50", "length: 1:10"), "body.length: Input should be a valid number (got '1:10')"),
-    (NEURO_TEXT + "\nx: " + "[" * 5000 + "]" * 5000 + "\n", "nested deeper than 32 levels"),
-])
-def test_spec_yaml_traps_are_one_line_errors(tmp_path, capsys, text, fragment):
-    path = tmp_path / "spec.yaml"
-    path.write_text(text)
-    assert design_main(["check", str(path)]) == 2
-    assert fragment in _one_line_error(capsys, f"chic-design: error: {path}: ")
-
-
-def test_a_50_mb_spec_and_a_fifo_are_refused_before_reading(tmp_path, capsys):
-    big = tmp_path / "big.yaml"
-    with open(big, "wb") as fh:
-        fh.write(NEURO_TEXT.encode())
-        fh.truncate(50 * 2**20)
-    assert design_main(["check", str(big)]) == 2
-    assert "a spec file is at most 262144 bytes" in _one_line_error(capsys, "chic-design: error: ")
-    fifo = tmp_path / "fifo.yaml"
-    os.mkfifo(fifo)
-    assert design_main(["build", str(fifo), "--out", str(tmp_path / "out")]) == 2
-    assert "is a FIFO (named pipe), not a spec file" in _one_line_error(capsys, "chic-design: error: ")
-
-
-def test_schema_documents_the_physical_ranges():
-    from chic_design.spec import json_schema
-
-    body = json_schema()["$defs"]["BodySpec"]["properties"]
-    assert body["length"]["maximum"] == 200 and body["length"]["minimum"] == 2
-    assert json_schema()["properties"]["name"]["maxLength"] == 64
 
 
 # ----------------------------------------------------------------------------- geometry files
@@ -277,80 +205,6 @@ def test_track_reports_an_unexpected_failure_and_goes_on(tmp_path, dicom_slice, 
 # ----------------------------------------------------------------------------- outputs and pipes
 
 
-# ----------------------------------------------------------------------------- build processes
-
-def _descendants(pid: int) -> list[int]:
-    parents = {}
-    for d in Path("/proc").iterdir():
-        if d.name.isdigit():
-            try:
-                parents[int(d.name)] = int((d / "stat").read_text().rsplit(")", 1)[1].split()[1])
-            except (OSError, IndexError, ValueError):
-                pass
-    out, todo = [], [pid]
-    while todo:
-        parent = todo.pop()
-        kids = [c for c, p in parents.items() if p == parent]
-        out += kids
-        todo += kids
-    return out
-
-
-def _running(pid: int) -> bool:
-    try:
-        return Path(f"/proc/{pid}/stat").read_text().rsplit(")", 1)[1].split()[0] != "Z"
-    except (OSError, IndexError):
-        return False
-
-
-@pytest.mark.slow  # a real build process: its start-up (CAD imports) takes 3-20 s depending on load
-@pytest.mark.skipif(not Path("/proc").is_dir(), reason="needs /proc to list child processes")
-def test_a_killed_build_leaves_no_worker_and_its_temp_folder_is_cleaned(tmp_path):
-    from chic_design.build import remove_stale_temporaries
-
-    out = tmp_path / "exports"
-    p = subprocess.Popen([sys.executable, "-m", "chic_design.cli", "build", "designs/neuro.yaml", "--out", str(out),
-                          "--quiet"], cwd=ROOT, stdout=subprocess.DEVNULL, stderr=subprocess.PIPE)
-    deadline = time.monotonic() + 120
-    workers = []
-    while time.monotonic() < deadline and p.poll() is None:
-        workers = [c for c in _descendants(p.pid) if b"spawn_main" in Path(f"/proc/{c}/cmdline").read_bytes()]
-        if workers:
-            break
-        time.sleep(0.05)
-    assert workers, "the build started no preview worker"
-    time.sleep(0.5)
-    children = _descendants(p.pid)
-    p.send_signal(signal.SIGKILL)
-    p.wait()
-    deadline = time.monotonic() + 10
-    while any(_running(c) for c in children) and time.monotonic() < deadline:
-        time.sleep(0.05)
-    assert not [c for c in children if _running(c)], "a child of the killed build survived"
-    p.stderr.read()  # returns: no survivor holds the pipe open
-    stale = list(out.glob(".neuro.tmp-*"))
-    assert [s.name.split("-")[1] for s in stale] == [str(p.pid)]
-    assert remove_stale_temporaries(out, "neuro") == stale
-    assert not any(out.iterdir())
-
-
-def test_stale_folders_of_live_owners_are_kept_and_a_moved_aside_export_is_restored(tmp_path):
-    from chic_design.build import remove_stale_temporaries
-
-    dead = subprocess.Popen([sys.executable, "-c", "pass"])
-    dead.wait()
-    live_tmp = tmp_path / f".neuro.tmp-{os.getpid()}-abc123"
-    dead_tmp = tmp_path / f".neuro.tmp-{dead.pid}-abc123"
-    dead_old = tmp_path / f".neuro.old-{dead.pid}-xyz_9"
-    other = tmp_path / f".neuro2.tmp-{dead.pid}-abc123"
-    for d in (live_tmp, dead_tmp, dead_old, other):
-        d.mkdir()
-    (dead_old / "geometry.yaml").write_text("earlier export")
-    assert remove_stale_temporaries(tmp_path, "neuro") == [dead_tmp]
-    assert (tmp_path / "neuro" / "geometry.yaml").read_text() == "earlier export"  # killed between renames
-    assert sorted(p.name for p in tmp_path.iterdir()) == sorted([live_tmp.name, other.name, "neuro"])
-
-
 def test_no_lock_is_still_a_no_lock(tmp_path, capsys, neuro_geometry_file):
     """The hardening does not turn a blank (valid) image into an error."""
     npy = tmp_path / "blank.npy"
@@ -359,10 +213,6 @@ def test_no_lock_is_still_a_no_lock(tmp_path, capsys, neuro_geometry_file):
     assert rc == NoLock.exit_code
 
 
-def test_check_flags_meet_the_spec_ranges(capsys):
-    assert design_main(["check", str(ROOT / "designs" / "neuro.yaml"), "--pixel-size", "1e9"]) == 2
-    assert "imaging.pixel_size: Input should be less than or equal to 10" in _one_line_error(
-        capsys, "chic-design: error: ")
 
 
 def test_fifo_geometry_and_reference_files_are_refused_not_waited_on(tmp_path, capsys, neuro_geometry_file):

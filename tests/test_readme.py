@@ -173,19 +173,11 @@ def _trim(lines: list[str]) -> list[str]:
 
 
 def design_geometry(spec_path: Path, source: dict):
-    """The geometry of a design spec through the library (no CAD), or None when the library has no such call."""
+    """The geometry of a design spec through the library (no CAD)."""
+    from chic_design.families import geometry_of
     from chic_design.spec import load_spec
 
-    spec = load_spec(spec_path)
-    try:
-        from chic_design.layout import design_geometry as make
-    except ImportError:
-        try:
-            from chic_design.families import family_named
-        except ImportError:
-            return None
-        return family_named(getattr(spec, "family", "chic")).geometry(spec, source)
-    return make(spec, source=source)
+    return geometry_of(load_spec(spec_path), source)
 
 
 def _seed_geometry(work: Path, name: str) -> None:

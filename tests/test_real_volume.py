@@ -28,12 +28,13 @@ CENTRE = np.array([0.0, 0.0, 30.0, 1.0])
 
 @pytest.fixture(scope="module")
 def zf(tmp_path_factory):
-    from chic_design.layout import design_geometry
+    from chic_design.families import family_of
     from chic_design.spec import load_spec
 
-    from .test_zframe import ZFRAME
+    from .conftest import ZFRAME
 
-    path = write_geometry(design_geometry(load_spec(ZFRAME)), tmp_path_factory.mktemp("zf") / "g.yaml")
+    spec = load_spec(ZFRAME)
+    path = write_geometry(family_of(spec).geometry(spec), tmp_path_factory.mktemp("zf") / "g.yaml")
     return load_geometry(path)
 
 

@@ -382,11 +382,12 @@ def test_a_series_decides_what_one_slice_cannot():
     """A slim needle guide (10 mm body, 0.8 mm channels; the optimiser's design for 0.3 mm pixels) seen normal to its
     axis: one slice alone fits two mirror tilts equally well and is refused; three parallel slices 1.5 mm apart
     refine every slice's candidates on all of them, single one out, and lock on the truth."""
-    from chic_design.layout import design_geometry
+    from chic_design.families import family_of
     from chic_design.optimize.confirm import simulate_parallel
     from chic_design.spec import load_spec
 
-    geom = design_geometry(load_spec(Path(__file__).parent / "data" / "needle-guide-slim.yaml"))
+    spec = load_spec(Path(__file__).parent / "data" / "needle-guide-slim.yaml")
+    geom = family_of(spec).geometry(spec)
     rng = np.random.default_rng(0)
     centre = np.array([0.0, 0.0, geom.body.length / 2, 1.0])
     locked = 0

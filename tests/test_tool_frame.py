@@ -7,7 +7,7 @@ import pytest
 import yaml
 
 from chic_design.errors import SpecError
-from chic_design.layout import fiducial_geometry
+from chic_design.families import geometry_of
 from chic_design.spec import parse_spec
 from chic_register.model.geometry import content_sha256, geometry_from_dict, load_geometry, write_geometry
 from chic_register.model.pose import rigid, rot_y
@@ -53,5 +53,5 @@ def test_full_tool_transform_from_the_spec(neuro_spec):
     T = rigid(rot_y(90.0), (1.0, 2.0, -40.0))
     data = yaml.safe_load(NEURO.read_text())
     data["tool"] = {"T_fiducial_from_tool": T.tolist()}
-    geom = fiducial_geometry(parse_spec(data, "neuro.yaml"))
+    geom = geometry_of(parse_spec(data, "neuro.yaml"))
     np.testing.assert_allclose(geom.tool.T_fiducial_from_tool, T)

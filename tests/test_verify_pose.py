@@ -238,10 +238,11 @@ def test_wide_blobs_are_verified_with_a_fitted_point_spread(monkeypatch):
     sharp model's shape test; the verification then fits a Gaussian point spread and the blurred model explains
     the pixels: the pose locks within 0.3 mm. Without the point-spread fit the same slice is refused."""
     import chic_register.verify.pixels as vp
-    from chic_design.layout import design_geometry
+    from chic_design.families import family_of
     from chic_design.spec import load_spec
 
-    zf = design_geometry(load_spec(ROOT / "designs" / "zframe.yaml"))
+    spec = load_spec(ROOT / "designs" / "zframe.yaml")
+    zf = family_of(spec).geometry(spec)
     sim = simulate_slice(zf, 30, 15, 30, 0, noise="rician", snr=20, blob_width=2.5, rng=np.random.default_rng(1))
     sl, T_true = sim.slice, sim.truth.T_scanner_from_fiducial
     seen = []

@@ -4,7 +4,7 @@ from __future__ import annotations
 
 import numpy as np
 
-from .score import DIRECTIONS, OBJECTIVES
+from chic_design.optimize.score import DIRECTIONS, OBJECTIVES
 
 LABELS = {"outer_diameter_mm": ("outer diameter", "mm"),
           "usable_region_deg_mm": ("usable tilt x depth region", "deg mm"),

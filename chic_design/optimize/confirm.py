@@ -15,11 +15,14 @@ import math
 
 import numpy as np
 
-from chic_register.studies.evaluate import StudyCase
-
-from ..layout import fiducial_geometry
-from ..spec import parse_spec
-from .requirements import Requirements
+from chic_design.families import family_of
+from chic_design.optimize.requirements import Requirements
+from chic_design.spec import parse_spec
+from chic_register.errors import ImprecisePose, NoLock
+from chic_register.imaging.simulate import simulate_slice
+from chic_register.model.pose import invert, slice_angles, wrap_deg
+from chic_register.pipeline.register import register
+from chic_register.studies.evaluate import StudyCase, normal_angle_deg
 
 DEPTHS = 3
 
@@ -46,8 +49,6 @@ def simulate_parallel(geom, depth_mm: float, tilt_deg: float, azimuth_deg: float
                       spacing_mm: float, pixel_mm: float, thickness_mm: float, snr: float, rng, shape=None):
     """``n_slices`` parallel simulated slices ``spacing_mm`` apart (along their normal), centred on the pose, one
     fiducial pose in the scanner (a series as :class:`chic_register.precision.crlb.Protocol` models it), Rician noise."""
-    from chic_register.imaging.simulate import simulate_slice
-
     shape = shape or image_shape(geom.body.outer_diameter, tilt_deg, pixel_mm)
     step = spacing_mm / math.cos(math.radians(tilt_deg))  # along the axis between parallel planes
     sims, truth = [], None
@@ -79,14 +80,9 @@ def confirm_design(spec_data: dict, req_data: dict, draws: int, seed: int) -> di
     precision limits included): a refused draw counts in ``no_lock`` (``imprecise``: refused only as too
     imprecise to trust). Errors are those of the middle slice's pose.
     """
-    from chic_register.errors import ImprecisePose, NoLock
-    from chic_register.studies.evaluate import normal_angle_deg
-    from chic_register.model.pose import invert, slice_angles, wrap_deg
-    from chic_register.pipeline.register import register
-
     req = Requirements.model_validate(req_data)
     spec = parse_spec(spec_data, "<candidate>")
-    geom = fiducial_geometry(spec)
+    geom = family_of(spec).geometry(spec)
     im = req.imaging
     spacing = im.slice_spacing if im.slice_spacing is not None else im.slice_thickness
     shape = image_shape(spec.body.outer_diameter, req.required.tilt_deg[1], im.pixel_size)

@@ -12,7 +12,7 @@ from __future__ import annotations
 import os
 from concurrent.futures import ProcessPoolExecutor, as_completed
 
-from .errors import RequirementsError
+from chic_design.optimize.errors import RequirementsError
 
 
 class SerialEngine:
@@ -57,7 +57,7 @@ class DaskEngine:
     name = "dask"
 
     def __init__(self, scheduler: str):
-        from distributed import Client, LocalCluster
+        from distributed import Client, LocalCluster  # dask: seconds to load, only for a --scheduler run
 
         self._cluster = None
         if scheduler.startswith("local:"):
@@ -70,7 +70,7 @@ class DaskEngine:
         self.workers = max(1, len(self._client.scheduler_info().get("workers", {})))
 
     def map_unordered(self, fn, arg_tuples):
-        from distributed import as_completed as dask_completed
+        from distributed import as_completed as dask_completed  # loaded with the client above
 
         futures = [self._client.submit(fn, *args, pure=False) for args in arg_tuples]
         index = {f.key: i for i, f in enumerate(futures)}

@@ -2,7 +2,7 @@
 
 from __future__ import annotations
 
-from ..errors import ChicDesignError
+from chic_design.errors import ChicDesignError
 
 
 class RequirementsError(ChicDesignError):

@@ -16,24 +16,31 @@ from collections import Counter
 from dataclasses import dataclass
 from pathlib import Path
 
-from chic_register.util.atomic import write_json, write_text
+from tqdm import tqdm
 
-from ..feasibility import check_geometry, save_tilt_plot
-from ..layout import fiducial_geometry
-from ..spec import load_spec, parse_spec
-from . import space
-from .choose import compare, ideal_distances, knee_order, weakly_dominating
-from .confirm import confirm_design
-from .engine import make_engine
-from .errors import NoFeasibleDesign, RequirementsError
-from .report import confirmed_verdict, report_markdown, table_row, write_csv, write_spec
-from .precision import method as precision_method
-from .requirements import Requirements, baseline_path, load_requirements
-from .score import dominates, score_spec
-from .search import SearchResult, run_search
-from .store import ResultStore
-from .trust import solver_limits, trust_excess
-from .plots import save_pareto_plot, save_precision_map
+from chic_design.families import family_of
+from chic_design.families.chic.spec import ChicSpec
+from chic_design.feasibility.engine import check_geometry
+from chic_design.feasibility.tilt_plot import save_tilt_plot
+from chic_design.optimize import space
+from chic_design.optimize.choose import compare, ideal_distances, knee_order, weakly_dominating
+from chic_design.optimize.confirm import confirm_design
+from chic_design.optimize.engine import make_engine
+from chic_design.optimize.errors import NoFeasibleDesign, RequirementsError
+from chic_design.optimize.plots import save_pareto_plot, save_precision_map
+from chic_design.optimize.precision import method as precision_method
+from chic_design.optimize.precision import protocol_of
+from chic_design.optimize.report import confirmed_verdict, report_markdown, table_row, write_csv, write_spec
+from chic_design.optimize.requirements import Requirements, baseline_path, load_requirements
+from chic_design.optimize.score import dominates, score_spec
+from chic_design.optimize.search import SearchResult, run_search
+from chic_design.optimize.store import ResultStore
+from chic_design.optimize.trust import solver_limits, trust_excess
+from chic_design.progress import status
+from chic_design.report.pictures import render_preview
+from chic_design.spec import load_spec, parse_spec
+from chic_register.precision.crlb import precision_map
+from chic_register.util.atomic import write_json, write_text
 
 
 @dataclass(frozen=True)
@@ -44,6 +51,7 @@ class OptimizeResult:
     baseline: dict | None
     beats_baseline: tuple[str, dict] | None
     confirmed: dict
+    files: tuple[Path, ...] = ()
 
     def summary_text(self) -> str:
         s = self.search
@@ -82,30 +90,48 @@ def _no_feasible_message(req: Requirements, search: SearchResult) -> str:
             "parallel slices (imaging.n_slices), or search longer")
 
 
-def _chosen_pictures(req: Requirements, name: str, result: dict, folder: Path) -> None:
-    """Preview, tilt plot and precision map (CRLB over depth x tilt) of the chosen design."""
-    from ..preview import render_preview
-
+def _chosen_pictures(req: Requirements, name: str, result: dict, folder: Path, progress: bool) -> list[Path]:
+    """Preview, tilt plot and precision map (CRLB over depth x tilt) of the chosen design; returns the files."""
+    if progress:
+        status(f"chosen design {name}: preview and tilt limits")
     spec = parse_spec(result["spec"], name)
-    geom = fiducial_geometry(spec)
+    family = family_of(spec)
+    geom = family.geometry(spec)
     folder.mkdir(parents=True, exist_ok=True)
     render_preview(geom, folder / "preview.png")
-    report = check_geometry(geom, pixel_size_mm=req.imaging.pixel_size,
+    report = check_geometry(geom, family, pixel_size_mm=req.imaging.pixel_size,
                             slice_thickness_mm=req.imaging.slice_thickness, min_wall_mm=req.printer.min_wall,
                             max_overhang_deg=req.printer.max_overhang_deg)
     save_tilt_plot(report, folder / "tilt_limits.png")
-    from chic_register.precision.crlb import precision_map
-
-    from .precision import protocol_of
-
     t1 = req.required.tilt_deg[1]
     tilts = sorted({0.0, float(t1), round(1.5 * t1, 1)}) if t1 > 0 else [0.0, 10.0, 20.0]
     L = spec.body.length
-    pmap = precision_map(geom, protocol_of(req), depths_mm=[round(L * f, 1) for f in (0.1, 0.3, 0.5, 0.7, 0.9)],
-                         tilts_deg=tilts, target_F_mm=req.required.target_mm)
+    depths = [round(L * f, 1) for f in (0.1, 0.3, 0.5, 0.7, 0.9)]
+    if progress:
+        status(f"chosen design {name}: precision map (Cramer-Rao bound at {len(depths)} depths x {len(tilts)} tilts)")
+    pmap = precision_map(geom, protocol_of(req), depths_mm=depths, tilts_deg=tilts,
+                         target_F_mm=req.required.target_mm)
     write_json(folder / "precision_map.json", pmap.to_dict())
     save_precision_map(pmap, report.tilt_limits, folder / "precision_map.png",
                        f"{name}: predicted TRE at {list(req.required.target_mm)} mm (CRLB)")
+    return [folder / f for f in ("preview.png", "tilt_limits.png", "precision_map.json", "precision_map.png")]
+
+
+def _confirm(engine, finalists, jobs, progress: bool) -> dict:
+    """Run the simulation study of every finalist on ``engine``, with a progress bar."""
+    bar = None
+    if progress:
+        bar = tqdm(total=len(jobs), desc=f"confirm {len(jobs)} designs by simulated registration", unit="design")
+    confirmed = {}
+    try:
+        for i, res in engine.map_unordered(confirm_design, jobs):
+            confirmed[finalists[i][0]] = res
+            if bar is not None:
+                bar.update(1)
+    finally:
+        if bar is not None:
+            bar.close()
+    return confirmed
 
 
 def _beats_baseline(named, baseline):
@@ -129,7 +155,7 @@ def optimize(req_path, out_dir=None, trials: int | None = None, seed: int = 0, s
     baseline, start = None, None
     if bpath is not None:
         bspec = load_spec(bpath)
-        if getattr(bspec, "family", "chic") != "chic":
+        if not isinstance(bspec, ChicSpec):
             raise RequirementsError(f"{req_path}: search.baseline: {bpath} is a {bspec.family} design; the "
                                     "optimiser searches CHIC designs, so the baseline must be one")
         baseline = score_spec(bspec, req, bspec.model_dump())
@@ -154,12 +180,10 @@ def optimize(req_path, out_dir=None, trials: int | None = None, seed: int = 0, s
         if n_confirm and baseline is not None and baseline["feasible"]:
             finalists.append(("baseline", baseline))
         jobs = [(r["spec"], req.model_dump(), req.search.confirm_draws, seed) for _, r in finalists]
-        confirmed = {}
-        if jobs:
-            for i, res in engine.map_unordered(confirm_design, jobs):
-                confirmed[finalists[i][0]] = res
+        confirmed = _confirm(engine, finalists, jobs, progress) if jobs else {}
     finally:
         engine.close()
+    files = [out / "candidates.sqlite"]
     specs = out / "specs"
     specs.mkdir(parents=True, exist_ok=True)
     wanted = {f"{n}.yaml" for n, _ in named}
@@ -167,13 +191,16 @@ def optimize(req_path, out_dir=None, trials: int | None = None, seed: int = 0, s
         if old.name not in wanted:
             old.unlink()
     for n, r in named:
-        write_spec(r["spec"], specs / f"{n}.yaml")
+        files.append(write_spec(r["spec"], specs / f"{n}.yaml"))
     rows = [table_row(n, r) for n, r in named]
-    write_csv(rows, out / "pareto.csv")
+    files.append(write_csv(rows, out / "pareto.csv"))
     if pictures:
-        save_pareto_plot(search.candidates, [r for _, r in named], named[0][1], baseline, out / "pareto.png")
-        _chosen_pictures(req, named[0][0], named[0][1], out / "chosen")
-    write_json(out / "confirm.json", confirmed)
+        if progress:
+            status(f"drawing the Pareto set of {len(named)} designs")
+        files.append(save_pareto_plot(search.candidates, [r for _, r in named], named[0][1], baseline,
+                                      out / "pareto.png"))
+        files += _chosen_pictures(req, named[0][0], named[0][1], out / "chosen", progress)
+    files.append(write_json(out / "confirm.json", confirmed))
     dist = [float(d) for d in ideal_distances([r for _, r in named])]
     ctx = {"req": req, "req_path": str(req_path), "search": search, "named": named, "rows": rows,
            "baseline": baseline, "baseline_path": str(bpath) if bpath else None, "beats_baseline": beats,
@@ -181,9 +208,8 @@ def optimize(req_path, out_dir=None, trials: int | None = None, seed: int = 0, s
                            and dominates(r["objectives"], baseline["objectives"])],
            "confirmed": confirmed, "confirm_named": finalists, "pictures": pictures, "distances": dist,
            "precision_method": precision_method(req), "trust_limits": solver_limits()}
-    write_text(out / "report.md", report_markdown(ctx))
-    result = OptimizeResult(out, search, tuple(named), baseline, beats, confirmed)
-    write_json(out / "result.json", {
+    files.append(write_text(out / "report.md", report_markdown(ctx)))
+    files.append(write_json(out / "result.json", {
         "requirements": str(req_path), "settings": search.settings, "engine": search.engine,
         "workers": search.workers, "evaluated": search.evaluated, "cached": search.cached,
         "feasible": search.feasible, "candidates": len(search.candidates), "wall_s": search.wall_s,
@@ -193,5 +219,5 @@ def optimize(req_path, out_dir=None, trials: int | None = None, seed: int = 0, s
                                                    "objectives": baseline["objectives"],
                                                    "reasons": baseline["reasons"]},
         "beats_baseline": None if beats is None else {"name": beats[0], "comparison": compare(beats[1], baseline)},
-        "confirmed": confirmed})
-    return result
+        "confirmed": confirmed}))
+    return OptimizeResult(out, search, tuple(named), baseline, beats, confirmed, tuple(files))

@@ -6,17 +6,16 @@ from pathlib import Path
 
 import numpy as np
 
+from chic_design.optimize.choose import LABELS
+from chic_design.optimize.score import OBJECTIVES
 from chic_register.util.atomic import save_figure
-
-from .choose import LABELS
-from .score import OBJECTIVES
 
 
 def _plt():
-    import matplotlib
+    import matplotlib  # matplotlib, and its backend choice, only when a plot is drawn
 
     matplotlib.use("Agg")
-    import matplotlib.pyplot as plt
+    import matplotlib.pyplot as plt  # (after the backend is chosen)
 
     return plt
 

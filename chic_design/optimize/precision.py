@@ -13,10 +13,10 @@ from __future__ import annotations
 
 import numpy as np
 
+from chic_design.optimize.requirements import Requirements
+from chic_design.optimize.trust import SOLVER_OVER_CRLB, predicted_solver_error, solver_limits
 from chic_register.model.geometry import FiducialGeometry
-
-from .requirements import Requirements
-from .trust import SOLVER_OVER_CRLB, predicted_solver_error, solver_limits
+from chic_register.precision.crlb import Protocol, pose_crlb
 
 DEPTH_SAMPLES = 3
 AZIMUTHS_DEG = (0.0, 90.0)
@@ -37,8 +37,6 @@ def sample_poses(req: Requirements) -> list[tuple[float, float, float]]:
 
 def protocol_of(req: Requirements):
     """The bound's imaging protocol from the requirements (slices ``slice_thickness`` apart by default)."""
-    from chic_register.precision.crlb import Protocol
-
     im = req.imaging
     spacing = im.slice_spacing if im.slice_spacing is not None else im.slice_thickness
     return Protocol(pixel_size_mm=im.pixel_size, slice_thickness_mm=im.slice_thickness, snr=im.snr,
@@ -60,8 +58,6 @@ def method(req: Requirements) -> str:
 def predicted_precision(geom: FiducialGeometry, req: Requirements) -> dict:
     """Worst case over :func:`sample_poses` of the bound's SDs and TRE at the target (mm, deg), and of the
     solver's predicted 3-sigma error (``solver_tre_mm`` at the frame centre, ``solver_rot_deg``; :mod:`.trust`)."""
-    from chic_register.precision.crlb import pose_crlb
-
     protocol = protocol_of(req)
     target = np.asarray(req.required.target_mm, dtype=float)
     limits = solver_limits()

@@ -8,11 +8,11 @@ from pathlib import Path
 
 import yaml
 
+from chic_design.optimize.choose import LABELS, compare
+from chic_design.optimize.score import OBJECTIVES
+from chic_design.optimize.trust import SOLVER_OVER_CRLB, trust_excess
+from chic_design.spec import parse_spec
 from chic_register.util.atomic import write_text
-
-from ..spec import parse_spec
-from .choose import LABELS, compare
-from .score import OBJECTIVES
 
 TABLE_COLUMNS = ("name", "outer_diameter_mm", "envelope_od_mm", "length_mm", "usable_region_deg_mm",
                  "usable_15deg_mm", "tre_mm", "sd_depth_mm", "sd_normal_deg", "sd_twist_deg", "solver_rot_deg",
@@ -103,8 +103,6 @@ def confirmed_verdict(c: dict) -> str:
 
 def trust_lines(candidates, limits) -> list[str]:
     """The candidates the solver-trust constraint alone made infeasible, nearest the limits first."""
-    from .trust import SOLVER_OVER_CRLB, trust_excess
-
     failed = [c for c in candidates if not c["feasible"] and c.get("precision") is not None]
     if not failed:
         return []

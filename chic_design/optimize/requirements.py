@@ -14,23 +14,23 @@ import math
 from pathlib import Path
 from typing import Annotated
 
-from pydantic import BaseModel, ConfigDict, Field, ValidationError, model_validator
+from pydantic import Field, ValidationError, model_validator
 
-from .errors import RequirementsError
-from ..spec import format_validation_error
+from chic_design.families.sections import Strict
+from chic_design.optimize.errors import RequirementsError
+from chic_design.spec import format_validation_error
+from chic_register.errors import InputFileError
+from chic_register.util.safeload import load_yaml_file
 
-PositiveMM = Annotated[float, Field(gt=0)]
+#: A positive number (ints and floats alike: requirements are not as strict as a spec).
+Positive = Annotated[float, Field(gt=0)]
 
 
-class _Strict(BaseModel):
-    model_config = ConfigDict(extra="forbid", frozen=True)
-
-
-class ToolReq(_Strict):
+class ToolReq(Strict):
     """The tool the fiducial mounts on: a bore diameter, or the tool's diameter plus a clearance."""
 
-    bore_diameter: PositiveMM | None = Field(None, description="Diameter of the central bore (mm).")
-    outer_diameter: PositiveMM | None = Field(None, description="The tool's outer diameter (mm).")
+    bore_diameter: Positive | None = Field(None, description="Diameter of the central bore (mm).")
+    outer_diameter: Positive | None = Field(None, description="The tool's outer diameter (mm).")
     clearance: float = Field(0.0, ge=0, le=2, description="Radial clearance around the tool (mm).")
 
     @model_validator(mode="after")
@@ -48,22 +48,22 @@ class ToolReq(_Strict):
         return float(self.outer_diameter + 2 * self.clearance)
 
 
-class LimitsReq(_Strict):
+class LimitsReq(Strict):
     """Size limits: the outer diameter of the assembly (caps' skirts included) and the body length."""
 
-    max_outer_diameter: PositiveMM = Field(description="Largest outside diameter, cap skirts included (mm).")
-    max_length: PositiveMM = Field(description="Longest body (mm).")
-    min_length: PositiveMM | None = Field(None, description="Shortest body (mm); default: the required "
+    max_outer_diameter: Positive = Field(description="Largest outside diameter, cap skirts included (mm).")
+    max_length: Positive = Field(description="Longest body (mm).")
+    min_length: Positive | None = Field(None, description="Shortest body (mm); default: the required "
                                           "depth range's end plus 5 mm.")
 
 
-class PrinterReq(_Strict):
+class PrinterReq(Strict):
     """What the printer makes reliably."""
 
-    min_wall: PositiveMM = Field(0.8, description="Thinnest watertight wall (mm).")
+    min_wall: Positive = Field(0.8, description="Thinnest watertight wall (mm).")
     max_overhang_deg: float = Field(45.0, gt=0, lt=90, description="Steepest overhang from the axis (deg).")
-    min_channel_diameter: PositiveMM = Field(1.0, description="Narrowest channel that fills reliably (mm).")
-    max_channel_diameter: PositiveMM = Field(4.0, description="Widest channel to consider (mm).")
+    min_channel_diameter: Positive = Field(1.0, description="Narrowest channel that fills reliably (mm).")
+    max_channel_diameter: Positive = Field(4.0, description="Widest channel to consider (mm).")
 
     @model_validator(mode="after")
     def _channels(self):
@@ -73,18 +73,18 @@ class PrinterReq(_Strict):
         return self
 
 
-class ImagingReq(_Strict):
+class ImagingReq(Strict):
     """The scanner protocol the design must work with."""
 
-    pixel_size: PositiveMM = Field(description="In-plane pixel size (mm).")
-    slice_thickness: PositiveMM = Field(description="Slice thickness (mm).")
+    pixel_size: Positive = Field(description="In-plane pixel size (mm).")
+    slice_thickness: Positive = Field(description="Slice thickness (mm).")
     snr: float = Field(20.0, gt=0, description="Fluid signal over noise SD (Rician).")
     n_slices: int = Field(1, ge=1, le=64, description="Parallel slices registered together.")
-    slice_spacing: PositiveMM | None = Field(None, description="Centre spacing of the slices (mm); "
+    slice_spacing: Positive | None = Field(None, description="Centre spacing of the slices (mm); "
                                              "default: the slice thickness.")
 
 
-class RequiredReq(_Strict):
+class RequiredReq(Strict):
     """What must work: every depth in ``depth_mm`` at every tilt up to ``tilt_deg[1]``; the target point."""
 
     depth_mm: tuple[float, float] = Field(description="Depth range (z in F, mm) that must register.")
@@ -105,16 +105,16 @@ class RequiredReq(_Strict):
         return self
 
 
-class CapsReq(_Strict):
+class CapsReq(Strict):
     """Cap dimensions used for every candidate (see the design spec's ``caps``)."""
 
-    thickness: PositiveMM = 1.5
+    thickness: Positive = 1.5
     clearance: float = Field(0.15, ge=0, le=1.0)
-    skirt_height: PositiveMM = 3.0
-    skirt_wall: PositiveMM = 1.2
+    skirt_height: Positive = 3.0
+    skirt_wall: Positive = 1.2
 
 
-class SearchReq(_Strict):
+class SearchReq(Strict):
     """Search settings (the command line overrides ``trials``)."""
 
     trials: int = Field(240, ge=1, le=100000, description="Candidates to evaluate.")
@@ -125,7 +125,7 @@ class SearchReq(_Strict):
     confirm_draws: int = Field(4, ge=1, le=100, description="Noise draws per pose in the confirmation study.")
 
 
-class Requirements(_Strict):
+class Requirements(Strict):
     """Everything ``chic-design optimize`` needs."""
 
     name: str = Field(pattern=r"^[A-Za-z0-9][A-Za-z0-9_.-]*$", description="Names the output and the designs.")
@@ -203,9 +203,6 @@ def parse_requirements(data, path="<requirements>") -> Requirements:
 
 def load_requirements(path) -> Requirements:
     """Read and validate a requirements file."""
-    from chic_register.errors import InputFileError
-    from chic_register.util.safeload import load_yaml_file
-
     path = Path(path)
     try:
         data = load_yaml_file(path, "requirements file")  # the loader of specs and geometry files

@@ -1,8 +1,8 @@
 """Score one candidate: feasibility first (tilt limits, printability, unambiguity), then precision.
 
 A candidate is *feasible* when its spec validates, the feasibility check
-(:func:`chic_design.feasibility.check_geometry`, for the required protocol and
-printer, plus what ``build`` refuses, :func:`chic_design.printability.build_violations`)
+(:func:`chic_design.feasibility.engine.check_geometry`, for the required protocol and
+printer, plus what ``build`` refuses, :func:`chic_design.feasibility.printability.build_violations`)
 finds no violation, its assembled outer diameter is within the limit,
 every depth sample in the required range registers at the required
 maximum tilt, and the solver will trust its poses there: the precision bound
@@ -30,15 +30,16 @@ from dataclasses import replace
 
 import numpy as np
 
-from ..errors import SpecError
-from ..feasibility import check_geometry
-from ..printability import build_violations
-from ..layout import fiducial_geometry
-from ..spec import Spec, parse_spec
-from . import space
-from .precision import predicted_precision
-from .requirements import Requirements
-from .trust import solver_limits, trust_excess, trust_reason
+from chic_design.errors import SpecError
+from chic_design.families import family_of
+from chic_design.families.chic.spec import ChicSpec
+from chic_design.feasibility.engine import check_geometry
+from chic_design.feasibility.printability import build_violations
+from chic_design.optimize import space
+from chic_design.optimize.precision import predicted_precision
+from chic_design.optimize.requirements import Requirements
+from chic_design.optimize.trust import solver_limits, trust_excess, trust_reason
+from chic_design.spec import parse_spec
 
 SCORER_VERSION = "4"
 OBJECTIVES = ("outer_diameter_mm", "usable_region_deg_mm", "tre_mm")
@@ -69,14 +70,15 @@ def _infeasible(reasons, constraints, spec_data, t0) -> dict:
             "objectives": None, "precision": None, "spec": spec_data, "cpu_s": time.process_time() - t0}
 
 
-def score_spec(spec: Spec, req: Requirements, spec_data: dict | None = None) -> dict:
+def score_spec(spec: ChicSpec, req: Requirements, spec_data: dict | None = None) -> dict:
     """Score a validated spec against the requirements (see module docstring)."""
     t0 = time.process_time()
-    geom = fiducial_geometry(spec)
-    report = check_geometry(geom, pixel_size_mm=req.imaging.pixel_size,
+    family = family_of(spec)
+    geom = family.geometry(spec)
+    report = check_geometry(geom, family, pixel_size_mm=req.imaging.pixel_size,
                             slice_thickness_mm=req.imaging.slice_thickness,
                             min_wall_mm=req.printer.min_wall, max_overhang_deg=req.printer.max_overhang_deg)
-    hard = build_violations(spec, geom, req.imaging.pixel_size)  # what build refuses (check == build)
+    hard = build_violations(spec, geom, req.imaging.pixel_size, family.length_key)  # what build refuses
     report = replace(report, violations=report.violations + tuple(hard))
     reasons = [f"{v.code} ({v.where})" for v in report.violations]
     envelope = spec.body.outer_diameter + 2 * (spec.caps.clearance + spec.caps.skirt_wall)

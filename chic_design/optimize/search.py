@@ -14,10 +14,11 @@ import time
 from dataclasses import dataclass, field
 
 import optuna
+from tqdm import tqdm
 
-from . import space
-from .score import DIRECTIONS, OBJECTIVES, SCORER_VERSION, evaluate_candidate, pareto_front
-from .requirements import Requirements
+from chic_design.optimize import space
+from chic_design.optimize.requirements import Requirements
+from chic_design.optimize.score import DIRECTIONS, OBJECTIVES, SCORER_VERSION, evaluate_candidate, pareto_front
 
 _WORST = {"minimize": 1e9, "maximize": -1e9}
 
@@ -64,8 +65,6 @@ def run_search(req: Requirements, engine, store, trials: int, seed: int = 0, pop
     req_data = req.model_dump()
     bar = None
     if progress:
-        from tqdm import tqdm
-
         bar = tqdm(total=trials, desc=f"optimize {req.name} ({engine.name}, {engine.workers} workers)",
                    unit="cand")
     t0 = time.perf_counter()
@@ -76,10 +75,11 @@ def run_search(req: Requirements, engine, store, trials: int, seed: int = 0, pop
             params = [space.suggest(t, req) for t in batch]
             keys = [space.candidate_key(p, req, SCORER_VERSION) for p in params]
             results = store.get_many(keys)
-            cached += sum(1 for k in keys if k in results)
+            stored = sum(1 for k in keys if k in results)
+            cached += stored
             todo = list(dict.fromkeys(k for k in keys if k not in results))
-            if bar is not None and len(keys) > len(todo):
-                bar.update(len(keys) - len(todo))
+            if bar is not None and stored:
+                bar.update(stored)  # each evaluated key below counts once per time it was asked
             first = {k: params[keys.index(k)] for k in todo}
             jobs = [(first[k], req_data) for k in todo]
             for i, res in engine.map_unordered(evaluate_candidate, jobs):

@@ -27,7 +27,7 @@ import hashlib
 import json
 import math
 
-from .requirements import Requirements
+from chic_design.optimize.requirements import Requirements
 
 CIRCLE_STEPS = 20
 OFFSET_RANGE_DEG = (2, 30)

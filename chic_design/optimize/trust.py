@@ -18,12 +18,14 @@ from dataclasses import dataclass, fields
 
 import numpy as np
 
+from chic_register.fit.checks import PRECISION_SIGMAS
+from chic_register.model.pose_params import deg_mm_scale, target_jacobian
+from chic_register.options import SolveOptions
+
 #: The solver's own 1-sigma estimate over the bound's worst-direction SD (benchmarks/calibrate_trust.py --draws 6
 #: --seed 0: 182 locks of neuro at 0.5 mm / 2 mm and needle-guide-p01 at 0.3 mm / 1.5 mm, SNR 20, 1 and 3 slices,
 #: tilt 0 and 15-20 deg): rotation median 1.27 (90th percentile 1.56, 95th 1.70, range 0.67-2.19), frame centre
-#: median 1.23. (Measured again when the bound's derivatives were made to turn about the slice centre; with the
-#: old bound the same run gave 1.28, range 0.65-3.92, and an earlier solver 1.31 over 161 locks.) It is
-#: above 1 because the solver fits section positions, not every pixel (an efficiency below 1), and takes the
+#: median 1.23. It is above 1 because the solver fits section positions, not every pixel (an efficiency below 1), and takes the
 #: residual scatter at its 90 % chi-square upper bound (x1.3-1.4 for 6-10 tubes); it varies from slice to slice
 #: because that scatter is estimated from a dozen residuals. The median is the prediction: a design at the limit
 #: has about half of its slices at the worst required pose refused; one well inside it, few.
@@ -41,9 +43,6 @@ class TrustLimits:
 
 def solver_limits() -> TrustLimits:
     """The limits as ``chic_register`` sets them today (``SolveOptions`` defaults, ``PRECISION_SIGMAS``)."""
-    from chic_register.options import SolveOptions
-    from chic_register.fit.checks import PRECISION_SIGMAS
-
     default = {f.name: f.default for f in fields(SolveOptions)}
     return TrustLimits(float(default["trust_tre_mm"]), float(default["trust_rot_deg"]), float(PRECISION_SIGMAS))
 
@@ -51,9 +50,7 @@ def solver_limits() -> TrustLimits:
 def solver_sds(cov_deg_mm, length_mm: float) -> tuple[float, float]:
     """Worst-direction 1-sigma of the frame centre's displacement (mm) and of the rotation (deg) of a pose
     covariance in :data:`chic_register.precision.crlb.PARAMETER_ORDER` (what ``pose_precision`` reports, from the bound)."""
-    from chic_register.model.pose_params import deg_mm_scale as _scale, target_jacobian
-
-    s = _scale()
+    s = deg_mm_scale()
     C = np.asarray(cov_deg_mm, dtype=float) / np.outer(s, s)  # rad, mm
     J = target_jacobian((0.0, 0.0, 0.5 * float(length_mm)))
     tre = math.sqrt(max(float(np.linalg.eigvalsh(J @ C @ J.T).max()), 0.0))

@@ -102,7 +102,7 @@ def test_one_shot_start_up_imports_no_library_module(tmp_path):
 
 
 @pytest.mark.parametrize("module, argv", [("chic_register.cli.main", ["solve", "--help"]),
-                                          ("chic_design.cli", ["check", "--help"])])
+                                          ("chic_design.cli.main", ["check", "--help"])])
 def test_help_points_at_the_projects_own_interface_document(module, argv, capsys):
     with pytest.raises(SystemExit):
         importlib.import_module(module).main(argv)

@@ -1,0 +1,152 @@
+"""The human report of a build (``report.md``): dimensions, channels, volumes, filling, checks.
+
+The title, frame F and dimension table come from the design's family
+(:meth:`~chic_design.families.base.Family.report_head`); the rest is the same for every family.
+"""
+
+from __future__ import annotations
+
+from chic_design.cad.channels import blank_volume_mm3, channel_volume_mm3
+from chic_design.cad.parts import CapDims
+from chic_design.families import family_of
+from chic_design.feasibility.contacts import touching_channels
+from chic_register.model.geometry import FiducialGeometry
+
+FILLING_PROCEDURE = """\
+1. Print the body and both caps. Each file is in frame F in its assembled position; the
+   slicer puts it on the bed. The body prints standing on an end face. Print both caps plate
+   down: `cap_bottom` already is; turn `cap_top` upside down in the slicer. Clear the
+   channels with a wire slightly thinner than the channels.
+2. Glue the **bottom cap** (`cap_bottom`) onto the body: a thin bead of epoxy (or
+   cyanoacrylate for resins that tolerate it) on the lower end face and inside the skirt, then
+   slide it on. The skirt is a slip fit with {clearance:g} mm radial clearance; the plate
+   seals every channel opening at z = 0. Let it cure.
+3. Glue the **top cap** (`cap_top`) the same way, turned so that each fill port sits over its
+   channel (the ports follow the channel openings, so there is one way it fits: check by
+   looking through the ports). Keep glue away from the port openings.
+4. Stand the fiducial upright and fill each channel through its port with a syringe and a
+   blunt needle thinner than the {port:g} mm port (for example 25 G, 0.5 mm). Push slowly so
+   the fluid runs down the channel and the air escapes up around the needle. Use the MRI
+   contrast fluid or gel of your protocol (for example diluted gadolinium, or a
+   saline/agarose gel). The volumes per channel are in the table above.
+5. Tap out air bubbles, top each port up to a small meniscus, then seal every port with a
+   drop of UV-curing resin or epoxy. Image the fiducial once to confirm every channel shows
+   along its full length (a missing section of a channel means an air bubble).
+"""
+
+
+def touching_text(geometry: FiducialGeometry) -> str:
+    """Which channels meet (near the end faces, typically) and so form connected groups."""
+    pairs = touching_channels(geometry)
+    if not pairs:
+        return "No two channels touch: each fills on its own."
+    group = {t: {t} for t in geometry.ids}
+    for a, b, _, _ in pairs:
+        merged = group[a] | group[b]
+        for t in merged:
+            group[t] = merged
+    groups = sorted({tuple(sorted(g)) for g in group.values() if len(g) > 1})
+    where = "; ".join(f"{a}-{b} at z {lo:.1f}..{hi:.1f} mm" for a, b, lo, hi in pairs)
+    names = "; ".join(", ".join(g) for g in groups)
+    return (f"Channels that touch, and are connected there: {where}. Connected groups: {names}. "
+            "A group fills as one vessel: fill it through any of its ports while the air leaves "
+            "through the others, then top up every port of the group. Where channels touch, "
+            "their images merge at those heights.")
+
+
+def channel_rows(geometry: FiducialGeometry) -> list[dict]:
+    """One row per channel: id, role, kind, angle(s), pitch, length (mm), fluid volume (mm^3)."""
+    length = geometry.body.length
+    rows = []
+    for t in geometry.tubes:
+        kind, angles, pitch = t.describe()
+        rows.append({
+            "id": t.id, "role": t.role, "kind": kind, "angle_deg": angles, "pitch": pitch,
+            "diameter_mm": t.diameter, "length_mm": t.length_mm,
+            "fluid_mm3": channel_volume_mm3(t, 0.0, length),
+        })
+    return rows
+
+
+def build_report(spec, spec_path, geometry: FiducialGeometry, cap_dims: CapDims,
+                 part_volumes_mm3: dict[str, float], verify_result, feasibility_markdown: str | None,
+                 timings_s: dict[str, float], files: list[str], precision_markdown: str | None = None) -> str:
+    """The text of ``report.md``; ``cap_dims`` are the caps' dimensions the parts were made with."""
+    head = family_of(spec).report_head(spec, geometry, cap_dims)
+    rows = channel_rows(geometry)
+    sum_nominal = sum(r["fluid_mm3"] for r in rows)
+    cut = blank_volume_mm3(geometry) - part_volumes_mm3["body"]
+    out = [
+        f"# {head.title} `{geometry.name}`",
+        "",
+        f"{spec.description}".strip() or "",
+        "",
+        f"Built from `{spec_path}` (sha256 `{(geometry.source or {}).get('spec_sha256', '?')[:16]}...`) by "
+        f"{(geometry.source or {}).get('generator', 'chic-design')}. All parts are in the fiducial frame F "
+        f"({head.frame_text}).",
+        "",
+        "## Dimensions",
+        "",
+        "| quantity | value |",
+        "|---|---|",
+        *head.dimension_rows,
+        "",
+        "## Channels",
+        "",
+        "| id | role | kind | angle (deg) | pitch (deg/mm) | diameter (mm) | centreline length (mm) | fluid (mL) |",
+        "|---|---|---|---|---|---|---|---|",
+    ]
+    out += [
+        f"| {r['id']} | {r['role']} | {r['kind']} | {r['angle_deg']} | {r['pitch']} | {r['diameter_mm']:g} | "
+        f"{r['length_mm']:.2f} | {r['fluid_mm3'] / 1000:.3f} |"
+        for r in rows
+    ]
+    out += [
+        "",
+        f"Fluid to fill: {sum_nominal / 1000:.3f} mL summed over the channels (pi r^2 x centreline length); "
+        f"the CAD body has {cut / 1000:.3f} mL of channel space (solid frame minus body)"
+        + (f": channels that touch near the end faces share {max(sum_nominal - cut, 0.0):.1f} mm^3."
+           if sum_nominal - cut > 0.5 else "."),
+        "Allow about 0.1 mL extra per channel for the needle and the ports.",
+        "",
+        touching_text(geometry),
+        "",
+        "## Parts",
+        "",
+        "| part | volume (mm^3) | files |",
+        "|---|---|---|",
+    ]
+    out += [
+        f"| {name} | {vol:.1f} | `{name}.stl`, `{name}.step`, `{name}.3mf` |"
+        for name, vol in part_volumes_mm3.items()
+    ]
+    out += [
+        "",
+        "`assembly.step` holds the three labelled parts in their assembled positions; "
+        "`geometry.yaml` is what the registration solver reads; `preview.png` shows the channels; "
+        "`feasibility.json` is the feasibility report (as `chic-design check --json`).",
+        "",
+        "![preview](preview.png)",
+        "",
+        "## Filling and closing",
+        "",
+        FILLING_PROCEDURE.format(clearance=cap_dims.clearance, port=cap_dims.port_diameter),
+        feasibility_markdown.strip() if feasibility_markdown else "## Feasibility\n\n(not checked)",
+        "",
+        *([precision_markdown.strip(), ""] if precision_markdown else []),
+        "## Output checks",
+        "",
+        "Body sections checked at z = "
+        + ", ".join(f"{z:.2f}" for z in verify_result.section_heights_mm)
+        + " mm (heights where no two channels touch).",
+        "",
+        verify_result.markdown(),
+        "",
+        "## Build",
+        "",
+        "| step | seconds |",
+        "|---|---|",
+    ]
+    out += [f"| {k} | {v:.2f} |" for k, v in timings_s.items()]
+    out += ["", "Files: " + ", ".join(f"`{f}`" for f in files), ""]
+    return "\n".join(out)
