@@ -46,3 +46,17 @@ def tool_geometry(neuro_spec):
 
     spec = neuro_spec.model_copy(update={"tool": ToolSpec(tip_offset_mm=TOOL_TIP_MM)})
     return geometry_of(spec, source={"spec": "designs/neuro.yaml"})
+
+
+REAL = ROOT / "tests" / "data" / "real"  # real scanner images (README there: sources and licences)
+
+
+@pytest.fixture(scope="session")
+def zframe_geometry():
+    """The 60 mm seven-rod Z-frame of ``designs/zframe.yaml`` (ZFrameRegistration's configuration z001)."""
+    return geometry_of(load_spec(ROOT / "designs" / "zframe.yaml"), source={"spec": "designs/zframe.yaml"})
+
+
+@pytest.fixture()
+def zframe_geometry_file(tmp_path, zframe_geometry):
+    return write_geometry(zframe_geometry, tmp_path / "zframe-geometry.yaml")

@@ -107,7 +107,8 @@ def test_no_prior_on_the_symmetric_frame_says_what_to_give_at_once(zf, tmp_path,
     assert main(["solve", str(vol), "--geometry", str(geo), "--json"]) == 3
     reason = json.loads(capsys.readouterr().out)["reason"]
     assert reason.startswith("ambiguous fit") and "half turn about the y axis" in reason
-    assert "--prior identity" in reason and "T_scanner_from_fiducial" in reason and ".tfm" in reason
+    assert "--prior RAS" in reason and "--prior identity" in reason and "T_scanner_from_fiducial" in reason
+    assert ".tfm" in reason
     with pytest.raises(NoLock, match="--prior"):
         register([sim.volume.native_slice(5)], zf)
     # the frame's axes lie near the scanner's (within 15 deg): '--prior identity' is all it takes

@@ -16,8 +16,30 @@ from chic_register.errors import ChicRegisterError, InputFileError
 if TYPE_CHECKING:  # annotations only
     import numpy as np
 
-#: ``--prior`` words that stand for a pose: the frame's axes along the scanner's LPS axes.
+#: ``--prior`` words that stand for a pose: ``identity`` (the frame's axes along the scanner's LPS axes), or three
+#: letters naming the scanner direction each of the frame's x, y, z points along, one of each pair R/L, A/P, S/I
+#: (``RAS``: x to the patient's right, y anterior, z superior; ``LPS`` is ``identity``).
 PRIOR_WORDS = ("identity",)
+#: The scanner's (LPS) unit vector each orientation letter names.
+ORIENTATION_LETTERS = {"L": (1, 0, 0), "R": (-1, 0, 0), "P": (0, 1, 0), "A": (0, -1, 0), "S": (0, 0, 1),
+                       "I": (0, 0, -1)}
+
+
+def orientation_rotation(code: str):
+    """The rotation (3x3, scanner LPS from frame) of an orientation code such as ``RAS``; None when ``code`` is
+    not three letters naming each axis pair once; :class:`ChicRegisterError` for a left-handed code."""
+    import numpy as np  # here, not at the top: keeps start-up fast
+
+    letters = str(code).strip().upper()
+    if len(letters) != 3 or any(c not in ORIENTATION_LETTERS for c in letters):
+        return None
+    R = np.array([ORIENTATION_LETTERS[c] for c in letters], dtype=float).T
+    if sorted(int(np.argmax(np.abs(R[:, j]))) for j in range(3)) != [0, 1, 2]:
+        return None  # an axis pair named twice (RLS)
+    if np.linalg.det(R) < 0:
+        raise ChicRegisterError(f"--prior {code}: a left-handed set of directions; the frame's z follows from its "
+                                "x and y by the right-hand rule (e.g. RAS, LPS, LAI)")
+    return R
 
 
 def add_igtl_args(p) -> None:
@@ -69,10 +91,17 @@ def load_reference(path, flag: str = "--reference") -> "np.ndarray":
 
 
 def load_prior(value) -> "np.ndarray":
-    """The pose of solve --prior: a JSON or .tfm file (load_reference), or the word identity
-    (F's x, y, z along the scanner's LPS x, y, z; only a prior's rotation is used) when no file has that name."""
+    """The pose of solve --prior: a JSON or .tfm file (load_reference), or, when no file has that name, the word
+    identity (F's x, y, z along the scanner's LPS x, y, z) or an orientation code such as RAS
+    (:func:`orientation_rotation`); only a prior's rotation is used."""
     import numpy as np  # here, not at the top: keeps start-up fast
 
-    if str(value).strip().lower() in PRIOR_WORDS and not Path(value).exists():
-        return np.eye(4)
+    if not Path(value).exists():
+        if str(value).strip().lower() in PRIOR_WORDS:
+            return np.eye(4)
+        R = orientation_rotation(value)
+        if R is not None:
+            T = np.eye(4)
+            T[:3, :3] = R
+            return T
     return load_reference(value, "--prior")

@@ -38,7 +38,8 @@ def add_parser(subparsers) -> None:
                         "Default: every slice that shows the fiducial (the others are listed as skipped)")
     s.add_argument("--prior", metavar="FILE",
                    help="an approximate pose of the fiducial (JSON with T_scanner_from_fiducial, or .tfm), or "
-                        "'identity' (the frame's x, y, z roughly along the scanner's LPS axes): only poses turned "
+                        "the scanner directions the frame's x, y, z point along: RAS, LPS (also 'identity'), LAI, "
+                        "...: only poses turned "
                         "less than --prior-max-deg from it are considered. Needed for a geometry that maps onto "
                         "itself under a rotation (the classic Z-frame)")
     s.add_argument("--prior-max-deg", type=float, default=60.0, metavar="DEG",

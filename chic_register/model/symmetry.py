@@ -156,7 +156,8 @@ def prior_needed_unmemoised(geom: FiducialGeometry, tolerance_mm: float) -> str 
         return None
     what = found[0].what + (f" (and {len(found) - 1} more)" if len(found) > 1 else "")
     return (f"ambiguous fit: '{geom.name}' maps onto itself under a {what}, so every image fits two poses and "
-            "only the frame's approximate orientation can pick one; give it with --prior: '--prior identity' when "
-            "the frame's x, y, z axes point roughly along the scanner's (LPS: x to the patient's left, y posterior, "
-            "z superior, within --prior-max-deg, default 60 deg), else '--prior FILE', a JSON file holding "
-            "{\"T_scanner_from_fiducial\": 4x4 matrix} (only its rotation is used) or a 3D Slicer .tfm")
+            "only the frame's approximate orientation can pick one; give it with --prior: the scanner directions "
+            "the frame's x, y, z point along (within --prior-max-deg, default 60 deg), e.g. '--prior RAS' (x to "
+            "the patient's right, y anterior, z superior) or '--prior LPS' (also '--prior identity'), else "
+            "'--prior FILE', a JSON file holding {\"T_scanner_from_fiducial\": 4x4 matrix} (only its rotation is "
+            "used) or a 3D Slicer .tfm")
