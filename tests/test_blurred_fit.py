@@ -104,12 +104,13 @@ def test_a_blurred_fit_outside_the_envelope_is_refused():
     zeroed pixels): its blurred-model pose is 0.57 deg off; outside the envelope such a pose is refused. Since the
     verification judges each section at its own fluid level, the dim, half-zeroed H0 is refused one step earlier, by
     its shape."""
-    from tests.test_verify_pose import hunt
+    from chic_register.studies.damage import build_case, make_case
+    from tests.helpers import hunt_geometries
 
-    geoms = hunt.load_geometries()
-    case = hunt.make_case(1467, 0, geoms, (1.0, 2.5))
+    geoms = hunt_geometries()
+    case = make_case(1467, 0, geoms, (1.0, 2.5))
     assert case.geometry == "neuro"
-    sl, _, _ = hunt.build_case(case, geoms["neuro"])
+    sl, _, _ = build_case(case, geoms["neuro"])
     with pytest.raises(NoLock, match="usable envelope|tube H0.s section does not have the shape"):
         register([sl], geoms["neuro"])
 

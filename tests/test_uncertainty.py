@@ -162,20 +162,19 @@ def test_clear_blocks_are_the_blocks_wholly_clear_of_blobs_and_finite():
 def test_an_interpolated_slice_is_not_trusted_as_if_its_pixels_were_independent(monkeypatch):
     """The unlisted-damage hunt's case 885: a needle-guide slice zoomed 2x (bilinear, spacing halved) locked 0.71 deg
     off with a predicted 3-sigma rotation of 0.52 deg; with the noise correlation counted it is refused (or right)."""
-    import dataclasses
-
     from scipy import ndimage as ndi
 
     import chic_register.verify.pixels as vp
     from chic_register.errors import NoLock
     from chic_register.model.slices import Slice
     from chic_register.pipeline.register import register
-    from tests.test_verify_pose import hunt
+    from chic_register.studies.damage import build_case, noisy_case, pose_error
+    from tests.helpers import hunt_geometries
 
-    geoms = hunt.load_geometries()
-    case = dataclasses.replace(hunt.make_case(885, 7, geoms), mutation="noisy")
+    geoms = hunt_geometries()
+    case = noisy_case(885, 7, geoms)
     geom = geoms[case.geometry]
-    sl, T_true, _ = hunt.build_case(case, geom)
+    sl, T_true, _ = build_case(case, geom)
     rs, cs = sl.pixel_spacing_mm
     zoomed = Slice(ndi.zoom(np.asarray(sl.pixels, float), 2, order=1), (rs / 2, cs / 2),
                    slice_thickness_mm=sl.slice_thickness_mm, source="zoomed")
@@ -185,7 +184,7 @@ def test_an_interpolated_slice_is_not_trusted_as_if_its_pixels_were_independent(
             reg = register([zoomed], geom)
         except NoLock:
             return "no_lock"
-        return hunt.pose_error(reg.T_scanner_from_fiducial, T_true, geom.body.length)
+        return pose_error(reg.T_scanner_from_fiducial, T_true, geom.body.length)
 
     out = outcome()
     assert out == "no_lock" or (out[0] <= 0.5 and out[1] <= 0.5)

@@ -3,49 +3,22 @@ is refused (or locked right) with the fix and locks wrong without it."""
 
 from __future__ import annotations
 
-import dataclasses
-import functools
-import importlib.util
-import sys
-
 import numpy as np
 import pytest
 
 import chic_register.verify.pixels as vp
 import chic_register.verify.windows as vw
 from chic_register.errors import NoLock
-from chic_register.model.pose import invert
-from chic_register.model.slices import Slice
 from chic_register.pipeline.register import register
-from tests.test_verify_pose import ROOT, hunt
-
-
-@functools.lru_cache(maxsize=1)
-def _unlisted():
-    spec = importlib.util.spec_from_file_location("hunt_unlisted", ROOT / "benchmarks" / "hunt_unlisted.py")
-    mod = importlib.util.module_from_spec(spec)
-    sys.modules["hunt_unlisted"] = mod
-    spec.loader.exec_module(mod)
-    return mod
-
-
-@functools.lru_cache(maxsize=1)
-def _geometries():
-    return hunt.load_geometries()
+from chic_register.studies.damage import FALSE_LOCK_DEG, FALSE_LOCK_MM, pose_error, unlisted_slice
+from tests.helpers import hunt_geometries
 
 
 def damaged_case(seed: int, index: int, kind: str):
     """``(slice, true T_scanner_from_fiducial, geometry)`` of an unlisted-hunt case with damage ``kind``."""
-    hu = _unlisted()
-    geoms = _geometries()
-    case = dataclasses.replace(hunt.make_case(index, seed, geoms), mutation="noisy")
-    geom = geoms[case.geometry]
-    sl, T_true, _ = hunt.build_case(case, geom)
-    img, spacing, T_on = hu.damage(kind, sl.pixels, sl.pixel_spacing_mm, np.random.default_rng([seed, index, 99]),
-                                   hu.true_centres_rc(geom, T_true, sl.pixel_spacing_mm))
-    if T_on is not None:
-        T_true = invert(T_on) @ T_true
-    return Slice(img, spacing, slice_thickness_mm=sl.slice_thickness_mm, source=f"case{index}"), T_true, geom
+    geoms = hunt_geometries()
+    sl, T_true, case, _ = unlisted_slice(index, seed, kind, geoms)
+    return sl, T_true, geoms[case.geometry]
 
 
 def outcome(seed: int, index: int, kind: str):
@@ -55,15 +28,15 @@ def outcome(seed: int, index: int, kind: str):
         reg = register([sl], geom)
     except NoLock:
         return "no_lock"
-    return hunt.pose_error(reg.T_scanner_from_fiducial, T_true, geom.body.length)
+    return pose_error(reg.T_scanner_from_fiducial, T_true, geom.body.length)
 
 
 def refused_or_right(out) -> bool:
-    return out == "no_lock" or (out[0] <= hunt.FALSE_LOCK_MM and out[1] <= hunt.FALSE_LOCK_DEG)
+    return out == "no_lock" or (out[0] <= FALSE_LOCK_MM and out[1] <= FALSE_LOCK_DEG)
 
 
 def false_lock(out) -> bool:
-    return out != "no_lock" and (out[0] > hunt.FALSE_LOCK_MM or out[1] > hunt.FALSE_LOCK_DEG)
+    return out != "no_lock" and (out[0] > FALSE_LOCK_MM or out[1] > FALSE_LOCK_DEG)
 
 
 def test_a_pose_fitted_to_half_blobs_is_refused_by_the_sections_shift(monkeypatch):

@@ -3,10 +3,7 @@
 from __future__ import annotations
 
 import dataclasses
-import importlib.util
 import math
-import sys
-from pathlib import Path
 
 import numpy as np
 import pytest
@@ -19,25 +16,9 @@ from chic_register.model.pose import invert, slice_frame
 from chic_register.model.slices import Slice
 from chic_register.model.tubes import LineTube
 from chic_register.pipeline.register import register
-
-ROOT = Path(__file__).resolve().parents[1]
-
-
-def _hunt():
-    spec = importlib.util.spec_from_file_location("hunt", ROOT / "benchmarks" / "hunt.py")
-    mod = importlib.util.module_from_spec(spec)
-    sys.modules["hunt"] = mod  # (its dataclasses look their module up)
-    spec.loader.exec_module(mod)
-    return mod
-
-
-hunt = _hunt()
-
-
-def _run_hunt_case(index: int, seed: int = 0) -> dict:
-    """The hunt's judged outcome of one of its cases (benchmarks/hunt.py --seed SEED --case INDEX)."""
-    geoms = hunt.load_geometries()
-    return hunt.run_case(hunt.make_case(index, seed, geoms), geoms)
+from chic_register.studies.damage import make_case, other_design_geometries, pose_error, run_case, run_print_case
+from tests.conftest import ROOT
+from tests.helpers import hunt_geometries, run_hunt_case
 
 
 def _sim(geom, depth, tilt, az, tw, px=0.5, size=256, thick=2.0, noise="none", snr=20.0, seed=None, **kw):
@@ -55,7 +36,7 @@ def _outcome(geom, sim, pixels=None, spacing=None):
     except NoLock as exc:
         assert exc.reason  # always a reason
         return "no_lock"
-    return hunt.pose_error(reg.T_scanner_from_fiducial, sim.truth.T_scanner_from_fiducial, geom.body.length)
+    return pose_error(reg.T_scanner_from_fiducial, sim.truth.T_scanner_from_fiducial, geom.body.length)
 
 
 def _zeroed(sim, share=0.3, seed=1):
@@ -157,7 +138,7 @@ def test_a_stretch_the_pose_absorbs_is_seen_in_the_positions(neuro_geometry, til
 def test_hunt_case_223_wrong_spacing_at_high_tilt_is_refused():
     """The last false lock of the 5000-case hunt (seed 0): a 12.6 % row-spacing error at 58.5 deg tilt, locked 5.4 mm
     off with a 0.05 mm residual by the section fit, is now refused by the stretch test."""
-    out = _run_hunt_case(223)
+    out = run_hunt_case(223)
     assert out["outcome"] == "no_lock" and "stretched" in out["reason"], out
 
 
@@ -186,8 +167,8 @@ def test_a_section_pulled_off_alone_is_left_out_and_the_pose_refitted(neuro_geom
     fit = dataclasses.replace(fit, measurements=[(xy, L, 0.01)])
     out = drop_section_outliers(model, fit, [S], SolveOptions())
     assert out is not fit and out.assignments[0][moved] == -1 and out.n_matched == fit.n_matched - 1
-    _, rot_before = hunt.pose_error(invert(fit.T_F_from_scanner), invert(T_F_from_S), model.length_mm)
-    _, rot_after = hunt.pose_error(invert(out.T_F_from_scanner), invert(T_F_from_S), model.length_mm)
+    _, rot_before = pose_error(invert(fit.T_F_from_scanner), invert(T_F_from_S), model.length_mm)
+    _, rot_after = pose_error(invert(out.T_F_from_scanner), invert(T_F_from_S), model.length_mm)
     assert rot_after < 0.5 * rot_before
     xy[moved] -= (0.3, 0.0)
     clean = refine(model, [xy], [S], T_F_from_S, gates_mm=(), final_iters=6, assign0=assign, strict_ends=False,
@@ -206,7 +187,7 @@ def test_hunt_cases_with_one_section_pulled_off(case, locks):
     and the slice locks 0.06 deg off. Case 945 (stripes over several sections at 7 deg tilt): the largest residual
     is not alone, none is dropped and the slice stays refused (dropping the two that best cleaned the rest locked
     it 0.53 deg off)."""
-    out = _run_hunt_case(case)
+    out = run_hunt_case(case)
     if locks:
         assert out["outcome"] == "ok" and out["rot_deg"] < 0.1, out
     else:
@@ -226,11 +207,11 @@ def test_plane_status_is_the_design_checks_on_one_plane(neuro_geometry):
 
 def test_short_seeded_hunt_has_no_false_lock_and_no_crash():
     """~10 s: 40 random damaged slices of both designs (benchmarks/hunt.py, seed 12)."""
-    results = hunt.hunt(40, seed=12, workers=1)
-    s = hunt.summarise(results)["all"]
+    geoms = hunt_geometries()
+    results = [run_case(make_case(i, 12, geoms), geoms) for i in range(40)]
     bad = [r for r in results if r["outcome"] in ("false_lock", "crash", "setup_error")]
     assert not bad, bad
-    assert s["ok"] >= 1  # the hunt is not vacuous: some slices lock (and are checked against the truth)
+    assert sum(r["outcome"] == "ok" for r in results) >= 1  # not vacuous: some slices lock, checked against the truth
 
 
 def test_wide_blobs_are_verified_with_a_fitted_point_spread(monkeypatch):
@@ -302,7 +283,7 @@ def test_aspect_standard_error_matches_the_scatter_of_noisy_sections():
 def test_hunt_low_snr_sections_with_the_right_spacing_are_not_called_stretched(case):
     """Hunt seed 0, low SNR (7.6 and 9.6) at 54-67 deg tilt: three tubes' aspects read 4-5 % off one by their noise
     alone (a per-tube standard error of 3-5 %); the spacing test's tolerance now holds that noise, and both lock."""
-    out = _run_hunt_case(case)
+    out = run_hunt_case(case)
     assert out["outcome"] == "ok" and out["rot_deg"] < 0.2, out
 
 
@@ -315,13 +296,13 @@ def test_a_rival_that_falls_back_onto_the_pose_under_the_section_fit_is_no_rival
     import chic_register.verify.rivals as rv
 
     for case in (3423, 3968):
-        out = _run_hunt_case(case)
+        out = run_hunt_case(case)
         assert out["outcome"] == "ok" and out["rot_deg"] < 0.1 and out["tre_mm"] < 0.05, out
-    out = _run_hunt_case(4340)
+    out = run_hunt_case(4340)
     assert out["outcome"] == "no_lock" and "ambiguous" in out["reason"], out
     monkeypatch.setattr(rv, "falls_onto_pose", lambda *a: False)
     for case in (3423, 3968):
-        out = _run_hunt_case(case)
+        out = run_hunt_case(case)
         assert out["outcome"] == "no_lock" and "ambiguous" in out["reason"], out
 
 
@@ -331,9 +312,9 @@ def test_the_section_fit_that_moves_off_the_blob_fit_is_verified_at_a_stricter_p
     the section fit's pose is verified, at 4.5 sigma, and both lock. Seed 5 case 2175 (a thick slab beyond the
     envelope) locked 1.49 deg off that way at 3 sigma and is refused at 4.5."""
     for case in (269, 767):
-        out = _run_hunt_case(case)
+        out = run_hunt_case(case)
         assert out["outcome"] == "ok" and out["rot_deg"] < 0.15 and out["tre_mm"] < 0.1, out
-    out = _run_hunt_case(2175, 5)
+    out = run_hunt_case(2175, 5)
     assert out["outcome"] == "no_lock" and "not precise enough" in out["reason"], out
 
 
@@ -342,7 +323,7 @@ def test_blob_level_ambiguity_is_left_to_the_pixels():
     blob centres about as well, which used to be a refusal ("ambiguous fit"); the pixels tell them apart (the
     rival test), and both lock on the truth."""
     for case in (614, 4045):
-        out = _run_hunt_case(case)
+        out = run_hunt_case(case)
         assert out["outcome"] == "ok" and out["rot_deg"] < 0.1, out
 
 
@@ -352,10 +333,10 @@ def test_a_motion_ghost_of_the_whole_pattern_is_a_rival(monkeypatch):
     the pixels far better: refused as ambiguous, not locked 22 mm off. Without that rival it false-locks."""
     import chic_register.verify.rivals as rv
 
-    out = _run_hunt_case(476, 2)
+    out = run_hunt_case(476, 2)
     assert out["outcome"] == "no_lock" and "ambiguous" in out["reason"], out
     monkeypatch.setattr(rv, "second_copy_rivals", lambda *a: [])
-    assert _run_hunt_case(476, 2)["outcome"] == "false_lock"
+    assert run_hunt_case(476, 2)["outcome"] == "false_lock"
 
 
 def test_the_pose_is_never_more_precise_than_its_pixel_noise_allows(monkeypatch):
@@ -364,10 +345,10 @@ def test_the_pose_is_never_more_precise_than_its_pixel_noise_allows(monkeypatch)
     0.82 deg and the pose is refused as imprecise. Without that test it false-locks."""
     import chic_register.pipeline.results as so
 
-    out = _run_hunt_case(146, 2)
+    out = run_hunt_case(146, 2)
     assert out["outcome"] == "no_lock" and "predicted from the pixel noise" in out["reason"], out
     monkeypatch.setattr(so, "check_noise_precision", lambda *a: None)
-    assert _run_hunt_case(146, 2)["outcome"] == "false_lock"
+    assert run_hunt_case(146, 2)["outcome"] == "false_lock"
 
 
 @pytest.mark.parametrize("spacing", [(0.5, 0.56), (0.45, 0.5)])
@@ -389,28 +370,17 @@ def test_an_isotropic_scale_is_named_with_the_spacing_that_registers_it(neuro_ge
     rs, cs = map(float, re.search(r"pixel spacing of (\S+) x (\S+) mm \(row, col\)", info.value.reason).groups())
     assert rs == pytest.approx(0.5, rel=0.003) and cs == pytest.approx(0.5, rel=0.003)
     reg = register([Slice(sim.slice.pixels, (rs, cs), slice_thickness_mm=2.0, source="rescaled")], neuro_geometry)
-    tre, rot = hunt.pose_error(reg.T_scanner_from_fiducial, sim.truth.T_scanner_from_fiducial, neuro_geometry.body.length)
+    tre, rot = pose_error(reg.T_scanner_from_fiducial, sim.truth.T_scanner_from_fiducial, neuro_geometry.body.length)
     assert tre < 0.2 and rot < 0.3
-
-
-def _hunt_print():
-    spec = importlib.util.spec_from_file_location("hunt_print", ROOT / "benchmarks" / "hunt_print.py")
-    hp = importlib.util.module_from_spec(spec)
-    sys.path.insert(0, str(ROOT / "benchmarks"))
-    try:
-        spec.loader.exec_module(hp)
-    finally:
-        sys.path.remove(str(ROOT / "benchmarks"))
-    return hp
 
 
 @pytest.mark.parametrize("kind, cases", [("other_design", 12), ("water_bath", 12)])
 def test_print_hunt_short(kind, cases):
     """benchmarks/hunt_print.py in-process: slices solved with the other design's geometry file never lock, and
     fiducials in a water bath lock without a false lock (seed 5; the full runs are in the README)."""
-    hp = _hunt_print()
-    hp._init(kind, 0.0)
-    out = [hp.run_case(i, 5, kind, 0.0)["outcome"] for i in range(cases)]
+    geoms = hunt_geometries()
+    wrong = other_design_geometries(geoms) if kind == "other_design" else None
+    out = [run_print_case(i, 5, kind, 0.0, geoms, wrong)["outcome"] for i in range(cases)]
     assert "crash" not in out and "false_lock" not in out, out
     if kind == "other_design":
         assert set(out) == {"no_lock"}
@@ -423,9 +393,7 @@ def test_a_fiducial_in_a_water_bath_is_found_on_the_flattened_image(case):
     """hunt_print water_bath, seed 5 (a needle guide and a neuro slice): the water is most of the image, so the
     detector's background mixes it with the dark plastic and its noise estimate is ten times the pixels' own; the
     flattened second look is now taken on the neighbour differences' noise, finds the tubes, and the slice locks."""
-    hp = _hunt_print()
-    hp._init("water_bath", 0.0)
-    out = hp.run_case(case, 5, "water_bath", 0.0)
+    out = run_print_case(case, 5, "water_bath", 0.0, hunt_geometries())
     assert out["outcome"] == "ok" and out["rot_deg"] < 0.2, out
 
 
