@@ -1,8 +1,10 @@
-"""Pose conventions (chic_register.model.pose): slice angles and the trust check's depth."""
+"""Pose conventions (chic_register.model.pose): slice angles, the trust check's depth, a pose near the prior."""
 
 import numpy as np
+import pytest
 
-from chic_register.model.pose import rigid, slice_angles, slice_frame
+from chic_register.model.pose import near_prior, rigid, rot_y, rot_z, slice_angles, slice_frame
+from chic_register.options import SolveOptions
 
 
 def test_slice_depth_is_slice_angles_depth():
@@ -19,3 +21,17 @@ def test_slice_depth_is_slice_angles_depth():
         want = slice_angles(T).depth_mm
         assert slice_depth_mm(T) == want or (np.isnan(want) and np.isnan(slice_depth_mm(T)))
     assert np.isnan(slice_depth_mm(slice_frame(10.0, 90.0, 0.0, 0.0)))
+
+
+def test_without_a_prior_every_pose_is_near_it():
+    assert near_prior(rigid(rot_y(170.0), (5.0, 0.0, 0.0)), SolveOptions())
+
+
+@pytest.mark.parametrize("turn_deg, limit_deg, near", [(50.0, 60.0, True), (50.0, 45.0, False), (-59.0, 60.0, True),
+                                                       (61.0, 60.0, False)])
+def test_a_pose_is_near_the_prior_within_its_angle(turn_deg, limit_deg, near):
+    """The prior is the fiducial upright in the scanner (R_scanner_from_fiducial = I, 40 mm away: its translation is
+    not compared); the pose (T_F_from_scanner) has the fiducial turned ``turn_deg`` about the scanner's z."""
+    opts = SolveOptions(prior=rigid(np.eye(3), (0.0, 0.0, 40.0)), prior_max_deg=limit_deg)
+    T_F_from_scanner = rigid(rot_z(-turn_deg), (3.0, -2.0, 0.0))
+    assert near_prior(T_F_from_scanner, opts) is near

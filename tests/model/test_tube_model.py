@@ -9,7 +9,7 @@ import pytest
 
 from chic_register.fit.section import tube_frames
 from chic_register.model.geometry import content_sha256
-from chic_register.model.pose import apply, invert, slice_frame
+from chic_register.model.pose import apply, invert, rigid, rot_y, rot_z, slice_frame
 from chic_register.model.tube_model import (
     TubeModel,
     crossing_jacobian,
@@ -17,6 +17,7 @@ from chic_register.model.tube_model import (
     exp_se3,
     inside_mask,
     plane_crossings,
+    poses_distinct,
     prepare_geometry,
 )
 from tests.helpers import near_end_slice
@@ -156,3 +157,21 @@ def test_geometry_key_memo_of_the_tubes_repr_is_the_repr(neuro_geometry):
     assert not immutable_tubes(held) and not immutable_tubes(list(tubes))
     tubes_repr(held)
     assert id(held) not in TUBES_REPR
+
+
+@pytest.mark.parametrize("move, mm, distinct", [
+    (rigid(np.eye(3), (0.0, 0.0, 0.0)), 1.0, False),  # the same pose
+    (rigid(rot_z(1.5), (0.0, 0.0, 0.0)), 1.0, True),  # turned more than 1 deg
+    (rigid(rot_z(0.8), (0.0, 0.0, 0.0)), 1.0, False),  # about the axis: the 12.5 mm circle moves 0.17 mm
+    (rigid(rot_y(0.8), (0.0, 0.0, 0.0)), 1.0, False),  # about y through the bottom face: the top tube end moves 0.72 mm
+    (rigid(rot_y(0.8), (0.0, 0.0, 0.0)), 0.5, True),  # ... more than 0.5 mm
+    (rigid(np.eye(3), (0.9, 0.0, 0.0)), 1.0, False),  # shifted 0.9 mm
+    (rigid(np.eye(3), (0.0, 0.0, 1.1)), 1.0, True),  # shifted 1.1 mm along the axis
+])
+def test_poses_are_distinct_beyond_a_millimetre_at_a_tube_end_or_a_degree(neuro_geometry, move, mm, distinct):
+    """neuro's probe points: tube ends on the 12.5 mm circle at z = 0 and 50, a point on it at mid-length, the axis
+    ends; the second pose is the first (an arbitrary one) followed by ``move`` in F."""
+    model, _ = prepare_geometry(neuro_geometry)
+    T1 = rigid(rot_z(30.0) @ rot_y(20.0), (4.0, -7.0, 60.0))
+    assert poses_distinct(T1, T1 @ move, model, mm=mm) is distinct
+    assert poses_distinct(T1 @ move, T1, model, mm=mm) is distinct

@@ -31,7 +31,7 @@ def test_chic_designs_register_with_wide_blobs(neuro_geometry, needle_geometry, 
     reg = register([sl], geom, verify=False)  # detection, first guess, refinement and trust checks
     assert tre_mm(reg.T_scanner_from_fiducial, T_true, centre) < 0.3
     # the default solver (wide blobs fitted through the blurred model, then verified): right, or refused as
-    # imprecise (at 2x blur a single slice of these poses knows its tilt to about 0.3 deg; see tests/fit/test_blurred.py)
+    # imprecise (at 2x blur a single slice of these poses knows its tilt to about 0.3 deg; see fit/test_blurred.py)
     right_or_refused(sl, geom, T_true, centre)
 
 
