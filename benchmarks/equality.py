@@ -27,6 +27,8 @@ import numpy as np  # noqa: E402
 sys.path.insert(0, str(Path(__file__).resolve().parent))
 import hunt  # noqa: E402
 
+from chic_register.studies.damage import build_case, make_case  # noqa: E402
+
 ROOT = Path(__file__).resolve().parents[1]
 
 
@@ -64,8 +66,8 @@ def solve_record(sl, geom, verify: bool) -> dict:
 
 def _hunt_case(index: int) -> dict:
     geoms = hunt._GEOMS
-    case = hunt.make_case(index, 0, geoms)
-    sl, _, _ = hunt.build_case(case, geoms[case.geometry])
+    case = make_case(index, 0, geoms)
+    sl, _, _ = build_case(case, geoms[case.geometry])
     geom = geoms[case.geometry]
     return {"key": f"hunt{index}", "on": solve_record(sl, geom, True), "off": solve_record(sl, geom, False)}
 

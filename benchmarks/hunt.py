@@ -7,7 +7,8 @@ and needle-guide exports, or the same geometries built from ``designs/`` when
 they are not exported) at a random pose (depth from -15 % to 115 % of the body
 length, tilt 0-80 deg, any azimuth and twist, random pixel size, field of
 view, slice thickness, centre offset and Rician SNR), with one damage kind
-(``MUTATIONS``). It is solved with :func:`chic_register.pipeline.register.register` as
+(``MUTATIONS``; the cases, their damage and the judging are
+:mod:`chic_register.studies.damage`'s). It is solved with :func:`chic_register.pipeline.register.register` as
 ``chic-register solve`` does (a plain 2-D image, its pixel spacing given) and
 the outcome compared with the truth:
 
@@ -35,196 +36,17 @@ for _v in ("OMP_NUM_THREADS", "OPENBLAS_NUM_THREADS", "MKL_NUM_THREADS"):
 
 import argparse  # noqa: E402
 import json  # noqa: E402
-import math  # noqa: E402
 import sys  # noqa: E402
 import time  # noqa: E402
-import traceback  # noqa: E402
 from concurrent.futures import ProcessPoolExecutor  # noqa: E402
-from dataclasses import asdict, dataclass  # noqa: E402
+from dataclasses import asdict  # noqa: E402
 from pathlib import Path  # noqa: E402
 
-import numpy as np  # noqa: E402
+from chic_register.studies import damage  # noqa: E402
+from chic_register.studies.damage import MUTATIONS, REFUSE_EXPECTED, Case, make_case  # noqa: E402
 
 ROOT = Path(__file__).resolve().parents[1]
 DESIGNS = {"neuro": ROOT / "designs" / "neuro.yaml", "needle-guide": ROOT / "designs" / "needle-guide.yaml"}
-FALSE_LOCK_MM = 0.5  # the issue's tolerance: a pose further off than this reported as ok is a false lock
-FALSE_LOCK_DEG = 0.5
-MUTATIONS = ("clean", "noisy", "thick_slab", "low_snr", "tool_in_bore", "distractors", "erased_tubes",
-             "circle_blobs", "zeroed_pixels", "rotated_flipped", "wrong_spacing", "ghosting", "bias_field",
-             "stripes")
-# damage after which no pose is right: every ok is checked against the truth all the same
-REFUSE_EXPECTED = ("wrong_spacing",)
-
-
-@dataclass(frozen=True)
-class Case:
-    """One hunt case: everything needed to rebuild its slice."""
-
-    index: int
-    geometry: str
-    depth_mm: float
-    tilt_deg: float
-    azimuth_deg: float
-    twist_deg: float
-    pixel_mm: float
-    size: int
-    slice_thickness_mm: float
-    offset_mm: tuple
-    snr: float
-    mutation: str
-    mutation_seed: int
-    blob_width: float = 1.0  # every blob this x its tube's width (--blob-width; 1: as drawn)
-
-
-def make_case(index: int, seed: int, geometries: dict, blob_width=(1.0, 1.0)) -> Case:
-    """The ``index``-th case of the hunt seeded ``seed`` (independent of every other case).
-
-    ``blob_width`` (lo, hi): draw every blob a factor from this range x its
-    tube's width (its own random stream, so the rest of the case is the same
-    as without it)."""
-    rng = np.random.default_rng([seed, index])
-    lo, hi = (float(v) for v in blob_width)
-    width = float(np.random.default_rng([seed, index, 1]).uniform(lo, hi)) if hi > lo else lo
-    name = sorted(geometries)[int(rng.integers(len(geometries)))]
-    geom = geometries[name]
-    L = geom.body.length
-    d = min(t.diameter for t in geom.tubes)
-    mutation = MUTATIONS[int(rng.integers(len(MUTATIONS)))]
-    pixel = float(rng.uniform(0.12, 0.36) * d)  # 3 mm tubes: 0.36-1.08 mm pixels; 1.6 mm: 0.19-0.58
-    od = geom.body.outer_diameter
-    fov = float(rng.uniform(2.2, 6.0) * od)
-    thick = float(rng.choice([0.0, rng.uniform(0.3, 1.0) * d]))
-    if mutation == "thick_slab":
-        thick = float(rng.uniform(1.0, 2.0) * d)
-    snr = float(rng.uniform(12.0, 60.0))
-    if mutation == "low_snr":
-        snr = float(rng.uniform(4.0, 10.0))
-    return Case(
-        index=index, geometry=name,
-        depth_mm=float(rng.uniform(-0.15, 1.15) * L), tilt_deg=float(rng.uniform(0.0, 80.0)),
-        azimuth_deg=float(rng.uniform(-180, 180)), twist_deg=float(rng.uniform(-180, 180)),
-        pixel_mm=pixel, size=int(max(32, round(fov / pixel))), slice_thickness_mm=thick,
-        offset_mm=(float(rng.uniform(-0.3, 0.3) * od), float(rng.uniform(-0.3, 0.3) * od)),
-        snr=snr, mutation=mutation, mutation_seed=int(rng.integers(2**31)), blob_width=width,
-    )
-
-
-def _index_map(op, shape):
-    """Affine map new pixel (row, col) -> old (row, col) of an array operation ``op``: (A (2, 2), t (2,))."""
-    idx = op(np.arange(shape[0] * shape[1]).reshape(shape))
-    old = [np.array(divmod(int(idx[r, c]), shape[1]), float) for r, c in ((0, 0), (1, 0), (0, 1))]
-    return np.stack([old[1] - old[0], old[2] - old[0]], axis=1), old[0]
-
-
-def _T_old_from_new(A, t, spacing_old, spacing_new):
-    """Image-frame transform (4x4) of a pixel re-indexing (row/col maps ``A``, ``t``): new mm -> old mm."""
-    # image mm: x = col * cs, y = row * rs; new (x', y') -> new (r', c') -> old (r, c) -> old (x, y)
-    rs, cs = spacing_old
-    rs2, cs2 = spacing_new
-    to_rc_new = np.array([[0.0, 1.0 / rs2], [1.0 / cs2, 0.0]])  # (x', y') -> (r', c')
-    to_xy_old = np.array([[0.0, cs], [rs, 0.0]])  # (r, c) -> (x, y)
-    L = to_xy_old @ A @ to_rc_new
-    T = np.eye(4)
-    T[:2, :2] = L
-    T[2, 2] = round(float(np.linalg.det(L)))  # a mirror in the plane = the plane seen from its other side
-    T[:2, 3] = to_xy_old @ t
-    return T
-
-
-def build_case(case: Case, geom):
-    """``(Slice to solve, true T_scanner_from_fiducial, in_envelope)`` of a case."""
-    from chic_register.imaging.render import render_tubes
-    from chic_register.imaging.simulate import add_rician_noise, simulate_slice
-    from chic_register.model.envelope import plane_status
-    from chic_register.model.pose import invert, slice_frame
-    from chic_register.model.slices import Slice
-    from chic_register.model.tubes import LineTube
-
-    rng = np.random.default_rng(case.mutation_seed)
-    m = case.mutation
-    d = min(t.diameter for t in geom.tubes)
-    extra = {}
-    if m == "tool_in_bore":
-        extra["bore_signal"] = float(rng.uniform(0.4, 1.2))
-    if m == "distractors":
-        extra["distractors"] = int(rng.integers(2, 12))
-    if m == "erased_tubes":
-        extra["missing_tubes"] = tuple(rng.choice(geom.ids, size=int(rng.integers(1, 4)), replace=False))
-    px = (case.pixel_mm, case.pixel_mm)
-    shape = (case.size, case.size)
-    sim = simulate_slice(geom, case.depth_mm, case.tilt_deg, case.azimuth_deg, case.twist_deg, shape=shape,
-                         pixel_spacing_mm=px, slice_thickness_mm=case.slice_thickness_mm,
-                         center_offset_mm=case.offset_mm, image_position=(0.0, 0.0, 0.0), rng=rng,
-                         supersample=3, thickness_samples=5, blob_width=case.blob_width, **extra)
-    img = np.array(sim.slice.pixels, float)
-    truth = sim.truth
-    T_true = np.array(truth.T_scanner_from_fiducial, float)
-    if m == "circle_blobs":  # tube-sized bright blobs where the plane meets the tubes' circle
-        T = slice_frame(case.depth_mm, case.tilt_deg, case.azimuth_deg, case.twist_deg)
-        n = T[:3, 2]
-        R = float(np.median([math.hypot(*np.mean([t.points(0.0)[0], t.points(1.0)[0]], axis=0)[:2])
-                             for t in geom.tubes]))
-        blobs = []
-        for _ in range(int(rng.integers(1, 3))):
-            th = rng.uniform(0, 2 * math.pi)
-            if abs(n[2]) < 1e-6:
-                continue
-            z = (n @ T[:3, 3] - R * (n[0] * math.cos(th) + n[1] * math.sin(th))) / n[2]
-            p = np.array([R * math.cos(th), R * math.sin(th), z])
-            blobs.append(LineTube("blob", "other", tuple(p - 0.5 * d * n), tuple(p + 0.5 * d * n), d))
-        if blobs:
-            img = np.maximum(img, render_tubes(blobs, T, shape, px, case.slice_thickness_mm, truth.center_px,
-                                               supersample=3, thickness_samples=3))
-    if m == "ghosting":  # motion ghost: a shifted copy along the phase-encoding direction
-        axis = int(rng.integers(2))
-        img = img + float(rng.uniform(0.1, 0.45)) * np.roll(img, case.size // int(rng.integers(2, 5)), axis=axis)
-    if m == "bias_field":  # smooth receive-coil shading
-        yy, xx = np.mgrid[-1:1:complex(0, case.size), -1:1:complex(0, case.size)]
-        a, b, c = rng.uniform(-0.5, 0.5, 3)
-        img = img * np.clip(1.0 + a * xx + b * yy + c * (xx * xx + yy * yy), 0.3, 2.0)
-    if m != "clean":
-        img = add_rician_noise(img, case.snr, rng)
-    if m == "stripes":  # RF spikes / zipper lines
-        for _ in range(int(rng.integers(1, 6))):
-            k = int(rng.integers(case.size))
-            if rng.random() < 0.5:
-                img[k, :] += rng.uniform(0.3, 1.0)
-            else:
-                img[:, k] += rng.uniform(0.3, 1.0)
-    if m == "zeroed_pixels":
-        img[rng.random(img.shape) < rng.uniform(0.1, 0.4)] = 0.0
-    spacing = px
-    if m == "rotated_flipped":
-        ops = [lambda a: np.rot90(a, 1), lambda a: np.rot90(a, 2), lambda a: np.rot90(a, 3), np.fliplr, np.flipud,
-               lambda a: np.rot90(np.fliplr(a))]
-        op = ops[int(rng.integers(len(ops)))]
-        A, t = _index_map(op, img.shape)
-        img = np.ascontiguousarray(op(img))
-        T_on = _T_old_from_new(A, t, px, spacing)
-        T_true = invert(T_on) @ T_true
-    if m == "wrong_spacing":
-        e = rng.uniform(0.06, 0.25, 2) * rng.choice([-1.0, 1.0], 2)
-        if rng.random() < 0.5:
-            e[int(rng.integers(2))] = 0.0
-        spacing = (px[0] * (1 + e[0]), px[1] * (1 + e[1]))
-    sl = Slice(img, spacing, slice_thickness_mm=case.slice_thickness_mm, source=f"case{case.index}")
-    status = plane_status(geom, case.depth_mm, case.tilt_deg, case.azimuth_deg, case.pixel_mm,
-                          case.slice_thickness_mm)
-    rows, cols = shape
-    margin = d / case.pixel_mm
-    seen = [k for k, (r, c) in truth.centres_px.items()
-            if margin <= r <= rows - 1 - margin and margin <= c <= cols - 1 - margin]
-    in_env = status.ok and len(seen) == len(geom.tubes) - len(truth.missing_tubes)
-    return sl, T_true, in_env
-
-
-def pose_error(T_est, T_true, length_mm: float):
-    """(TRE at the frame centre (0, 0, L/2) in mm, rotation error in deg) between two T_scanner_from_fiducial."""
-    c = np.array([0.0, 0.0, 0.5 * length_mm, 1.0])
-    tre = float(np.linalg.norm((T_est @ c - T_true @ c)[:3]))
-    dR = T_est[:3, :3].T @ T_true[:3, :3]
-    rot = math.degrees(math.acos(min(1.0, max(-1.0, (float(np.trace(dR)) - 1) / 2))))
-    return tre, rot
 
 
 _GEOMS: dict = {}
@@ -255,41 +77,8 @@ def _init(paths):
 
 
 def run_case(case: Case, geometries: dict | None = None) -> dict:
-    """Solve one case; its outcome (``ok`` / ``false_lock`` / ``no_lock`` / ``crash``, or ``setup_error`` when the
-    case itself could not be built), errors and CPU time."""
-    geoms = geometries or _GEOMS
-    geom = geoms[case.geometry]
-    c0 = time.process_time()
-    out = {"index": case.index, "geometry": case.geometry, "mutation": case.mutation}
-    try:
-        sl, T_true, in_env = build_case(case, geom)
-    except Exception:  # the hunt's own fault, not the solver's: reported apart
-        out.update(outcome="setup_error", error=traceback.format_exc(limit=3))
-        return out
-    out["in_envelope"] = bool(in_env)
-    out.update(solve_and_judge(sl, geom, T_true))
-    out["cpu_s"] = time.process_time() - c0
-    return out
-
-
-def solve_and_judge(sl, geom, T_true, ndigits: int | None = None, solve_geom=None) -> dict:
-    """Register one slice (with ``solve_geom``, default ``geom``) and judge it against the truth: ``outcome``
-    (``ok`` / ``false_lock``, beyond FALSE_LOCK_MM or FALSE_LOCK_DEG / ``no_lock`` with its ``reason`` / ``crash``
-    with ``error`` and ``trace``) and the errors ``tre_mm``, ``rot_deg`` (rounded to ``ndigits`` when given)."""
-    from chic_register.errors import NoLock
-    from chic_register.pipeline.register import register
-
-    try:
-        reg = register([sl], solve_geom or geom)
-    except NoLock as exc:
-        return {"outcome": "no_lock", "reason": exc.reason}
-    except Exception as exc:  # noqa: BLE001 - every other exception is a crash to report
-        return {"outcome": "crash", "error": f"{type(exc).__name__}: {exc}", "trace": traceback.format_exc(limit=4)}
-    tre, rot = pose_error(reg.T_scanner_from_fiducial, T_true, geom.body.length)
-    false = tre > FALSE_LOCK_MM or rot > FALSE_LOCK_DEG
-    if ndigits is not None:
-        tre, rot = round(tre, ndigits), round(rot, ndigits)
-    return {"outcome": "false_lock" if false else "ok", "tre_mm": tre, "rot_deg": rot}
+    """Solve one case (:func:`chic_register.studies.damage.run_case`) with ``geometries``, default the worker's."""
+    return damage.run_case(case, geometries or _GEOMS)
 
 
 def hunt(n_cases: int, seed: int = 0, workers: int = 2, paths=None, start: int = 0,

@@ -20,8 +20,9 @@ variant: Rician noise, no other damage), changed by one ``KIND``:
 - ``other_design``: solved with the other design's geometry file (neuro's
   slices with the needle guide's, and the reverse).
 
-Reports ok / false lock (more than 0.5 mm or 0.5 deg from the truth, as
-hunt.py) / no_lock / crash, and lists the false locks. Exit status 1 on a crash.
+The damage is :func:`chic_register.studies.damage.print_damage`'s. Reports
+ok / false lock (more than 0.5 mm or 0.5 deg from the truth, as hunt.py) /
+no_lock / crash, and lists the false locks. Exit status 1 on a crash.
 """
 
 from __future__ import annotations
@@ -33,24 +34,23 @@ for _v in ("OMP_NUM_THREADS", "OPENBLAS_NUM_THREADS", "MKL_NUM_THREADS"):
 
 import argparse  # noqa: E402
 import collections  # noqa: E402
-import dataclasses  # noqa: E402
-import math  # noqa: E402
 import sys  # noqa: E402
 import time  # noqa: E402
-import traceback  # noqa: E402
 from concurrent.futures import ProcessPoolExecutor  # noqa: E402
 from pathlib import Path  # noqa: E402
 
-import numpy as np  # noqa: E402
-
 sys.path.insert(0, str(Path(__file__).resolve().parent))
 import hunt  # noqa: E402
-from hunt_unlisted import true_centres_rc  # noqa: E402
 
-KINDS = ("bubble", "water_bath", "dim_tube", "scale", "helix_offset", "other_design")
-DEFAULT_AMOUNT = {"scale": 0.002, "helix_offset": 0.5}
-#: A section's neighbourhood (tube radii) that a bubble or a dim fill reaches.
-REACH_RADII = 2.5
+from chic_register.studies.damage import (  # noqa: E402
+    PRINT_DEFAULT_AMOUNT,
+    PRINT_KINDS,
+    other_design_geometries,
+    run_print_case,
+)
+
+KINDS = PRINT_KINDS
+DEFAULT_AMOUNT = PRINT_DEFAULT_AMOUNT
 
 
 def offset_geometry(name: str, change_deg: float):
@@ -64,40 +64,6 @@ def offset_geometry(name: str, change_deg: float):
     return geometry_of(type(spec).model_validate(d))
 
 
-def change(kind: str, img: np.ndarray, sl, geom, T_true: np.ndarray, rng: np.random.Generator) -> np.ndarray:
-    """The slice's pixels after ``kind`` (``scale``, ``helix_offset`` and ``other_design`` leave them alone)."""
-    from chic_register.model.pose import invert
-
-    img = np.array(img, float)
-    H, W = img.shape
-    level = float(np.percentile(img, 99.5))  # about the fluid's level
-    sigma = float(np.median(img)) / 1.1774  # the Rayleigh background's scale
-    centres = true_centres_rc(geom, T_true, sl.pixel_spacing_mm)
-    r_px = 0.5 * geom.tubes[0].diameter / float(min(sl.pixel_spacing_mm))
-    yy, xx = np.mgrid[0:H, 0:W].astype(float)
-    if kind == "bubble" and len(centres):
-        for _ in range(int(rng.integers(1, 3))):
-            r0, c0 = centres[int(rng.integers(len(centres)))]
-            ang, off = rng.uniform(0, 2 * math.pi), rng.uniform(-0.5, 0.8) * r_px
-            air = (np.hypot(yy - r0, xx - c0) < REACH_RADII * r_px) & (
-                (yy - r0) * math.sin(ang) + (xx - c0) * math.cos(ang) > off)
-            img[air] = rng.rayleigh(max(sigma, 1e-6), int(air.sum()))
-    elif kind == "dim_tube" and len(centres):
-        r0, c0 = centres[int(rng.integers(len(centres)))]
-        near = np.hypot(yy - r0, xx - c0) < REACH_RADII * r_px
-        img[near] *= rng.uniform(0.2, 0.6)
-    elif kind == "water_bath":
-        P = sl.pixel_to_scanner(yy.ravel(), xx.ravel())
-        T_fs = invert(T_true)
-        F = P @ T_fs[:3, :3].T + T_fs[:3, 3]  # the pixels in the fiducial's frame
-        r, z = np.hypot(F[:, 0], F[:, 1]), F[:, 2]
-        b = geom.body
-        water = ((r > 0.5 * b.outer_diameter) | (r < 0.5 * b.inner_diameter) | (z < 0) | (z > b.length)).reshape(H, W)
-        n = int(water.sum())
-        img[water] = np.abs(rng.uniform(0.2, 1.0) * level + rng.normal(0, sigma, n) + 1j * rng.normal(0, sigma, n))
-    return img
-
-
 _WRONG: dict = {}
 
 
@@ -107,31 +73,14 @@ def _init(kind: str, amount: float) -> None:
     if kind == "helix_offset":
         _WRONG.update({name: offset_geometry(name, amount) for name in hunt._GEOMS})
     elif kind == "other_design":
-        names = sorted(hunt._GEOMS)
-        if len(names) < 2:
+        if len(hunt._GEOMS) < 2:
             raise SystemExit("hunt_print: other_design needs two designs (hunt.DESIGNS)")
-        _WRONG.update({name: hunt._GEOMS[names[(i + 1) % len(names)]] for i, name in enumerate(names)})
+        _WRONG.update(other_design_geometries(hunt._GEOMS))
 
 
 def run_case(index: int, seed: int, kind: str, amount: float) -> dict:
-    """One case: outcome, errors."""
-    from chic_register.model.slices import Slice
-
-    case = dataclasses.replace(hunt.make_case(index, seed, hunt._GEOMS), mutation="noisy")
-    geom = hunt._GEOMS[case.geometry]
-    out = {"index": index, "geometry": case.geometry}
-    try:
-        sl, T_true, in_env = hunt.build_case(case, geom)
-        img = change(kind, sl.pixels, sl, geom, T_true, np.random.default_rng([seed, index, 7]))
-    except Exception:  # the hunt's own fault, not the solver's: reported apart
-        out.update(outcome="setup_error", error=traceback.format_exc(limit=3), in_envelope=False)
-        return out
-    spacing = tuple(v * (1 + amount) for v in sl.pixel_spacing_mm) if kind == "scale" else sl.pixel_spacing_mm
-    out.update(hunt.solve_and_judge(Slice(img, spacing, slice_thickness_mm=sl.slice_thickness_mm,
-                                          source=f"case{index}"), geom, T_true, ndigits=4,
-                                    solve_geom=_WRONG.get(case.geometry)))
-    out.update(tilt_deg=round(case.tilt_deg, 1), in_envelope=bool(in_env))
-    return out
+    """One case (:func:`chic_register.studies.damage.run_print_case`): outcome, errors."""
+    return run_print_case(index, seed, kind, amount, hunt._GEOMS, _WRONG)
 
 
 def main(argv=None) -> int:

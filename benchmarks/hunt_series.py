@@ -23,20 +23,18 @@ from pathlib import Path
 import numpy as np
 
 ROOT = Path(__file__).resolve().parents[1]
-sys.path.insert(0, str(Path(__file__).resolve().parent))
 
 DESIGNS = {"neuro": ROOT / "designs" / "neuro.yaml", "needle-guide": ROOT / "designs" / "needle-guide.yaml",
            "slim": ROOT / "tests" / "data" / "needle-guide-slim.yaml"}
 
 
 def main(argv=None) -> int:
-    from hunt import FALSE_LOCK_DEG, FALSE_LOCK_MM, pose_error
-
     from chic_design.families import geometry_of
     from chic_design.optimize.confirm import simulate_parallel
     from chic_design.spec import load_spec
     from chic_register.errors import NoLock
     from chic_register.pipeline.register import register
+    from chic_register.studies.damage import FALSE_LOCK_DEG, FALSE_LOCK_MM, pose_error
 
     ap = argparse.ArgumentParser(description=__doc__.splitlines()[0])
     ap.add_argument("--cases", type=int, default=300)

@@ -26,19 +26,17 @@ from pathlib import Path  # noqa: E402
 import numpy as np  # noqa: E402
 
 ROOT = Path(__file__).resolve().parents[1]
-sys.path.insert(0, str(Path(__file__).resolve().parent))
 PROTOCOL = {"neuro": ((0.5, 0.5, 2.0), (128, 128, 40)), "needle-guide": ((0.3, 0.3, 1.0), (128, 128, 40))}
 
 
 def main(argv=None) -> int:
-    from hunt import FALSE_LOCK_DEG, FALSE_LOCK_MM, pose_error
-
     from chic_design.families import geometry_of
     from chic_design.spec import load_spec
     from chic_register.errors import NoLock
     from chic_register.imaging.simulate import simulate_volume
     from chic_register.model.pose import rigid, rot_y, rot_z
     from chic_register.pipeline.volume import register_volume
+    from chic_register.studies.damage import FALSE_LOCK_DEG, FALSE_LOCK_MM, pose_error
 
     ap = argparse.ArgumentParser(description=__doc__.splitlines()[0])
     ap.add_argument("--cases", type=int, default=40)

@@ -1,4 +1,4 @@
-"""Shared fixtures: the repository's designs and their geometry."""
+"""Shared fixtures: the repository's designs and their geometry, the z001 Z-frame, a DICOM slice, an oblique volume."""
 
 from pathlib import Path
 
@@ -6,7 +6,9 @@ import pytest
 
 from chic_design.families import family_of, geometry_of
 from chic_design.spec import load_spec
+from chic_register.imaging.simulate import simulate_slice, simulate_volume, write_simulated
 from chic_register.model.geometry import write_geometry
+from tests.helpers import OBLIQUE, T_TRUE, zframe
 
 ROOT = Path(__file__).resolve().parents[1]
 NEURO = ROOT / "designs" / "neuro.yaml"
@@ -60,3 +62,27 @@ def zframe_geometry():
 @pytest.fixture()
 def zframe_geometry_file(tmp_path, zframe_geometry):
     return write_geometry(zframe_geometry, tmp_path / "zframe-geometry.yaml")
+
+
+ZFRAME = ROOT / "designs" / "zframe.yaml"
+
+
+@pytest.fixture(scope="module")
+def z001():
+    """The z001 Z-frame of 3D Slicer's ZFrameRegistration as seven line tubes (tests.helpers.zframe)."""
+    return zframe()
+
+
+@pytest.fixture(scope="module")
+def dicom_slice(tmp_path_factory, neuro_geometry):
+    """A simulated neuro slice written as DICOM: (its path, its true T_scanner_from_fiducial)."""
+    sim = simulate_slice(neuro_geometry, 25.0, 10.0, 30.0, 20.0, noise="rician", snr=25.0, rng=1)
+    path, _ = write_simulated(sim, tmp_path_factory.mktemp("dcm") / "ok.dcm")
+    return path, sim.truth.T_scanner_from_fiducial
+
+
+@pytest.fixture(scope="module")
+def sim_volume(neuro_geometry):
+    """A noisy neuro volume acquired obliquely (tests.helpers.OBLIQUE) with the fiducial at tests.helpers.T_TRUE."""
+    return simulate_volume(neuro_geometry, T_TRUE, (128, 128, 60), (0.5, 0.5, 1.0), direction=OBLIQUE,
+                           origin_mm=None, noise="rician", snr=25.0, rng=3)
