@@ -6,11 +6,13 @@ import json
 
 import numpy as np
 import pytest
+from scipy import ndimage
 
 from chic_register.cli.main import main
-from chic_register.imaging.simulate import truth_path
+from chic_register.cli.main import main as register_main
+from chic_register.imaging.simulate import simulate_slice, truth_path
 from chic_register.io.images import read_slices
-from chic_register.model.geometry import load_geometry
+from chic_register.model.geometry import load_geometry, write_geometry
 from chic_register.model.pose import apply
 
 
@@ -159,9 +161,33 @@ def test_volume_truth_holds_the_tool_tip_and_a_geometry_without_tool_has_none(tm
 
 
 def test_simulated_slice_truth_carries_the_tool_frame(tool_geometry, neuro_geometry):
-    from chic_register.imaging.simulate import simulate_slice
 
     with_tool = simulate_slice(tool_geometry, 25.0, 10.0, rng=0).truth.to_dict()
     T = np.array(with_tool["T_scanner_from_fiducial"])
     np.testing.assert_allclose(with_tool["tool_tip_mm"], (T @ tool_geometry.tool.T_fiducial_from_tool)[:3, 3])
     assert "tool_tip_mm" not in simulate_slice(neuro_geometry, 25.0, 10.0, rng=0).truth.to_dict()
+
+
+def test_simulate_cli_on_a_zframe_geometry_slices_and_volume(zframe_geometry, tmp_path, capsys):
+    geo = write_geometry(zframe_geometry, tmp_path / "geometry.yaml")
+    for tilt, bw in ((0.0, 1.0), (15.0, 2.0)):
+        out = tmp_path / f"s{tilt:g}.npy"
+        assert register_main(["simulate", "--geometry", str(geo), "--depth", "30", "--tilt", str(tilt),
+                              "--azimuth", "40", "--size", "200", "--blob-width", str(bw), "--noise", "rician",
+                              "--seed", "3", "--out", str(out)]) == 0
+        truth = json.loads((tmp_path / f"s{tilt:g}.npy.truth.json").read_text())
+        assert sorted(truth["centres_px"]) == sorted(zframe_geometry.ids) and truth["settings"]["blob_width"] == bw
+        assert np.load(out).shape == (200, 200)
+    vol = tmp_path / "v.nii.gz"
+    assert register_main(["simulate", "--geometry", str(geo), "--depth", "30", "--tilt", "8", "--out", str(vol),
+                          "--volume-shape", "150", "150", "9", "--voxel-size", "0.5", "0.5", "2",
+                          "--blob-width", "1.5", "--noise", "none"]) == 0
+    from chic_register.io.volumes import read_volume
+
+    mid = np.asarray(read_volume(vol).voxels)[4]  # the middle k-plane: depth 30, tilt 8
+    truth = json.loads((tmp_path / "v.nii.gz.truth.json").read_text())
+    assert truth["settings"]["blob_width"] == 1.5
+    assert ndimage.label(mid > 0.05 * mid.max())[1] == 7
+    assert register_main(["simulate", "--geometry", str(geo), "--depth", "30", "--out", str(tmp_path / "x.npy"),
+                          "--blob-width", "0"]) == 2
+    assert "--blob-width must be 0.2..5" in capsys.readouterr().err
