@@ -33,11 +33,7 @@ ROOT = Path(__file__).resolve().parents[1]
 
 
 def _register():
-    try:
-        from chic_register import register
-    except ImportError:
-        from chic_register.pipeline.register import register
-    from chic_register.errors import NoLock
+    from chic_register import NoLock, register
     return register, NoLock
 
 
