@@ -47,7 +47,7 @@ import numpy as np  # noqa: E402
 
 ROOT = Path(__file__).resolve().parents[1]
 DESIGNS = {"neuro": ROOT / "designs" / "neuro.yaml", "needle-guide": ROOT / "designs" / "needle-guide.yaml"}
-FALSE_LOCK_MM = 0.5  # the tolerance: a pose further off than this reported as ok is a false lock
+FALSE_LOCK_MM = 0.5  # the tolerance: a pose further off than this reported as ok is a false lock
 FALSE_LOCK_DEG = 0.5
 MUTATIONS = ("clean", "noisy", "thick_slab", "low_snr", "tool_in_bore", "distractors", "erased_tubes",
              "circle_blobs", "zeroed_pixels", "rotated_flipped", "wrong_spacing", "ghosting", "bias_field",

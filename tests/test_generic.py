@@ -34,7 +34,8 @@ from chic_register.pipeline.volume import parse_slice_indices, register_volume
 from chic_register.verify.trust import depth_tube_name
 
 ZF_CENTRE = np.array([0.0, 0.0, 30.0])
-ZF_LIMIT_DEG = 30.6  # chic_design.feasibility.tilt_limits at depth 30 mm (0.5 mm pixels, 2 mm slices): 30.70
+# chic_design.feasibility.tilt_search.tilt_limits at depth 30 mm (0.5 mm pixels, 2 mm slices): 30.70
+ZF_LIMIT_DEG = 30.6
 
 
 def zframe(d_mm: float = 3.0) -> FiducialGeometry:

@@ -1,5 +1,5 @@
-"""Regression tests for issue 12's "Crashes and hangs": every reproducer gives a one-line error and a
-non-zero exit (or a correct result), never a traceback or a hang."""
+"""Inputs that could crash or hang the programs: each gives a one-line error and a non-zero exit (or a correct
+result), never a traceback or a hang."""
 
 from __future__ import annotations
 

@@ -1,4 +1,4 @@
-"""The smaller things a newcomer hit (issue 10), each pinned by a test."""
+"""Smaller things a newcomer meets (links, commands, messages, permissions), each pinned by a test."""
 
 from __future__ import annotations
 

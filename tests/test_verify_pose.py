@@ -1,4 +1,4 @@
-"""A verified pose or none (issue 12): the reproducers of false locks, the image checks, and a short seeded hunt."""
+"""A verified pose or none: reported false locks, the image checks, and a short seeded hunt."""
 
 from __future__ import annotations
 
@@ -64,7 +64,7 @@ def _zeroed(sim, share=0.3, seed=1):
     return px
 
 
-# the six reproducers of issue 12 (geometry exports/neuro, solved with --pixel-spacing 0.5 0.5 as the issue did,
+# six reported false locks (geometry exports/neuro, solved with --pixel-spacing 0.5 0.5 as reported,
 # and with the slice's own spacing where that differs)
 REPRODUCERS = {
     "A": dict(depth=48, tilt=17, az=-122, tw=-94, thick=1),
@@ -155,8 +155,8 @@ def test_a_stretch_the_pose_absorbs_is_seen_in_the_positions(neuro_geometry, til
 
 
 def test_hunt_case_223_wrong_spacing_at_high_tilt_is_refused():
-    """The last false lock of the 5000-case hunt (seed 0): a 12.6 % row-spacing error at 58.5 deg tilt, locked 5.4 mm
-    off with a 0.05 mm residual by the section fit, is now refused by the stretch test."""
+    """The last false lock of the 5000-case hunt (seed 0): a 12.6 % row-spacing error at 58.5 deg tilt, which the
+    section fit would lock 5.4 mm off with a 0.05 mm residual, is refused by the stretch test."""
     out = _run_hunt_case(223)
     assert out["outcome"] == "no_lock" and "stretched" in out["reason"], out
 
@@ -198,8 +198,8 @@ def test_a_section_pulled_off_alone_is_left_out_and_the_pose_refitted(neuro_geom
 
 @pytest.mark.parametrize("case, locks", [(2522, True), (1795, False), (2706, True), (945, False)])
 def test_hunt_cases_with_one_section_pulled_off(case, locks):
-    """Hunt seed 0: case 2522 (a blob on the tubes' circle over O0, 26 deg tilt) was refused as imprecise and now
-    locks on the other eight sections; case 1795 (a tool in the bore, a near-normal needle-guide slice) would lock
+    """Hunt seed 0: case 2522 (a blob on the tubes' circle over O0, 26 deg tilt) locks on the other eight sections
+    rather than being refused as imprecise; case 1795 (a tool in the bore, a near-normal needle-guide slice) would lock
     0.99 deg off without its pulled section at 3 sigma, and the stricter precision after a drop refuses it.
     Case 2706 (a blob on the circle matched in a tube's place): the whole fit leans towards it, every section's
     residual is raised (56-1956) and none is ten times the others'; against the pose refitted without it, it is,
@@ -302,7 +302,7 @@ def test_aspect_standard_error_matches_the_scatter_of_noisy_sections():
 @pytest.mark.parametrize("case", [1088, 3546])
 def test_hunt_low_snr_sections_with_the_right_spacing_are_not_called_stretched(case):
     """Hunt seed 0, low SNR (7.6 and 9.6) at 54-67 deg tilt: three tubes' aspects read 4-5 % off one by their noise
-    alone (a per-tube standard error of 3-5 %); the spacing test's tolerance now holds that noise, and both lock."""
+    alone (a per-tube standard error of 3-5 %); the spacing test's tolerance allows for that noise, and both lock."""
     out = _run_hunt_case(case)
     assert out["outcome"] == "ok" and out["rot_deg"] < 0.2, out
 
@@ -328,9 +328,9 @@ def test_a_rival_that_falls_back_onto_the_pose_under_the_section_fit_is_no_rival
 
 def test_the_section_fit_that_moves_off_the_blob_fit_is_verified_at_a_stricter_precision():
     """Hunt seed 0, 10-40 % of the pixels zeroed: the blob centres put cases 269 and 767 1.9 and 1.0 deg off; the
-    section fit moves 1-2 deg from there, onto the truth (0.05 and 0.11 deg). That move used to be a refusal; now
-    the section fit's pose is verified, at 4.5 sigma, and both lock. Seed 5 case 2175 (a thick slab beyond the
-    envelope) locked 1.49 deg off that way at 3 sigma and is refused at 4.5."""
+    section fit moves 1-2 deg from there, onto the truth (0.05 and 0.11 deg). The section fit's pose is verified,
+    at 4.5 sigma, and both lock. Seed 5 case 2175 (a thick slab beyond the envelope) would lock 1.49 deg off that
+    way at 3 sigma and is refused at 4.5."""
     for case in (269, 767):
         out = _run_hunt_case(case)
         assert out["outcome"] == "ok" and out["rot_deg"] < 0.15 and out["tre_mm"] < 0.1, out
@@ -340,7 +340,7 @@ def test_the_section_fit_that_moves_off_the_blob_fit_is_verified_at_a_stricter_p
 
 def test_blob_level_ambiguity_is_left_to_the_pixels():
     """Hunt seed 0, cases 614 (a blob on the tubes' circle) and 4045 (zeroed pixels): two distinct poses fit the
-    blob centres about as well, which used to be a refusal ("ambiguous fit"); the pixels tell them apart (the
+    blob centres about as well; that alone is no refusal ("ambiguous fit"): the pixels tell them apart (the
     rival test), and both lock on the truth."""
     for case in (614, 4045):
         out = _run_hunt_case(case)
@@ -423,7 +423,7 @@ def test_print_hunt_short(kind, cases):
 def test_a_fiducial_in_a_water_bath_is_found_on_the_flattened_image(case):
     """hunt_print water_bath, seed 5 (a needle guide and a neuro slice): the water is most of the image, so the
     detector's background mixes it with the dark plastic and its noise estimate is ten times the pixels' own; the
-    flattened second look is now taken on the neighbour differences' noise, finds the tubes, and the slice locks."""
+    flattened second look is taken on the neighbour differences' noise, finds the tubes, and the slice locks."""
     hp = _hunt_print()
     hp._init("water_bath", 0.0)
     out = hp.run_case(case, 5, "water_bath", 0.0)
