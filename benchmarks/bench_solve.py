@@ -105,7 +105,7 @@ def main() -> None:
     print(f"{len(slices) - len(refused)} of {len(slices)} slices lock (verify {args.verify}, trust_rot_deg "
           f"{args.trust_rot_deg:g}); refused: {sorted(refused)}")
     verdict = "met" if np.median(dp) <= 5 else "MISSED"
-    # the target is detection + pose (issue 9); the whole call adds the per-slice report and the pose's uncertainty
+    # the target is detection + pose; the whole call adds the per-slice report and the pose's uncertainty
     # (and, with --verify on, the pose is proved against the image inside "pose")
     print(f"target: median detect + pose <= 5 ms -> {verdict} (wall, {np.median(dp):.2f} ms); the whole register() "
           f"call, with the pose's uncertainty: median {np.median(cpu):.2f} ms CPU; after: {load_note()}")

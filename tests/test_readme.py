@@ -20,22 +20,34 @@ Format of an example (the convention the README follows):
   lines are ignored. The folder the examples run in is removed from paths in the output
   (``/tmp/.../exports/neuro`` reads ``exports/neuro``).
 
-Where the examples run: every example of one pytest session shares one temporary folder, as one
+Where the examples run: every example of one pytest run shares one temporary folder, as one
 user's checkout would, holding links to the repository's ``designs/`` and ``docs/``; commands find
 ``chic-design``, ``chic-register`` and ``python`` in this interpreter's environment. Each example
 writes into folders of its own: after it ran, no file that an earlier example wrote may have
 changed (the test fails naming the file). An example whose commands read
 ``exports/NAME/geometry.yaml`` that no example built yet (a plain ``pytest`` leaves the slow
 builds out) gets that file from ``designs/NAME.yaml`` through the library, without the CAD build.
+
+Update mode: ``CHIC_README_UPDATE=1 .venv/bin/python -m pytest tests/test_readme.py -m ''`` runs the
+same examples and, where a command's output no longer matches, rewrites that command's expected
+output in README.md from the actual output (once, after the last example). The README's own marks
+are kept: a line ``...`` stays and goes on eliding what it covers, ``...`` inside a line stays where
+the text around it is still found, a number written ``~12.3`` stays a ``~`` number (with the new
+value), and a shown line that still matches is left as written. Lines the README did not show and no
+``...`` covers are added verbatim: mark their timings ``~`` (or elide them) by hand and review the
+diff. A command that exits non-zero, or an example that changes an earlier one's files, still fails.
+Without the variable (or with ``0``) the run is the strict check above and never writes.
 """
 
 from __future__ import annotations
 
+import difflib
 import functools
 import os
 import re
 import subprocess
 import sys
+import warnings
 from dataclasses import dataclass, field
 from pathlib import Path
 
@@ -45,6 +57,8 @@ ROOT = Path(__file__).resolve().parents[1]
 README = ROOT / "README.md"
 REL_TOL = 0.05
 COMMAND_TIMEOUT_S = 900
+UPDATE_ENV = "CHIC_README_UPDATE"
+SIMILAR = 0.6                     # update mode: a shown line this alike (0-1) to an actual one is its old form
 
 _NUM = r"[-+]?(?:\d+(?:\.\d*)?|\.\d+)(?:[eE][-+]?\d+)?"
 _TOKEN = re.compile(rf"(?P<ellipsis>\.\.\.)|~(?P<approx>{_NUM})|(?P<num>{_NUM})|(?P<space>\s+)")
@@ -57,6 +71,7 @@ class Command:
     text: str                     # what bash runs (continuation lines kept)
     expected: list[str]           # expected output lines
     line: int                     # README line of the command
+    out_start: int = 0            # index (0-based) in the README's lines of the first expected line
 
 
 @dataclass
@@ -87,6 +102,7 @@ def parse_readme(text: str) -> tuple[list[Example], list[int]]:
         while i < len(lines) and lines[i].strip() != "```":
             body.append((i + 1, lines[i]))
             i += 1
+        fence = i
         i += 1
         if marker is None:
             unmarked.append(start + 1)
@@ -104,11 +120,12 @@ def parse_readme(text: str) -> tuple[list[Example], list[int]]:
                 k += 1
                 cmd.append(body[k][1])
             k += 1
+            out_start = body[k][0] - 1 if k < len(body) else fence
             expected = []
             while k < len(body) and not body[k][1].startswith("$ "):
                 expected.append(body[k][1])
                 k += 1
-            ex.commands.append(Command("\n".join(cmd), expected, lineno))
+            ex.commands.append(Command("\n".join(cmd), expected, lineno, out_start))
     return list(examples.values()), unmarked
 
 
@@ -165,6 +182,134 @@ def output_matches(expected: list[str], actual: list[str]) -> bool:
     return match(0, 0)
 
 
+# ---- update mode: the README's expected output rewritten from the actual output ----
+
+_WORD = re.compile(rf"~{_NUM}|{_NUM}|\.\.\.|\s+|\w+|[^\w\s]")
+
+
+def _tokens(text: str) -> list[str]:
+    return _WORD.findall(text)
+
+
+def _key(token: str) -> str:
+    """What a token is compared by: any number (``~`` or not) is the same, runs of spaces are one space."""
+    if re.fullmatch(rf"~?{_NUM}", token):
+        return "0"
+    return " " if token.isspace() else token
+
+
+def _similarity(expected_line: str, actual_line: str) -> float:
+    a, b = [_key(t) for t in _tokens(expected_line)], [_key(t) for t in _tokens(actual_line)]
+    return difflib.SequenceMatcher(None, a, b, autojunk=False).ratio() if a or b else 1.0
+
+
+def updated_line(expected_line: str, actual_line: str) -> str:
+    """``actual_line`` in the README's notation: the ``~`` numbers and inline ``...`` of ``expected_line`` kept.
+
+    A line that still matches is returned as written. When only numbers (or the text an inline ``...``
+    covers) changed, every number takes its actual value and the marks stay in place; when the text
+    changed too, marks are carried over where the tokens around them are still found.
+    """
+    expected_line, actual_line = expected_line.rstrip(), actual_line.rstrip()
+    if line_matches(expected_line, actual_line):
+        return expected_line
+    pieces, pos = [], 0  # (kind, text): None for literal text, else the _TOKEN group
+    for m in _TOKEN.finditer(expected_line):
+        pieces += [(None, expected_line[pos:m.start()]), (m.lastgroup, m[0])]
+        pos = m.end()
+    pieces.append((None, expected_line[pos:]))
+    regex = {"ellipsis": "(.*?)", "space": r"(\s+)", "approx": f"({_NUM})", "num": f"({_NUM})"}
+    m = re.fullmatch("".join(re.escape(t) if k is None else regex[k] for k, t in pieces), actual_line)
+    if m is not None:  # the same text: numbers (and what an inline ... covers) changed
+        out, values = [], iter(m.groups())
+        for kind, text in pieces:
+            if kind is None:
+                out.append(text)
+                continue
+            value = next(values)
+            out.append("..." if kind == "ellipsis" else f"~{value}" if kind == "approx" else value)
+        new = "".join(out)
+    else:  # the text changed: carry the marks over where the tokens around them are still there
+        exp, act = _tokens(expected_line), _tokens(actual_line)
+        matcher = difflib.SequenceMatcher(None, [_key(t) for t in exp], [_key(t) for t in act], autojunk=False)
+        out = []
+        for op, i1, i2, j1, j2 in matcher.get_opcodes():
+            if op == "equal":
+                out += [f"~{b}" if a.startswith("~") and not b.startswith("~") else b
+                        for a, b in zip(exp[i1:i2], act[j1:j2], strict=True)]
+            elif "..." in exp[i1:i2]:
+                out.append("...")
+            else:
+                out += act[j1:j2]
+        new = "".join(out)
+    return new if line_matches(new, actual_line) else actual_line
+
+
+def updated_output(expected: list[str], actual: list[str]) -> list[str]:
+    """The expected lines rewritten from ``actual``: a ``...`` line stays, shown lines become the actual ones.
+
+    The README's lines are aligned with the actual ones: first so that shown lines stay on the actual
+    lines most like them (a line that still matches counts 1, one whose words are alike, numbers aside,
+    its similarity when that is at least ``SIMILAR``), then at least cost: a ``...`` line covers any run
+    of actual lines for free, a shown line rewritten costs less the more alike the two are (at most 2),
+    an actual line added costs 1 and a shown line dropped 2 (so a shown line is rewritten rather than
+    left to a neighbouring ``...``).
+    """
+    n, m = len(expected), len(actual)
+    # cost[i][j]: (-likeness kept, cost) of aligning expected[i:] with actual[j:]; step[i][j]: the first move
+    cost: list[list[tuple[float, float]]] = [[(0.0, 0.0)] * (m + 1) for _ in range(n + 1)]
+    step: list[list[tuple]] = [[("", 0, 0)] * (m + 1) for _ in range(n + 1)]
+    for i in range(n, -1, -1):
+        for j in range(m, -1, -1):
+            if i == n and j == m:
+                continue
+            options = []
+
+            def add(kept: float, c: float, move: str, ni: int, nj: int) -> None:
+                rest = cost[ni][nj]
+                options.append(((rest[0] - kept, rest[1] + c), (move, ni, nj)))
+
+            if i < n and expected[i].strip() == "...":
+                add(0, 0.0, "skip", i + 1, j)                    # covers nothing more
+                if j < m:
+                    add(0, 0.0, "cover", i, j + 1)               # covers actual[j]
+            elif i < n:
+                add(0, 2.0, "drop", i + 1, j)
+                if j < m:
+                    if line_matches(expected[i], actual[j]):
+                        add(1.0, 0.0, "line", i + 1, j + 1)
+                    else:
+                        alike = _similarity(expected[i], actual[j])
+                        add(alike if alike >= SIMILAR else 0.0, 0.01 + 2.0 * (1.0 - alike), "line", i + 1, j + 1)
+            if j < m:
+                add(0, 1.0, "add", i, j + 1)
+            cost[i][j], step[i][j] = min(options, key=lambda o: o[0])
+    out, i, j = [], 0, 0
+    while (i, j) != (n, m):
+        move, ni, nj = step[i][j]
+        if move == "skip":
+            out.append(expected[i].rstrip())
+        elif move == "line":
+            out.append(updated_line(expected[i], actual[j]))
+        elif move == "add":
+            out.append(actual[j].rstrip())
+        i, j = ni, nj
+    return out
+
+
+def update_text(text: str, replacements: dict[int, tuple[int, list[str]]]) -> str:
+    """``text`` with ``replacements[start] = (count, lines)``: lines ``start..start+count`` replaced."""
+    lines = text.splitlines()
+    for start in sorted(replacements, reverse=True):
+        count, new = replacements[start]
+        lines[start:start + count] = new
+    return "\n".join(lines) + ("\n" if text.endswith("\n") else "")
+
+
+def _update_mode() -> bool:
+    return os.environ.get(UPDATE_ENV, "") not in ("", "0")
+
+
 def _trim(lines: list[str]) -> list[str]:
     lines = [ln.rstrip() for ln in lines]
     while lines and not lines[-1]:
@@ -210,7 +355,8 @@ def _snapshot(work: Path) -> dict[str, tuple[int, int]]:
     return files
 
 
-EXAMPLES, UNMARKED = parse_readme(README.read_text(encoding="utf-8"))
+README_TEXT = README.read_text(encoding="utf-8")
+EXAMPLES, UNMARKED = parse_readme(README_TEXT)
 
 
 @pytest.fixture(scope="module")
@@ -238,7 +384,50 @@ def test_matcher_conventions():
     assert not output_matches(["a", "z"], ["a", "b", "z"])
 
 
-def _run(example: Example, work: Path) -> None:
+def test_update_mode_keeps_the_readmes_marks():
+    # only numbers changed: each takes its actual value, ~ and inline ... stay
+    assert (updated_line("ok (~117.7 ms: detect ~5.4), depth 22.010 mm", "ok (28.8 ms: detect 3.8), depth 23.500 mm")
+            == "ok (~28.8 ms: detect ~3.8), depth 23.500 mm")
+    assert updated_line("files: a, ... z, 9 files", "files: a, b, c, z, 10 files") == "files: a, ... z, 10 files"
+    # the text changed: the marks go where the tokens around them still are
+    assert updated_line("[1/9] spec ~0.00 s, 3 files: a, ... z", "[1/9] spec done 0.01 s, 4 files: a, b, z") == (
+        "[1/9] spec done ~0.01 s, 4 files: a, ... z")
+    assert updated_line("depth 22.010 mm", "depth 22.3 mm") == "depth 22.010 mm"  # still matches: as written
+    # a ... line stays and covers what it covered; shown lines are rewritten, unshown ones added
+    assert updated_output(["a 1", "...", "z 2"], ["new", "a 5", "b", "c", "z 2"]) == ["new", "a 5", "...", "z 2"]
+    assert updated_output(["...", "z 2", "gone"], ["b", "z 3", "w"]) == ["...", "z 3", "w"]
+    # a shown line that still matches stays where it is; the new lines after it are added
+    assert updated_output(["a", "...", "[9/9] done", "built"],
+                          ["a", "b", "[9/9] done", "wrote x", "wrote y", "built"]) == [
+        "a", "...", "[9/9] done", "wrote x", "wrote y", "built"]
+    # so does one that is still most like its old form
+    assert updated_output(["a", "...", "[9/9] done ~0.0 s", "built"],
+                          ["a", "b", "[9/9] done: 0.1 s", "wrote x y z", "built"]) == [
+        "a", "...", "[9/9] done: ~0.1 s", "wrote x y z", "built"]
+    assert update_text("x\ny\nz\n", {1: (1, ["Y", "Y2"]), 3: (0, ["end"])}) == "x\nY\nY2\nz\nend\n"
+
+
+def test_a_wrong_readme_fails(tmp_path, monkeypatch):
+    """The strict check (no CHIC_README_UPDATE) fails on a number beyond tolerance; update mode records it."""
+    example = Example("wrong", commands=[Command("echo 'depth 23.2 mm, ok (12.0 ms)'",
+                                                 ["depth 22.010 mm, ok (~3.1 ms)"], 1, 0)])
+    monkeypatch.delenv(UPDATE_ENV, raising=False)
+    assert not _update_mode()
+    with pytest.raises(AssertionError, match="differs from the README's"):
+        _run(example, tmp_path)
+    monkeypatch.setenv(UPDATE_ENV, "0")
+    assert not _update_mode()
+    monkeypatch.setenv(UPDATE_ENV, "1")
+    assert _update_mode()
+    updates = {}
+    with pytest.warns(UserWarning, match="rewritten"):
+        _run(example, tmp_path, updates)
+    assert updates == {0: (1, ["depth 23.2 mm, ok (~12.0 ms)"])}
+
+
+def _run(example: Example, work: Path, updates: dict[int, tuple[int, list[str]]] | None = None) -> None:
+    """Run ``example`` in ``work`` and compare; with ``updates`` (update mode) a differing output is
+    recorded there (``updates[out_start] = (count, new lines)``) instead of failing."""
     env = dict(os.environ, PYTHONUNBUFFERED="1", MPLBACKEND="Agg",
                PATH=f"{Path(sys.executable).parent}{os.pathsep}{os.environ.get('PATH', '')}")
     env.pop("VIRTUAL_ENV", None)
@@ -255,6 +444,13 @@ def _run(example: Example, work: Path) -> None:
         actual, expected = _trim(out.splitlines()), _trim(cmd.expected)
         shown = "\n".join(f"    {ln}" for ln in actual)
         assert proc.returncode == 0, f"README.md:{cmd.line}: exit {proc.returncode}: $ {cmd.text}\n{shown}"
+        if updates is not None and not output_matches(expected, actual):
+            new = updated_output(expected, actual)
+            assert output_matches(new, actual), f"README.md:{cmd.line}: no README form of the output of\n{shown}"
+            updates[cmd.out_start] = (len(cmd.expected), new)
+            warnings.warn(f"README.md:{cmd.line}: the expected output of $ {cmd.text.splitlines()[0]} "
+                          f"rewritten ({len(cmd.expected)} lines -> {len(new)})", stacklevel=1)
+            continue
         assert output_matches(expected, actual), (
             f"README.md:{cmd.line}: the output of\n$ {cmd.text}\ndiffers from the README's.\nREADME:\n"
             + "\n".join(f"    {ln}" for ln in expected) + f"\nactual:\n{shown}")
@@ -266,10 +462,26 @@ def _run(example: Example, work: Path) -> None:
         f"{changed + removed}")
 
 
+@pytest.fixture(scope="module")
+def readme_updates():
+    """Update mode (``CHIC_README_UPDATE=1``): the outputs to rewrite, written into README.md after the
+    last example; ``None`` (the strict check) otherwise."""
+    if not _update_mode():
+        yield None
+        return
+    updates: dict[int, tuple[int, list[str]]] = {}
+    yield updates
+    if updates:
+        text = README.read_text(encoding="utf-8")
+        if text != README_TEXT:
+            pytest.fail("README.md changed while its examples ran: not updated; run the update again")
+        README.write_text(update_text(text, updates), encoding="utf-8")
+
+
 @pytest.mark.parametrize(
     "example", [pytest.param(ex, id=ex.name, marks=[pytest.mark.slow] if ex.slow else []) for ex in EXAMPLES])
-def test_readme_example(example, workspace):
-    _run(example, workspace)
+def test_readme_example(example, workspace, readme_updates):
+    _run(example, workspace, readme_updates)
 
 
 def test_benchmarks_file_matches_its_script():

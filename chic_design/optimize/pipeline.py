@@ -118,7 +118,8 @@ def _chosen_pictures(req: Requirements, name: str, result: dict, folder: Path, p
 
 
 def _confirm(engine, finalists, jobs, progress: bool) -> dict:
-    """Run the simulation study of every finalist on ``engine``, with a progress bar."""
+    """Run the simulation study of every finalist on ``engine``, with a progress bar; the results in the
+    finalists' order (they finish in any order), so the summary and ``confirm.json`` read the same every run."""
     bar = None
     if progress:
         bar = tqdm(total=len(jobs), desc=f"confirm {len(jobs)} designs by simulated registration", unit="design")
@@ -131,7 +132,7 @@ def _confirm(engine, finalists, jobs, progress: bool) -> dict:
     finally:
         if bar is not None:
             bar.close()
-    return confirmed
+    return {name: confirmed[name] for name, _ in finalists if name in confirmed}
 
 
 def _beats_baseline(named, baseline):

@@ -52,7 +52,7 @@ STRETCH_MOVE_SHARE = 1.0 / PRECISION_SIGMAS
 def pose_precision(model, fit, Ss, pixel_mm: float, exclude=None):
     """1-sigma bounds ``(TRE at the frame centre (mm), rotation (deg))`` of a fit, to first order.
 
-    The crossings' Jacobian (:func:`chic_register.pipeline.register._crossing_jacobian`)
+    The crossings' Jacobian (:func:`chic_register.model.tube_model.crossing_jacobian`)
     of every matched tube, with a per-coordinate scatter from the residuals
     (``sum r^2`` over its :data:`SCATTER_CONFIDENCE` chi-square bound with
     ``2 n - 6`` degrees of freedom, at least :data:`POSITION_FLOOR_PX`), gives the

@@ -38,7 +38,7 @@ def lock_slice(model: TubeModel, xy: np.ndarray, S: np.ndarray, opts: SolveOptio
     First guesses come from the paper's closed form when the layout allows it
     (:func:`~chic_register.guess.hypotheses.ellipse_layout`), else, or when that
     yields no acceptable fit, from the generic stage
-    (:func:`~chic_register.guess.hypotheses.family_hypotheses`). Every guess gets a
+    (:func:`~chic_register.guess.generic.family_hypotheses`). Every guess gets a
     short refinement; the best, and any distinct rival as good as it, are then
     refined to convergence. With a prior orientation (``opts.prior``), guesses
     and fits farther from it are dropped.

@@ -33,7 +33,7 @@ def section_windows(model, q: np.ndarray, tan: np.ndarray, found: np.ndarray, to
                     margin_px: float = 1.5, reach=None) -> Windows:
     """Each tube in ``todo``'s section box grown by ``margin_px``, less what another tube or blob reaches.
 
-    ``q``, ``tan``, ``found``: :func:`~chic_register.pipeline.register.plane_crossings`
+    ``q``, ``tan``, ``found``: :func:`~chic_register.model.tube_model.plane_crossings`
     at the pose. Pixels within half a pixel of another tube's section box,
     or inside the footprint of a blob that is not the tube's own (nor
     overlaps it), are left out. ``reach``: :func:`window_pixels` of these

@@ -4,7 +4,7 @@ Real MRI blobs of a fiducial's tubes are 0.7-2.5x the tube's nominal diameter
 (point spread, partial volume in 2-3 mm slices, fluid spreading in a printed
 channel). :func:`render_tubes_widened` draws them so for the simulator
 (:func:`chic_register.imaging.simulate.simulate_slice`, ``--blob-width``) and for
-volumes (:func:`chic_register.io.volumes.simulate_volume`); see :class:`BlobWidth`.
+volumes (:func:`chic_register.imaging.simulate.simulate_volume`); see :class:`BlobWidth`.
 """
 
 from __future__ import annotations

@@ -384,7 +384,7 @@ def write_simulated(sim: SimulatedSlice, path, extra: dict | None = None):
     """Write a simulated slice (DICOM, NPY, PNG or TIFF by suffix) and its truth JSON beside it.
 
     Plain images carry no placement, so their truth is in the image frame
-    (CONTRACT.md section 3): ``sim.slice`` must then sit at the scanner origin
+    (docs/interfaces.md section 3): ``sim.slice`` must then sit at the scanner origin
     with identity orientation (``image_position=(0, 0, 0)``, the default
     orientation). Both files are written atomically. Returns
     ``(image_path, truth_path)``.

@@ -2,7 +2,7 @@
 
 Reading (:func:`read_dicom_file`, :func:`read_dicom_series`): the scanner frame is LPS, from ImagePositionPatient
 (centre of the first pixel), ImageOrientationPatient (col_dir, then row_dir) and PixelSpacing (row spacing, col
-spacing), CONTRACT.md section 3; RescaleSlope / RescaleIntercept are applied. Enhanced (multi-frame) images give
+spacing), docs/interfaces.md section 3; RescaleSlope / RescaleIntercept are applied. Enhanced (multi-frame) images give
 one slice per frame, placed by their functional groups; compressed pixel data pydicom cannot decode goes to GDCM
 (through SimpleITK).
 

@@ -1,4 +1,4 @@
-"""Read image files into :class:`~chic_register.model.slices.Slice` objects (CONTRACT.md section 3).
+"""Read image files into :class:`~chic_register.model.slices.Slice` objects (docs/interfaces.md section 3).
 
 - DICOM (pydicom): the scanner frame is LPS, from ImagePositionPatient (centre
   of the first pixel), ImageOrientationPatient (col_dir, then row_dir) and

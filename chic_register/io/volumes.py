@@ -1,6 +1,6 @@
 """3-D volumes: read NIfTI, NRRD and DICOM series, write them back, simulate one.
 
-Everything is in the scanner frame LPS (CONTRACT.md section 3). SimpleITK
+Everything is in the scanner frame LPS (docs/interfaces.md section 3). SimpleITK
 reports every format's physical space in LPS: it converts NIfTI's RAS
 (qform/sform) and NRRD's ``space`` field (``right-anterior-superior`` or
 ``left-posterior-superior``) itself, and reads DICOM's LPS as is

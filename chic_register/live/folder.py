@@ -97,7 +97,7 @@ class TrackEvent:
 
 @dataclass(frozen=True)
 class TrackSummary:
-    """Everything a tracking session did; ``stopped_by`` is ``"max_files"``, ``"timeout"`` or ``"interrupt"``."""
+    """Everything one tracking run did; ``stopped_by`` is ``"max_files"``, ``"timeout"`` or ``"interrupt"``."""
 
     events: tuple[TrackEvent, ...]
     pending: tuple[str, ...]
@@ -319,7 +319,7 @@ def track(
             state.failed_sig = state.sig
             state.retry_at = now + state.retry_s
             return None
-        except Exception as exc:  # noqa: BLE001 - one bad file must not end a tracking session
+        except Exception as exc:  # noqa: BLE001 - one bad file must not end the tracking
             slices, failure = None, f"{type(exc).__name__}: {exc}".splitlines()[0]
         t1 = time.perf_counter()
         status, reg, reason = "ok", None, ""

@@ -1,6 +1,6 @@
 """The fiducial's body (its cross-section and surfaces) and the optional tool frame.
 
-The parts of a geometry file besides its tubes (CONTRACT.md section 2):
+The parts of a geometry file besides its tubes (docs/interfaces.md section 2):
 ``body`` (a round annulus for CHIC, a square frame for the Z-frame) and
 ``tool`` (the tool tip's frame in F). :mod:`chic_register.model.geometry` builds
 and validates them; both are importable from there too.

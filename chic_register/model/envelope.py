@@ -372,7 +372,7 @@ def plane_status(geom: FiducialGeometry, depth_mm: float, tilt_deg: float, azimu
 
     The failure named is the one :meth:`PlaneChecker.codes` names (missed,
     then crossed twice, then the worst merge). ``exact`` as in
-    :func:`chic_design.feasibility.tilt_limits` (the ellipse model is within
+    :func:`chic_design.feasibility.tilt_search.tilt_limits` (the ellipse model is within
     0.1 deg of the exact sections for the designs here, at a 15th of the cost).
     """
     checker = PlaneChecker(geom, pixel_size_mm, slice_thickness_mm, exact=exact)

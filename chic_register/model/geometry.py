@@ -7,13 +7,13 @@ solver (which predicts image points from them). It holds
 validation); the tube objects live in :mod:`chic_register.model.tubes`, the body
 and tool frame in :mod:`chic_register.model.body`, and are importable from here.
 
-Frame F (CONTRACT.md section 1): millimetres, origin on the cylinder axis in the
+Frame F (docs/interfaces.md section 1): millimetres, origin on the cylinder axis in the
 bottom end face, +z along the axis to the top face, +x toward tube ``D0``;
 angles counter-clockwise about +z from +x. For the ``zframe`` family (the
 seven-rod Z-frame), +z runs along the axial rods, the origin is on the frame's
 central axis in its bottom face, x and y as in 3D Slicer's Z-frame ``z001``.
 
-Geometry file (CONTRACT.md section 2): YAML with ``format: chic-geometry``,
+Geometry file (docs/interfaces.md section 2): YAML with ``format: chic-geometry``,
 ``version: 1``, ``name``, ``family`` (only when not ``chic``), ``units``,
 ``body``, ``tubes``, ``source`` and ``sha256``. The hash is the SHA-256 of the canonical JSON of every other key
 (see :func:`content_sha256`).
@@ -46,7 +46,7 @@ MAX_SOURCE_CHARS = 10_000  # the canonical JSON of ``source``
 FORMAT = "chic-geometry"
 VERSION = 1
 ROLES = ("diametric", "helix", "orientation", "axial", "diagonal", "other")
-#: Fiducial families (CONTRACT.md section 1); a file without ``family`` is ``chic``.
+#: Fiducial families (docs/interfaces.md section 1); a file without ``family`` is ``chic``.
 FAMILIES = ("chic", "zframe")
 
 

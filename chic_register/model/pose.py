@@ -4,7 +4,7 @@ A slice frame S has its x and y axes in the image plane (x = direction of
 increasing column, y = increasing row) and z = x × y, the image normal.
 
 The slice pose relative to the fiducial frame F is given by four numbers
-(CONTRACT.md section 4):
+(docs/interfaces.md section 4):
 
 - ``depth_mm``: z in F where the fiducial axis crosses the image plane;
 - ``tilt_deg``: angle between the image normal and the fiducial axis, in [0, 90];

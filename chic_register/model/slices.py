@@ -1,4 +1,4 @@
-"""A 2-D image slice with its place in the scanner (CONTRACT.md section 3).
+"""A 2-D image slice with its place in the scanner (docs/interfaces.md section 3).
 
 Every reader returns :class:`Slice` objects and the solver only ever sees
 these, whatever the file format was.

@@ -92,8 +92,9 @@ def mismatches(geom: FiducialGeometry, Rs: np.ndarray, n_samples: int = _N_SAMPL
 
 
 #: A rotation mapping every tube within this share of the thinnest tube's diameter onto another is a symmetry no
-#: image can break (the printed channel's own shape tolerance; ``chic_design.unambiguity.symmetry_tolerance``'s floor):
-#: the solver then asks for a prior before it reads a pixel.
+#: image can break (the printed channel's own shape tolerance;
+#: ``chic_design.feasibility.unambiguity.symmetry_tolerance``'s floor): the solver then asks for a prior before it
+#: reads a pixel.
 EXACT_SHARE = 0.05
 
 

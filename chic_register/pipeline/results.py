@@ -94,7 +94,7 @@ class Registration:
     uncertainty: object = field(repr=False, default=None)  # chic_register.precision.uncertainty.PoseUncertainty
 
     def to_dict(self) -> dict:
-        """JSON-ready object, CONTRACT.md section 4 plus extra keys (``covariance``, ``noise``,
+        """JSON-ready object, docs/interfaces.md section 4 plus extra keys (``covariance``, ``noise``,
         ``target_F_mm``, ``predicted_tre_mm``: :meth:`~chic_register.precision.uncertainty.PoseUncertainty.to_dict`)."""
         return {
             "status": self.status,

@@ -30,7 +30,7 @@ from chic_register.precision.uncertainty import mahalanobis2, registration_uncer
 
 def z001_geometry(diameter_mm: float = 3.0) -> FiducialGeometry:
     """3D Slicer's z001 Z-frame as seven ``line`` tubes: a 60 mm cube, axial rods at x, y = +-30, diagonals on
-    the faces x = +30 (from (30, 30, 0) to (30, -30, 60)), y = +30 and x = -30 (CONTRACT.md section 1)."""
+    the faces x = +30 (from (30, 30, 0) to (30, -30, 60)), y = +30 and x = -30 (docs/interfaces.md section 1)."""
     rods = [("A0", (30, 30, 0), (30, 30, 60)), ("A1", (30, -30, 0), (30, -30, 60)),
             ("A2", (-30, 30, 0), (-30, 30, 60)), ("A3", (-30, -30, 0), (-30, -30, 60)),
             ("Z0", (30, 30, 0), (30, -30, 60)), ("Z1", (-30, 30, 0), (30, 30, 60)),

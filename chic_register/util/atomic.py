@@ -4,7 +4,7 @@ Used by every writer in the project (geometry files, images, DICOM, volumes,
 transforms, plots, JSON, scenes): a failed or interrupted write leaves the
 earlier file untouched and no temporary behind.
 
-Two rules every output follows (issue 10):
+Two rules every output follows:
 
 - the file gets the permissions an ordinary ``open()`` would give it
   (``0o666`` less the process umask), not ``mkstemp``'s private ``0o600``;

@@ -39,7 +39,7 @@ def tube_windows(geom, model, T_F_from_I, shape, spacing, thickness_mm, margin_p
     ``canvas_only``: no windows (``[]``), the canvas alone (a rival pose's model image).
 
     Each tube is rendered once, in its own window (its section's extent,
-    :func:`chic_register.pipeline.register.section_extent`, plus ``margin_px``); a window's
+    :func:`chic_register.model.tube_model.section_extent`, plus ``margin_px``); a window's
     neighbours are the other tubes' renders pasted where they overlap it.
     """
     rs, cs = spacing

@@ -75,7 +75,7 @@ def test_geometry_file_round_trip(neuro_geometry, tmp_path):
     data = yaml.safe_load(path.read_text())
     assert data["format"] == "chic-geometry" and data["version"] == 1 and data["units"] == "mm"
     assert [t["id"] for t in data["tubes"]] == ["D0", "D1", "D2", "D3", "H0", "H1", "H2", "O0", "O1"]
-    assert data["tubes"][0]["p0"] == [12.5, 0.0, 0.0]  # +x toward D0 (CONTRACT.md s.1)
+    assert data["tubes"][0]["p0"] == [12.5, 0.0, 0.0]  # +x toward D0 (docs/interfaces.md s.1)
     assert data["sha256"] == content_sha256(data)
     assert not list(path.parent.glob(".geometry-*"))  # no temporary left behind
 

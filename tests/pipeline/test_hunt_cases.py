@@ -1,5 +1,5 @@
-"""Cases of the false-lock hunts (chic_register.studies.damage) that once locked wrong or were refused though right,
-each solved again: the slice is locked on the truth or refused, and with the guard taken away it locks wrong.
+"""Cases of the false-lock hunts (chic_register.studies.damage) that each guard stands on: the slice is locked on
+the truth or refused, and with the guard taken away it locks wrong.
 """
 
 from __future__ import annotations
@@ -12,8 +12,8 @@ from tests.helpers import hunt_geometries, run_hunt_case
 
 @pytest.mark.parametrize("case, locks", [(2522, True), (1795, False), (2706, True), (945, False)])
 def test_hunt_cases_with_one_section_pulled_off(case, locks):
-    """Hunt seed 0: case 2522 (a blob on the tubes' circle over O0, 26 deg tilt) was refused as imprecise and now
-    locks on the other eight sections; case 1795 (a tool in the bore, a near-normal needle-guide slice) would lock
+    """Hunt seed 0: case 2522 (a blob on the tubes' circle over O0, 26 deg tilt) locks on the other eight sections
+    rather than being refused as imprecise; case 1795 (a tool in the bore, a near-normal needle-guide slice) would lock
     0.99 deg off without its pulled section at 3 sigma, and the stricter precision after a drop refuses it.
     Case 2706 (a blob on the circle matched in a tube's place): the whole fit leans towards it, every section's
     residual is raised (56-1956) and none is ten times the others'; against the pose refitted without it, it is,
@@ -30,7 +30,7 @@ def test_hunt_cases_with_one_section_pulled_off(case, locks):
 @pytest.mark.parametrize("case", [1088, 3546])
 def test_hunt_low_snr_sections_with_the_right_spacing_are_not_called_stretched(case):
     """Hunt seed 0, low SNR (7.6 and 9.6) at 54-67 deg tilt: three tubes' aspects read 4-5 % off one by their noise
-    alone (a per-tube standard error of 3-5 %); the spacing test's tolerance now holds that noise, and both lock."""
+    alone (a per-tube standard error of 3-5 %); the spacing test's tolerance allows for that noise, and both lock."""
     out = run_hunt_case(case)
     assert out["outcome"] == "ok" and out["rot_deg"] < 0.2, out
 
@@ -56,9 +56,9 @@ def test_a_rival_that_falls_back_onto_the_pose_under_the_section_fit_is_no_rival
 
 def test_the_section_fit_that_moves_off_the_blob_fit_is_verified_at_a_stricter_precision():
     """Hunt seed 0, 10-40 % of the pixels zeroed: the blob centres put cases 269 and 767 1.9 and 1.0 deg off; the
-    section fit moves 1-2 deg from there, onto the truth (0.05 and 0.11 deg). That move used to be a refusal; now
-    the section fit's pose is verified, at 4.5 sigma, and both lock. Seed 5 case 2175 (a thick slab beyond the
-    envelope) locked 1.49 deg off that way at 3 sigma and is refused at 4.5."""
+    section fit moves 1-2 deg from there, onto the truth (0.05 and 0.11 deg). The section fit's pose is verified,
+    at 4.5 sigma, and both lock. Seed 5 case 2175 (a thick slab beyond the envelope) would lock 1.49 deg off that
+    way at 3 sigma and is refused at 4.5."""
     for case in (269, 767):
         out = run_hunt_case(case)
         assert out["outcome"] == "ok" and out["rot_deg"] < 0.15 and out["tre_mm"] < 0.1, out
@@ -68,7 +68,7 @@ def test_the_section_fit_that_moves_off_the_blob_fit_is_verified_at_a_stricter_p
 
 def test_blob_level_ambiguity_is_left_to_the_pixels():
     """Hunt seed 0, cases 614 (a blob on the tubes' circle) and 4045 (zeroed pixels): two distinct poses fit the
-    blob centres about as well, which used to be a refusal ("ambiguous fit"); the pixels tell them apart (the
+    blob centres about as well; that alone is no refusal ("ambiguous fit"): the pixels tell them apart (the
     rival test), and both lock on the truth."""
     for case in (614, 4045):
         out = run_hunt_case(case)
@@ -103,6 +103,6 @@ def test_the_pose_is_never_more_precise_than_its_pixel_noise_allows(monkeypatch)
 def test_a_fiducial_in_a_water_bath_is_found_on_the_flattened_image(case):
     """hunt_print water_bath, seed 5 (a needle guide and a neuro slice): the water is most of the image, so the
     detector's background mixes it with the dark plastic and its noise estimate is ten times the pixels' own; the
-    flattened second look is now taken on the neighbour differences' noise, finds the tubes, and the slice locks."""
+    flattened second look is taken on the neighbour differences' noise, finds the tubes, and the slice locks."""
     out = run_print_case(case, 5, "water_bath", 0.0, hunt_geometries())
     assert out["outcome"] == "ok" and out["rot_deg"] < 0.2, out

@@ -35,8 +35,8 @@ def test_a_stretch_the_pose_absorbs_is_seen_in_the_positions(neuro_geometry, til
 
 
 def test_hunt_case_223_wrong_spacing_at_high_tilt_is_refused():
-    """The last false lock of the 5000-case hunt (seed 0): a 12.6 % row-spacing error at 58.5 deg tilt, locked 5.4 mm
-    off with a 0.05 mm residual by the section fit, is now refused by the stretch test."""
+    """The last false lock of the 5000-case hunt (seed 0): a 12.6 % row-spacing error at 58.5 deg tilt, which the
+    section fit would lock 5.4 mm off with a 0.05 mm residual, is refused by the stretch test."""
     out = run_hunt_case(223)
     assert out["outcome"] == "no_lock" and "stretched" in out["reason"], out
 

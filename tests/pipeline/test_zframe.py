@@ -18,7 +18,8 @@ from chic_register.model.pose import rigid, rot_y, rot_z
 from chic_register.pipeline.register import register
 from tests.helpers import ZF_CENTRE, rician_slice, right_or_refused, tre_mm
 
-ZF_LIMIT_DEG = 30.6  # chic_design.feasibility.tilt_limits at depth 30 mm (0.5 mm pixels, 2 mm slices): 30.70
+# chic_design.feasibility.tilt_search.tilt_limits at depth 30 mm (0.5 mm pixels, 2 mm slices): 30.70
+ZF_LIMIT_DEG = 30.6
 
 
 ZF_CASES = [  # (depth, tilt, azimuth, twist), width factor, distractors, missing tubes

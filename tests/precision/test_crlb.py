@@ -117,7 +117,7 @@ def test_bound_behaves(neuro_geometry):
     m = precision_map(g, p, depths_mm=[25.0], tilts_deg=[0.0, 30.0], n_azimuths=2)
     assert len(m.rows) == 2 and all(r["n_azimuths"] == 2 for r in m.rows)
     normal = m.column("sd_normal_deg")
-    assert normal[1] < normal[0]  # tilt helps the normal (the trend the study measured)
+    assert normal[1] < normal[0]  # tilt helps the normal (the measured trend)
     with pytest.raises(ValueError, match="snr"):
         Protocol(snr=0)
 

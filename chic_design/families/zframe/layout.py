@@ -1,6 +1,6 @@
 """From a Z-frame spec to its rods as tube objects in frame F (``family: zframe``).
 
-Frame F of a Z-frame (CONTRACT.md section 1): +z along the axial rods, origin
+Frame F of a Z-frame (docs/interfaces.md section 1): +z along the axial rods, origin
 on the frame's central axis in the plane of its bottom face, x and y as in
 configuration ``z001`` of 3D Slicer's ZFrameRegistration. With the default spec
 (side 60, height 60) the rods are z001's seven fiducials shifted by +30 mm in z:

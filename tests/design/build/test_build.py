@@ -42,7 +42,7 @@ ALL_FILES = PART_FILES + ["assembly.step", "geometry.yaml", "preview.png", "repo
 
 @pytest.fixture(scope="module")
 def built(tmp_path_factory):
-    """One full build of neuro.yaml per test session (the slow part)."""
+    """One full build of neuro.yaml for this module's tests (the slow part)."""
     out = tmp_path_factory.mktemp("exports")
     result = build_design(NEURO, out_root=out, progress=False)
     spec = load_spec(NEURO)
