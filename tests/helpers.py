@@ -249,7 +249,7 @@ def finite_numbers(obj) -> bool:
 def modules_after(code: str) -> set[str]:
     """The modules a fresh interpreter holds after running ``code``."""
     probe = code + "\nimport json, sys\nprint(json.dumps(sorted(sys.modules)))\n"
-    out = subprocess.run([sys.executable, "-c", probe], capture_output=True, text=True, check=True, timeout=120)
+    out = subprocess.run([sys.executable, "-c", probe], capture_output=True, text=True, encoding="utf-8", errors="replace", check=True, timeout=120)
     return set(json.loads(out.stdout.strip().splitlines()[-1]))
 
 

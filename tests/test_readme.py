@@ -428,7 +428,7 @@ def test_a_wrong_readme_fails(tmp_path, monkeypatch):
 def _run(example: Example, work: Path, updates: dict[int, tuple[int, list[str]]] | None = None) -> None:
     """Run ``example`` in ``work`` and compare; with ``updates`` (update mode) a differing output is
     recorded there (``updates[out_start] = (count, new lines)``) instead of failing."""
-    env = dict(os.environ, PYTHONUNBUFFERED="1", MPLBACKEND="Agg",
+    env = dict(os.environ, PYTHONUNBUFFERED="1", MPLBACKEND="Agg", PYTHONIOENCODING="utf-8",
                PATH=f"{Path(sys.executable).parent}{os.pathsep}{os.environ.get('PATH', '')}")
     env.pop("VIRTUAL_ENV", None)
     for name in sorted({m for c in example.commands for m in _GEOMETRY_REF.findall(c.text)}):
@@ -436,7 +436,7 @@ def _run(example: Example, work: Path, updates: dict[int, tuple[int, list[str]]]
     before = _snapshot(work)
     prefixes = sorted({f"{work}/", f"{work.resolve()}/"}, key=len, reverse=True)
     for cmd in example.commands:
-        proc = subprocess.run(["bash", "-o", "pipefail", "-c", cmd.text], cwd=work, env=env, text=True,
+        proc = subprocess.run(["bash", "-o", "pipefail", "-c", cmd.text], cwd=work, env=env, text=True, encoding="utf-8", errors="replace",
                               stdout=subprocess.PIPE, stderr=subprocess.STDOUT, timeout=COMMAND_TIMEOUT_S)
         out = proc.stdout
         for p in prefixes:

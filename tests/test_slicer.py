@@ -38,7 +38,7 @@ def run_probe(tmp_path: Path, request: dict) -> dict:
     assert slicer_python() is not None, "CHIC_REQUIRE_SLICER is set but there is no .venv-slicer/bin/python"
     req = tmp_path / "probe-request.json"
     req.write_text(json.dumps(request))
-    proc = subprocess.run([slicer_python(), str(PROBE), str(req)], capture_output=True, text=True, timeout=120)
+    proc = subprocess.run([slicer_python(), str(PROBE), str(req)], capture_output=True, text=True, encoding="utf-8", errors="replace", timeout=120)
     assert proc.returncode == 0, proc.stderr[-2000:]
     assert "ERR" not in proc.stderr and "WARN" not in proc.stderr, proc.stderr[-2000:]  # Slicer complained
     line = [ln for ln in proc.stdout.splitlines() if ln.startswith("PROBE-JSON ")]

@@ -25,7 +25,7 @@ def test_an_unknown_name_is_an_attribute_error():
 
 def test_importing_the_package_loads_no_stage_and_no_numpy():
     code = "import chic_register, json, sys; print(json.dumps(sorted(sys.modules)))"
-    mods = json.loads(subprocess.run([sys.executable, "-c", code], capture_output=True, text=True,
+    mods = json.loads(subprocess.run([sys.executable, "-c", code], capture_output=True, text=True, encoding="utf-8", errors="replace",
                                      check=True).stdout)
     assert "numpy" not in mods
     assert [m for m in mods if m.startswith("chic_register.")] == ["chic_register.version"]

@@ -94,7 +94,7 @@ def test_one_shot_start_up_imports_no_library_module(tmp_path):
 
     code = ("import json, sys\nfrom chic_register.cli.main import build_parser\nbuild_parser()\n"
             "print(json.dumps(sorted(sys.modules)))")
-    out = subprocess.run([sys.executable, "-c", code], capture_output=True, text=True, check=True, timeout=120)
+    out = subprocess.run([sys.executable, "-c", code], capture_output=True, text=True, encoding="utf-8", errors="replace", check=True, timeout=120)
     mods = set(json.loads(out.stdout))
     loaded = sorted(m for m in mods if m.startswith("chic_register.") and not m.startswith(
         ("chic_register.cli", "chic_register.errors", "chic_register.version")))

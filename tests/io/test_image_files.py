@@ -87,7 +87,7 @@ def test_dicom_series_share_frame_of_reference(tmp_path, oblique_sim):
 
 @pytest.mark.skipif(shutil.which("dciodvfy") is None, reason="dciodvfy (dicom3tools) is not installed")
 def test_dicom_passes_dciodvfy(dicom_file):
-    run = subprocess.run(["dciodvfy", str(dicom_file)], capture_output=True, text=True, timeout=60)
+    run = subprocess.run(["dciodvfy", str(dicom_file)], capture_output=True, text=True, encoding="utf-8", errors="replace", timeout=60)
     report = run.stdout + run.stderr
     assert "MRImage" in report
     errors = [line for line in report.splitlines() if line.startswith("Error")]

@@ -63,5 +63,5 @@ def test_python_dash_m_runs_the_same_program():
 
     root = Path(__file__).resolve().parents[3]
     done = subprocess.run([sys.executable, "-m", "chic_design.cli", "--version"], cwd=root, capture_output=True,
-                          text=True, timeout=60)
+                          text=True, encoding="utf-8", errors="replace", timeout=60)
     assert done.returncode == 0 and done.stdout.startswith("chic-design ")
