@@ -18,6 +18,11 @@ import numpy as np
 #: 3-sigma rotation above 0.8 deg, while the correct poses that 0.75 deg lets through were all within 0.5 mm, 0.5 deg.
 TRE_TOL_MM = 1.0
 ROT_TOL_DEG = 0.75
+#: Default largest relative scale of an image along any axis that the solver fits with the pose rather than
+#: refuses (``SolveOptions.max_scale_error``): clinical scanners' gradient calibration holds the scale to 1-2 %
+#: (a larger one is a wrong pixel spacing, and the message names the spacing that would register it), a print
+#: shrinks or grows by 0.1-0.5 %.
+MAX_SCALE_ERROR = 0.02
 
 
 @dataclass(frozen=True)
@@ -78,6 +83,12 @@ class SolveOptions:
     never considered. It is what resolves a geometry that maps onto itself
     under a rotation (the classic Z-frame does, under a half turn): without
     it, such a fit is refused as ambiguous.
+    ``fit_scale``: the verified pose is fitted again with the image's scale
+    per axis (:mod:`chic_register.fit.scale`); where the data show a scale
+    (its F test below :data:`~chic_register.fit.checks.STRETCH_P`) the pose
+    so fitted is the answer and its covariance holds the scale's
+    uncertainty; ``max_scale_error``: a scale beyond it is refused as a
+    wrong pixel spacing (the registration reports the scale either way).
     """
 
     max_rms_px: float = 0.5
@@ -110,3 +121,5 @@ class SolveOptions:
     uncertainty: bool = True
     prior: np.ndarray | None = None
     prior_max_deg: float = 60.0
+    fit_scale: bool = True
+    max_scale_error: float = MAX_SCALE_ERROR

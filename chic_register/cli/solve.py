@@ -57,6 +57,10 @@ def add_parser(subparsers) -> None:
                    help="the verification's precision limits: refuse a pose whose 3-sigma predicted error exceeds "
                         "MM at the frame centre or DEG in rotation (default 1 0.75; a single near-normal slice "
                         "of a CHIC fiducial knows its tilt to ~0.2-0.25 deg at 1 sigma)")
+    s.add_argument("--max-scale-error", type=float, default=None, metavar="PCT",
+                   help="largest scale of the image along any axis fitted with the pose of several slices rather "
+                        "than refused as a wrong pixel spacing (default 2: gradient calibration is good to 1-2 %%, "
+                        "a print to 0.1-0.5 %%)")
 
 
 def _report_failures(delivery) -> None:
@@ -94,6 +98,10 @@ def run(args) -> int:
         if not all(math.isfinite(v) and v > 0 for v in args.trust):
             raise ChicRegisterError(f"--trust takes two positive numbers (mm, deg), got {tre_mm:g} {rot_deg:g}")
         extra.update(trust_tre_mm=tre_mm, trust_rot_deg=rot_deg)
+    if args.max_scale_error is not None:
+        if not (0 < args.max_scale_error <= 20 and math.isfinite(args.max_scale_error)):
+            raise ChicRegisterError(f"--max-scale-error must be in (0, 20] %, got {args.max_scale_error:g}")
+        extra["max_scale_error"] = args.max_scale_error / 100.0
     early = Delivery()  # a server that cannot listen is an output failure: the pose still comes
     link = None
     try:
@@ -161,6 +169,11 @@ def _print_pose(args, reg, geom) -> None:
         print("  residuals (mm): " + ", ".join(f"{k} {v:.3f}" for k, v in s.residuals_mm.items()))
     for s in reg.skipped:
         print(f"skipped {s.source}: {s.reason}")
+    if reg.scale is not None:
+        e = reg.scale
+        print("image scale: " + ", ".join(f"{a} {100 * v:+.2f} % (SD {100 * d:.2f})" for a, v, d in
+                                          zip(e.axes, e.scale, e.scale_sd))
+              + ("; the pose is fitted with it" if e.fitted else "; not shown by the data: the pose is rigid"))
     u = reg.uncertainty
     if u is not None:
         sd = [math.sqrt(max(0.0, float(u.covariance[i, i]))) for i in range(6)]

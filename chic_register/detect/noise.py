@@ -65,10 +65,30 @@ def background_noise(pixels: np.ndarray, footprints, guard_px: int = 3) -> Noise
     bg = img[keep]
     if bg.size < 32:
         bg = img.ravel()
+    bg = _without_masked(bg)
     q25, q50, q75 = (float(v) for v in percentiles(bg, [25, 50, 75]))  # np.percentile's, in less time
     if q50 > 0 and abs(q25 / q50 - RAYLEIGH_Q25_OVER_Q50) < 0.08 and min(bg.min(), 0.0) >= 0.0:
         return NoiseEstimate(q50 / RAYLEIGH_MEDIAN, "rayleigh", int(bg.size))
     return NoiseEstimate(max(q75 - q25, 0.0) / 1.349, "gaussian", int(bg.size))
+
+
+#: A background whose smallest value holds this share of its pixels exactly is masked there (a region set to zero
+#: outside the object, as exported masked volumes are): no noise makes one value that common.
+MASKED_SHARE = 0.25
+#: ... and the noise is read from the rest when at least this many pixels remain.
+MASKED_MIN_REST = 256
+
+
+def _without_masked(bg: np.ndarray) -> np.ndarray:
+    """The background pixels ``bg`` (1-D) without a masked region's constant (:data:`MASKED_SHARE`)."""
+    if bg.size == 0:
+        return bg
+    lo = float(np.min(bg))
+    masked = bg == lo
+    n = int(np.count_nonzero(masked))
+    if n >= MASKED_SHARE * bg.size and bg.size - n >= MASKED_MIN_REST:
+        return bg[~masked]
+    return bg
 
 
 #: Median absolute difference of two neighbouring pixels of independent Gaussian noise, in its sigma:

@@ -26,8 +26,9 @@ package: detection (:mod:`~chic_register.pipeline.detection`), each slice's
 lock (:mod:`~chic_register.pipeline.locking`), the joint fit of several
 slices (:mod:`~chic_register.pipeline.joint`), refinement on the sections'
 pixels (:mod:`~chic_register.pipeline.refinement`), verification against
-the image (:mod:`~chic_register.pipeline.verification`) and the result with
-its uncertainty (:mod:`~chic_register.pipeline.results`). A slice travels
+the image (:mod:`~chic_register.pipeline.verification`), the image's scale
+fitted with the pose (:mod:`~chic_register.pipeline.scaling`) and the result
+with its uncertainty (:mod:`~chic_register.pipeline.results`). A slice travels
 through them as a :class:`~chic_register.pipeline.locking.SliceRun`.
 """
 
@@ -49,6 +50,7 @@ from chic_register.pipeline.joint import joint_fit, no_slice_locked
 from chic_register.pipeline.locking import SliceRun, lock_slices
 from chic_register.pipeline.refinement import refine_locked
 from chic_register.pipeline.results import Registration, SkippedSlice, build_registration
+from chic_register.pipeline.scaling import ImageScale, scale_stage
 from chic_register.pipeline.verification import verify_refined
 
 
@@ -85,11 +87,16 @@ def register(slices: list[Slice], geom: FiducialGeometry, *, options: SolveOptio
     best, runs = _joint(model, runs, opts, skip_failed, skipped)
     refined = refine_locked(model, geom, best, [r.seen for r in runs], opts)
     verified = verify_refined(geom, model, refined, runs, opts, skip_failed, skipped)
+    seen = [r.seen for r in verified.runs]
+    pixel_fit = refined.blurred if refined.precision is not None else None
+    if pixel_fit is not None:
+        best, scale = verified.best, ImageScale.of_pixel_fit(pixel_fit)
+    else:
+        best, scale = scale_stage(model, verified.best, seen, opts)
     t2 = time.perf_counter()
-    return build_registration(geom, model, geom_sha, verified.best, [r.seen for r in verified.runs],
-                              [r.ellipse for r in verified.runs], verified.checks, filled, skipped, opts,
-                              target_F_mm, (t0, t1, t2),
-                              pixel_fit=refined.blurred if refined.precision is not None else None)
+    return build_registration(geom, model, geom_sha, best, seen, [r.ellipse for r in verified.runs],
+                              verified.checks, filled, skipped, opts, target_F_mm, (t0, t1, t2),
+                              pixel_fit=pixel_fit, scale=scale)
 
 
 def refuse_self_symmetric(geom: FiducialGeometry, opts: SolveOptions) -> None:

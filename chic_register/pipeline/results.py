@@ -92,6 +92,7 @@ class Registration:
     geometry_sha256: str = ""
     skipped: tuple = ()
     uncertainty: object = field(repr=False, default=None)  # chic_register.precision.uncertainty.PoseUncertainty
+    scale: object = field(repr=False, default=None)  # chic_register.pipeline.scaling.ImageScale
 
     def to_dict(self) -> dict:
         """JSON-ready object, docs/interfaces.md section 4 plus extra keys (``covariance``, ``noise``,
@@ -104,17 +105,20 @@ class Registration:
             "skipped_slices": [s.to_dict() for s in self.skipped],
             "timing_ms": {k: round(v, 3) for k, v in self.timing_ms.items()},
             "geometry": {"name": self.geometry_name, "sha256": self.geometry_sha256},
+            **({"scale": self.scale.to_dict()} if self.scale is not None else {}),
             **(self.uncertainty.to_dict() if self.uncertainty is not None else {}),
         }
 
 
 def build_registration(geom: FiducialGeometry, model: TubeModel, geom_sha: str, best: Fit, seen: list[DetectedSlice],
                        ellipses, checks, filled, skipped, opts: SolveOptions, target_F_mm, times,
-                       pixel_fit=None) -> Registration:
+                       pixel_fit=None, scale=None) -> Registration:
     """The :class:`Registration` of a verified fit ``best`` on the slices ``seen``: per-slice results, the
     uncertainty (and the ``max_tre_mm`` test), timing from ``times`` (t0 start, t1 detected, t2 posed).
     ``ellipses``: per slice, its first guess's ellipse or None; ``checks``: per slice, the verification's
-    :class:`~chic_register.verify.pixels.SliceCheck` (None unverified); ``filled``: {source: lost pixels filled}.
+    :class:`~chic_register.verify.pixels.SliceCheck` (None unverified); ``filled``: {source: lost pixels filled};
+    ``scale``: the :class:`~chic_register.pipeline.scaling.ImageScale` (when fitted with the pose, its effect on
+    the pose widens the covariance before the precision tests).
     ``pixel_fit``: the :class:`~chic_register.fit.blurred.BlurredFit` the pose came from, whose covariance is then
     the pose's (the blob centres of wide blobs are biased by merged neighbours)."""
     t0, t1, t2 = times
@@ -152,6 +156,8 @@ def build_registration(geom: FiducialGeometry, model: TubeModel, geom_sha: str, 
         else:
             unc = registration_uncertainty(model, best, seen, target,
                                            "centroid" if not opts.centroid_model else "template (centroid covariance)")
+            if scale is not None and scale.fitted:
+                unc = unc.widened(scale.pose_covariance, "image scale")
             if opts.verify:
                 check_noise_precision(unc, model, opts)
         if unc.predicted_tre_mm > opts.max_tre_mm:
@@ -163,4 +169,4 @@ def build_registration(geom: FiducialGeometry, model: TubeModel, geom_sha: str, 
     timing = {"detect": (t1 - t0) * 1e3, "pose": (t2 - t1) * 1e3, "uncertainty": (t4 - t3) * 1e3,
               "total": (t4 - t0) * 1e3}
     return Registration("ok", T_sf, tuple(results), timing, geom.name, geom_sha, tuple(skipped),
-                        unc if opts.uncertainty or math.isfinite(opts.max_tre_mm) else None)
+                        unc if opts.uncertainty or math.isfinite(opts.max_tre_mm) else None, scale)

@@ -27,6 +27,7 @@ then translation along them in mm): the fiducial's points ``p`` (F) move by
 
 from __future__ import annotations
 
+import dataclasses
 import functools
 import math
 from dataclasses import dataclass
@@ -83,6 +84,13 @@ class PoseUncertainty:
             "target_F_mm": [float(v) for v in self.target_F_mm],
             "predicted_tre_mm": round(self.predicted_tre_mm, 6),
         }
+
+    def widened(self, extra: np.ndarray, why: str) -> PoseUncertainty:
+        """This uncertainty with ``extra`` (6, 6, the same parameters) added to its covariance (a parameter fitted
+        with the pose, as the image's scale), the predicted TRE recomputed; ``why`` joins the measurement's name."""
+        cov = self.covariance + 0.5 * (extra + extra.T)
+        return dataclasses.replace(self, covariance=cov, predicted_tre_mm=tre_rms_mm(cov, self.target_F_mm),
+                                   measurement=f"{self.measurement} + {why}")
 
 
 @functools.lru_cache(maxsize=1)

@@ -79,7 +79,6 @@ from chic_register.detect.noise import correlation_inflation, noise_correlation_
 from chic_register.errors import ImprecisePose, NoLock, SliceRefused
 from chic_register.fit.checks import (
     PRECISION_SIGMAS,
-    STRETCH_MIN,
     STRETCH_MOVE_SHARE,
     STRETCH_P,
     pose_precision,
@@ -345,9 +344,12 @@ def _unexplained(model, T_F_from_I, blobs: Blobs, assignment, canvas, spacing) -
     return out
 
 
-def _check_stretch(model, fit, xys, Ss, opts, slices) -> None:
+def _check_stretch(model, fit, xys, Ss, opts, slices, scale_fitted: bool) -> None:
     """:class:`NoLock` naming the axis when the tube positions fit a stretch of the image (a wrong pixel spacing,
-    :func:`stretch_test`) of over 2 % or one that moves the pose by more than a third of the trust limits.
+    :func:`stretch_test`) beyond ``opts.max_scale_error`` (2 %), or one that moves the pose by more than a third of
+    the trust limits unless ``scale_fitted``: the pose is fitted with the scale afterwards (``opts.fit_scale``, a
+    pose of several slices fitted to positions: :mod:`chic_register.pipeline.scaling`; one slice alone reads an
+    image's stretch as a tilt).
 
     A stretch alike along both axes (:data:`ISOTROPIC_SHARE`) is a scale: a
     wrong spacing, a scanner's gradient calibration or a print of another
@@ -356,7 +358,9 @@ def _check_stretch(model, fit, xys, Ss, opts, slices) -> None:
     register that scale."""
     scale, _, p, (moved_mm, moved_deg) = stretch_test(model, fit, xys, Ss)
     moves = moved_mm > STRETCH_MOVE_SHARE * opts.trust_tre_mm or moved_deg > STRETCH_MOVE_SHARE * opts.trust_rot_deg
-    if not (p < STRETCH_P and (float(np.max(np.abs(scale))) > STRETCH_MIN or moves)):
+    too_large = float(np.max(np.abs(scale))) > opts.max_scale_error
+    # a scale within the tolerance is fitted with the pose afterwards (chic_register.fit.scale), not refused
+    if not (p < STRETCH_P and (too_large or (moves and not scale_fitted))):
         return
     sx, sy = (float(v) for v in scale)
     detail = {"stretch": [round(sx, 4), round(sy, 4)], "stretch_p": float(p)}
@@ -399,6 +403,7 @@ def verify_fit(geom, model, fit, rivals, seen: list[DetectedSlice], opts, precis
     xys = [d.xy_mm for d in seen]
     Ss = [d.T_scanner_from_image for d in seen]
     blob_sets = [d.blobs for d in seen]
+    scale_fitted = opts.fit_scale and len(seen) > 1  # (chic_register.pipeline.scaling; a pixel fit keeps its own)
     out, contenders, refused = [], [], []
     for j, (sl, S, b) in enumerate(zip(slices, Ss, blob_sets)):
         T_F_from_I = fit.T_F_from_scanner @ S
@@ -407,7 +412,7 @@ def verify_fit(geom, model, fit, rivals, seen: list[DetectedSlice], opts, precis
                                  float(sl.slice_thickness_mm), b, fit.assignments[j], sl.source, psf_px=psf_px)
         except NoLock as exc:
             if "shift_px" in exc.detail:  # sections off where the pose puts them: a wrong spacing says why, if it is one
-                _check_stretch(model, fit, xys, Ss, opts, slices)
+                _check_stretch(model, fit, xys, Ss, opts, slices, scale_fitted)
             if not name_slice or len(slices) < 2:
                 raise
             refused.append((j, exc.reason))
@@ -428,7 +433,7 @@ def verify_fit(geom, model, fit, rivals, seen: list[DetectedSlice], opts, precis
             raise SliceRefused(outside[0][1], {"n_refused": len(outside)}, outside)
         if outside:
             raise NoLock(outside[0][1], {"envelope": out[outside[0][0]].envelope})
-    _check_stretch(model, fit, xys, Ss, opts, slices)
+    _check_stretch(model, fit, xys, Ss, opts, slices, scale_fitted)
     px = min(max(sl.pixel_spacing_mm) for sl in slices)
     tre, rot = precision or pose_precision(model, fit, Ss, px, exclude=[c.merged for c in out])
     # noise shared between neighbouring pixels (an interpolated or smoothed image) makes every estimate that takes

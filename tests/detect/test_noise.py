@@ -74,3 +74,17 @@ def test_clear_blocks_are_the_blocks_wholly_clear_of_blobs_and_finite():
             want = keep[:hb * 8, :wb * 8].reshape(hb, 8, wb, 8).all(axis=(1, 3))
             np.testing.assert_array_equal(clear_blocks(img, fps, guard, 8), want)
             assert want.any() and not want.all()
+
+
+def test_a_masked_background_is_read_where_it_is_not_masked():
+    """A volume exported masked: 70 % of the slice set to exactly zero, Gaussian noise (sigma 4) on an offset of 50
+    elsewhere. The noise is read from the unmasked pixels, not as zero."""
+    from chic_register.detect.noise import background_noise
+
+    rng = np.random.default_rng(0)
+    img = 50.0 + rng.normal(0.0, 4.0, (128, 128))
+    img[:, :90] = 0.0
+    est = background_noise(img, [])
+    assert est.sigma == pytest.approx(4.0, rel=0.1)
+    clean = np.zeros((64, 64))  # a noise-free render: no noise to read, and none is made up
+    assert background_noise(clean, []).sigma == 0.0

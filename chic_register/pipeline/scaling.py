@@ -1,0 +1,73 @@
+"""The registration's scale stage: the verified pose fitted again together with the image's scale.
+
+Where the data show a scale (the F test of :func:`~chic_register.fit.scale.fit_scale` below
+:data:`~chic_register.fit.checks.STRETCH_P`), the pose fitted with it is the answer: a rigid pose would have taken
+part of the scale as a tilt. A scale beyond ``max_scale_error`` is refused as a wrong pixel spacing; one whose fit
+moves the pose beyond the trust limits is refused as not separable from the pose.
+"""
+
+from __future__ import annotations
+
+import math
+from dataclasses import dataclass
+
+import numpy as np
+
+from chic_register.detect.detected import DetectedSlice
+from chic_register.errors import NoLock
+from chic_register.fit.checks import STRETCH_P
+from chic_register.fit.refine import Fit
+from chic_register.fit.scale import ScaleFit, fit_scale
+from chic_register.model.tube_model import TubeModel, poses_distinct
+from chic_register.options import SolveOptions
+
+
+@dataclass(frozen=True)
+class ImageScale:
+    """The image's scale as the registration found it: per axis of ``axes`` (x: the columns, y: the rows, z: the
+    slice spacing) its relative value and standard deviation, the F test's ``p`` (NaN: from a pixel fit's own
+    test), whether the pose was fitted with it, and what it adds to the pose's covariance (6, 6, F's parameters)."""
+
+    axes: tuple[str, ...]
+    scale: np.ndarray
+    scale_sd: np.ndarray
+    p: float
+    fitted: bool
+    pose_covariance: np.ndarray
+
+    @classmethod
+    def of(cls, sf: ScaleFit, fitted: bool) -> ImageScale:
+        return cls(sf.axes, sf.scale, sf.scale_sd, sf.p, fitted, sf.pose_covariance)
+
+    @classmethod
+    def of_pixel_fit(cls, blurred) -> ImageScale:
+        """The stretch of a :class:`~chic_register.fit.blurred.BlurredFit` (its covariance already holds it)."""
+        return cls(("x", "y"), np.array(blurred.stretch), np.array(blurred.stretch_sd), math.nan,
+                   bool(blurred.stretch_fitted), np.zeros((6, 6)))
+
+    def to_dict(self) -> dict:
+        return {"axes": list(self.axes), "scale": [round(float(v), 6) for v in self.scale],
+                "sd": [round(float(v), 6) for v in self.scale_sd],
+                **({"p": float(self.p)} if math.isfinite(self.p) else {}), "fitted": self.fitted}
+
+
+def scale_stage(model: TubeModel, fit: Fit, seen: list[DetectedSlice], opts: SolveOptions) -> tuple[Fit, ImageScale | None]:
+    """``(pose, scale)``: ``fit`` or, where the data show a scale, the pose fitted with it; :class:`NoLock` for a
+    scale beyond ``opts.max_scale_error`` or one the pose cannot be told apart from."""
+    if not opts.fit_scale:
+        return fit, None
+    sf = fit_scale(model, fit, seen)
+    if sf is None:
+        return fit, None
+    if not sf.p < STRETCH_P or len(seen) < 2:  # one slice alone reads a stretch as a tilt: reported, not fitted
+        return fit, ImageScale.of(sf, False)
+    worst = int(np.argmax(np.abs(sf.scale)))
+    if abs(sf.scale[worst]) > opts.max_scale_error:
+        raise NoLock(f"the image's scale along {sf.axes[worst]} is {100 * sf.scale[worst]:+.2f} % "
+                     f"(+-{100 * sf.scale_sd[worst]:.2f}), beyond the {100 * opts.max_scale_error:g} % a scanner's "
+                     f"calibration or a print explains: check the pixel spacing and the slice spacing "
+                     f"(--max-scale-error sets the limit)", {"scale": sf.to_dict()})
+    if poses_distinct(sf.fit.T_F_from_scanner, fit.T_F_from_scanner, model, opts.trust_tre_mm, opts.trust_rot_deg):
+        raise NoLock("the image's scale cannot be told apart from the pose: fitted with it, the pose moves beyond "
+                     f"the trust limits ({opts.trust_tre_mm:g} mm, {opts.trust_rot_deg:g} deg)", {"scale": sf.to_dict()})
+    return sf.fit, ImageScale.of(sf, True)
