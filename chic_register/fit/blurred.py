@@ -87,7 +87,6 @@ class BlurredFit:
     n_pixels: int
     stretch: tuple = (0.0, 0.0)
     stretch_sd: tuple = (0.0, 0.0)
-    stretch_fitted: bool = False  # the pose (and its covariance) is the one fitted with the stretch
 
     def covariance_F(self) -> np.ndarray:
         """The covariance in :data:`chic_register.precision.crlb.PARAMETER_ORDER` (deg, mm; rotation about F's axes through
@@ -247,7 +246,7 @@ def _jacobian(prob: _Problem, X: np.ndarray, coef: np.ndarray, centre: np.ndarra
 
 
 def blurred_fit(model: TubeModel, T_F_from_scanner: np.ndarray, slices, Ss, blob_sets, assignments,
-                psf_px: float | None = None, keep_stretch: bool = False):
+                psf_px: float | None = None):
     """Fit the pose and the point spread to the pixels of ``slices`` (scanner frames ``Ss``) through the blurred
     section model.
 
@@ -255,9 +254,7 @@ def blurred_fit(model: TubeModel, T_F_from_scanner: np.ndarray, slices, Ss, blob
     width; ``assignments``: per slice (K,) its blob per tube, -1 for none:
     the footprints (``blob_sets``) of unmatched blobs are left out) and ``psf_px`` (the point spread's sigma in pixels, else the best
     of :data:`SIGMAS_RADII` at the start). Returns a :class:`BlurredFit`, or
-    None when fewer than six sections are in the images. ``keep_stretch``: a stretch the pixels show (beyond
-    :data:`STRETCH_SIGMAS` of its deviation) stays fitted with the pose, as the scale of several slices is
-    (:mod:`chic_register.pipeline.scaling`); else the pose is fitted at the spacing as given.
+    None when fewer than six sections are in the images.
     """
     px = float(max(slices[0].pixel_spacing_mm))
     r_px = 0.5 * median(model.diameter_mm) / px
@@ -290,10 +287,6 @@ def blurred_fit(model: TubeModel, T_F_from_scanner: np.ndarray, slices, Ss, blob
     if stretch_fit is None:
         return None
     stretch, stretch_sd = prob.stretch.copy(), stretch_fit[1]
-    if keep_stretch and bool(np.any(np.abs(stretch) > STRETCH_SIGMAS * np.asarray(stretch_sd))):
-        cov, _, noise = stretch_fit[0], None, stretch_fit[2]
-        return BlurredFit(X, float(prob.sigma_px), cov[:6, :6], centre, noise, int(prob.y.size),
-                          tuple(float(v) for v in stretch), tuple(float(v) for v in stretch_sd), True)
     prob.stretch = np.zeros(2)
     X, fitted = _gauss_newton(prob, X, centre, sigma, n_free=7)
     if fitted is None:
@@ -353,22 +346,21 @@ def spread_slices(n_slices: int, n_max: int = BLURRED_MAX_SLICES) -> list[int]:
     return sorted({int(round(v)) for v in np.linspace(0, n_slices - 1, n_max + 2)[1:-1]})
 
 
-def blurred_stage(model: TubeModel, fit, seen: list[DetectedSlice], max_slices: int = BLURRED_MAX_SLICES,
-                  keep_stretch: bool = False):
+def blurred_stage(model: TubeModel, fit, seen: list[DetectedSlice], max_slices: int = BLURRED_MAX_SLICES):
     """``(fit, precision, blurred)``: the solver's pose (a ``refine._Fit``) refitted through the blurred model (on
     at most ``max_slices`` of the slices, :func:`spread_slices`), with
     its 1-sigma ``(TRE mm, rotation deg)`` and the :class:`BlurredFit` (point spread, residual noise);
     ``(fit, None, None)`` unchanged (``(fit, None, BlurredFit)`` when it moved too far) when no fit is possible or the pixel fit lands more
     than 1 mm or 1 degree from the blob pose (something in the boxes the model does not have: tissue, another
     object; the blobs' pose then stands, judged as it is). A significant stretch of the image (a wrong pixel
-    spacing) raises :class:`~chic_register.errors.NoLock`. ``keep_stretch``: as :func:`blurred_fit`'s."""
+    spacing) raises :class:`~chic_register.errors.NoLock`."""
     xys = [d.xy_mm for d in seen]
     slices = [d.slice for d in seen]
     Ss = [d.T_scanner_from_image for d in seen]
     blob_sets = [d.blobs for d in seen]
     pick = spread_slices(len(slices), max_slices)
     blurred = blurred_fit(model, fit.T_F_from_scanner, [slices[j] for j in pick], [Ss[j] for j in pick],
-                          [blob_sets[j] for j in pick], [fit.assignments[j] for j in pick], keep_stretch=keep_stretch)
+                          [blob_sets[j] for j in pick], [fit.assignments[j] for j in pick])
     if blurred is None:
         return fit, None, None
     stretch, sd = np.array(blurred.stretch), np.array(blurred.stretch_sd)

@@ -46,7 +46,7 @@ def refine_locked(model: TubeModel, geom: FiducialGeometry, fit: Fit, seen: list
         # the sections are blurred: the sharp section model does not describe them, a blurred one does
         from chic_register.fit.blurred import blurred_stage  # deferred: only wide blobs need it (one-shot start-up)
 
-        best, precision, blurred = blurred_stage(model, fit, seen, keep_stretch=opts.fit_scale and len(seen) > 1)
+        best, precision, blurred = blurred_stage(model, fit, seen)
         refined = Refined(best, fit, precision=precision, blurred=blurred)
     elif opts.section_fit and not opts.centroid_model:
         refined = _section_stage(model, fit, seen, opts)

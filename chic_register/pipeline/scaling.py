@@ -41,9 +41,10 @@ class ImageScale:
 
     @classmethod
     def of_pixel_fit(cls, blurred) -> ImageScale:
-        """The stretch of a :class:`~chic_register.fit.blurred.BlurredFit` (its covariance already holds it)."""
-        return cls(("x", "y"), np.array(blurred.stretch), np.array(blurred.stretch_sd), math.nan,
-                   bool(blurred.stretch_fitted), np.zeros((6, 6)))
+        """The stretch a :class:`~chic_register.fit.blurred.BlurredFit` measured (its pose is fitted at the spacing
+        as given; a significant stretch beyond 2 % is refused there)."""
+        return cls(("x", "y"), np.array(blurred.stretch), np.array(blurred.stretch_sd), math.nan, False,
+                   np.zeros((6, 6)))
 
     def to_dict(self) -> dict:
         return {"axes": list(self.axes), "scale": [round(float(v), 6) for v in self.scale],

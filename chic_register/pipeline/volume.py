@@ -210,7 +210,7 @@ def _fit_and_verify(geom, model, X: np.ndarray, all_slices, opts: SolveOptions, 
         assign = [assign_blobs(*plane_crossings(model, X @ S)[0:4:3], xy, gate) for xy, S in zip(xys, Ss)]
         start = dataclasses.replace(refine(model, xys, Ss, X, gates_mm=(), final_iters=0, assign0=assign),
                                     T_F_from_scanner=X)
-        best, precision, blurred = blurred_stage(model, start, seen, len(seen), opts.fit_scale)  # NoLock: a stretch
+        best, precision, blurred = blurred_stage(model, start, seen, len(seen))  # NoLock: a stretch
         if precision is not None or blurred is None:
             break
         X = blurred.T_F_from_scanner

@@ -403,7 +403,7 @@ def verify_fit(geom, model, fit, rivals, seen: list[DetectedSlice], opts, precis
     xys = [d.xy_mm for d in seen]
     Ss = [d.T_scanner_from_image for d in seen]
     blob_sets = [d.blobs for d in seen]
-    scale_fitted = opts.fit_scale and len(seen) > 1  # (chic_register.pipeline.scaling; a pixel fit keeps its own)
+    scale_fitted = opts.fit_scale and precision is None and len(seen) > 1  # (chic_register.pipeline.scaling)
     out, contenders, refused = [], [], []
     for j, (sl, S, b) in enumerate(zip(slices, Ss, blob_sets)):
         T_F_from_I = fit.T_F_from_scanner @ S
