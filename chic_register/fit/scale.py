@@ -35,7 +35,7 @@ ITERATIONS = 3
 class ScaleFit:
     """The pose fitted together with the image's scale.
 
-    ``fit``: the pose so fitted (the assignments of the rigid fit);
+    ``T_F_from_scanner``: the pose so fitted (:func:`scaled_fit` makes it a fit);
     ``scale`` (n,): per axis of ``axes``, the relative correction of the
     image's spacing that registers it rigidly (``+0.006``: the pixel
     spacing along that axis reads 0.6 % too small, or the fiducial is 0.6 %
@@ -47,7 +47,7 @@ class ScaleFit:
     :data:`~chic_register.model.pose_params.PARAMETER_ORDER`).
     """
 
-    fit: Fit
+    T_F_from_scanner: np.ndarray
     axes: tuple[str, ...]
     scale: np.ndarray
     scale_sd: np.ndarray
@@ -134,12 +134,17 @@ def fit_scale(model: TubeModel, fit: Fit, seen: list[DetectedSlice], sigma_mm: f
     C_rigid = var * np.linalg.pinv(Jp.T @ Jp)
     F = ((r_rigid - rss) / n) / (rss / dof) if rss > 0 else math.inf
     p = _f_tail(F, n, dof)
-    refit = refine(model, [d.xy_mm for d in seen], [d.T_scanner_from_image for d in seen], X, gates_mm=(),
-                   final_iters=0, assign0=[a.copy() for a in fit.assignments])
-    out_fit = Fit(X, refit.assignments, refit.residuals, refit.inside, refit.n_matched, refit.rms_mm,
-                  fit.measurements)
     extra = _to_F_parameters(C[:6, :6] - C_rigid, X)
-    return ScaleFit(out_fit, AXES[:n], s, np.sqrt(np.maximum(np.diag(C)[6:], 0.0)), p, extra)
+    return ScaleFit(X, AXES[:n], s, np.sqrt(np.maximum(np.diag(C)[6:], 0.0)), p, extra)
+
+
+def scaled_fit(model: TubeModel, fit: Fit, seen: list[DetectedSlice], sf: ScaleFit) -> Fit:
+    """``fit`` moved to the pose fitted with the scale (``sf``): its residuals at that pose, its assignments and
+    measurements kept."""
+    refit = refine(model, [d.xy_mm for d in seen], [d.T_scanner_from_image for d in seen], sf.T_F_from_scanner,
+                   gates_mm=(), final_iters=0, assign0=[a.copy() for a in fit.assignments])
+    return Fit(sf.T_F_from_scanner, refit.assignments, refit.residuals, refit.inside, refit.n_matched, refit.rms_mm,
+               fit.measurements)
 
 
 def _to_F_parameters(C_scanner: np.ndarray, X: np.ndarray) -> np.ndarray:

@@ -17,7 +17,7 @@ from chic_register.detect.detected import DetectedSlice
 from chic_register.errors import NoLock
 from chic_register.fit.checks import STRETCH_P
 from chic_register.fit.refine import Fit
-from chic_register.fit.scale import ScaleFit, fit_scale
+from chic_register.fit.scale import ScaleFit, fit_scale, scaled_fit
 from chic_register.model.tube_model import TubeModel, poses_distinct
 from chic_register.options import SolveOptions
 
@@ -68,7 +68,7 @@ def scale_stage(model: TubeModel, fit: Fit, seen: list[DetectedSlice], opts: Sol
                      f"(+-{100 * sf.scale_sd[worst]:.2f}), beyond the {100 * opts.max_scale_error:g} % a scanner's "
                      f"calibration or a print explains: check the pixel spacing and the slice spacing "
                      f"(--max-scale-error sets the limit)", {"scale": sf.to_dict()})
-    if poses_distinct(sf.fit.T_F_from_scanner, fit.T_F_from_scanner, model, opts.trust_tre_mm, opts.trust_rot_deg):
+    if poses_distinct(sf.T_F_from_scanner, fit.T_F_from_scanner, model, opts.trust_tre_mm, opts.trust_rot_deg):
         raise NoLock("the image's scale cannot be told apart from the pose: fitted with it, the pose moves beyond "
                      f"the trust limits ({opts.trust_tre_mm:g} mm, {opts.trust_rot_deg:g} deg)", {"scale": sf.to_dict()})
-    return sf.fit, ImageScale.of(sf, True)
+    return scaled_fit(model, fit, seen, sf), ImageScale.of(sf, True)
