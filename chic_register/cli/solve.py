@@ -12,7 +12,7 @@ import sys
 from pathlib import Path
 
 from chic_register.cli.console import note, status
-from chic_register.cli.inputs import add_igtl_args, check_spacing_flag, load_prior
+from chic_register.cli.inputs import add_igtl_args, load_prior, read_image_inputs
 from chic_register.errors import ChicRegisterError, NoLock
 
 HELP = "register one or more slices: one pose from all of them"
@@ -83,7 +83,7 @@ def run(args) -> int:
         if not (0 < args.prior_max_deg <= 180):
             raise ChicRegisterError(f"--prior-max-deg must be in (0, 180] deg, got {args.prior_max_deg:g}")
         options = {"prior": load_prior(args.prior), "prior_max_deg": args.prior_max_deg}
-    slices, skip, volume = _read_solve_inputs(args)
+    slices, skip, volume = read_image_inputs(args)
     extra = {}
     if args.target is not None:
         if not all(math.isfinite(v) for v in args.target):
@@ -197,34 +197,3 @@ def _series_hint(args, slices, skip: bool) -> str:
             f"give the series' folder as one volume: chic-register solve {Path(files[0]).parent} ...)")
 
 
-def _read_solve_inputs(args) -> tuple[list, bool, tuple | None]:
-    """The slices of solve, whether failing ones may be skipped, and ``(volume, indices)`` when the input is one
-    volume (registered by :func:`~chic_register.pipeline.volume.register_volume`, as the library does; indices
-    None: every native slice, those that do not lock skipped and reported).
-
-    2-D image files as they are; a volume by its --slices indices and
-    ranges, or, without them, every native slice.
-    """
-    from chic_register.io.images import is_volume_path, read_slices  # here, not at the top: as in run
-
-    check_spacing_flag(args)
-    volumes = [p for p in args.images if is_volume_path(p)]
-    if args.slices and not volumes:
-        raise ChicRegisterError("--slices applies to volume inputs (.nii, .nii.gz, .nrrd, .mha, DICOM series folder)")
-    if args.series is not None and not any(Path(p).is_dir() for p in args.images):
-        raise ChicRegisterError("--series applies to a folder of DICOM files (the series to read from it)")
-    slices, volume = [], None
-    for path in args.images:
-        if is_volume_path(path):
-            # here, not in run: a one-shot solve of 2-D slices stays fast without the volume readers (SimpleITK)
-            from chic_register.io.volumes import read_volume
-            from chic_register.pipeline.volume import parse_slice_indices
-
-            vol = read_volume(path, args.series)
-            nk = vol.shape[0]
-            ks = parse_slice_indices(args.slices, nk) if args.slices else range(nk)
-            slices.extend(vol.native_slice(k) for k in ks)
-            volume = (vol, list(ks) if args.slices else None)
-        else:
-            slices.extend(read_slices([path], args.pixel_spacing))
-    return slices, bool(volumes) and not args.slices, volume if len(args.images) == 1 else None

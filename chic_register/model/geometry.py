@@ -21,6 +21,7 @@ Geometry file (docs/interfaces.md section 2): YAML with ``format: chic-geometry`
 
 from __future__ import annotations
 
+import dataclasses
 import hashlib
 import json
 import math
@@ -377,3 +378,27 @@ def load_geometry(path, check_hash: bool = True) -> FiducialGeometry:
     except InputFileError as exc:
         raise GeometryFileError(p, exc.detail) from None
     return geometry_from_dict(data, p, check_hash=check_hash)
+
+
+def scaled_geometry(geom: FiducialGeometry, factor: float, calibration: dict) -> FiducialGeometry:
+    """``geom`` with every length in F multiplied by ``factor`` (the body, the tube centrelines and diameters; a
+    helix keeps its turn, so its pitch per mm divides by ``factor``), and ``calibration`` (a JSON-ready record of
+    where the factor came from) in its ``source``. The tool frame is the tool's, and stays as it is."""
+    k = float(factor)
+    if not (math.isfinite(k) and 0.5 < k < 2.0):
+        raise ValueError(f"a calibration factor must lie in (0.5, 2), got {factor!r}")
+    b = geom.body
+    body = dataclasses.replace(
+        b, length=b.length * k, outer_diameter=b.outer_diameter * k, inner_diameter=b.inner_diameter * k,
+        outer_side=None if b.outer_side is None else b.outer_side * k,
+        inner_side=None if b.inner_side is None else b.inner_side * k)
+    tubes = []
+    for t in geom.tubes:
+        if isinstance(t, LineTube):
+            tubes.append(dataclasses.replace(t, p0=tuple(k * v for v in t.p0), p1=tuple(k * v for v in t.p1),
+                                             diameter=t.diameter * k))
+        else:
+            tubes.append(dataclasses.replace(t, radius=t.radius * k, pitch_deg_per_mm=t.pitch_deg_per_mm / k,
+                                             z0=t.z0 * k, z1=t.z1 * k, diameter=t.diameter * k))
+    source = {**(geom.source or {}), "calibration": calibration}
+    return dataclasses.replace(geom, body=body, tubes=tuple(tubes), source=source)

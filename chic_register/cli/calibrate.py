@@ -1,0 +1,63 @@
+"""chic-register calibrate: a geometry file scaled to one printed fiducial on one scanner, from a volume of it."""
+
+from __future__ import annotations
+
+import json
+
+from chic_register.cli.console import note
+from chic_register.cli.inputs import load_prior, read_image_inputs
+from chic_register.errors import ChicRegisterError
+
+HELP = "scale a geometry file to a printed fiducial on a scanner, from a volume of it"
+DESCRIPTION = ("Register a volume (or several slices) of one printed fiducial, measure the image's scale (the "
+               "print's size against its geometry file, times the scanner's calibration) and write a geometry "
+               "file scaled by it, with the calibration recorded in its source. Single slices registered with it "
+               "need no scale of their own. Exit code 3 when the scans do not register.")
+
+
+def add_parser(subparsers) -> None:
+    """The calibrate subcommand and its flags."""
+    c = subparsers.add_parser("calibrate", help=HELP, description=DESCRIPTION)
+    c.set_defaults(run=run)
+    c.add_argument("images", nargs="+", metavar="SCAN", help="a volume, or several slices of one fiducial")
+    c.add_argument("--geometry", required=True, help="geometry.yaml written by chic-design build")
+    c.add_argument("--out", required=True, metavar="FILE", help="the calibrated geometry file to write")
+    c.add_argument("--slices", nargs="+", metavar="K", help="for a volume: the slice indices or ranges to use")
+    c.add_argument("--series", metavar="ID", default=None, help="the DICOM series of a folder holding several")
+    c.add_argument("--pixel-spacing", nargs=2, type=float, metavar=("ROW", "COL"),
+                   help="pixel spacing (mm) for PNG/TIFF/NPY images")
+    c.add_argument("--prior", metavar="FILE", help="as for solve: a pose file, or RAS, LPS, ...")
+    c.add_argument("--prior-max-deg", type=float, default=60.0, metavar="DEG", help="as for solve (default 60)")
+    c.add_argument("--json", action="store_true", help="print the calibration record as one JSON object")
+
+
+def run(args) -> int:
+    """Register the scans, scale the geometry, write it atomically."""
+    # here, not at the top: keeps chic-register's start-up fast (every command module is imported)
+    from chic_register.model.geometry import load_geometry, write_geometry
+    from chic_register.pipeline.register import register
+    from chic_register.studies.scale_calibration import calibrated_geometry
+
+    geom = load_geometry(args.geometry)
+    options = {}
+    if args.prior:
+        if not (0 < args.prior_max_deg <= 180):
+            raise ChicRegisterError(f"--prior-max-deg must be in (0, 180] deg, got {args.prior_max_deg:g}")
+        options = {"prior": load_prior(args.prior), "prior_max_deg": args.prior_max_deg}
+    slices, skip, volume = read_image_inputs(args)
+    if volume is not None:
+        from chic_register.pipeline.volume import register_volume  # here: as solve does
+
+        reg = register_volume(volume[0], geom, volume[1], **options)
+    else:
+        reg = register(slices, geom, skip_failed=skip, **options)
+    out = calibrated_geometry(geom, reg, args.images)
+    path = write_geometry(out, args.out)
+    record = out.source["calibration"]
+    if args.json:
+        print(json.dumps(record, indent=2))
+    else:
+        print(f"calibration factor {record['factor']:.5f} (SD {record['factor_sd']:.5f}) from "
+              f"{record['slices_used']} slices: lengths in F x {record['factor']:.5f}")
+    note(args, f"wrote {path}")
+    return 0
