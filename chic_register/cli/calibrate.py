@@ -5,8 +5,7 @@ from __future__ import annotations
 import json
 
 from chic_register.cli.console import note
-from chic_register.cli.inputs import load_prior, read_image_inputs
-from chic_register.errors import ChicRegisterError
+from chic_register.cli.inputs import prior_options, read_image_inputs, register_inputs
 
 HELP = "scale a geometry file to a printed fiducial on a scanner, from a volume of it"
 DESCRIPTION = ("Register a volume (or several slices) of one printed fiducial, measure the image's scale (the "
@@ -35,22 +34,11 @@ def run(args) -> int:
     """Register the scans, scale the geometry, write it atomically."""
     # here, not at the top: keeps chic-register's start-up fast (every command module is imported)
     from chic_register.model.geometry import load_geometry, write_geometry
-    from chic_register.pipeline.register import register
     from chic_register.studies.scale_calibration import calibrated_geometry
 
     geom = load_geometry(args.geometry)
-    options = {}
-    if args.prior:
-        if not (0 < args.prior_max_deg <= 180):
-            raise ChicRegisterError(f"--prior-max-deg must be in (0, 180] deg, got {args.prior_max_deg:g}")
-        options = {"prior": load_prior(args.prior), "prior_max_deg": args.prior_max_deg}
     slices, skip, volume = read_image_inputs(args)
-    if volume is not None:
-        from chic_register.pipeline.volume import register_volume  # here: as solve does
-
-        reg = register_volume(volume[0], geom, volume[1], **options)
-    else:
-        reg = register(slices, geom, skip_failed=skip, **options)
+    reg = register_inputs(slices, skip, volume, geom, **prior_options(args))
     out = calibrated_geometry(geom, reg, args.images)
     path = write_geometry(out, args.out)
     record = out.source["calibration"]

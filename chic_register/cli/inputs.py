@@ -138,3 +138,24 @@ def read_image_inputs(args) -> tuple[list, bool, tuple | None]:
         else:
             slices.extend(read_slices([path], args.pixel_spacing))
     return slices, bool(volumes) and not args.slices, volume if len(args.images) == 1 else None
+
+
+def prior_options(args) -> dict:
+    """The ``SolveOptions`` fields of ``--prior`` and ``--prior-max-deg`` (none without a prior)."""
+    if not args.prior:
+        return {}
+    if not (0 < args.prior_max_deg <= 180):
+        raise ChicRegisterError(f"--prior-max-deg must be in (0, 180] deg, got {args.prior_max_deg:g}")
+    return {"prior": load_prior(args.prior), "prior_max_deg": args.prior_max_deg}
+
+
+def register_inputs(slices, skip: bool, volume, geom, **options):
+    """Register what :func:`read_image_inputs` read: one volume through the library's volume registration (wide
+    blobs and all), else the slices (``skip``: those that do not lock are left out)."""
+    if volume is not None:
+        from chic_register.pipeline.volume import register_volume  # here: a 2-D solve never loads it
+
+        return register_volume(volume[0], geom, volume[1], **options)
+    from chic_register.pipeline.register import register  # here, not at the top: keeps start-up fast
+
+    return register(slices, geom, skip_failed=skip, **options)

@@ -12,7 +12,7 @@ import sys
 from pathlib import Path
 
 from chic_register.cli.console import note, status
-from chic_register.cli.inputs import add_igtl_args, load_prior, read_image_inputs
+from chic_register.cli.inputs import add_igtl_args, prior_options, read_image_inputs, register_inputs
 from chic_register.errors import ChicRegisterError, NoLock
 
 HELP = "register one or more slices: one pose from all of them"
@@ -74,15 +74,10 @@ def run(args) -> int:
     from chic_register.io.images import is_volume_path
     from chic_register.model.geometry import load_geometry
     from chic_register.outputs.deliver import EXIT_OUTPUT_FAILED, Delivery, OutputPlan, deliver, deliver_no_lock
-    from chic_register.pipeline.register import register
 
     plan = OutputPlan.from_args(args).check()
     geom = load_geometry(args.geometry)
-    options = {}
-    if args.prior:
-        if not (0 < args.prior_max_deg <= 180):
-            raise ChicRegisterError(f"--prior-max-deg must be in (0, 180] deg, got {args.prior_max_deg:g}")
-        options = {"prior": load_prior(args.prior), "prior_max_deg": args.prior_max_deg}
+    options = prior_options(args)
     slices, skip, volume = read_image_inputs(args)
     extra = {}
     if args.target is not None:
@@ -116,12 +111,7 @@ def run(args) -> int:
                "(those that do not show the fiducial are skipped)")
     try:
         try:
-            if volume is not None:  # one volume: the library's volume registration, wide blobs and all
-                from chic_register.pipeline.volume import register_volume  # here: 2-D solves never load it
-
-                reg = register_volume(volume[0], geom, volume[1], **options, **extra)
-            else:
-                reg = register(slices, geom, skip_failed=skip, **options, **extra)
+            reg = register_inputs(slices, skip, volume, geom, **options, **extra)
         except NoLock as exc:
             hint = _series_hint(args, slices, skip)
             if hint and hint not in exc.reason:
