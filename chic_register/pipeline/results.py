@@ -112,7 +112,7 @@ class Registration:
 
 def build_registration(geom: FiducialGeometry, model: TubeModel, geom_sha: str, best: Fit, seen: list[DetectedSlice],
                        ellipses, checks, filled, skipped, opts: SolveOptions, target_F_mm, times,
-                       pixel_fit=None, scale=None) -> Registration:
+                       pixel_fit=None, scale=None, uncertainty=None) -> Registration:
     """The :class:`Registration` of a verified fit ``best`` on the slices ``seen``: per-slice results, the
     uncertainty (and the ``max_tre_mm`` test), timing from ``times`` (t0 start, t1 detected, t2 posed).
     ``ellipses``: per slice, its first guess's ellipse or None; ``checks``: per slice, the verification's
@@ -120,7 +120,9 @@ def build_registration(geom: FiducialGeometry, model: TubeModel, geom_sha: str, 
     ``scale``: the :class:`~chic_register.pipeline.scaling.ImageScale` (when fitted with the pose, its effect on
     the pose widens the covariance before the precision tests).
     ``pixel_fit``: the :class:`~chic_register.fit.blurred.BlurredFit` the pose came from, whose covariance is then
-    the pose's (the blob centres of wide blobs are biased by merged neighbours)."""
+    the pose's (the blob centres of wide blobs are biased by merged neighbours). ``uncertainty``: the pose's
+    :class:`~chic_register.precision.uncertainty.PoseUncertainty` when the caller measured it (the every-slice
+    path, from the scatter its residuals show); it is then held to the same tests."""
     t0, t1, t2 = times
     T_sf = invert(best.T_F_from_scanner)
     results = []
@@ -154,8 +156,8 @@ def build_registration(geom: FiducialGeometry, model: TubeModel, geom_sha: str, 
         if pixel_fit is not None:
             unc = pixel_fit_uncertainty(pixel_fit, seen, target)
         else:
-            unc = registration_uncertainty(model, best, seen, target,
-                                           "centroid" if not opts.centroid_model else "template (centroid covariance)")
+            unc = uncertainty if uncertainty is not None else registration_uncertainty(
+                model, best, seen, target, "centroid" if not opts.centroid_model else "template (centroid covariance)")
             if scale is not None and scale.fitted:
                 unc = unc.widened(scale.pose_covariance, "image scale")
             if opts.verify:

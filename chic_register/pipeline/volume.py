@@ -28,6 +28,7 @@ from chic_register.model.geometry import FiducialGeometry
 from chic_register.model.pose import near_prior, rotation_deg, slice_angles
 from chic_register.model.tube_model import plane_crossings, prepare_geometry
 from chic_register.options import SolveOptions
+from chic_register.pipeline.every_slice import register_every_slice
 from chic_register.pipeline.register import refuse_self_symmetric, register
 from chic_register.pipeline.results import Registration, SkippedSlice, build_registration
 from chic_register.verify.pixels import verify_fit
@@ -90,8 +91,12 @@ def register_volume(volume: Volume, geom: FiducialGeometry, indices=None, **opti
             return wide
         may_widen = False
     try:
-        return register(slices, geom, skip_failed=indices is None, **options)
-    except NoLock:
+        if indices is None:
+            return register_every_slice(slices, geom, opts, options.get("detect_options"), options.get("target_F_mm"))
+        return register(slices, geom, **options)
+    except NoLock as exc:
+        if exc.detail.get("stage") == "joint":
+            raise  # the slices agreed on a pose and the tests refused it: no other path would see more
         if wide_refusal is not None:
             raise wide_refusal from None  # a pose found from the voxels and refused says more than the slices
         if not may_widen:

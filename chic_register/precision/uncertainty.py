@@ -395,3 +395,26 @@ def registration_uncertainty(model, fit, seen: list[DetectedSlice], target_F_mm,
         S[2 * n:2 * n + 2, 2 * n:2 * n + 2] = B
     return pose_uncertainty(J, S, np.concatenate(rs), noises, target_F_mm,
                             "section fit" if meas is not None else measurement)
+
+
+def scatter_uncertainty(model, fit, seen: list[DetectedSlice], sigma_mm: list[np.ndarray], target_F_mm,
+                        measurement: str = "centroid + model error") -> PoseUncertainty:
+    """The covariance of an unweighted centroid fit whose matched centres scatter by ``sigma_mm`` (per slice, (K,)
+    per tube, per coordinate, mm; NaN where unmatched): each centre's image noise and the model error the
+    residuals show (:class:`chic_register.pipeline.every_slice.Scatter`), rather than the noise alone."""
+    X = fit.T_F_from_scanner
+    Ad_sf = adjoint(invert(X))
+    Js, rs, var, noises = [], [], [], []
+    for j, d in enumerate(seen):
+        noises.append(background_noise(d.slice.pixels, d.blobs.footprints))
+        a = fit.assignments[j]
+        q, tan, _, inside = plane_crossings(model, X @ d.T_scanner_from_image, margin_mm=1e-9)
+        k = np.flatnonzero((a >= 0) & inside)
+        if k.size == 0:
+            continue
+        J_s = scanner_crossing_jacobian(q[k], tan[k], d.T_scanner_from_image)
+        Js.append((-J_s @ Ad_sf).reshape(-1, 6))
+        rs.append((q[k] - d.xy_mm[a[k]]).ravel())
+        var.append(np.repeat(np.asarray(sigma_mm[j], float)[k] ** 2, 2))
+    J = np.concatenate(Js)
+    return pose_uncertainty(J, np.diag(np.concatenate(var)), np.concatenate(rs), noises, target_F_mm, measurement)

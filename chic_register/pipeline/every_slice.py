@@ -1,0 +1,473 @@
+"""Every slice the frame is in: one pose fitted to the blob centres of all of a volume's slices at once.
+
+A real volume's slices each hold part of the frame: the end slices cut tubes
+short, a mask or the field of view hides some, anatomy adds blobs. Solving
+each slice alone and keeping those that pass a fixed residual limit throws
+most of them away (a real scan's tubes sit 0.2-0.6 mm from any rigid model:
+gradient non-linearity 150 mm from the isocentre, the print's tolerance).
+:func:`register_every_slice` instead
+
+1. locks a few slices alone (the ones whose blob count is closest to the
+   geometry's tube count, from the middle of the stack out) only to find
+   starting poses;
+2. fits one pose to the centres of every slice at once, each blob assigned to
+   the tube whose crossing is nearest (so a slice where some tubes are cut or
+   missing still counts its visible tubes);
+3. reads the scatter the data show: each blob centre's noise from the image
+   (:func:`~chic_register.precision.uncertainty.centroid_covariance`) plus a
+   model-error term estimated from the residuals themselves (:class:`Scatter`);
+4. leaves out a blob, then a whole slice, whose residual that scatter cannot
+   explain (a chi-square tail below :data:`OUTLIER_P`, shared over the slices),
+   refits, and fits the image's scale with the pose (:mod:`~chic_register.fit.scale`);
+5. refuses a model error beyond :data:`MODEL_ERROR_SHARE` of the channel
+   diameter, a distinct pose that fits nearly as well, and an imprecise pose.
+
+Slices left out are listed with their reason and their residual under the pose.
+"""
+
+from __future__ import annotations
+
+import dataclasses
+import math
+import time
+from dataclasses import dataclass
+
+import numpy as np
+
+from chic_register.detect.blobs import detect_blobs
+from chic_register.detect.detected import DetectedSlice
+from chic_register.detect.dropout import fill_slice_dropouts
+from chic_register.detect.noise import background_noise
+from chic_register.errors import AmbiguousFit, NoLock
+from chic_register.fit.checks import gamma_p
+from chic_register.fit.lock import lock_slice
+from chic_register.fit.refine import Fit, assign_blobs, match_gate_mm, refine
+from chic_register.model.geometry import FiducialGeometry
+from chic_register.model.pose import near_prior, slice_angles
+from chic_register.model.slices import Slice
+from chic_register.model.tube_model import TubeModel, plane_crossings, poses_distinct, prepare_geometry
+from chic_register.options import SolveOptions
+from chic_register.pipeline.detection import check_pixel_range, detect_slices
+from chic_register.pipeline.joint import no_slice_locked
+from chic_register.pipeline.results import Registration, SkippedSlice, build_registration
+from chic_register.pipeline.scaling import scale_stage
+from chic_register.precision.uncertainty import centroid_covariance, scatter_uncertainty, target_point
+
+#: A slice counts in the joint fit with at least this many of its tubes found where the pose puts them: one or two
+#: blobs near predicted crossings can be chance (anatomy, a neighbouring tube's smear).
+MIN_SLICE_TUBES = 3
+#: A blob, then a slice, is left out when the scatter cannot explain its residual at this tail probability, shared
+#: (Bonferroni) over the blobs or slices tested: with ~100 blobs a correct one is dropped about once in 1000 volumes.
+OUTLIER_P = 1e-3
+#: The model error (the scatter beyond each centre's own noise) may reach this share of the channel diameter: real
+#: scans show 0.2-0.6 mm for 3 mm rods (gradient non-linearity far from the isocentre, print and mounting tolerance);
+#: a pose whose crossings miss the blob centres by a third of a channel on average is not the frame's.
+MODEL_ERROR_SHARE = 1.0 / 3.0
+#: :func:`~chic_register.detect.blobs.detect_blobs`' default smallest blob area, as a share of a channel's section.
+MIN_AREA_FACTOR = 0.3
+#: Slices locked alone to find starting poses, at most (each costs 5-200 ms; the joint fit does the rest).
+MAX_LONE_LOCKS = 5
+#: A slice left out is said to disagree when this many channel diameters around the joint pose's crossings hold
+#: blobs of at least :data:`MIN_SLICE_TUBES` of its tubes (its frame is there, elsewhere).
+WIDE_GATE_SHARE = 3.0
+#: A distinct pose matching at least as many blobs with a scatter within this factor of the best's is a rival the
+#: data cannot rule out.
+RIVAL_SCATTER_RATIO = 1.5
+
+
+@dataclass(frozen=True)
+class Scatter:
+    """What the joint fit's residuals say of the blob centres' errors.
+
+    ``noise_mm`` (M,): each matched blob centre's 1-sigma error per coordinate
+    from the image noise alone; ``model_error_mm``: the scatter beyond it that
+    the residuals show (the same for every blob, robust: from the median
+    residual); ``sigma_mm`` (M,): both together.
+    """
+
+    noise_mm: np.ndarray
+    model_error_mm: float
+
+    @property
+    def sigma_mm(self) -> np.ndarray:
+        return np.sqrt(self.noise_mm ** 2 + self.model_error_mm ** 2)
+
+    @classmethod
+    def of(cls, r2_mm2: np.ndarray, noise_mm: np.ndarray) -> Scatter:
+        """From squared residual lengths ``r2_mm2`` (M,) and centre noise ``noise_mm`` (M,): the model error whose
+        total scatter puts the median of ``r2 / sigma^2`` at the chi-square (2 dof) median, 2 ln 2."""
+        if r2_mm2.size == 0:
+            return cls(noise_mm, 0.0)
+        target = 2.0 * math.log(2.0)
+
+        def median_ratio(m):
+            return float(np.median(r2_mm2 / np.maximum(noise_mm ** 2 + m * m, 1e-300)))
+
+        if median_ratio(0.0) <= target:
+            return cls(noise_mm, 0.0)
+        lo, hi = 0.0, math.sqrt(float(np.max(r2_mm2)))
+        for _ in range(60):
+            mid = 0.5 * (lo + hi)
+            lo, hi = (mid, hi) if median_ratio(mid) > target else (lo, mid)
+        return cls(noise_mm, hi)
+
+
+@dataclass(frozen=True)
+class JointFit:
+    """A pose fitted to every slice's centres: the fit (over all slices), which slices it uses, its scatter."""
+
+    fit: Fit
+    used: tuple[int, ...]
+    scatter: Scatter
+    dropped: tuple[tuple[int, str, float], ...]  # (slice, reason, residual RMS mm under the pose)
+
+
+def register_every_slice(slices: list[Slice], geom: FiducialGeometry, opts: SolveOptions,
+                         detect_options: dict | None = None, target_F_mm=None) -> Registration:
+    """One pose from every slice of ``slices`` (a volume's) that holds enough of the frame; the others are listed in
+    ``Registration.skipped``. Raises :class:`NoLock` with the reason when no pose is trustworthy."""
+    t0 = time.perf_counter()
+    slices, filled = fill_slice_dropouts(slices)
+    lows = check_pixel_range(slices)
+    model, geom_sha = prepare_geometry(geom)
+    seen = _detect_at_scan_width(detect_slices(slices, lows, model, detect_options), model, opts, detect_options)
+    t1 = time.perf_counter()
+    noise = [_centre_noise(d) for d in seen]
+    parents = [enclosing_blobs(d.blobs) for d in seen]
+    starts, lone_refusals = _starting_poses(model, seen, opts)
+    if not starts:
+        raise NoLock(no_slice_locked(lone_refusals), {"n_skipped": len(lone_refusals)})
+    fits = []
+    for X in starts:
+        if any(not poses_distinct(X, f.fit.T_F_from_scanner, model) for f in fits):
+            continue
+        jf = _joint_fit(model, seen, noise, parents, X)
+        if jf is not None and near_prior(jf.fit.T_F_from_scanner, opts):
+            fits.append(jf)
+    if not fits:
+        raise NoLock("the starting poses fit too few slices jointly: no two slices show the same pose",
+                     {"stage": "joint"})
+    fits.sort(key=lambda f: (-f.fit.n_matched, _scatter_mm(f)))
+    best = fits[0]
+    _check_model_error(model, best)  # before the pose-level tests: the sections' pixels may still give a pose
+    try:  # a refusal from here on judged a pose the slices agree on: the volume's answer, not a reason to look further
+        _check_rivals(model, best, fits[1:])
+        _check_unexplained(model, seen, best)
+        used = [seen[j] for j in best.used]
+        final, scale = scale_stage(model, _restrict(best.fit, best.used), used, opts)
+        t2 = time.perf_counter()
+        sigma = [_tube_sigmas(final.assignments[n], noise[j], best.scatter.model_error_mm)
+                 for n, j in enumerate(best.used)]
+        unc = scatter_uncertainty(model, final, used, sigma, target_point(geom, target_F_mm))
+        return build_registration(geom, model, geom_sha, final, used, [None] * len(used), None, filled,
+                                  _skipped(model, seen, best, final), opts, target_F_mm, (t0, t1, t2), scale=scale,
+                                  uncertainty=unc)
+    except NoLock as exc:
+        exc.detail.setdefault("stage", "joint")
+        raise
+
+
+def _tube_sigmas(a: np.ndarray, noise: np.ndarray, model_error_mm: float) -> np.ndarray:
+    """(K,) each matched tube's centre scatter per coordinate: its blob's noise and the model error (NaN unmatched)."""
+    out = np.full(a.size, math.nan)
+    k = np.flatnonzero(a >= 0)
+    out[k] = np.sqrt(noise[a[k]] ** 2 + model_error_mm ** 2)
+    return out
+
+
+def scan_blob_width_mm(seen: list[DetectedSlice], model: TubeModel, min_tubes: int) -> float:
+    """The blobs' width in a scan (mm): the median of the widths measured in its slices whose blob count looks like
+    the frame's (``min_tubes`` to 1.5 times the tube count: noise that splits a slice's blobs into fragments also
+    makes them read narrow); NaN when no slice does."""
+    K = len(model.ids)
+    widths = [d.blobs.width_mm for d in seen
+              if min_tubes <= d.xy_mm.shape[0] <= 1.5 * K and math.isfinite(d.blobs.width_mm)]
+    return float(np.median(widths)) if widths else math.nan
+
+
+def _detect_at_scan_width(seen: list[DetectedSlice], model: TubeModel, opts: SolveOptions,
+                          detect_options: dict | None) -> list[DetectedSlice]:
+    """Every slice detected again at the scan's blob width (:func:`scan_blob_width_mm`) rather than its own: one
+    width holds for the whole scan (the point-spread and the channels are the same), and a noisy slice's own
+    reading is the fragments' width."""
+    width = scan_blob_width_mm(seen, model, opts.min_tubes)
+    if not math.isfinite(width) or (detect_options or {}).get("size_from_image") is False:
+        return seen
+    f = width / median_diameter_mm(model)
+    kw = {**(detect_options or {}), "size_from_image": False,
+          "min_area_factor": (detect_options or {}).get("min_area_factor", MIN_AREA_FACTOR) / max(f, 1.0) ** 2}
+    out = []
+    for d in seen:
+        b = detect_blobs(d.slice.pixels, d.slice.pixel_spacing_mm, model.diameter_mm * f, **kw)
+        out.append(DetectedSlice.of(d.slice, dataclasses.replace(b, width_mm=width), d.T_scanner_from_image))
+    return out
+
+
+def median_diameter_mm(model: TubeModel) -> float:
+    return float(np.median(model.diameter_mm))
+
+
+def _centre_noise(d: DetectedSlice) -> np.ndarray:
+    """(N,) each blob centre's 1-sigma error per coordinate (mm) from the slice's image noise."""
+    b = d.blobs
+    if not len(b.footprints):
+        return np.zeros(0)
+    n = background_noise(d.slice.pixels, b.footprints)
+    out = []
+    for fp in b.footprints:
+        C = centroid_covariance(d.slice.pixels, fp, b.background, n, d.slice.pixel_spacing_mm)
+        out.append(math.sqrt(max(0.5 * float(np.trace(C)), 0.0)) if np.all(np.isfinite(C)) else math.inf)
+    return np.array(out)
+
+
+def enclosing_blobs(blobs) -> np.ndarray:
+    """(N,) per candidate, the index of the larger candidate whose footprint holds its centre (the detector offers a
+    blob that may be two touching tubes both whole and split), or -1."""
+    n = len(blobs.footprints)
+    out = np.full(n, -1)
+    for i in range(n):
+        r, c = blobs.centres_rc[i]
+        for j, (r0, c0, mask) in enumerate(blobs.footprints):
+            if j == i or blobs.area_px[j] <= blobs.area_px[i]:
+                continue
+            rr, cc = int(round(r)) - r0, int(round(c)) - c0
+            if 0 <= rr < mask.shape[0] and 0 <= cc < mask.shape[1] and mask[rr, cc]:
+                if out[i] < 0 or blobs.area_px[j] > blobs.area_px[out[i]]:
+                    out[i] = j
+    return out
+
+
+def _candidates(model: TubeModel, d: DetectedSlice, parent: np.ndarray, X: np.ndarray | None, gate: float):
+    """Indices of the blobs the joint fit matches in slice ``d``: every whole blob, and the parts of one only where
+    the pose ``X`` puts two tubes' crossings within ``gate`` of it (two touching tubes), not the whole then."""
+    whole = np.flatnonzero(parent < 0)
+    if X is None or not np.any(parent >= 0):
+        return whole
+    q, _, _, inside = plane_crossings(model, X @ d.T_scanner_from_image)
+    q = q[inside]
+    shared = [w for w in whole if np.any(parent == w)
+              and int(np.sum(np.linalg.norm(q - d.xy_mm[w], axis=1) < gate)) >= 2]
+    if not shared:
+        return whole
+    keep = [i for i in range(parent.size) if (parent[i] < 0 and i not in shared) or parent[i] in shared]
+    return np.array(keep, dtype=int)
+
+
+def _starting_poses(model: TubeModel, seen: list[DetectedSlice], opts: SolveOptions):
+    """Poses (T_F_from_scanner) of up to :data:`MAX_LONE_LOCKS` slices locked alone, with their close rivals; and
+    the slices that did not lock (:class:`SkippedSlice`, with their reasons). Slices whose blob count is nearest the tube count go first, from the middle out."""
+    K = len(model.ids)
+    lone = dataclasses.replace(opts, max_rms_px=max(opts.max_rms_px, 1.5))
+    middle = 0.5 * (len(seen) - 1)
+    order = sorted((j for j, d in enumerate(seen) if d.xy_mm.shape[0] >= opts.min_tubes),
+                   key=lambda j: (abs(seen[j].xy_mm.shape[0] - K), abs(j - middle)))
+    starts = []
+    refusals = [SkippedSlice(d.source, f"found {d.xy_mm.shape[0]} candidate tube cross-sections; need at least "
+                                       f"{opts.min_tubes}") for d in seen if d.xy_mm.shape[0] < opts.min_tubes]
+    for j in order[:MAX_LONE_LOCKS]:
+        d = seen[j]
+        try:
+            fits, _ = lock_slice(model, d.xy_mm, d.T_scanner_from_image, lone, d.resolution_mm)
+        except NoLock as exc:
+            refusals.append(SkippedSlice(d.source, exc.reason))
+            continue
+        top = fits[0].n_matched
+        starts += [f.T_F_from_scanner for f in fits if f.n_matched >= top - 1]
+    return starts, refusals
+
+
+def _scatter_mm(jf: JointFit) -> float:
+    return float(np.median(jf.scatter.sigma_mm)) if jf.scatter.sigma_mm.size else math.inf
+
+
+def _residual_rows(fit: Fit, noise, js):
+    """Per slice in ``js``: (tube indices matched, squared residual lengths (mm^2), their centres' noise (mm))."""
+    rows = []
+    for j in js:
+        a, r = fit.assignments[j], fit.residuals[j]
+        k = np.flatnonzero((a >= 0) & np.isfinite(r))
+        rows.append((k, r[k] ** 2, noise[j][a[k]]))
+    return rows
+
+
+def _joint_fit(model: TubeModel, seen, noise, parents, X: np.ndarray) -> JointFit | None:
+    """The pose near ``X`` fitted to every slice, blobs and then slices the scatter cannot explain left out; None
+    when fewer than two slices keep :data:`MIN_SLICE_TUBES` tubes."""
+    gate = match_gate_mm(model, max(d.resolution_mm for d in seen))
+    K = len(model.ids)
+    excl = [np.zeros(K, bool) for _ in seen]
+    keep = list(range(len(seen)))
+    idx = [_candidates(model, d, p, None, gate) for d, p in zip(seen, parents)]
+    fit = _fit_on(model, seen, idx, X, keep, excl, (1.5 * gate, gate, 0.6 * gate))
+    again = [_candidates(model, d, p, fit.T_F_from_scanner, gate) for d, p in zip(seen, parents)]
+    if any(a.size != b.size or np.any(a != b) for a, b in zip(again, idx)):  # touching tubes: their parts instead
+        idx = again
+        fit = _fit_on(model, seen, idx, fit.T_F_from_scanner, keep, excl, (0.6 * gate,))
+    dropped = []
+    for _ in range(2 * len(seen) + 4 * K):
+        rows = _residual_rows(fit, noise, keep)
+        ok = [(j, row) for j, row in zip(keep, rows) if row[0].size >= MIN_SLICE_TUBES]
+        if len(ok) < 2:
+            return None
+        r2 = np.concatenate([row[1] for _, row in ok])
+        sc = Scatter.of(r2, np.concatenate([row[2] for _, row in ok]))
+        sig2 = sc.sigma_mm ** 2
+        z_blob = r2 / sig2
+        worst = int(np.argmax(z_blob))
+        if math.exp(-0.5 * float(z_blob[worst])) < OUTLIER_P / r2.size:  # chi-square, 2 dof: P(> z) = exp(-z / 2)
+            offs = np.cumsum([0] + [row[0].size for _, row in ok])
+            s = int(np.searchsorted(offs, worst, side="right") - 1)
+            j, (k, _, _) = ok[s]
+            excl[j][k[worst - offs[s]]] = True
+            fit = _fit_on(model, seen, idx, fit.T_F_from_scanner, keep, excl, (0.6 * gate,))
+            continue
+        p_slice, pos = [], 0
+        for _, (k, r2j, _) in ok:
+            z = float(np.sum(r2j / sig2[pos:pos + k.size]))
+            p_slice.append(1.0 - gamma_p(float(k.size), 0.5 * z))  # chi-square with 2 k degrees of freedom
+            pos += k.size
+        s = int(np.argmin(p_slice))
+        if p_slice[s] < OUTLIER_P / len(ok) and len(ok) > 2:
+            j, (k, r2j, _) = ok[s]
+            rms = float(np.sqrt(np.mean(r2j)))
+            dropped.append((j, f"disagrees with the other slices: its {k.size} tubes sit {rms:.3f} mm RMS from the "
+                               f"joint pose's crossings, where the others scatter by "
+                               f"{math.sqrt(2.0 * float(np.median(sig2))):.3f} mm (chi-square tail {p_slice[s]:.1e})",
+                            rms))
+            keep = [i for i in keep if i != j]
+            fit = _fit_on(model, seen, idx, fit.T_F_from_scanner, keep, excl, (0.6 * gate,))
+            continue
+        return JointFit(fit, tuple(j for j, _ in ok), sc, tuple(dropped))
+    return None
+
+
+def _fit_on(model: TubeModel, seen, idx, X: np.ndarray, keep: list[int], excl, gates) -> Fit:
+    """The pose refitted from ``X`` on the slices ``keep`` (their blobs ``idx``, tubes ``excl`` left out), written
+    out over every slice with blob indices into each slice's own blobs (the others unassigned)."""
+    sub = refine(model, [seen[i].xy_mm[idx[i]] for i in keep], [seen[i].T_scanner_from_image for i in keep], X,
+                 gates_mm=gates, iters_per_gate=3, final_iters=3, exclude=[excl[i] for i in keep])
+    K = len(model.ids)
+    a = [np.full(K, -1) for _ in seen]
+    r = [np.full(K, math.nan) for _ in seen]
+    ins = [np.zeros(K, bool) for _ in seen]
+    for n, i in enumerate(keep):
+        a_n = sub.assignments[n]
+        a[i] = np.where(a_n >= 0, idx[i][np.maximum(a_n, 0)] if idx[i].size else -1, -1)
+        r[i], ins[i] = sub.residuals[n], sub.inside[n]
+    return Fit(sub.T_F_from_scanner, a, r, ins, sub.n_matched, sub.rms_mm, None)
+
+
+def _restrict(fit: Fit, used) -> Fit:
+    """``fit`` over the slices ``used`` only."""
+    a = [fit.assignments[j] for j in used]
+    r = [fit.residuals[j] for j in used]
+    n = sum(int(np.sum(x >= 0)) for x in a)
+    sq = sum(float(np.nansum(x ** 2)) for x in r)
+    return Fit(fit.T_F_from_scanner, a, r, [fit.inside[j] for j in used], n, math.sqrt(sq / n) if n else math.inf,
+               None)
+
+
+def _check_rivals(model: TubeModel, best: JointFit, others: list[JointFit]) -> None:
+    """:class:`AmbiguousFit` when a distinct pose matches as many blobs with a scatter near the best's."""
+    for o in others:
+        if (o.fit.n_matched >= best.fit.n_matched and _scatter_mm(o) <= RIVAL_SCATTER_RATIO * _scatter_mm(best)
+                and poses_distinct(o.fit.T_F_from_scanner, best.fit.T_F_from_scanner, model)):
+            raise AmbiguousFit(f"ambiguous fit: two distinct poses each explain {best.fit.n_matched} blob centres "
+                               f"of the volume, with scatters {_scatter_mm(best):.3f} and {_scatter_mm(o):.3f} mm",
+                               {"n_tubes": best.fit.n_matched})
+
+
+def unexplained_blobs(model: TubeModel, d: DetectedSlice, fit_T: np.ndarray, a: np.ndarray) -> np.ndarray:
+    """Indices of the blobs of slice ``d`` that look like the tubes matched in it (at least half their smallest
+    contrast and area) and lie within the frame (the tubes' predicted crossings' bounding circle, widened by a
+    channel) but that no tube explains (``a``: the blob index per tube)."""
+    b = d.blobs
+    matched = a[a >= 0]
+    if matched.size == 0:
+        return np.zeros(0, dtype=int)
+    q = plane_crossings(model, fit_T @ d.T_scanner_from_image)[0]
+    centre = q.mean(axis=0)
+    radius = float(np.max(np.linalg.norm(q - centre, axis=1))) + float(np.max(model.diameter_mm))
+    taken = np.zeros(len(b.area_px), bool)
+    taken[matched] = True
+    parent = enclosing_blobs(b)
+    for i in np.flatnonzero(parent >= 0):  # a matched whole explains its parts, a matched part its whole
+        if taken[parent[i]] or taken[i]:
+            taken[parent[i]] = taken[i] = True
+    alike = ((b.contrast >= 0.5 * float(b.contrast[matched].min())) & (b.area_px >= 0.5 * float(b.area_px[matched].min()))
+             & (np.linalg.norm(d.xy_mm - centre, axis=1) <= radius))
+    return np.flatnonzero(alike & ~taken)
+
+
+def _check_unexplained(model: TubeModel, seen, best: JointFit) -> None:
+    """:class:`NoLock` when, in at least a third of the slices used (and two), a tube the pose puts wholly in the
+    slice has no blob while a blob like the tubes lies unexplained within the frame: a pose turned onto most of a
+    frame's tubes leaves both in every slice; the right pose leaves them together only by chance (a bubble in one
+    tube where anatomy or a plate lies beside the frame)."""
+    hits = []
+    for j in best.used:
+        a = best.fit.assignments[j]
+        missing = np.flatnonzero((a < 0) & _interior(model, best.fit.T_F_from_scanner @ seen[j].T_scanner_from_image))
+        if missing.size and unexplained_blobs(model, seen[j], best.fit.T_F_from_scanner, a).size:
+            hits.append(j)
+    if len(hits) >= max(2, math.ceil(len(best.used) / 3)):
+        raise NoLock(f"the pose leaves a tube without its blob and a blob like the tubes' unexplained within the "
+                     f"frame in {len(hits)} of the {len(best.used)} slices it fits (e.g. {seen[hits[0]].source}): it "
+                     f"is not the frame's pose", {"unexplained_slices": len(hits)})
+
+
+def _interior(model: TubeModel, T_F_from_I: np.ndarray) -> np.ndarray:
+    """(K,) the tubes whose crossing lies a channel's width inside their ends (a section there is whole)."""
+    _, _, z_F, inside = plane_crossings(model, T_F_from_I)
+    d = float(np.max(model.diameter_mm))
+    return inside & (z_F >= model.z_lo + d) & (z_F <= model.z_hi - d)
+
+
+def _check_model_error(model: TubeModel, best: JointFit) -> None:
+    """:class:`NoLock` when the blobs sit further from the pose's crossings than any real frame's model error."""
+    limit = MODEL_ERROR_SHARE * float(np.median(model.diameter_mm))
+    m = best.scatter.model_error_mm
+    if m > limit:
+        raise NoLock(f"the blob centres sit {m:.3f} mm (per coordinate, beyond their noise) from the crossings of the "
+                     f"best pose, more than a third of the channel diameter ({limit:.2f} mm): the image does not show "
+                     f"this frame rigidly", {"model_error_mm": round(m, 4)})
+
+
+def _skipped(model: TubeModel, seen, best: JointFit, final: Fit) -> list[SkippedSlice]:
+    """Every slice not used, in order, with its reason (and its residual under the pose when it has one)."""
+    reasons = {j: (why, rms) for j, why, rms in best.dropped}
+    out = []
+    for j, d in enumerate(seen):
+        if j in best.used:
+            continue
+        if j in reasons:
+            why, rms = reasons[j]
+            out.append(SkippedSlice(d.source, why, rms))
+            continue
+        T_F_from_I = final.T_F_from_scanner @ d.T_scanner_from_image
+        inside = plane_crossings(model, T_F_from_I)[3]
+        if not inside.any():
+            depth = float(slice_angles(T_F_from_I).depth_mm)
+            out.append(SkippedSlice(d.source, f"the slice misses the frame (it crosses the axis at depth {depth:.1f} "
+                                              f"mm, outside the body [0, {model.length_mm:g}] mm)"))
+            continue
+        a = best.fit.assignments[j]
+        n = int(np.sum(a >= 0))
+        rms = float(np.sqrt(np.nanmean(best.fit.residuals[j][a >= 0] ** 2))) if n else None
+        q = plane_crossings(model, T_F_from_I)[0]
+        wide = assign_blobs(q, inside, d.xy_mm, WIDE_GATE_SHARE * float(np.max(model.diameter_mm)))
+        if int(np.sum(wide >= 0)) >= max(MIN_SLICE_TUBES, n + 1):  # its blobs are there, but off the pose's crossings
+            off = float(np.sqrt(np.mean(np.sum((q[wide >= 0] - d.xy_mm[wide[wide >= 0]]) ** 2, axis=1))))
+            out.append(SkippedSlice(d.source, f"disagrees with the other slices: {int(np.sum(wide >= 0))} of its "
+                                              f"blobs lie {off:.3f} mm RMS from the crossings of the joint pose "
+                                              f"(within {n} of them: {MIN_SLICE_TUBES} needed)", off))
+            continue
+        if d.xy_mm.shape[0] == 0:
+            why = f"found 0 candidate tube cross-sections (the pose puts {int(inside.sum())} tubes in the slice)"
+        elif n == 0:
+            why = f"no blob where the pose puts the {int(inside.sum())} tubes that cross the slice"
+        else:
+            why = (f"only {n} of the {int(inside.sum())} tubes the pose puts in the slice show a blob there "
+                   f"(a slice counts with {MIN_SLICE_TUBES})")
+        out.append(SkippedSlice(d.source, why, rms))
+    return out

@@ -1,0 +1,96 @@
+"""A volume registered from every slice the frame is in: real scans, partial slices, the scatter the data show."""
+
+import dataclasses
+import math
+
+import numpy as np
+import pytest
+
+from chic_register.cli.inputs import load_prior
+from chic_register.detect.blobs import Blobs
+from chic_register.errors import NoLock
+from chic_register.imaging.simulate import simulate_volume
+from chic_register.io.volumes import read_volume
+from chic_register.model.pose import rigid, rot_y, rot_z
+from chic_register.pipeline.every_slice import MIN_SLICE_TUBES, Scatter, enclosing_blobs
+from chic_register.pipeline.volume import register_volume
+from tests.conftest import REAL
+from tests.helpers import ZF_CENTRE, pose_difference, tre_mm
+
+#: ZFrameRegistration's pose of the masked scan (tests/data/real/README.md), slices 6-11.
+MASKED_B_REFERENCE = np.array([[-0.999919, 0.012362, 0.003162, 11.135927],
+                               [-0.012422, -0.999728, -0.019757, -14.787442],
+                               [0.002917, -0.019795, 0.999800, -136.789753],
+                               [0.0, 0.0, 0.0, 1.0]])
+
+
+def test_scatter_is_the_model_error_that_puts_the_median_residual_at_its_chi_square_median():
+    m = 0.3
+    r2 = np.full(11, 2.0 * math.log(2.0) * (0.01 ** 2 + m ** 2))  # every residual at the median of its chi-square
+    sc = Scatter.of(r2, np.full(11, 0.01))
+    assert sc.model_error_mm == pytest.approx(m, rel=1e-6)
+    np.testing.assert_allclose(sc.sigma_mm, math.hypot(0.01, m), rtol=1e-6)
+    # residuals the noise alone explains leave no model error
+    assert Scatter.of(np.full(5, 1e-4), np.full(5, 0.05)).model_error_mm == 0.0
+
+
+def test_a_split_blob_knows_its_whole():
+    mask = np.ones((4, 6), bool)
+    half = np.zeros((4, 6), bool)
+    half[:, :3] = True
+    b = Blobs(centres_rc=np.array([[11.5, 12.5], [11.5, 11.0], [40.0, 40.0]]), area_px=np.array([24.0, 12.0, 20.0]),
+              mean_intensity=np.ones(3), axis_ratio=np.ones(3), contrast=np.full(3, 10.0), background=0.0,
+              noise_sigma=1.0, threshold=0.5, footprints=((10, 10, mask), (10, 10, half), (38, 38, np.ones((5, 5), bool))))
+    np.testing.assert_array_equal(enclosing_blobs(b), [-1, 0, -1])
+
+
+def test_the_real_masked_scan_registers_from_every_slice_of_the_frame(zframe_geometry):
+    """All seven slices that show the frame (5-11) are used, the image's 0.6 % scale along x is fitted, and the pose
+    lands near the reference algorithm's (whose own spread over slice choices is 0.1 mm, 0.1-0.15 deg)."""
+    reg = register_volume(read_volume(REAL / "zframe-masked-b.nrrd"), zframe_geometry, prior=load_prior("RAS"))
+    used = sorted(int(s.source.split("[k=")[1].rstrip("]")) for s in reg.slices)
+    assert used == list(range(5, 12))
+    assert all(s.reason.startswith(("no blob where", "found 0")) for s in reg.skipped)
+    assert reg.scale.fitted and reg.scale.axes == ("x", "y", "z")
+    x = reg.scale.scale[0]
+    assert 0.003 < x < 0.01 and x > 3 * reg.scale.scale_sd[0]
+    assert tre_mm(reg.T_scanner_from_fiducial, MASKED_B_REFERENCE, ZF_CENTRE) < 0.2
+    assert pose_difference(reg.T_scanner_from_fiducial, MASKED_B_REFERENCE)[1] < 0.3
+    # the covariance is the scatter's (0.25 mm per coordinate, the model error), not the pixel noise's (0.015 mm)
+    noise = reg.uncertainty.to_dict()["noise"]
+    assert noise["measurement"].startswith("centroid + model error") and 0.5 < noise["residual_chi2_per_dof"] < 2
+
+
+def test_the_clinical_scan_is_judged_on_all_its_frame_slices(zframe_geometry):
+    """The unmasked clinical scan (thighs in view): thirteen slices hold the frame; their rods sit about 0.6 mm from
+    any rigid frame (they bend across the stack), so the pose is known to ~0.45 deg (1 sigma) and refused at the
+    default trust limits; with wider limits it is reported, from at least ten slices."""
+    vol = read_volume(REAL / "zframe-clinical-3t.nrrd")
+    with pytest.raises(NoLock, match="not precise enough"):
+        register_volume(vol, zframe_geometry, prior=load_prior("RAS"))
+    reg = register_volume(vol, zframe_geometry, prior=load_prior("RAS"), trust_rot_deg=2.0)
+    assert len(reg.slices) >= 10
+    assert all(s.n_tubes >= MIN_SLICE_TUBES for s in reg.slices)
+
+
+@pytest.fixture(scope="module")
+def cut_volume(z001):
+    """A tilted Z-frame volume reaching past both ends of the frame."""
+    T = rigid(rot_z(15) @ rot_y(6), (1.0, -2.0, -30.0))
+    sv = simulate_volume(z001, T, (96, 96, 30), (1.0, 1.0, 2.5), noise="rician", snr=20, rng=3, supersample=2,
+                         thickness_samples=2)
+    return sv
+
+
+def test_a_slice_with_rods_missing_still_counts_its_visible_rods(z001, cut_volume):
+    T = cut_volume.T_scanner_from_fiducial
+    vox = np.array(cut_volume.volume.voxels)
+    prior = rigid(T[:3, :3], (0, 0, 0))
+    whole = register_volume(cut_volume.volume, z001, prior=prior)
+    k = sorted(int(s.source.split("[k=")[1].rstrip("]")) for s in whole.slices)[len(whole.slices) // 2]
+    third = vox.shape[2] // 3
+    vox[k, :, :third] = vox[0, :, :third]  # a third of the slice shows only noise (an empty slice's)
+    reg = register_volume(dataclasses.replace(cut_volume.volume, voxels=vox), z001, prior=prior)
+    cut = [s for s in reg.slices if s.source.endswith(f"[k={k}]")]
+    assert cut and MIN_SLICE_TUBES <= cut[0].n_tubes < 7
+    assert tre_mm(reg.T_scanner_from_fiducial, T, ZF_CENTRE) < 0.3
