@@ -43,7 +43,7 @@ from chic_register.fit.checks import gamma_p
 from chic_register.fit.lock import lock_slice
 from chic_register.fit.refine import Fit, assign_blobs, match_gate_mm, refine
 from chic_register.model.geometry import FiducialGeometry
-from chic_register.model.pose import near_prior, slice_angles
+from chic_register.model.pose import near_prior, rotation_deg, slice_angles
 from chic_register.model.slices import Slice
 from chic_register.model.tube_model import TubeModel, plane_crossings, poses_distinct, prepare_geometry
 from chic_register.options import SolveOptions
@@ -70,6 +70,12 @@ MAX_LONE_LOCKS = 5
 #: A slice left out is said to disagree when this many channel diameters around the joint pose's crossings hold
 #: blobs of at least :data:`MIN_SLICE_TUBES` of its tubes (its frame is there, elsewhere).
 WIDE_GATE_SHARE = 3.0
+#: The share of the tube crossings a pose puts wholly inside its slices that must show a blob: a bubble, a dim or an
+#: unfilled channel lose some (three of nine), a pose that lines up a subset of the frame's blobs loses half.
+EXPLAINED_SHARE = 0.75
+#: A pose outside the prior that matches this share more blob centres (and at least :data:`MIN_SLICE_TUBES` more)
+#: than the best within it shows the frame is not mounted as the prior says.
+OUTSIDE_SHARE = 0.1
 #: A distinct pose matching at least as many blobs with a scatter within this factor of the best's is a rival the
 #: data cannot rule out.
 RIVAL_SCATTER_RATIO = 1.5
@@ -137,22 +143,40 @@ def register_every_slice(slices: list[Slice], geom: FiducialGeometry, opts: Solv
     starts, lone_refusals = _starting_poses(model, seen, opts)
     if not starts:
         raise NoLock(no_slice_locked(lone_refusals), {"n_skipped": len(lone_refusals)})
-    fits = []
-    for X in starts:
-        if any(not poses_distinct(X, f.fit.T_F_from_scanner, model) for f in fits):
-            continue
-        jf = _joint_fit(model, seen, noise, parents, X)
-        if jf is not None and near_prior(jf.fit.T_F_from_scanner, opts):
-            fits.append(jf)
-    if not fits:
-        raise NoLock("the starting poses fit too few slices jointly: no two slices show the same pose",
-                     {"stage": "joint"})
-    fits.sort(key=lambda f: (-f.fit.n_matched, _scatter_mm(f)))
-    best = fits[0]
-    _check_model_error(model, best)  # before the pose-level tests: the sections' pixels may still give a pose
+    groups: list[tuple[JointFit, set]] = []  # each distinct joint pose and the lone-locked slices that lead to it
+    for j, X in starts:
+        same = [g for g in groups if not poses_distinct(X, g[0].fit.T_F_from_scanner, model)]
+        if not same:
+            jf = _joint_fit(model, seen, noise, parents, X)
+            if jf is None:
+                continue
+            same = [g for g in groups if not poses_distinct(jf.fit.T_F_from_scanner, g[0].fit.T_F_from_scanner, model)]
+            if not same:
+                groups.append((jf, {j}))
+                continue
+        same[0][1].add(j)
+    fits = [g for g in groups if near_prior(g[0].fit.T_F_from_scanner, opts)]
+    outside = [g[0] for g in groups if not near_prior(g[0].fit.T_F_from_scanner, opts)]
+    if not fits and outside:
+        o = max(outside, key=lambda f: f.fit.n_matched)
+        turn = rotation_deg(o.fit.T_F_from_scanner[:3, :3].T, np.asarray(opts.prior, float)[:3, :3])
+        raise NoLock(f"the slices show the frame turned {turn:.0f} deg from the prior ({o.fit.n_matched} blob centres "
+                     f"fit that pose), beyond --prior-max-deg {opts.prior_max_deg:g}: no pose near the prior explains "
+                     f"them; check how the frame is mounted", {"stage": "joint", "n_outside": o.fit.n_matched})
+    # a pose is the volume's when the slices locked alone lead to it from at least two of them, and to no other
+    supported = [g for g in fits if len(g[1]) >= 2]
+    if len(supported) != 1:
+        raise NoLock(f"the slices locked alone lead to {len(supported)} distinct poses that two or more of them agree "
+                     f"on (of {len(fits)} poses fitted to the volume's blob centres); one is needed",
+                     {"n_poses": len(supported)})
+    best = supported[0][0]
+    others = sorted((g[0] for g in fits if g[0] is not best), key=lambda f: (-f.fit.n_matched, _scatter_mm(f)))
+    # centres that fit no rigid pose well, or two poses nearly as well: the sections' pixels may still tell
+    _check_model_error(model, best)
+    _check_explained(model, seen, best)
+    _check_rivals(model, best, others)
     try:  # a refusal from here on judged a pose the slices agree on: the volume's answer, not a reason to look further
-        _check_rivals(model, best, fits[1:])
-        _check_unexplained(model, seen, best)
+        _check_outside_prior(model, best, outside, opts)
         used = [seen[j] for j in best.used]
         final, scale = scale_stage(model, _restrict(best.fit, best.used), used, opts)
         t2 = time.perf_counter()
@@ -254,10 +278,12 @@ def _candidates(model: TubeModel, d: DetectedSlice, parent: np.ndarray, X: np.nd
 
 
 def _starting_poses(model: TubeModel, seen: list[DetectedSlice], opts: SolveOptions):
-    """Poses (T_F_from_scanner) of up to :data:`MAX_LONE_LOCKS` slices locked alone, with their close rivals; and
-    the slices that did not lock (:class:`SkippedSlice`, with their reasons). Slices whose blob count is nearest the tube count go first, from the middle out."""
+    """``(slice, T_F_from_scanner)`` of up to :data:`MAX_LONE_LOCKS` slices locked alone (whatever the prior), with
+    their close rivals; and the slices that did not lock (:class:`SkippedSlice`, with their reasons). Slices whose
+    blob count is nearest the tube count go first, from the middle out."""
     K = len(model.ids)
-    lone = dataclasses.replace(opts, max_rms_px=max(opts.max_rms_px, 1.5))
+    # without the prior: a pose outside it that explains more of the frame is evidence against the prior's pose
+    lone = dataclasses.replace(opts, max_rms_px=max(opts.max_rms_px, 1.5), prior=None)
     middle = 0.5 * (len(seen) - 1)
     order = sorted((j for j, d in enumerate(seen) if d.xy_mm.shape[0] >= opts.min_tubes),
                    key=lambda j: (abs(seen[j].xy_mm.shape[0] - K), abs(j - middle)))
@@ -272,7 +298,7 @@ def _starting_poses(model: TubeModel, seen: list[DetectedSlice], opts: SolveOpti
             refusals.append(SkippedSlice(d.source, exc.reason))
             continue
         top = fits[0].n_matched
-        starts += [f.T_F_from_scanner for f in fits if f.n_matched >= top - 1]
+        starts += [(j, f.T_F_from_scanner) for f in fits if f.n_matched >= top - 1]
     return starts, refusals
 
 
@@ -377,43 +403,32 @@ def _check_rivals(model: TubeModel, best: JointFit, others: list[JointFit]) -> N
                                {"n_tubes": best.fit.n_matched})
 
 
-def unexplained_blobs(model: TubeModel, d: DetectedSlice, fit_T: np.ndarray, a: np.ndarray) -> np.ndarray:
-    """Indices of the blobs of slice ``d`` that look like the tubes matched in it (at least half their smallest
-    contrast and area) and lie within the frame (the tubes' predicted crossings' bounding circle, widened by a
-    channel) but that no tube explains (``a``: the blob index per tube)."""
-    b = d.blobs
-    matched = a[a >= 0]
-    if matched.size == 0:
-        return np.zeros(0, dtype=int)
-    q = plane_crossings(model, fit_T @ d.T_scanner_from_image)[0]
-    centre = q.mean(axis=0)
-    radius = float(np.max(np.linalg.norm(q - centre, axis=1))) + float(np.max(model.diameter_mm))
-    taken = np.zeros(len(b.area_px), bool)
-    taken[matched] = True
-    parent = enclosing_blobs(b)
-    for i in np.flatnonzero(parent >= 0):  # a matched whole explains its parts, a matched part its whole
-        if taken[parent[i]] or taken[i]:
-            taken[parent[i]] = taken[i] = True
-    alike = ((b.contrast >= 0.5 * float(b.contrast[matched].min())) & (b.area_px >= 0.5 * float(b.area_px[matched].min()))
-             & (np.linalg.norm(d.xy_mm - centre, axis=1) <= radius))
-    return np.flatnonzero(alike & ~taken)
+def _check_outside_prior(model: TubeModel, best: JointFit, outside: list[JointFit], opts: SolveOptions) -> None:
+    """:class:`NoLock` when a pose the prior rules out matches clearly more blob centres than the best it allows: the
+    frame is not mounted as the prior says (upside down, say), and the prior's pose explains only part of it."""
+    more = [o for o in outside if o.fit.n_matched >= best.fit.n_matched + max(MIN_SLICE_TUBES,
+                                                                            OUTSIDE_SHARE * best.fit.n_matched)
+            and _scatter_mm(o) <= RIVAL_SCATTER_RATIO * _scatter_mm(best)]
+    if more:
+        o = max(more, key=lambda f: f.fit.n_matched)
+        raise NoLock(f"a pose turned more than {opts.prior_max_deg:g} deg from the prior explains {o.fit.n_matched} "
+                     f"blob centres of the volume, the best near it only {best.fit.n_matched}: the frame is not "
+                     f"mounted as --prior says", {"n_outside": o.fit.n_matched, "n_tubes": best.fit.n_matched})
 
 
-def _check_unexplained(model: TubeModel, seen, best: JointFit) -> None:
-    """:class:`NoLock` when, in at least a third of the slices used (and two), a tube the pose puts wholly in the
-    slice has no blob while a blob like the tubes lies unexplained within the frame: a pose turned onto most of a
-    frame's tubes leaves both in every slice; the right pose leaves them together only by chance (a bubble in one
-    tube where anatomy or a plate lies beside the frame)."""
-    hits = []
+def _check_explained(model: TubeModel, seen, best: JointFit) -> None:
+    """:class:`NoLock` when the pose finds blobs for fewer than :data:`EXPLAINED_SHARE` of the tubes it puts wholly
+    inside the slices it uses: a pose of the frame explains its image (a bubble or an unfilled channel loses a few
+    tubes); one that explains half is a guess that lines up a subset."""
+    X = best.fit.T_F_from_scanner
+    inner = matched = 0
     for j in best.used:
-        a = best.fit.assignments[j]
-        missing = np.flatnonzero((a < 0) & _interior(model, best.fit.T_F_from_scanner @ seen[j].T_scanner_from_image))
-        if missing.size and unexplained_blobs(model, seen[j], best.fit.T_F_from_scanner, a).size:
-            hits.append(j)
-    if len(hits) >= max(2, math.ceil(len(best.used) / 3)):
-        raise NoLock(f"the pose leaves a tube without its blob and a blob like the tubes' unexplained within the "
-                     f"frame in {len(hits)} of the {len(best.used)} slices it fits (e.g. {seen[hits[0]].source}): it "
-                     f"is not the frame's pose", {"unexplained_slices": len(hits)})
+        whole = _interior(model, X @ seen[j].T_scanner_from_image)
+        inner += int(whole.sum())
+        matched += int(np.sum(whole & (best.fit.assignments[j] >= 0)))
+    if inner and matched < EXPLAINED_SHARE * inner:
+        raise NoLock(f"the pose fitted to the volume's blob centres finds blobs for only {matched} of the {inner} "
+                     f"tube crossings it puts wholly inside its {len(best.used)} slices", {"explained": matched})
 
 
 def _interior(model: TubeModel, T_F_from_I: np.ndarray) -> np.ndarray:

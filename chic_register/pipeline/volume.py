@@ -69,9 +69,13 @@ def parse_slice_indices(tokens, n_slices: int, source: str = "--slices") -> list
 def register_volume(volume: Volume, geom: FiducialGeometry, indices=None, **options) -> Registration:
     """One pose from a volume's native k-slices.
 
-    ``indices`` None: every slice is tried and those that do not lock, or
-    disagree with the others, are skipped (listed with their reasons); else
-    exactly those slices, each of which must lock. ``options`` go to
+    ``indices`` None: the pose fitted to every slice that holds enough of the
+    frame (:func:`~chic_register.pipeline.every_slice.register_every_slice`;
+    the others are listed with their reasons); where its blob centres give no
+    pose, the sections' pixels: the volume's wide blobs through the blurred
+    model, or each slice's section fit and verification
+    (:func:`~chic_register.pipeline.register.register`). Else exactly those
+    slices, each of which must lock. ``options`` go to
     :func:`~chic_register.pipeline.register.register`.
     """
     nk = volume.shape[0]
@@ -80,31 +84,32 @@ def register_volume(volume: Volume, geom: FiducialGeometry, indices=None, **opti
     opts = dataclasses.replace(options.get("options") or SolveOptions(),
                                **{k: v for k, v in options.items() if k not in _NOT_OPTIONS})
     refuse_self_symmetric(geom, opts)  # before any work: no image can choose between the twins
-    may_widen = indices is None and opts.blurred_fit and opts.verify and not opts.centroid_model
-    wide_refusal = None
-    if may_widen and _looks_wide(volume, geom):  # the slices' own solve would mostly fail, at a cost: this first
+    if indices is not None:
+        return register(slices, geom, **options)
+    try:
+        return register_every_slice(slices, geom, opts, options.get("detect_options"), options.get("target_F_mm"))
+    except NoLock as exc:
+        if exc.detail.get("stage") == "joint":
+            raise  # the slices agreed on a pose and its tests refused it: no other path would see more
+        first = exc
+    # no pose the slices' centres agree on, or centres no rigid pose fits: the sections' own pixels may still tell
+    may_widen = opts.blurred_fit and opts.verify and not opts.centroid_model
+    looked_wide = may_widen and _looks_wide(volume, geom)
+    if looked_wide:  # merged neighbours in every slice: the pose from the voxels, fitted to the pixels
         try:
             wide = _register_wide(volume, geom, opts, options.get("target_F_mm"))
         except NoLock as exc:
-            wide, wide_refusal = None, exc
+            wide, first = None, exc  # a pose found from the voxels and refused says more than the centres
         if wide is not None:
             return wide
-        may_widen = False
     try:
-        if indices is None:
-            return register_every_slice(slices, geom, opts, options.get("detect_options"), options.get("target_F_mm"))
-        return register(slices, geom, **options)
-    except NoLock as exc:
-        if exc.detail.get("stage") == "joint":
-            raise  # the slices agreed on a pose and the tests refused it: no other path would see more
-        if wide_refusal is not None:
-            raise wide_refusal from None  # a pose found from the voxels and refused says more than the slices
-        if not may_widen:
-            raise
-        wide = _register_wide(volume, geom, opts, options.get("target_F_mm"))
-        if wide is None:
-            raise
-        return wide
+        return register(slices, geom, skip_failed=True, **options)
+    except NoLock:
+        if may_widen and not looked_wide:
+            wide = _register_wide(volume, geom, opts, options.get("target_F_mm"))
+            if wide is not None:
+                return wide
+        raise first from None
 
 
 #: A volume whose sampled slices' blobs read this many times the channels' width (detect's ``width_mm``, median;
