@@ -362,7 +362,7 @@ EXAMPLES, UNMARKED = parse_readme(README_TEXT)
 @pytest.fixture(scope="module")
 def workspace(tmp_path_factory):
     work = tmp_path_factory.mktemp("readme")
-    for name in ("designs", "docs"):
+    for name in ("designs", "docs", "tests"):
         (work / name).symlink_to(ROOT / name)
     return work
 
