@@ -34,3 +34,19 @@ class BuildCheckError(ChicDesignError):
     """The build's own output checks failed; nothing was written over an earlier export."""
 
     exit_code = 5
+
+
+class PrintFileError(ChicDesignError):
+    """A plate, G-code or export folder that cannot be read for the print check."""
+
+
+class SlicerError(ChicDesignError):
+    """The slicer is missing or could not slice the plate (its own last message is quoted)."""
+
+    exit_code = 3
+
+
+class ChannelsNotPrintable(ChicDesignError):
+    """The print check found a channel closed, narrowed or overhanging in the sliced toolpaths."""
+
+    exit_code = 6

@@ -27,10 +27,12 @@ from chic_design.build.folders import (
 )
 from chic_design.build.workers import PictureJobs
 from chic_design.cad.export import export_parts
-from chic_design.errors import InfeasibleDesign
+from chic_design.errors import ChannelsNotPrintable, InfeasibleDesign
 from chic_design.families import family_of
 from chic_design.feasibility.printability import HARD_CODES
-from chic_design.progress import Steps
+from chic_design.printing.export import PLATE_NAME, PRINTCHECK_FILES, run_printcheck, write_print_plate
+from chic_design.printing.slicer import find_slicer
+from chic_design.progress import Steps, status
 from chic_design.report.markdown import build_report
 from chic_design.report.pictures import precision_job, preview_job, tilt_plot_job
 from chic_design.spec import load_spec, spec_sha256
@@ -38,8 +40,8 @@ from chic_design.verify import VerifyResult, verify_export
 from chic_register.model.geometry import write_geometry
 
 #: The steps :func:`build_design` times (and shows with ``progress``), in order.
-STEPS = ("spec", "geometry", "feasibility", "CAD model", "export STL/STEP/3MF", "verify outputs",
-         "preview and tilt plot", "report", "replace export folder")
+STEPS = ("spec", "geometry", "feasibility", "CAD model", "export STL/STEP/3MF", "verify outputs", "print plate",
+         "print check", "preview and tilt plot", "report", "replace export folder")
 
 
 @dataclass(frozen=True)
@@ -71,7 +73,7 @@ def overlap_mm3(a, b) -> float:
 
 
 def build_design(spec_path, out_root="exports", force: bool = False, progress: bool = True,
-                 pictures_in_worker: bool = True) -> BuildResult:
+                 pictures_in_worker: bool = True, printcheck: bool | None = None) -> BuildResult:
     """Build the design in ``spec_path`` into ``out_root/<name>/`` and check the files.
 
     Raises :class:`~chic_design.errors.SpecError` (bad spec, before any CAD work),
@@ -79,6 +81,10 @@ def build_design(spec_path, out_root="exports", force: bool = False, progress: b
     :class:`~chic_design.errors.BuildCheckError` (an output check failed); in
     every failure ``out_root/<name>`` is left as it was. ``pictures_in_worker``
     renders the preview and tilt plot in a second process, in parallel.
+    ``printcheck`` slices the plate and checks every channel in the toolpaths
+    (None: when ``prusa-slicer`` is on the PATH; True: required; False: skipped);
+    a channel the toolpaths close or narrow fails the build
+    (:class:`~chic_design.errors.ChannelsNotPrintable`).
     """
     t_start = time.perf_counter()
     steps = Steps(progress, total=len(STEPS))
@@ -116,6 +122,26 @@ def build_design(spec_path, out_root="exports", force: bool = False, progress: b
         with steps.step("verify outputs"):
             overlaps = {cap: overlap_mm3(parts.body, getattr(parts, cap)) for cap in ("cap_top", "cap_bottom")}
             checks = verify_export(tmp, volumes, overlaps)
+        with steps.step("print plate"):
+            plate = write_print_plate(tmp, spec, geometry, parts.cap_dims)
+            files.append(PLATE_NAME)
+        with steps.step("print check"):
+            print_result, print_note = None, ""
+            slicer = find_slicer()
+            if plate.info["printer"] == "resin" and printcheck is not True:
+                print_note = "the print check reads FDM toolpaths; not run for a resin plate"
+            elif printcheck is False:
+                print_note = "skipped (printcheck off)"
+            elif slicer is None and printcheck is None:
+                print_note = "skipped: prusa-slicer is not on the PATH (install PrusaSlicer, then run chic-design printcheck)"
+            else:
+                print_result = run_printcheck(tmp, exe=slicer)
+                files += list(PRINTCHECK_FILES)
+                if not print_result.ok:
+                    raise ChannelsNotPrintable(f"{spec_path}: the sliced plate does not print every channel: "
+                                               f"{print_result.failure_text()}")
+            if print_note and progress:
+                status(f"print check {print_note}")
         with steps.step("preview and tilt plot"):
             picture_times = pictures.collect()
             files += ["preview.png", "tilt_limits.png", "precision.md"]
@@ -123,8 +149,10 @@ def build_design(spec_path, out_root="exports", force: bool = False, progress: b
         with steps.step("report"):
             files.append("report.md")
             timings = {**steps.timings, **{f"{k} (parallel)": v for k, v in picture_times.items()}}
+            print_md = ((tmp / "printcheck.md").read_text(encoding="utf-8") if print_result is not None
+                        else f"## Print check (toolpaths)\n\nNot run: {print_note}.\n")
             text = build_report(spec, spec_path, geometry, parts.cap_dims, volumes, checks, feasibility.markdown(),
-                                timings, files, (tmp / "precision.md").read_text(encoding="utf-8"))
+                                timings, files, (tmp / "precision.md").read_text(encoding="utf-8"), print_md)
             (tmp / "report.md").write_text(text, encoding="utf-8")
         with steps.step("replace export folder"):
             default_permissions(tmp)

@@ -9,7 +9,7 @@ shape sections; the generic code reads only ``name``, ``description``,
 from __future__ import annotations
 
 import math
-from typing import Annotated, Protocol
+from typing import Annotated, Literal, Protocol
 
 import numpy as np
 from pydantic import BaseModel, ConfigDict, Field, model_validator
@@ -56,13 +56,27 @@ class CapSpec(Strict):
 
 
 class PrintSpec(Strict):
-    """Printer limits the design is checked against."""
+    """The printer: its limits the design is checked against, and what the print plate is set up for."""
 
     min_wall: PositiveMM = Field(0.8, ge=0.1, le=10.0,
                                  description="Thinnest wall the printer makes watertight (mm).")
     max_overhang_deg: Number = Field(
         45.0, gt=0, lt=90, description="Steepest overhang from the build direction (the axis) (deg)."
     )
+    printer: Literal["fdm", "resin"] = Field(
+        "fdm", description="Kind of printer plate.3mf is set up for: fdm (filament, PrusaSlicer FFF profile) "
+        "or resin (masked SLA, PrusaSlicer SLA profile).")
+    nozzle_diameter: Number = Field(0.4, ge=0.1, le=1.2, description="FDM nozzle diameter (mm); ignored for resin.")
+    layer_height: Number | None = Field(
+        None, ge=0.01, le=0.8, description="Layer height (mm); default: from the smallest channel "
+        "(about a tenth of its diameter, at most half the nozzle; 0.05 mm for resin).")
+
+    @model_validator(mode="after")
+    def _layer(self):
+        if self.printer == "fdm" and self.layer_height is not None and self.layer_height > 0.8 * self.nozzle_diameter:
+            raise ValueError(f"layer_height ({self.layer_height:g}) must be at most 0.8 x nozzle_diameter "
+                             f"({0.8 * self.nozzle_diameter:g} mm): a thicker layer does not bond")
+        return self
 
 
 class ImagingSpec(Strict):

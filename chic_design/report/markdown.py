@@ -70,7 +70,8 @@ def channel_rows(geometry: FiducialGeometry) -> list[dict]:
 
 def build_report(spec, spec_path, geometry: FiducialGeometry, cap_dims: CapDims,
                  part_volumes_mm3: dict[str, float], verify_result, feasibility_markdown: str | None,
-                 timings_s: dict[str, float], files: list[str], precision_markdown: str | None = None) -> str:
+                 timings_s: dict[str, float], files: list[str], precision_markdown: str | None = None,
+                 print_markdown: str | None = None) -> str:
     """The text of ``report.md``; ``cap_dims`` are the caps' dimensions the parts were made with."""
     head = family_of(spec).report_head(spec, geometry, cap_dims)
     rows = channel_rows(geometry)
@@ -142,6 +143,7 @@ def build_report(spec, spec_path, geometry: FiducialGeometry, cap_dims: CapDims,
         "",
         verify_result.markdown(),
         "",
+        *([print_markdown.strip(), ""] if print_markdown else []),
         "## Build",
         "",
         "| step | seconds |",

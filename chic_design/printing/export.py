@@ -1,0 +1,230 @@
+"""The print stage of an export folder: write ``plate.3mf`` for a build, and check it with the slicer.
+
+:func:`write_print_plate` lays the folder's STL parts on the bed with the
+settings of :mod:`.settings`. :func:`run_printcheck` slices that plate with
+PrusaSlicer, reads the toolpaths back and checks every channel
+(:mod:`.check`), then writes ``printcheck.json``, ``printcheck.png`` (the
+worst layer, channels drawn over the toolpaths) and ``printcheck.md``.
+Everything it needs is in the export folder: ``geometry.yaml`` and ``plate.3mf``.
+"""
+
+from __future__ import annotations
+
+import tempfile
+from pathlib import Path
+
+import numpy as np
+
+from chic_design.cad.channels import fill_ports_xy
+from chic_design.errors import PrintFileError
+from chic_design.printing.check import (
+    CheckedChannel,
+    PrintCheck,
+    check_channels,
+    nominal_section,
+    paths_near,
+    port_channels,
+)
+from chic_design.printing.plate import Plate, make_plate, read_plate, write_plate
+from chic_design.printing.settings import print_settings
+from chic_design.printing.slicer import find_slicer, slice_plate, slicer_version
+from chic_design.printing.toolpaths import read_toolpaths
+from chic_register.errors import InputFileError
+from chic_register.model.geometry import FiducialGeometry, content_sha256, load_geometry
+from chic_register.util.atomic import save_figure, write_json, write_text
+
+PLATE_NAME = "plate.3mf"
+#: The files :func:`run_printcheck` writes into the export folder.
+PRINTCHECK_FILES = ("printcheck.json", "printcheck.png", "printcheck.md")
+PARTS = ("body", "cap_top", "cap_bottom")
+
+
+def _load_meshes(folder: Path) -> tuple[dict, dict]:
+    import trimesh
+
+    meshes, faces = {}, {}
+    for name in PARTS:
+        mesh = trimesh.load(folder / f"{name}.stl", force="mesh")
+        meshes[name], faces[name] = np.asarray(mesh.vertices), np.asarray(mesh.faces)
+    return meshes, faces
+
+
+def write_print_plate(folder, spec, geometry: FiducialGeometry, cap_dims) -> Plate:
+    """Write ``folder/plate.3mf`` from the folder's STL parts, for ``spec``'s printer; returns the plate."""
+    folder = Path(folder)
+    meshes, faces = _load_meshes(folder)
+    length = geometry.body.length
+    info = {
+        "design": geometry.name, "geometry_sha256": content_sha256(geometry.content()),
+        "ports": {"diameter_mm": cap_dims.port_diameter if cap_dims.port_diameter > 0 else 0.0,
+                  "z_mm": [length, length + cap_dims.thickness],
+                  "xy_mm": [[float(x), float(y)] for x, y in fill_ports_xy(geometry)]
+                  if cap_dims.port_diameter > 0 else []},
+    }
+    plate = make_plate(meshes, geometry, print_settings(spec, geometry), info)
+    write_plate(folder / PLATE_NAME, plate, meshes, faces, geometry.name)
+    return plate
+
+
+def checked_channels(geometry: FiducialGeometry, plate: Plate) -> tuple[CheckedChannel, ...]:
+    """The body's channels and the top cap's fill ports, as the plate's information lists them."""
+    body = tuple(CheckedChannel(t.id, "body", t) for t in geometry.tubes)
+    ports = plate.info.get("ports", {})
+    if not ports.get("xy_mm") or not ports.get("diameter_mm"):
+        return body
+    z0, z1 = ports["z_mm"]
+    return body + port_channels(ports["xy_mm"], float(ports["diameter_mm"]), float(z0), float(z1 - z0))
+
+
+def load_export(folder) -> tuple[FiducialGeometry, Plate]:
+    """The geometry and plate of an export folder; refuses a plate laid out for another geometry."""
+    folder = Path(folder)
+    if not folder.is_dir():
+        raise PrintFileError(f"{folder}: no such export folder; give the folder chic-design build wrote "
+                             "(e.g. exports/neuro)")
+    try:
+        geometry = load_geometry(folder / "geometry.yaml")
+    except InputFileError as exc:
+        raise PrintFileError(str(exc)) from None
+    plate = read_plate(folder / PLATE_NAME)
+    if plate.info.get("geometry_sha256") != content_sha256(geometry.content()):
+        raise PrintFileError(f"{folder / PLATE_NAME}: laid out for another geometry.yaml than the one beside it; "
+                             "rebuild the design")
+    return geometry, plate
+
+
+def run_printcheck(folder, exe: str | None = None, progress=None) -> PrintCheck:
+    """Slice ``folder/plate.3mf``, check every channel in the toolpaths and write the check's files.
+
+    ``progress`` (optional) is called with a short text at each step. Raises
+    :class:`~chic_design.errors.SlicerError` when PrusaSlicer is missing or fails.
+    """
+    folder = Path(folder)
+    geometry, plate = load_export(folder)
+    if plate.info.get("printer") == "resin":
+        raise PrintFileError(f"{folder / PLATE_NAME}: the print check reads FDM toolpaths; this plate is set up "
+                             "for a resin printer (print.printer: resin)")
+    exe = exe or find_slicer()
+    say = progress or (lambda _text: None)
+    with tempfile.TemporaryDirectory(prefix="chic-printcheck-") as tmp:
+        say("slicing plate.3mf with prusa-slicer")
+        gcode = slice_plate(folder / PLATE_NAME, Path(tmp) / "plate.gcode", exe=exe)
+        say("reading the toolpaths")
+        layers = read_toolpaths(gcode)
+    placements = {p.name: p for p in plate.placements}
+    channels = checked_channels(geometry, plate)
+    say(f"checking {len(channels)} channels in {len(layers)} layers")
+    result = check_channels(channels, placements, layers, float(plate.info["extrusion_width_mm"]),
+                            float(plate.info["layer_mm"]), slicer=slicer_version(exe) if exe else "")
+    write_json(folder / "printcheck.json", result.to_dict())
+    draw_worst_layer(result, channels, placements, layers, folder / "printcheck.png")
+    write_text(folder / "printcheck.md", printcheck_markdown(result, plate))
+    return result
+
+
+def draw_worst_layer(result: PrintCheck, channels, placements, layers, png_path) -> Path:
+    """The worst channel's worst layer: the toolpaths of its part (grey), every channel's nominal section
+    (green: passes, red: fails) and its opening, labelled with its clear width."""
+    import matplotlib
+
+    matplotlib.use("Agg")
+    import matplotlib.pyplot as plt
+    import shapely
+    from matplotlib.patches import PathPatch
+    from matplotlib.path import Path as MplPath
+
+    worst = result.worst()
+    layer = min(layers, key=lambda lay: abs(lay.z_mm - worst.worst_z_mm))
+    place = placements[worst.part]
+    ok = {c.id: c.ok for c in result.channels}
+    sections = []
+    for ch in channels:
+        if ch.part != worst.part:
+            continue
+        z_f = float((layer.mid_z_mm - place.T_bed_from_F[2, 3]) / place.T_bed_from_F[2, 2])
+        lo, hi = ch.tube.z_range
+        if lo < z_f < hi:
+            sec, centre = nominal_section(ch, place, z_f)
+            if sec is not None:
+                sections.append((ch.id, sec, centre))
+    if not sections:
+        raise PrintFileError("no channel section at the worst layer to draw")
+    x0 = min(s.bounds[0] for _, s, _ in sections)
+    y0 = min(s.bounds[1] for _, s, _ in sections)
+    x1 = max(s.bounds[2] for _, s, _ in sections)
+    y1 = max(s.bounds[3] for _, s, _ in sections)
+    pad = 4.0
+    paths = paths_near(layer, (x0 - pad, y0 - pad, x1 + pad, y1 + pad), 0.0)
+
+    def patch(geom, **kw):
+        verts, codes = [], []
+        for poly in getattr(geom, "geoms", [geom]):
+            if poly.is_empty or poly.geom_type != "Polygon":
+                continue
+            for ring in (poly.exterior, *poly.interiors):
+                xy = np.asarray(ring.coords)
+                verts += list(xy)
+                codes += [MplPath.MOVETO] + [MplPath.LINETO] * (len(xy) - 2) + [MplPath.CLOSEPOLY]
+        return PathPatch(MplPath(verts, codes), **kw) if verts else None
+
+    fig, ax = plt.subplots(figsize=(8, 8))
+    p = patch(shapely.clip_by_rect(paths, x0 - pad, y0 - pad, x1 + pad, y1 + pad), facecolor="0.75",
+              edgecolor="0.45", linewidth=0.3)
+    if p is not None:
+        ax.add_patch(p)
+    measure = {c.id: c for c in result.channels}
+    for cid, sec, centre in sections:
+        colour = "tab:green" if ok[cid] else "tab:red"
+        ax.add_patch(patch(sec, facecolor="none", edgecolor=colour, linewidth=1.5))
+        opening = sec.difference(paths)
+        if not opening.is_empty:
+            q = patch(opening, facecolor=colour, alpha=0.25, edgecolor="none")
+            if q is not None:
+                ax.add_patch(q)
+        c = measure[cid]
+        ax.annotate(f"{cid}\n{c.min_clear_mm:.2f}/{c.diameter_mm:g} mm", centre, fontsize=7, ha="center",
+                    va="center", color="black")
+    ax.set_xlim(x0 - pad, x1 + pad)
+    ax.set_ylim(y0 - pad, y1 + pad)
+    ax.set_aspect("equal")
+    ax.set_xlabel("bed x (mm)")
+    ax.set_ylabel("bed y (mm)")
+    verdict = "all channels open" if result.ok else f"{len(result.failures)} channel(s) fail"
+    ax.set_title(f"{worst.part}, layer z = {layer.z_mm:g} mm (worst: {worst.id}); {verdict}\n"
+                 "grey: toolpaths at their bead width; outline: nominal section; fill: what stays open; "
+                 "labels: least clear width / diameter", fontsize=8)
+    return save_figure(fig, png_path)
+
+
+def printcheck_markdown(result: PrintCheck, plate: Plate) -> str:
+    """The print check's section of the report: settings, per-channel verdicts and the measured print error."""
+    info = plate.info
+    lim = result.limits
+    lines = [
+        "## Print check (toolpaths)",
+        "",
+        f"`plate.3mf` sliced by {result.slicer or 'PrusaSlicer'} with its own settings ({result.layers} layers of "
+        f"{result.layer_mm:g} mm, {result.extrusion_width_mm:g} mm beads); each channel's section was compared with "
+        "the toolpaths at every layer it crosses. A channel passes when its clear width stays at least "
+        f"{lim['min_clear_share']:g} x its diameter, its open area at least {lim['min_open_share']:.0%} of nominal, "
+        f"and no layer overhangs its opening by more than {lim['max_overhang_share']:g} x the bead width. "
+        "Result: " + ("**every channel is open.**" if result.ok else f"**failed**: {result.failure_text()}."),
+        "",
+        "| channel | part | diameter (mm) | layers | least clear width (mm) | at z (mm) | least open area "
+        "| opening offset, mean x, y (mm) | largest offset (mm) | overhang, 90th pct. of layers (mm) | verdict |",
+        "|---|---|---|---|---|---|---|---|---|---|---|",
+    ]
+    for c in result.channels:
+        lines.append(
+            f"| {c.id} | {c.part} | {c.diameter_mm:g} | {c.layers} | {c.min_clear_mm:.3f} | {c.worst_z_mm:g} "
+            f"| {c.min_open_share:.0%} | {c.mean_offset_mm[0]:+.3f}, {c.mean_offset_mm[1]:+.3f} "
+            f"| {c.max_offset_mm:.3f} | {c.overhang_mm:.3f} | {'ok' if c.ok else '; '.join(c.problems)} |")
+    lines += [
+        "",
+        "The offsets are the print's error as the toolpaths make it (frame F): the opening's centre minus the "
+        "channel's centreline. The worst layer, channels over the toolpaths: [printcheck.png](printcheck.png).",
+        "",
+        "Settings in `plate.3mf`: " + "; ".join(f"{k}: {v}" for k, v in info.get("reasons", {}).items()) + ".",
+        "",
+    ]
+    return "\n".join(lines)
