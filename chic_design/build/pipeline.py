@@ -54,6 +54,7 @@ class BuildResult:
     feasible: bool | None = None
     wall_s: float = 0.0
     files: tuple[str, ...] = ()
+    print_failures: str = ""
 
     def summary_text(self) -> str:
         n = len(self.checks.checks)
@@ -63,6 +64,8 @@ class BuildResult:
         ]
         if self.feasible is False:
             lines.append("WARNING: the design is infeasible (built with --force); see report.md")
+        if self.print_failures:
+            lines.append(f"WARNING: the print check failed (built with --force): {self.print_failures}")
         return "\n".join(lines)
 
 
@@ -137,8 +140,9 @@ def build_design(spec_path, out_root="exports", force: bool = False, progress: b
             else:
                 print_result = run_printcheck(tmp, exe=slicer)
                 files += list(PRINTCHECK_FILES)
-                if not print_result.ok:
-                    raise ChannelsNotPrintable(f"{spec_path}: the sliced plate does not print every channel: "
+                if not print_result.ok and not force:
+                    raise ChannelsNotPrintable(f"{spec_path}: the sliced plate does not print every channel "
+                                               f"(fix the spec or build anyway with --force): "
                                                f"{print_result.failure_text()}")
             if print_note and progress:
                 status(f"print check {print_note}")
@@ -165,4 +169,5 @@ def build_design(spec_path, out_root="exports", force: bool = False, progress: b
         pictures.close()
     timings = {**steps.timings, **{f"{k} (parallel)": v for k, v in picture_times.items()}}  # + last step
     return BuildResult(final.resolve(), checks, timings, feasibility.feasible,
-                       wall_s=time.perf_counter() - t_start, files=tuple(files))
+                       wall_s=time.perf_counter() - t_start, files=tuple(files),
+                       print_failures=print_result.failure_text() if print_result is not None else "")

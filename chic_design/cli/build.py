@@ -10,6 +10,9 @@ def add_parser(subparsers):
     b.add_argument("spec", help="design spec (YAML), e.g. designs/neuro.yaml")
     b.add_argument("--out", default="exports", help="export root; the design goes to OUT/<name>/ (default: exports)")
     b.add_argument("--force", action="store_true", help="build even if the feasibility checks find violations")
+    b.add_argument("--printcheck", choices=("auto", "on", "off"), default="auto",
+                   help="slice plate.3mf and check every channel in the toolpaths: auto (when prusa-slicer is on "
+                        "the PATH; the default), on (required), off")
     b.add_argument("--quiet", action="store_true", help="no progress output")
     return b
 
@@ -23,7 +26,8 @@ def run(args) -> int:
         status(f"building {spec.name} from {args.spec} into {args.out}/{spec.name}/ (loading the CAD kernel)")
     from chic_design.build.pipeline import build_design  # the CAD kernel takes seconds to load
 
-    result = build_design(args.spec, out_root=args.out, force=args.force, progress=progress)
+    printcheck = {"auto": None, "on": True, "off": False}[args.printcheck]
+    result = build_design(args.spec, out_root=args.out, force=args.force, progress=progress, printcheck=printcheck)
     if progress:
         for name in result.files:
             status(f"wrote {result.folder / name}")

@@ -5,7 +5,8 @@ help) and ``run(args) -> int`` (a thin layer over the library). ``main(argv)
 -> int`` is testable in-process. Exit codes: 0 ok, 1 ``check`` found the
 design infeasible (or an output could not be written), 2 bad input, 4 an
 infeasible design or no feasible design found, 5 the build's output checks
-failed, 130 interrupted. Every failure is one line on stderr, never a traceback.
+failed, 3 the slicer is missing or failed, 6 the print check found a channel the
+toolpaths close, narrow or overhang, 130 interrupted. Every failure is one line on stderr, never a traceback.
 """
 
 from __future__ import annotations
@@ -14,7 +15,7 @@ import argparse
 import sys
 
 from chic_design import __version__
-from chic_design.cli import build, check, optimize, schema
+from chic_design.cli import build, check, optimize, printcheck, schema
 from chic_design.errors import ChicDesignError
 from chic_register.cli import exits
 from chic_register.errors import ChicRegisterError
@@ -23,7 +24,7 @@ PROG = "chic-design"
 DESCRIPTION = ("Build a CHIC (or Z-frame) MRI fiducial from a design spec, check its feasibility, "
                "print the spec schema, or search for the best design.")
 #: The subcommands, in the order --help lists them.
-COMMANDS = (build, check, schema, optimize)
+COMMANDS = (build, check, printcheck, schema, optimize)
 
 
 def make_parser() -> argparse.ArgumentParser:

@@ -15,7 +15,7 @@ object) is compared with what the paths leave open:
   :data:`OVERHANG_PERCENTILE` th percentile over its layers.
 
 A channel fails when it is closed or narrowed beyond :data:`MIN_CLEAR_SHARE`
-or :data:`MIN_OPEN_SHARE`, or when a layer overhangs it by more than
+(of its diameter), :data:`MIN_CLEAR_NOZZLE_SHARE` (of the nozzle) or :data:`MIN_OPEN_SHARE`, or when a layer overhangs it by more than
 :data:`MAX_OVERHANG_SHARE` of the extrusion width (its roof then sags into it).
 The top cap's fill ports are checked the same way as the body's channels.
 """
@@ -35,6 +35,10 @@ from chic_register.model.tubes import LineTube, Tube
 #: Narrowest clear width allowed, as a share of the channel diameter: at 0.7 d the fluid's section keeps half
 #: its area, so a slice's blob keeps most of its signal and the shape the solver fits.
 MIN_CLEAR_SHARE = 0.7
+#: Narrowest clear width allowed, as a share of the nozzle's diameter: the nozzle's face is wider than its
+#: orifice and presses the bead looping round a narrower hole into it, so it prints closed although the
+#: toolpaths leave it open.
+MIN_CLEAR_NOZZLE_SHARE = 1.0
 #: Least open area allowed, as a share of the nominal section (the same half of the fluid).
 MIN_OPEN_SHARE = 0.5
 #: Largest overhang over a channel's opening, as a share of the extrusion width: an extrusion with less than
@@ -115,9 +119,11 @@ class PrintCheck:
     layer_mm: float
     slicer: str
     layers: int
+    nozzle_mm: float = 0.0
     limits: dict = field(default_factory=lambda: {
-        "min_clear_share": MIN_CLEAR_SHARE, "min_open_share": MIN_OPEN_SHARE,
-        "max_overhang_share": MAX_OVERHANG_SHARE})
+        "min_clear_share": MIN_CLEAR_SHARE, "min_clear_nozzle_share": MIN_CLEAR_NOZZLE_SHARE,
+        "min_open_share": MIN_OPEN_SHARE, "max_overhang_share": MAX_OVERHANG_SHARE,
+        "overhang_percentile": OVERHANG_PERCENTILE})
 
     @property
     def ok(self) -> bool:
@@ -137,6 +143,7 @@ class PrintCheck:
 
     def to_dict(self) -> dict:
         return {"ok": self.ok, "slicer": self.slicer, "layers": self.layers, "layer_mm": self.layer_mm,
+                "nozzle_mm": self.nozzle_mm,
                 "extrusion_width_mm": self.extrusion_width_mm, "limits": self.limits,
                 "channels": [asdict(c) for c in self.channels]}
 
@@ -244,8 +251,8 @@ def measure_channel(channel: CheckedChannel, placement: Placement, layers, extru
     return out
 
 
-def judge(channel: CheckedChannel, measures, extrusion_width_mm: float) -> ChannelResult:
-    """The verdict on one channel from its layer measures."""
+def judge(channel: CheckedChannel, measures, extrusion_width_mm: float, nozzle_mm: float = 0.0) -> ChannelResult:
+    """The verdict on one channel from its layer measures (``nozzle_mm``: the FDM nozzle, 0 for none)."""
     d = channel.diameter_mm
     if not measures:
         return ChannelResult(channel.id, channel.part, d, 0, float("nan"), float("nan"), float("nan"), float("nan"),
@@ -268,6 +275,9 @@ def judge(channel: CheckedChannel, measures, extrusion_width_mm: float) -> Chann
         if clear[k] < MIN_CLEAR_SHARE * d:
             problems.append(f"narrowed to {clear[k]:.2f} mm clear (< {MIN_CLEAR_SHARE:g} x {d:g} mm) at layer "
                             f"z = {measures[k].z_mm:g} mm")
+        elif clear[k] < MIN_CLEAR_NOZZLE_SHARE * nozzle_mm:
+            problems.append(f"narrower than the {nozzle_mm:g} mm nozzle ({clear[k]:.2f} mm clear) at layer "
+                            f"z = {measures[k].z_mm:g} mm: the nozzle's face closes it")
         if share.min() < MIN_OPEN_SHARE:
             i = int(np.argmin(share))
             problems.append(f"open area {share[i]:.0%} of nominal (< {MIN_OPEN_SHARE:.0%}) at layer "
@@ -281,12 +291,12 @@ def judge(channel: CheckedChannel, measures, extrusion_width_mm: float) -> Chann
 
 
 def check_channels(channels, placements: dict[str, Placement], layers, extrusion_width_mm: float,
-                   layer_mm: float, slicer: str = "", progress=None) -> PrintCheck:
+                   layer_mm: float, nozzle_mm: float = 0.0, slicer: str = "", progress=None) -> PrintCheck:
     """Check every channel (:class:`CheckedChannel`) against the toolpaths ``layers`` of the plate."""
     results = []
     for ch in channels:
         measures = measure_channel(ch, placements[ch.part], layers, extrusion_width_mm)
-        results.append(judge(ch, measures, extrusion_width_mm))
+        results.append(judge(ch, measures, extrusion_width_mm, nozzle_mm))
         if progress is not None:
             progress(ch.id)
-    return PrintCheck(tuple(results), extrusion_width_mm, layer_mm, slicer, len(layers))
+    return PrintCheck(tuple(results), extrusion_width_mm, layer_mm, slicer, len(layers), nozzle_mm)

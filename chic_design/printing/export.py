@@ -115,7 +115,8 @@ def run_printcheck(folder, exe: str | None = None, progress=None) -> PrintCheck:
     channels = checked_channels(geometry, plate)
     say(f"checking {len(channels)} channels in {len(layers)} layers")
     result = check_channels(channels, placements, layers, float(plate.info["extrusion_width_mm"]),
-                            float(plate.info["layer_mm"]), slicer=slicer_version(exe) if exe else "")
+                            float(plate.info["layer_mm"]), nozzle_mm=float(plate.info.get("nozzle_mm", 0.0)),
+                            slicer=slicer_version(exe) if exe else "")
     write_json(folder / "printcheck.json", result.to_dict())
     draw_worst_layer(result, channels, placements, layers, folder / "printcheck.png")
     write_text(folder / "printcheck.md", printcheck_markdown(result, plate))
@@ -206,8 +207,10 @@ def printcheck_markdown(result: PrintCheck, plate: Plate) -> str:
         f"`plate.3mf` sliced by {result.slicer or 'PrusaSlicer'} with its own settings ({result.layers} layers of "
         f"{result.layer_mm:g} mm, {result.extrusion_width_mm:g} mm beads); each channel's section was compared with "
         "the toolpaths at every layer it crosses. A channel passes when its clear width stays at least "
-        f"{lim['min_clear_share']:g} x its diameter, its open area at least {lim['min_open_share']:.0%} of nominal, "
-        f"and no layer overhangs its opening by more than {lim['max_overhang_share']:g} x the bead width. "
+        f"{lim['min_clear_share']:g} x its diameter and {lim['min_clear_nozzle_share']:g} x the "
+        f"{result.nozzle_mm:g} mm nozzle, its open area at least {lim['min_open_share']:.0%} of nominal, "
+        f"and its layers ({lim['overhang_percentile']:g}th percentile) overhang its opening by at most "
+        f"{lim['max_overhang_share']:g} x the bead width. "
         "Result: " + ("**every channel is open.**" if result.ok else f"**failed**: {result.failure_text()}."),
         "",
         "| channel | part | diameter (mm) | layers | least clear width (mm) | at z (mm) | least open area "

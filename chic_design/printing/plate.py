@@ -207,7 +207,7 @@ def config_text(config: dict[str, str]) -> str:
 def make_plate(meshes: dict, geometry: FiducialGeometry, settings: PrintSettings, info: dict | None = None) -> Plate:
     """Lay ``meshes`` (name -> vertices (N, 3) in F) out for ``settings``' printer; ``info`` goes into the project."""
     placements, bed, fits = lay_out(meshes, geometry, settings.bed_mm)
-    info = {**(info or {}), "printer": settings.printer, "layer_mm": settings.layer_mm,
+    info = {**(info or {}), "printer": settings.printer, "layer_mm": settings.layer_mm, "nozzle_mm": settings.nozzle_mm,
             "extrusion_width_mm": settings.extrusion_width_mm, "reasons": settings.reasons, "fits_bed": fits}
     return Plate(placements, prusa_config(settings, bed), bed, fits, info)
 
