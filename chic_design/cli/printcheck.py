@@ -4,6 +4,7 @@ from __future__ import annotations
 
 import json
 
+from chic_design.errors import ChannelsNotPrintable
 from chic_design.progress import status
 
 
@@ -19,8 +20,7 @@ def add_parser(subparsers):
 
 def run(args) -> int:
     """Exit 0 when every channel is open, 6 when one is closed, narrowed or overhung (named with its layer)."""
-    from chic_design.errors import ChannelsNotPrintable
-    from chic_design.printing.export import run_printcheck
+    from chic_design.printing.export import run_printcheck  # shapely and trimesh: loaded only when it runs
 
     say = None if args.quiet else (lambda text: status(text))
     result = run_printcheck(args.export, exe=args.slicer, progress=say)

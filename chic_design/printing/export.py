@@ -40,7 +40,7 @@ PARTS = ("body", "cap_top", "cap_bottom")
 
 
 def _load_meshes(folder: Path) -> tuple[dict, dict]:
-    import trimesh
+    import trimesh  # the mesh reader: loaded only when a plate is written
 
     meshes, faces = {}, {}
     for name in PARTS:
@@ -126,10 +126,10 @@ def run_printcheck(folder, exe: str | None = None, progress=None) -> PrintCheck:
 def draw_worst_layer(result: PrintCheck, channels, placements, layers, png_path) -> Path:
     """The worst channel's worst layer: the toolpaths of its part (grey), every channel's nominal section
     (green: passes, red: fails) and its opening, labelled with its clear width."""
-    import matplotlib
+    import matplotlib  # the plotting library: loaded only by the process that draws
 
     matplotlib.use("Agg")
-    import matplotlib.pyplot as plt
+    import matplotlib.pyplot as plt  # after choosing the off-screen backend
     import shapely
     from matplotlib.patches import PathPatch
     from matplotlib.path import Path as MplPath

@@ -33,7 +33,7 @@ def test_build_says_what_it_does_before_the_cad_kernel_loads_and_lists_what_it_w
         def summary_text(self):
             return "built it"
 
-    def fake_build(spec_path, out_root, force, progress):
+    def fake_build(spec_path, out_root, force, progress, printcheck):
         seen["stderr before the build"] = capsys.readouterr().err
         return Result()
 
