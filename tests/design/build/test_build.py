@@ -25,6 +25,8 @@ from chic_design.families import FAMILIES
 from chic_design.families.chic import ChicFamily
 from chic_design.feasibility.records import Finding
 from chic_design.feasibility.sections import section_clearance_mm, section_heights
+from chic_design.printing.plate import read_plate
+from chic_design.printing.slicer import find_slicer
 from chic_design.spec import load_spec, spec_sha256
 from chic_design.verify import verify_export
 from chic_register.model.geometry import load_geometry
@@ -37,7 +39,7 @@ pytestmark = pytest.mark.slow
 
 PART_FILES = [f"{p}.{e}" for p in ("body", "cap_top", "cap_bottom") for e in ("stl", "step", "3mf")]
 ALL_FILES = PART_FILES + ["assembly.step", "geometry.yaml", "preview.png", "report.md",
-                          "tilt_limits.png", "feasibility.json"]
+                          "tilt_limits.png", "feasibility.json", "plate.3mf"]
 
 
 @pytest.fixture(scope="module")
@@ -156,7 +158,7 @@ def test_infeasible_design_is_refused_before_cad_unless_forced(tmp_path, monkeyp
     assert not out.exists() or not any(out.iterdir())
     assert main(["build", str(NEURO), "--out", str(out), "--quiet"]) == 4
     with pytest.raises(AssertionError, match="CAD work started"):  # --force goes on to the CAD
-        build_design(NEURO, out_root=out, force=True, progress=False, pictures_in_worker=False)
+        build_design(NEURO, out_root=out, force=True, progress=False, pictures_in_worker=False, printcheck=False)
     assert not any(out.iterdir())
 
 
@@ -325,3 +327,19 @@ def test_replace_folder_restores_the_old_export_if_the_rename_fails(tmp_path, mo
     with pytest.raises(OSError, match="disk full"):
         replace_folder(new, final)
     assert (final / "old.txt").read_text() == "old"
+
+
+def test_the_plate_lays_out_the_parts_and_its_toolpaths_keep_every_channel_open(built):
+    """plate.3mf: the three parts, the top cap turned over, the design's settings; with prusa-slicer on the
+    PATH the build sliced it and every channel and fill port stayed open at all 250 layers of 0.2 mm."""
+    _, result, _ = built
+    plate = read_plate(result.folder / "plate.3mf")
+    assert [p.name for p in plate.placements] == ["body", "cap_top", "cap_bottom"]
+    assert plate.placement("cap_top").T_bed_from_F[2, 2] == pytest.approx(-1.0)
+    assert plate.config["layer_height"] == "0.2" and plate.info["ports"]["diameter_mm"] == 1.2
+    if find_slicer() is None:
+        assert "Not run: skipped: prusa-slicer is not on the PATH" in (result.folder / "report.md").read_text()
+        return
+    check = json.loads((result.folder / "printcheck.json").read_text())
+    assert check["ok"] and check["layers"] == 250
+    assert len(check["channels"]) == 9 + 9  # nine channels, nine fill ports

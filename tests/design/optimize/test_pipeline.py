@@ -49,7 +49,8 @@ def test_optimize_specs_validate_and_the_chosen_one_builds_and_registers(tmp_pat
     report = (out / "report.md").read_text(encoding="utf-8")
     assert "Against the baseline" in report and "Confirmed by simulation" in report
     # the chosen design builds, and its geometry file registers a simulated slice
-    res = build_design(out / "specs" / "small-p01.yaml", out_root=tmp_path / "exports", progress=False)
+    res = build_design(out / "specs" / "small-p01.yaml", out_root=tmp_path / "exports", progress=False,
+                       printcheck=False)
     geom = load_geometry(res.folder / "geometry.yaml")
     # three parallel slices 1.5 mm apart (one slice of this slim design is refused as too imprecise)
     truth, slices = None, []

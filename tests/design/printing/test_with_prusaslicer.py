@@ -1,0 +1,89 @@
+"""The print check with the real PrusaSlicer: shipped designs slice with the plate's own settings and keep every
+channel open; a channel too small for the nozzle and a helix too steep for the layer height are failed, named
+with their layer; a resin plate slices as SLA layers. (`.ci/run` installs prusa-slicer.)"""
+
+from __future__ import annotations
+
+import json
+import zipfile
+
+import pytest
+
+from chic_design.build.pipeline import build_design
+from chic_design.cli.main import main
+from chic_design.errors import ChannelsNotPrintable
+from chic_design.printing.plate import read_plate
+from chic_design.printing.slicer import find_slicer, slice_plate
+from tests.conftest import ROOT
+
+pytestmark = [pytest.mark.slow,
+              pytest.mark.skipif(find_slicer() is None, reason="prusa-slicer is not installed (.ci/run installs it)")]
+
+DATA = ROOT / "tests" / "data"
+
+
+def _footer(gcode_path) -> dict[str, str]:
+    out = {}
+    for line in gcode_path.read_text().splitlines()[-600:]:
+        if line.startswith("; ") and " = " in line:
+            k, v = line[2:].split(" = ", 1)
+            out[k] = v
+    return out
+
+
+def test_needle_guide_plate_slices_with_its_own_settings_and_keeps_every_channel_open(tmp_path):
+    result = build_design(ROOT / "designs" / "needle-guide.yaml", out_root=tmp_path, progress=False)
+    folder = result.folder
+    plate = read_plate(folder / "plate.3mf")
+    gcode = slice_plate(folder / "plate.3mf", tmp_path / "plate.gcode")
+    used = _footer(gcode)
+    for key in ("layer_height", "perimeters", "fill_density", "support_material", "seam_position", "nozzle_diameter"):
+        assert used[key] == plate.config[key], key
+    assert used["layer_height"] == "0.16"  # a tenth of the 1.6 mm channels
+    check = json.loads((folder / "printcheck.json").read_text())
+    assert check["ok"] and check["layers"] == round(40 / 0.16)
+    ids = {c["id"] for c in check["channels"]}
+    assert ids == {"D0", "D1", "D2", "D3", "H0", "H1", "H2", "O0", "O1"} | {f"port{k}" for k in range(1, 10)}
+    for c in check["channels"]:
+        assert c["min_clear_mm"] > 0.9 * c["diameter_mm"] and c["max_offset_mm"] < 0.05
+    report = (folder / "report.md").read_text()
+    assert "## Print check (toolpaths)" in report and "**every channel is open.**" in report
+    assert (folder / "printcheck.png").stat().st_size > 10_000
+
+
+def test_a_channel_too_small_for_the_nozzle_fails_the_print_check_with_channel_and_layer(tmp_path, capsys):
+    result = build_design(DATA / "narrow-channels.yaml", out_root=tmp_path, progress=False, printcheck=False,
+                          pictures_in_worker=False)
+    assert not (result.folder / "printcheck.json").exists()
+    assert main(["printcheck", str(result.folder), "--quiet"]) == 6
+    err = capsys.readouterr().err.strip().splitlines()
+    assert len(err) == 1
+    assert "D0 (body): narrower than the 0.8 mm nozzle" in err[0] and "at layer z = " in err[0]
+    check = json.loads((result.folder / "printcheck.json").read_text())
+    assert not check["ok"] and all(not c["ok"] for c in check["channels"] if c["part"] == "body")
+
+
+def test_a_helix_the_layer_height_cannot_overhang_fails_the_build_and_writes_nothing(tmp_path):
+    with pytest.raises(ChannelsNotPrintable) as err:
+        build_design(DATA / "steep-helix.yaml", out_root=tmp_path, progress=False, pictures_in_worker=False)
+    text = str(err.value)
+    for helix in ("H0", "H1", "H2"):
+        assert f"{helix} (body): overhang of" in text
+    assert "at layer z = " in text and "D0" not in text
+    assert not (tmp_path / "steep-helix").exists()
+
+
+def test_a_resin_plate_carries_an_sla_profile_that_prusaslicer_slices(tmp_path):
+    spec = (DATA / "steep-helix.yaml").read_text().replace("  layer_height: 0.3", "  printer: resin")
+    path = tmp_path / "resin.yaml"
+    path.write_text(spec.replace("name: steep-helix", "name: resin-helix"))
+    result = build_design(path, out_root=tmp_path / "out", progress=False, pictures_in_worker=False)
+    assert not (result.folder / "printcheck.json").exists()  # the toolpath check is for FDM plates
+    plate = read_plate(result.folder / "plate.3mf")
+    assert plate.config["printer_technology"] == "SLA" and plate.info["printer"] == "resin"
+    sl1 = slice_plate(result.folder / "plate.3mf", tmp_path / "plate.sl1", sla=True)
+    with zipfile.ZipFile(sl1) as z:
+        names = z.namelist()
+        config = z.read("config.ini").decode()
+    assert "layerHeight = 0.05" in config
+    assert sum(n.endswith(".png") and not n.startswith("thumbnail") for n in names) == pytest.approx(15 / 0.05, abs=2)
