@@ -27,6 +27,7 @@ from chic_design.build.folders import (
 )
 from chic_design.build.workers import PictureJobs
 from chic_design.cad.export import export_parts
+from chic_design.cad.parts import with_resin_vents
 from chic_design.errors import ChannelsNotPrintable, InfeasibleDesign
 from chic_design.families import family_of
 from chic_design.feasibility.printability import HARD_CODES
@@ -116,6 +117,8 @@ def build_design(spec_path, out_root="exports", force: bool = False, progress: b
                             spec.imaging.slice_thickness, tmp)
         with steps.step("CAD model"):
             parts = family.parts(spec, geometry)
+            if spec.print.printer == "resin":
+                parts = with_resin_vents(parts, geometry)
             volumes = {name: float(p.volume) for name, p in parts.items()}
         with steps.step("export STL/STEP/3MF"):
             write_geometry(geometry, tmp / "geometry.yaml")

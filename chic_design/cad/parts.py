@@ -18,6 +18,8 @@ makes the rest the same way for every family:
 
 from __future__ import annotations
 
+import dataclasses
+import math
 from abc import ABC, abstractmethod
 from dataclasses import dataclass
 
@@ -26,6 +28,7 @@ from build123d import (
     Align,
     Axis,
     BasePartObject,
+    Box,
     Circle,
     Compound,
     Cylinder,
@@ -36,11 +39,12 @@ from build123d import (
     Part,
     Plane,
     Pos,
+    Rot,
     sweep,
 )
 
 from chic_design.cad import PART_NAMES
-from chic_design.cad.channels import extended_tube, fill_ports_xy
+from chic_design.cad.channels import channel_openings_xy, distinct_points, extended_tube, fill_ports_xy
 from chic_register.model.geometry import FiducialGeometry
 from chic_register.model.tubes import Tube
 
@@ -176,3 +180,32 @@ def build_parts(blank: Part, cap_dims: CapDims, geometry: FiducialGeometry) -> F
     body = ChannelledBody(blank, geometry)
     return FiducialParts(body=body, cap_top=Cap(cap_dims, length, "top", ports_xy=fill_ports_xy(geometry)),
                          cap_bottom=Cap(cap_dims, length, "bottom"), cap_dims=cap_dims)
+
+
+#: Resin vents: a groove in the body's bottom end face from each channel opening out through the side wall.
+#: On a resin printer that face lies on the build plate, which seals every channel's lower end: at each peel
+#: the channel is a cup under suction. The groove lets air in; the bottom cap's glue fills it afterwards.
+VENT_WIDTH_MM = 1.0
+VENT_DEPTH_MM = 0.6
+
+
+def vent_grooves(geometry: FiducialGeometry) -> list[Part]:
+    """One groove (``VENT_WIDTH_MM`` wide, ``VENT_DEPTH_MM`` deep from z = 0) per distinct channel opening in the
+    bottom face, running radially outward from the opening's centre to beyond the body's outside."""
+    b = geometry.body
+    reach = (b.outer_side * math.sqrt(0.5) if b.shape == "square" else b.outer_diameter / 2) + 2.0
+    grooves = []
+    for xy in distinct_points(channel_openings_xy(geometry, 0.0).values()):
+        r = float(np.hypot(*xy))
+        angle = math.degrees(math.atan2(xy[1], xy[0]))
+        length = reach - r
+        box = Box(length, VENT_WIDTH_MM, VENT_DEPTH_MM, align=(Align.MIN, Align.CENTER, Align.MIN))
+        grooves.append(Pos(float(xy[0]), float(xy[1]), 0.0) * (Rot(0, 0, angle) * box))
+    return grooves
+
+
+def with_resin_vents(parts: FiducialParts, geometry: FiducialGeometry) -> FiducialParts:
+    """``parts`` with the body's vent grooves cut (:func:`vent_grooves`), for a resin printer."""
+    body = parts.body - vent_grooves(geometry)
+    body.label = "body"
+    return dataclasses.replace(parts, body=body)

@@ -13,6 +13,9 @@ def add_parser(subparsers):
         "printcheck", help="slice an export's plate.3mf with prusa-slicer and check every channel in the toolpaths")
     p.add_argument("export", help="export folder written by `chic-design build` (e.g. exports/neuro)")
     p.add_argument("--slicer", metavar="EXE", help="PrusaSlicer executable (default: prusa-slicer on the PATH)")
+    p.add_argument("--calibration", metavar="G2",
+                   help="geometry file from `chic-register calibrate` of a scan of this print: its scale is "
+                        "compared with the toolpaths' in the report")
     p.add_argument("--json", action="store_true", help="print the check as one JSON object (as printcheck.json)")
     p.add_argument("--quiet", action="store_true", help="no progress output")
     return p
@@ -23,7 +26,7 @@ def run(args) -> int:
     from chic_design.printing.export import run_printcheck  # shapely and trimesh: loaded only when it runs
 
     say = None if args.quiet else (lambda text: status(text))
-    result = run_printcheck(args.export, exe=args.slicer, progress=say)
+    result = run_printcheck(args.export, exe=args.slicer, progress=say, calibration=args.calibration)
     if args.json:
         print(json.dumps(result.to_dict(), indent=2))
     else:
@@ -32,6 +35,7 @@ def run(args) -> int:
             print(f"{c.id:>7} {c.part:<8} {c.diameter_mm:g} mm: clear >= {c.min_clear_mm:.2f} mm "
                   f"(z {c.worst_z_mm:g}), open >= {c.min_open_share:.0%}, offset <= {c.max_offset_mm:.3f} mm, "
                   f"overhang {c.overhang_mm:.2f} mm  {verdict}")
+        print(f"toolpath scale about the axis {result.toolpath_scale:.5f} (SD {result.toolpath_scale_sd:.5f})")
         print(f"wrote {args.export}/printcheck.json, printcheck.png, printcheck.md")
     if not result.ok:
         raise ChannelsNotPrintable(f"{args.export}: {result.failure_text()}")

@@ -78,13 +78,15 @@ def port_channels(ports_xy, port_diameter_mm: float, z0_mm: float, thickness_mm:
 
 @dataclass(frozen=True)
 class LayerMeasure:
-    """One channel in one layer: bed height (mm), open share, clear width (mm), offset (mm, F x, y), overhang (mm)."""
+    """One channel in one layer: bed height (mm), open share, clear width (mm), offset (mm, F x, y), overhang (mm),
+    and the nominal centre (mm, F x, y) the offset is from."""
 
     z_mm: float
     open_share: float
     clear_mm: float
     offset_mm: tuple[float, float]
     overhang_mm: float
+    centre_mm: tuple[float, float] = (0.0, 0.0)
 
 
 @dataclass(frozen=True)
@@ -120,6 +122,8 @@ class PrintCheck:
     slicer: str
     layers: int
     nozzle_mm: float = 0.0
+    toolpath_scale: float = float("nan")
+    toolpath_scale_sd: float = float("nan")
     limits: dict = field(default_factory=lambda: {
         "min_clear_share": MIN_CLEAR_SHARE, "min_clear_nozzle_share": MIN_CLEAR_NOZZLE_SHARE,
         "min_open_share": MIN_OPEN_SHARE, "max_overhang_share": MAX_OVERHANG_SHARE,
@@ -143,7 +147,8 @@ class PrintCheck:
 
     def to_dict(self) -> dict:
         return {"ok": self.ok, "slicer": self.slicer, "layers": self.layers, "layer_mm": self.layer_mm,
-                "nozzle_mm": self.nozzle_mm,
+                "nozzle_mm": self.nozzle_mm, "toolpath_scale": self.toolpath_scale,
+                "toolpath_scale_sd": self.toolpath_scale_sd,
                 "extrusion_width_mm": self.extrusion_width_mm, "limits": self.limits,
                 "channels": [asdict(c) for c in self.channels]}
 
@@ -246,7 +251,9 @@ def measure_channel(channel: CheckedChannel, placement: Placement, layers, extru
         overhang = 0.0
         if previous_open is not None and not paths.is_empty:
             overhang = inscribed_width_mm(paths.intersection(previous_open))
-        out.append(LayerMeasure(layer.z_mm, float(share), float(clear), offset, float(overhang)))
+        c_f = channel.tube.point_at_z(z_f)[0, :2]
+        out.append(LayerMeasure(layer.z_mm, float(share), float(clear), offset, float(overhang),
+                                (float(c_f[0]), float(c_f[1]))))
         previous_open = opening
     return out
 
@@ -290,13 +297,36 @@ def judge(channel: CheckedChannel, measures, extrusion_width_mm: float, nozzle_m
                          not problems, tuple(problems))
 
 
+def toolpath_scale(measures) -> tuple[float, float]:
+    """The scale about the axis that maps nominal channel centres to the openings' centres, and its SD.
+
+    Least squares over every layer measure (a :class:`LayerMeasure` sequence):
+    ``s = sum(c . m) / sum(c . c)`` with ``c`` the nominal centre and ``m = c +
+    offset`` in F's x, y; the SD from the residuals' scatter. What a scan's
+    calibration factor (``chic-register calibrate``) is compared with.
+    """
+    c = np.array([m.centre_mm for m in measures], dtype=float).reshape(-1, 2)
+    off = np.array([m.offset_mm for m in measures], dtype=float).reshape(-1, 2)
+    keep = np.all(np.isfinite(off), axis=1)
+    c, m = c[keep], c[keep] + off[keep]
+    cc = float(np.sum(c * c))
+    if len(c) < 2 or cc <= 0:
+        return float("nan"), float("nan")
+    s = float(np.sum(c * m)) / cc
+    r = m - s * c
+    return s, float(np.sqrt(np.sum(r * r) / (2 * len(c) - 1) / cc))
+
+
 def check_channels(channels, placements: dict[str, Placement], layers, extrusion_width_mm: float,
                    layer_mm: float, nozzle_mm: float = 0.0, slicer: str = "", progress=None) -> PrintCheck:
     """Check every channel (:class:`CheckedChannel`) against the toolpaths ``layers`` of the plate."""
-    results = []
+    results, body_measures = [], []
     for ch in channels:
         measures = measure_channel(ch, placements[ch.part], layers, extrusion_width_mm)
         results.append(judge(ch, measures, extrusion_width_mm, nozzle_mm))
+        if ch.part == "body":
+            body_measures += measures
         if progress is not None:
             progress(ch.id)
-    return PrintCheck(tuple(results), extrusion_width_mm, layer_mm, slicer, len(layers), nozzle_mm)
+    scale, scale_sd = toolpath_scale(body_measures)
+    return PrintCheck(tuple(results), extrusion_width_mm, layer_mm, slicer, len(layers), nozzle_mm, scale, scale_sd)

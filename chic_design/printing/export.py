@@ -93,14 +93,30 @@ def load_export(folder) -> tuple[FiducialGeometry, Plate]:
     return geometry, plate
 
 
-def run_printcheck(folder, exe: str | None = None, progress=None) -> PrintCheck:
+def scan_calibration(path) -> dict:
+    """The calibration record of a geometry file written by ``chic-register calibrate`` (its ``source.calibration``)."""
+    try:
+        geometry = load_geometry(path)
+    except InputFileError as exc:
+        raise PrintFileError(str(exc)) from None
+    record = (geometry.source or {}).get("calibration")
+    if not isinstance(record, dict) or "factor" not in record:
+        raise PrintFileError(f"{path}: no calibration in its source; give the geometry file chic-register "
+                             "calibrate wrote")
+    return {**record, "file": str(path)}
+
+
+def run_printcheck(folder, exe: str | None = None, progress=None, calibration=None) -> PrintCheck:
     """Slice ``folder/plate.3mf``, check every channel in the toolpaths and write the check's files.
 
-    ``progress`` (optional) is called with a short text at each step. Raises
+    ``progress`` (optional) is called with a short text at each step; ``calibration``
+    (a geometry file from ``chic-register calibrate`` of a scan of this print) is
+    compared with the toolpaths' scale in the report. Raises
     :class:`~chic_design.errors.SlicerError` when PrusaSlicer is missing or fails.
     """
     folder = Path(folder)
     geometry, plate = load_export(folder)
+    scan = scan_calibration(calibration) if calibration is not None else None
     if plate.info.get("printer") == "resin":
         raise PrintFileError(f"{folder / PLATE_NAME}: the print check reads FDM toolpaths; this plate is set up "
                              "for a resin printer (print.printer: resin)")
@@ -117,9 +133,9 @@ def run_printcheck(folder, exe: str | None = None, progress=None) -> PrintCheck:
     result = check_channels(channels, placements, layers, float(plate.info["extrusion_width_mm"]),
                             float(plate.info["layer_mm"]), nozzle_mm=float(plate.info.get("nozzle_mm", 0.0)),
                             slicer=slicer_version(exe) if exe else "")
-    write_json(folder / "printcheck.json", result.to_dict())
+    write_json(folder / "printcheck.json", {**result.to_dict(), **({"scan_calibration": scan} if scan else {})})
     draw_worst_layer(result, channels, placements, layers, folder / "printcheck.png")
-    write_text(folder / "printcheck.md", printcheck_markdown(result, plate))
+    write_text(folder / "printcheck.md", printcheck_markdown(result, plate, scan))
     return result
 
 
@@ -197,7 +213,21 @@ def draw_worst_layer(result: PrintCheck, channels, placements, layers, png_path)
     return save_figure(fig, png_path)
 
 
-def printcheck_markdown(result: PrintCheck, plate: Plate) -> str:
+def scale_text(result: PrintCheck, scan: dict | None) -> str:
+    """The toolpaths' scale about the axis, and beside it a scan's calibration factor when one is given."""
+    text = (f"Channel centres in the toolpaths sit at {result.toolpath_scale:.5f} (SD {result.toolpath_scale_sd:.5f}) "
+            "x their nominal distance from the axis. ")
+    if scan is None:
+        return text + ("Once the print is scanned, `chic-register calibrate` measures its scale in the scanner; "
+                       "`chic-design printcheck EXPORT --calibration G2` puts the two side by side.")
+    diff = float(scan["factor"]) / result.toolpath_scale - 1.0
+    return text + (f"The scan's calibration (`{scan['file']}`) measured {float(scan['factor']):.5f} "
+                   f"(SD {float(scan.get('factor_sd', float('nan'))):.5f}): the print and the scanner together "
+                   f"scale it by {diff:+.2%} beyond the toolpaths (the printer's shrink or growth times the "
+                   "scanner's gradient calibration).")
+
+
+def printcheck_markdown(result: PrintCheck, plate: Plate, scan: dict | None = None) -> str:
     """The print check's section of the report: settings, per-channel verdicts and the measured print error."""
     info = plate.info
     lim = result.limits
@@ -225,7 +255,11 @@ def printcheck_markdown(result: PrintCheck, plate: Plate) -> str:
     lines += [
         "",
         "The offsets are the print's error as the toolpaths make it (frame F): the opening's centre minus the "
-        "channel's centreline. The worst layer, channels over the toolpaths: [printcheck.png](printcheck.png).",
+        "channel's centreline. " + scale_text(result, scan),
+        "",
+        "The worst layer, channels over the toolpaths: [printcheck.png](printcheck.png).",
+        "",
+        "![worst layer](printcheck.png)",
         "",
         "Settings in `plate.3mf`: " + "; ".join(f"{k}: {v}" for k, v in info.get("reasons", {}).items()) + ".",
         "",

@@ -86,8 +86,11 @@ def print_settings(spec, geometry: FiducialGeometry) -> PrintSettings:
                                       else f"{RESIN_LAYER_MM:g} mm, the usual masked-SLA layer"),
                      "supports": "none: the body stands on an end face and the caps on their plates; a support "
                                  "inside a channel cannot be removed",
-                     "channels": "open at both end faces, so uncured resin drains from every channel and no "
-                                 "cavity is closed; rinse them with a syringe of IPA before curing"})
+                     "vents": "a groove in the body's bottom end face from each channel out through the side "
+                              "wall: the build plate seals the channels' lower ends, and the grooves let air in at "
+                              "each peel; the bottom cap's glue fills them",
+                     "channels": "open at both end faces once off the plate, so uncured resin drains from every "
+                                 "channel; rinse them with a syringe of IPA before curing"})
     layer = p.layer_height if p.layer_height is not None else auto_layer_mm(d_min, p.nozzle_diameter)
     width = round(WIDTH_PER_NOZZLE * p.nozzle_diameter, 3)
     reasons = {

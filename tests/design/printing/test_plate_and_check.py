@@ -9,19 +9,24 @@ import numpy as np
 import pytest
 import trimesh
 
-from chic_design.errors import SpecError
+from chic_design.errors import PrintFileError, SpecError
 from chic_design.families import family_named
 from chic_design.printing.check import (
     MAX_OVERHANG_SHARE,
     CheckedChannel,
+    LayerMeasure,
+    PrintCheck,
     bead_width_mm,
     check_channels,
     measure_channel,
+    toolpath_scale,
 )
+from chic_design.printing.export import scale_text, scan_calibration
 from chic_design.printing.plate import Placement, make_plate, read_plate, seam_angle_deg, write_plate
 from chic_design.printing.settings import auto_layer_mm, print_settings, prusa_config
 from chic_design.printing.toolpaths import KIND_CODE, Layer, read_toolpaths
 from chic_design.spec import parse_spec
+from chic_register.model.geometry import scaled_geometry, write_geometry
 from chic_register.model.tubes import LineTube
 
 
@@ -215,3 +220,23 @@ def test_an_inclined_channel_overhangs_each_layer_by_h_tan_beta(h_mm, fails):
     assert res.ok is not fails
     if fails:
         assert "overhang" in res.channels[0].problems[0] and res.channels[0].overhang_mm > MAX_OVERHANG_SHARE * 0.45
+
+
+def test_a_scan_calibration_is_set_beside_the_toolpaths_scale(tmp_path):
+    """A geometry file from `chic-register calibrate` (here: the Z-frame scaled by 1.004) is read for its factor;
+    against toolpaths at scale 1.000 the report says the print and scanner add +0.40 %."""
+    _, geom = _zframe()
+    path = write_geometry(scaled_geometry(geom, 1.004, {"factor": 1.004, "factor_sd": 0.0005}), tmp_path / "g2.yaml")
+    scan = scan_calibration(path)
+    assert scan["factor"] == pytest.approx(1.004)
+    result = PrintCheck((), 0.45, 0.2, "", 10, 0.4, toolpath_scale=1.0, toolpath_scale_sd=0.0001)
+    assert "+0.40% beyond the toolpaths" in scale_text(result, scan)
+    plain = write_geometry(geom, tmp_path / "g.yaml")
+    with pytest.raises(PrintFileError, match="no calibration in its source"):
+        scan_calibration(plain)
+
+
+def test_toolpath_scale_is_the_least_squares_ratio_of_centres():
+    ms = [LayerMeasure(0.2, 1.0, 3.0, (0.003 * x, 0.003 * y), 0.0, (x, y)) for x, y in [(10, 0), (0, 12), (-9, 3)]]
+    s, sd = toolpath_scale(ms)
+    assert s == pytest.approx(1.003) and sd == pytest.approx(0.0, abs=1e-9)

@@ -7,13 +7,18 @@ from __future__ import annotations
 import json
 import zipfile
 
+import numpy as np
 import pytest
+import shapely
+import trimesh
 
 from chic_design.build.pipeline import build_design
+from chic_design.cad.parts import VENT_DEPTH_MM
 from chic_design.cli.main import main
 from chic_design.errors import ChannelsNotPrintable
 from chic_design.printing.plate import read_plate
 from chic_design.printing.slicer import find_slicer, slice_plate
+from chic_register.model.geometry import load_geometry
 from tests.conftest import ROOT
 
 pytestmark = [pytest.mark.slow,
@@ -87,3 +92,21 @@ def test_a_resin_plate_carries_an_sla_profile_that_prusaslicer_slices(tmp_path):
         config = z.read("config.ini").decode()
     assert "layerHeight = 0.05" in config
     assert sum(n.endswith(".png") and not n.startswith("thumbnail") for n in names) == pytest.approx(15 / 0.05, abs=2)
+    # the vents: beside each channel's lower opening a groove runs out through the side wall, 0.6 mm deep
+    body = trimesh.load(result.folder / "body.stl")
+    geom = load_geometry(result.folder / "geometry.yaml")
+    for t in geom.tubes:
+        x, y = t.point_at_z(0.0)[0, :2]
+        u = np.array([x, y]) / np.hypot(x, y)
+        edge = np.hypot(x, y) + t.diameter / 2
+        mid = u * (edge + geom.body.outer_diameter / 2) / 2  # between the channel's wall and the outside
+        inside = [_in_section(body, z, mid) for z in (VENT_DEPTH_MM / 2, VENT_DEPTH_MM + 0.5)]
+        assert inside == [False, True], t.id
+
+
+def _in_section(mesh, z_mm, xy) -> bool:
+    """Whether the point (x, y) lies in the mesh's section by the plane at ``z_mm``."""
+    lines = trimesh.intersections.mesh_plane(mesh, [0, 0, 1], [0, 0, z_mm])[:, :, :2]
+    noded = shapely.union_all(shapely.linestrings(np.round(lines, 5)))  # shared end points, exactly
+    faces = shapely.get_parts(shapely.polygonize(shapely.get_parts(noded)))
+    return sum(face.contains(shapely.Point(*xy)) for face in faces) % 2 == 1  # even-odd: holes cancel
