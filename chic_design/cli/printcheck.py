@@ -16,6 +16,7 @@ def add_parser(subparsers):
     p.add_argument("--calibration", metavar="G2",
                    help="geometry file from `chic-register calibrate` of a scan of this print: its scale is "
                         "compared with the toolpaths' in the report")
+    p.add_argument("--out", metavar="DIR", help="write printcheck.json, .png and .md here (default: the export folder)")
     p.add_argument("--json", action="store_true", help="print the check as one JSON object (as printcheck.json)")
     p.add_argument("--quiet", action="store_true", help="no progress output")
     return p
@@ -26,7 +27,7 @@ def run(args) -> int:
     from chic_design.printing.export import run_printcheck  # shapely and trimesh: loaded only when it runs
 
     say = None if args.quiet else (lambda text: status(text))
-    result = run_printcheck(args.export, exe=args.slicer, progress=say, calibration=args.calibration)
+    result = run_printcheck(args.export, exe=args.slicer, progress=say, calibration=args.calibration, out=args.out)
     if args.json:
         print(json.dumps(result.to_dict(), indent=2))
     else:
@@ -36,7 +37,9 @@ def run(args) -> int:
                   f"(z {c.worst_z_mm:g}), open >= {c.min_open_share:.0%}, offset <= {c.max_offset_mm:.3f} mm, "
                   f"overhang {c.overhang_mm:.2f} mm  {verdict}")
         print(f"toolpath scale about the axis {result.toolpath_scale:.5f} (SD {result.toolpath_scale_sd:.5f})")
-        print(f"wrote {args.export}/printcheck.json, printcheck.png, printcheck.md")
+        out = args.out or args.export
+        for name in ("printcheck.json", "printcheck.png", "printcheck.md"):
+            print(f"wrote {out}/{name}")
     if not result.ok:
         raise ChannelsNotPrintable(f"{args.export}: {result.failure_text()}")
     return 0

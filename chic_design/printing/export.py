@@ -106,8 +106,9 @@ def scan_calibration(path) -> dict:
     return {**record, "file": str(path)}
 
 
-def run_printcheck(folder, exe: str | None = None, progress=None, calibration=None) -> PrintCheck:
-    """Slice ``folder/plate.3mf``, check every channel in the toolpaths and write the check's files.
+def run_printcheck(folder, exe: str | None = None, progress=None, calibration=None, out=None) -> PrintCheck:
+    """Slice ``folder/plate.3mf``, check every channel in the toolpaths and write the check's files
+    (into ``out``, default ``folder``).
 
     ``progress`` (optional) is called with a short text at each step; ``calibration``
     (a geometry file from ``chic-register calibrate`` of a scan of this print) is
@@ -133,9 +134,11 @@ def run_printcheck(folder, exe: str | None = None, progress=None, calibration=No
     result = check_channels(channels, placements, layers, float(plate.info["extrusion_width_mm"]),
                             float(plate.info["layer_mm"]), nozzle_mm=float(plate.info.get("nozzle_mm", 0.0)),
                             slicer=slicer_version(exe) if exe else "")
-    write_json(folder / "printcheck.json", {**result.to_dict(), **({"scan_calibration": scan} if scan else {})})
-    draw_worst_layer(result, channels, placements, layers, folder / "printcheck.png")
-    write_text(folder / "printcheck.md", printcheck_markdown(result, plate, scan))
+    out = folder if out is None else Path(out)
+    out.mkdir(parents=True, exist_ok=True)
+    write_json(out / "printcheck.json", {**result.to_dict(), **({"scan_calibration": scan} if scan else {})})
+    draw_worst_layer(result, channels, placements, layers, out / "printcheck.png")
+    write_text(out / "printcheck.md", printcheck_markdown(result, plate, scan))
     return result
 
 
