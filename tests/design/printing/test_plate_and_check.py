@@ -9,6 +9,7 @@ import numpy as np
 import pytest
 import trimesh
 
+from chic_design.cli.main import main
 from chic_design.errors import PrintFileError, SpecError
 from chic_design.families import family_named
 from chic_design.printing.check import (
@@ -26,7 +27,7 @@ from chic_design.printing.plate import Placement, make_plate, read_plate, seam_a
 from chic_design.printing.settings import auto_layer_mm, print_settings, prusa_config
 from chic_design.printing.toolpaths import KIND_CODE, Layer, read_toolpaths
 from chic_design.spec import parse_spec
-from chic_register.model.geometry import scaled_geometry, write_geometry
+from chic_register.model.geometry import content_sha256, scaled_geometry, write_geometry
 from chic_register.model.tubes import LineTube
 
 
@@ -240,3 +241,33 @@ def test_toolpath_scale_is_the_least_squares_ratio_of_centres():
     ms = [LayerMeasure(0.2, 1.0, 3.0, (0.003 * x, 0.003 * y), 0.0, (x, y)) for x, y in [(10, 0), (0, 12), (-9, 3)]]
     s, sd = toolpath_scale(ms)
     assert s == pytest.approx(1.003) and sd == pytest.approx(0.0, abs=1e-9)
+
+
+def _export_with_plate(tmp_path):
+    spec, geom = _zframe()
+    folder = tmp_path / "zframe"
+    folder.mkdir()
+    write_geometry(geom, folder / "geometry.yaml")
+    meshes, faces = _boxes(geom)
+    info = {"geometry_sha256": content_sha256(geom.content())}
+    write_plate(folder / "plate.3mf", make_plate(meshes, geom, print_settings(spec, geom), info), meshes, faces, "z")
+    return folder, geom
+
+
+def test_printcheck_refuses_what_it_cannot_check_in_one_line(tmp_path, capsys):
+    folder, geom = _export_with_plate(tmp_path)
+    cases = [
+        ([str(tmp_path / "nowhere")], 2, "no such export folder"),
+        ([str(folder), "--slicer", str(tmp_path / "no-slicer")], 3, "cannot run the slicer"),
+    ]
+    for argv, code, text in cases:
+        assert main(["printcheck", *argv, "--quiet"]) == code
+        err = capsys.readouterr().err.strip().splitlines()
+        assert len(err) == 1 and text in err[0], err
+    write_geometry(scaled_geometry(geom, 1.01, {"factor": 1.01}), folder / "geometry.yaml")
+    assert main(["printcheck", str(folder), "--quiet"]) == 2
+    assert "laid out for another geometry.yaml" in capsys.readouterr().err
+    (folder / "plate.3mf").unlink()
+    assert main(["printcheck", str(folder), "--quiet"]) == 2
+    assert "no such plate" in capsys.readouterr().err
+    assert not (folder / "printcheck.json").exists()
