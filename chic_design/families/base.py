@@ -26,6 +26,8 @@ from chic_design.families.sections import DesignSpec
 from chic_design.feasibility.engine import check_geometry
 from chic_design.feasibility.printability import build_violations
 from chic_design.feasibility.records import FeasibilityReport, Finding, Symmetry, Unambiguity
+from chic_design.printing.limits import print_violations
+from chic_design.printing.settings import print_settings
 from chic_register.model.body import Body, ToolFrame
 from chic_register.model.geometry import FiducialGeometry
 from chic_register.model.tubes import Tube
@@ -127,7 +129,8 @@ class Family(ABC):
 
         The generic checks of :func:`~chic_design.feasibility.engine.check_geometry` plus the rules
         ``build`` refuses even forced (:func:`~chic_design.feasibility.printability.build_violations`),
-        so that a design ``check`` calls feasible always builds.
+        so that a design ``check`` calls feasible always builds, and what the print check of the
+        sliced plate will fail (:func:`~chic_design.printing.limits.print_violations`).
         """
         geom = self.geometry(spec)
         pixel = spec.imaging.pixel_size if pixel_size_mm is None else float(pixel_size_mm)
@@ -135,6 +138,8 @@ class Family(ABC):
         report = check_geometry(geom, self, pixel_size_mm=pixel, slice_thickness_mm=thickness,
                                 min_wall_mm=spec.print.min_wall, max_overhang_deg=spec.print.max_overhang_deg)
         extra = build_violations(spec, geom, pixel, self.length_key)
+        port = spec.caps.fill_port_diameter
+        extra += print_violations(print_settings(spec, geom), geom, report.overhangs, port)
         return replace(report, violations=report.violations + tuple(extra)) if extra else report
 
     # ------------------------------------------------------------ report

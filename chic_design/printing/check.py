@@ -12,11 +12,12 @@ object) is compared with what the paths leave open:
   (the print's error as the solver would see it);
 - ``overhang_mm``: how far this layer's paths reach over the opening of the
   layer below (printed over air); a channel is judged on its
-  :data:`OVERHANG_PERCENTILE` th percentile over its layers.
+  :data:`~chic_design.printing.limits.OVERHANG_PERCENTILE` th percentile over its layers.
 
-A channel fails when it is closed or narrowed beyond :data:`MIN_CLEAR_SHARE`
-(of its diameter), :data:`MIN_CLEAR_NOZZLE_SHARE` (of the nozzle) or :data:`MIN_OPEN_SHARE`, or when a layer overhangs it by more than
-:data:`MAX_OVERHANG_SHARE` of the extrusion width (its roof then sags into it).
+A channel fails when it is closed or narrowed beyond the limits of
+:mod:`chic_design.printing.limits` (of its diameter, of the nozzle, of its area), or
+when its layers overhang it by more than a share of the extrusion width (its roof
+then sags into it).
 The top cap's fill ports are checked the same way as the body's channels.
 """
 
@@ -28,25 +29,17 @@ from dataclasses import asdict, dataclass, field
 import numpy as np
 import shapely
 
+from chic_design.printing.limits import (
+    MAX_OVERHANG_SHARE,
+    MIN_CLEAR_NOZZLE_SHARE,
+    MIN_CLEAR_SHARE,
+    MIN_OPEN_SHARE,
+    OVERHANG_PERCENTILE,
+)
 from chic_design.printing.plate import Placement
 from chic_design.printing.toolpaths import KIND_CODE, Layer
 from chic_register.model.tubes import LineTube, Tube
 
-#: Narrowest clear width allowed, as a share of the channel diameter: at 0.7 d the fluid's section keeps half
-#: its area, so a slice's blob keeps most of its signal and the shape the solver fits.
-MIN_CLEAR_SHARE = 0.7
-#: Narrowest clear width allowed, as a share of the nozzle's diameter: the nozzle's face is wider than its
-#: orifice and presses the bead looping round a narrower hole into it, so it prints closed although the
-#: toolpaths leave it open.
-MIN_CLEAR_NOZZLE_SHARE = 1.0
-#: Least open area allowed, as a share of the nominal section (the same half of the fluid).
-MIN_OPEN_SHARE = 0.5
-#: Largest overhang over a channel's opening, as a share of the extrusion width: an extrusion with less than
-#: half its width on the layer below is unsupported (PrusaSlicer's own overhang rule) and sags.
-MAX_OVERHANG_SHARE = 0.5
-#: The overhang judged is this percentile of a channel's layers: one layer's value carries the slicer's polygon
-#: noise (a few hundredths of a mm), while a roof sags only where it overhangs layer after layer.
-OVERHANG_PERCENTILE = 90
 #: Vertices of a nominal section's outline.
 SECTION_VERTICES = 72
 #: Channels closer to horizontal than this (|tangent z|) have no layer section to judge.

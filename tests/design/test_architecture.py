@@ -18,7 +18,8 @@ PACKAGE = ROOT / "chic_design"
 LAYERS = (
     {"chic_design", "chic_design.errors", "chic_design.progress", "chic_design.lifeline"},
     {"chic_design.cad", "chic_design.feasibility"},
-    {"chic_design.families", "chic_design.verify", "chic_design.printing"},
+    {"chic_design.printing"},
+    {"chic_design.families", "chic_design.verify"},
     {"chic_design.spec", "chic_design.report"},
     {"chic_design.build", "chic_design.optimize"},
     {"chic_design.cli"},

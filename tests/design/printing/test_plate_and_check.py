@@ -13,7 +13,6 @@ from chic_design.cli.main import main
 from chic_design.errors import PrintFileError, SpecError
 from chic_design.families import family_named
 from chic_design.printing.check import (
-    MAX_OVERHANG_SHARE,
     CheckedChannel,
     LayerMeasure,
     PrintCheck,
@@ -23,6 +22,7 @@ from chic_design.printing.check import (
     toolpath_scale,
 )
 from chic_design.printing.export import scale_text, scan_calibration
+from chic_design.printing.limits import MAX_OVERHANG_SHARE
 from chic_design.printing.plate import Placement, make_plate, read_plate, seam_angle_deg, write_plate
 from chic_design.printing.settings import auto_layer_mm, print_settings, prusa_config
 from chic_design.printing.toolpaths import KIND_CODE, Layer, read_toolpaths

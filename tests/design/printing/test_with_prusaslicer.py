@@ -4,6 +4,7 @@ with their layer; a resin plate slices as SLA layers. (`.ci/run` installs prusa-
 
 from __future__ import annotations
 
+import dataclasses
 import json
 import zipfile
 
@@ -15,7 +16,9 @@ import trimesh
 from chic_design.build.pipeline import build_design
 from chic_design.cad.parts import VENT_DEPTH_MM
 from chic_design.cli.main import main
-from chic_design.errors import ChannelsNotPrintable
+from chic_design.errors import ChannelsNotPrintable, InfeasibleDesign
+from chic_design.families import FAMILIES
+from chic_design.families.chic import ChicFamily
 from chic_design.printing.plate import read_plate
 from chic_design.printing.slicer import find_slicer, slice_plate
 from chic_register.model.geometry import load_geometry
@@ -25,6 +28,7 @@ pytestmark = [pytest.mark.slow,
               pytest.mark.skipif(find_slicer() is None, reason="prusa-slicer is not installed (.ci/run installs it)")]
 
 DATA = ROOT / "tests" / "data"
+ORIGINAL_CHECK = ChicFamily.check
 
 
 def _footer(gcode_path) -> dict[str, str]:
@@ -57,8 +61,9 @@ def test_needle_guide_plate_slices_with_its_own_settings_and_keeps_every_channel
 
 
 def test_a_channel_too_small_for_the_nozzle_fails_the_print_check_with_channel_and_layer(tmp_path, capsys):
+    """`check` foresees it (narrower_than_nozzle); built anyway, the toolpaths' check fails it too."""
     result = build_design(DATA / "narrow-channels.yaml", out_root=tmp_path, progress=False, printcheck=False,
-                          pictures_in_worker=False)
+                          pictures_in_worker=False, force=True)
     assert not (result.folder / "printcheck.json").exists()
     assert main(["printcheck", str(result.folder), "--quiet"]) == 6
     err = capsys.readouterr().err.strip().splitlines()
@@ -68,7 +73,12 @@ def test_a_channel_too_small_for_the_nozzle_fails_the_print_check_with_channel_a
     assert not check["ok"] and all(not c["ok"] for c in check["channels"] if c["part"] == "body")
 
 
-def test_a_helix_the_layer_height_cannot_overhang_fails_the_build_and_writes_nothing(tmp_path):
+def test_a_helix_the_layer_height_cannot_overhang_fails_the_print_check(tmp_path, monkeypatch):
+    """`check` foresees it (overhang_for_layer, from h tan(beta)); the toolpaths' check measures it. A build
+    that only the toolpaths fail is refused and writes nothing; with --force it is written with a warning."""
+    with pytest.raises(InfeasibleDesign, match="overhang_for_layer"):
+        build_design(DATA / "steep-helix.yaml", out_root=tmp_path, progress=False, pictures_in_worker=False)
+    monkeypatch.setattr(ChicFamily, "check", lambda self, spec, **kw: _without_print_violations(spec))
     with pytest.raises(ChannelsNotPrintable) as err:
         build_design(DATA / "steep-helix.yaml", out_root=tmp_path, progress=False, pictures_in_worker=False)
     text = str(err.value)
@@ -76,6 +86,16 @@ def test_a_helix_the_layer_height_cannot_overhang_fails_the_build_and_writes_not
         assert f"{helix} (body): overhang of" in text
     assert "at layer z = " in text and "D0" not in text
     assert not (tmp_path / "steep-helix").exists()
+    forced = build_design(DATA / "steep-helix.yaml", out_root=tmp_path, progress=False, pictures_in_worker=False,
+                          force=True)
+    assert "WARNING: the print check failed" in forced.summary_text() and "H0 (body)" in forced.print_failures
+    assert not json.loads((forced.folder / "printcheck.json").read_text())["ok"]
+
+
+def _without_print_violations(spec):
+    report = ORIGINAL_CHECK(FAMILIES["chic"], spec)
+    kept = tuple(v for v in report.violations if v.code != "overhang_for_layer")
+    return dataclasses.replace(report, violations=kept)
 
 
 def test_a_resin_plate_carries_an_sla_profile_that_prusaslicer_slices(tmp_path):
