@@ -227,15 +227,17 @@ def fill_guide(geometry: FiducialGeometry, cap_dims: CapDims) -> FillGuide:
 
 
 def group_line(guide: FillGuide, g: ChannelGroup) -> str:
-    """One group's filling instruction (markdown)."""
+    """One group's filling instruction (markdown), starting with the group."""
     what = f"group {g.number} ({', '.join(g.channel_ids)}; {g.volume_ml:.2f} mL, draw {g.draw_ml:.2f} mL)"
+    slowly = "Push slowly, so the fluid runs down and the air rises out"
     if not guide.has_ports:
-        return f"{what}: fill each of its channels through its opening in the top face."
+        return f"{what}: fill each of its channels through its opening in the top face. {slowly}."
     if not g.vent_ports:
-        return f"{what}: inject through port {g.fill_port}; the air leaves around the needle."
+        return f"{what}: inject through port {g.fill_port}. {slowly} around the needle."
     vents = ", ".join(str(k) for k in g.vent_ports)
     return (f"{what}: inject through port {g.fill_port}; port{'s' if len(g.vent_ports) > 1 else ''} {vents} "
-            f"vent{'' if len(g.vent_ports) > 1 else 's'}. Stop when fluid stands in every port of the group.")
+            f"vent{'' if len(g.vent_ports) > 1 else 's'}. {slowly} through the vents. "
+            "Stop when fluid stands in every port of the group.")
 
 
 def procedure_steps(guide: FillGuide) -> tuple[str, ...]:
@@ -270,8 +272,7 @@ def procedure_steps(guide: FillGuide) -> tuple[str, ...]:
             "with the MRI contrast fluid or gel of your protocol (for example diluted gadolinium, or a "
             "saline/agarose gel) from a syringe with a blunt needle thinner than the channels.")
     for g in guide.groups:  # one step per group: slowly, so the fluid runs down and the air rises out
-        line = group_line(guide, g)
-        steps.append(f"Fill {line} Push slowly, so the fluid runs down and the air rises out.")
+        steps.append(f"Fill {group_line(guide, g)}")
     steps.append("Tap the body on the bench and flick it to bring bubbles up; wait a minute and tap again. "
                  "Top up every port to a small meniscus.")
     if guide.has_ports:
