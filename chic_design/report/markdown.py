@@ -11,7 +11,7 @@ from chic_design.cad.channels import blank_volume_mm3, channel_volume_mm3
 from chic_design.cad.parts import CapDims
 from chic_design.families import family_of
 from chic_design.feasibility.contacts import touching_channels
-from chic_design.report.fill_guide import FillGuide, fill_guide, fill_guide_markdown
+from chic_design.report.fill_guide import EXTRA_ML_PER_PORT, FillGuide, fill_guide, fill_guide_markdown
 from chic_register.model.geometry import FiducialGeometry
 
 
@@ -91,7 +91,8 @@ def build_report(spec, spec_path, geometry: FiducialGeometry, cap_dims: CapDims,
         f"the CAD body has {cut / 1000:.3f} mL of channel space (solid frame minus body)"
         + (f": channels that touch near the end faces share {max(sum_nominal - cut, 0.0):.1f} mm^3."
            if sum_nominal - cut > 0.5 else "."),
-        "Allow about 0.1 mL extra per channel for the needle and the ports.",
+        f"The fluid per group of connected channels, to draw with {EXTRA_ML_PER_PORT:g} mL extra per port for the "
+        "needle and the ports, is under Filling and closing.",
         "",
         touching_text(geometry),
         "",
@@ -108,7 +109,8 @@ def build_report(spec, spec_path, geometry: FiducialGeometry, cap_dims: CapDims,
         "",
         "`assembly.step` holds the three labelled parts in their assembled positions; "
         "`geometry.yaml` is what the registration solver reads; `preview.png` shows the channels; "
-        "`feasibility.json` is the feasibility report (as `chic-design check --json`).",
+        "`feasibility.json` is the feasibility report (as `chic-design check --json`); `fill_guide.pdf` "
+        "(or `fill_guide.html`) is the fill and seal guide to take to the bench.",
         "",
         "![preview](preview.png)",
         "",
