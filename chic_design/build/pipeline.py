@@ -2,7 +2,7 @@
 
 Order: validate the spec (before any CAD work) -> geometry -> feasibility
 (refuse an infeasible design unless forced) -> CAD -> export into a temporary
-folder inside ``out_root`` -> verify the files -> pictures -> report -> replace
+folder inside ``out_root`` -> verify the files -> pictures -> fill guide -> report -> replace
 ``out_root/<name>`` in one rename. The pictures (preview, tilt plot) need only
 the geometry and are drawn in a worker process while the CAD work runs. On any
 failure the temporary folder is removed and an earlier export is left as it was.
@@ -34,6 +34,7 @@ from chic_design.feasibility.printability import HARD_CODES
 from chic_design.printing.export import PLATE_NAME, PRINTCHECK_FILES, run_printcheck, write_print_plate
 from chic_design.printing.slicer import find_slicer
 from chic_design.progress import Steps, status
+from chic_design.report.fill_guide import fill_guide, write_fill_guide
 from chic_design.report.markdown import build_report
 from chic_design.report.pictures import precision_job, preview_job, tilt_plot_job
 from chic_design.spec import load_spec, spec_sha256
@@ -42,7 +43,7 @@ from chic_register.model.geometry import write_geometry
 
 #: The steps :func:`build_design` times (and shows with ``progress``), in order.
 STEPS = ("spec", "geometry", "feasibility", "CAD model", "export STL/STEP/3MF", "verify outputs", "print plate",
-         "print check", "preview and tilt plot", "report", "replace export folder")
+         "print check", "preview and tilt plot", "fill guide", "report", "replace export folder")
 
 
 @dataclass(frozen=True)
@@ -153,13 +154,17 @@ def build_design(spec_path, out_root="exports", force: bool = False, progress: b
             picture_times = pictures.collect()
             files += ["preview.png", "tilt_limits.png", "precision.md"]
             files += ["precision.png"] if (tmp / "precision.png").is_file() else []
+        with steps.step("fill guide"):
+            guide = fill_guide(geometry, parts.cap_dims)
+            files += write_fill_guide(guide, tmp)
         with steps.step("report"):
             files.append("report.md")
             timings = {**steps.timings, **{f"{k} (parallel)": v for k, v in picture_times.items()}}
             print_md = ((tmp / "printcheck.md").read_text(encoding="utf-8") if print_result is not None
                         else f"## Print check (toolpaths)\n\nNot run: {print_note}.\n")
             text = build_report(spec, spec_path, geometry, parts.cap_dims, volumes, checks, feasibility.markdown(),
-                                timings, files, (tmp / "precision.md").read_text(encoding="utf-8"), print_md)
+                                timings, files, (tmp / "precision.md").read_text(encoding="utf-8"), print_md,
+                                guide)
             (tmp / "report.md").write_text(text, encoding="utf-8")
         with steps.step("replace export folder"):
             default_permissions(tmp)

@@ -1,1 +1,2 @@
-"""The report stage: ``report.md`` (:mod:`.markdown`) and the pictures beside it (:mod:`.pictures`)."""
+"""The report stage: ``report.md`` (:mod:`.markdown`), the pictures beside it (:mod:`.pictures`) and the fill
+guide (:mod:`.fill_guide`)."""

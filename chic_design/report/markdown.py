@@ -1,7 +1,8 @@
 """The human report of a build (``report.md``): dimensions, channels, volumes, filling, checks.
 
 The title, frame F and dimension table come from the design's family
-(:meth:`~chic_design.families.base.Family.report_head`); the rest is the same for every family.
+(:meth:`~chic_design.families.base.Family.report_head`); the filling section is the fill guide's
+(:func:`~chic_design.report.fill_guide.fill_guide_markdown`); the rest is the same for every family.
 """
 
 from __future__ import annotations
@@ -10,29 +11,8 @@ from chic_design.cad.channels import blank_volume_mm3, channel_volume_mm3
 from chic_design.cad.parts import CapDims
 from chic_design.families import family_of
 from chic_design.feasibility.contacts import touching_channels
+from chic_design.report.fill_guide import EXTRA_ML_PER_PORT, FillGuide, fill_guide, fill_guide_markdown
 from chic_register.model.geometry import FiducialGeometry
-
-FILLING_PROCEDURE = """\
-1. Print the body and both caps. Each file is in frame F in its assembled position; the
-   slicer puts it on the bed. The body prints standing on an end face. Print both caps plate
-   down: `cap_bottom` already is; turn `cap_top` upside down in the slicer. Clear the
-   channels with a wire slightly thinner than the channels.
-2. Glue the **bottom cap** (`cap_bottom`) onto the body: a thin bead of epoxy (or
-   cyanoacrylate for resins that tolerate it) on the lower end face and inside the skirt, then
-   slide it on. The skirt is a slip fit with {clearance:g} mm radial clearance; the plate
-   seals every channel opening at z = 0. Let it cure.
-3. Glue the **top cap** (`cap_top`) the same way, turned so that each fill port sits over its
-   channel (the ports follow the channel openings, so there is one way it fits: check by
-   looking through the ports). Keep glue away from the port openings.
-4. Stand the fiducial upright and fill each channel through its port with a syringe and a
-   blunt needle thinner than the {port:g} mm port (for example 25 G, 0.5 mm). Push slowly so
-   the fluid runs down the channel and the air escapes up around the needle. Use the MRI
-   contrast fluid or gel of your protocol (for example diluted gadolinium, or a
-   saline/agarose gel). The volumes per channel are in the table above.
-5. Tap out air bubbles, top each port up to a small meniscus, then seal every port with a
-   drop of UV-curing resin or epoxy. Image the fiducial once to confirm every channel shows
-   along its full length (a missing section of a channel means an air bubble).
-"""
 
 
 def touching_text(geometry: FiducialGeometry) -> str:
@@ -49,9 +29,8 @@ def touching_text(geometry: FiducialGeometry) -> str:
     where = "; ".join(f"{a}-{b} at z {lo:.1f}..{hi:.1f} mm" for a, b, lo, hi in pairs)
     names = "; ".join(", ".join(g) for g in groups)
     return (f"Channels that touch, and are connected there: {where}. Connected groups: {names}. "
-            "A group fills as one vessel: fill it through any of its ports while the air leaves "
-            "through the others, then top up every port of the group. Where channels touch, "
-            "their images merge at those heights.")
+            "A group fills as one vessel (its fill and vent ports are under Filling and closing). "
+            "Where channels touch, their images merge at those heights.")
 
 
 def channel_rows(geometry: FiducialGeometry) -> list[dict]:
@@ -71,8 +50,12 @@ def channel_rows(geometry: FiducialGeometry) -> list[dict]:
 def build_report(spec, spec_path, geometry: FiducialGeometry, cap_dims: CapDims,
                  part_volumes_mm3: dict[str, float], verify_result, feasibility_markdown: str | None,
                  timings_s: dict[str, float], files: list[str], precision_markdown: str | None = None,
-                 print_markdown: str | None = None) -> str:
-    """The text of ``report.md``; ``cap_dims`` are the caps' dimensions the parts were made with."""
+                 print_markdown: str | None = None, guide: FillGuide | None = None) -> str:
+    """The text of ``report.md``; ``cap_dims`` are the caps' dimensions the parts were made with.
+
+    ``guide``: the fill guide written beside the report (made from ``geometry`` and ``cap_dims`` if None).
+    """
+    guide = guide if guide is not None else fill_guide(geometry, cap_dims)
     head = family_of(spec).report_head(spec, geometry, cap_dims)
     rows = channel_rows(geometry)
     sum_nominal = sum(r["fluid_mm3"] for r in rows)
@@ -108,7 +91,8 @@ def build_report(spec, spec_path, geometry: FiducialGeometry, cap_dims: CapDims,
         f"the CAD body has {cut / 1000:.3f} mL of channel space (solid frame minus body)"
         + (f": channels that touch near the end faces share {max(sum_nominal - cut, 0.0):.1f} mm^3."
            if sum_nominal - cut > 0.5 else "."),
-        "Allow about 0.1 mL extra per channel for the needle and the ports.",
+        f"The fluid per group of connected channels, to draw with {EXTRA_ML_PER_PORT:g} mL extra per port for the "
+        "needle and the ports, is under Filling and closing.",
         "",
         touching_text(geometry),
         "",
@@ -125,13 +109,12 @@ def build_report(spec, spec_path, geometry: FiducialGeometry, cap_dims: CapDims,
         "",
         "`assembly.step` holds the three labelled parts in their assembled positions; "
         "`geometry.yaml` is what the registration solver reads; `preview.png` shows the channels; "
-        "`feasibility.json` is the feasibility report (as `chic-design check --json`).",
+        "`feasibility.json` is the feasibility report (as `chic-design check --json`); `fill_guide.pdf` "
+        "(or `fill_guide.html`) is the fill and seal guide to take to the bench.",
         "",
         "![preview](preview.png)",
         "",
-        "## Filling and closing",
-        "",
-        FILLING_PROCEDURE.format(clearance=cap_dims.clearance, port=cap_dims.port_diameter),
+        fill_guide_markdown(guide),
         feasibility_markdown.strip() if feasibility_markdown else "## Feasibility\n\n(not checked)",
         "",
         *([precision_markdown.strip(), ""] if precision_markdown else []),

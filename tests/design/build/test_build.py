@@ -39,7 +39,8 @@ pytestmark = pytest.mark.slow
 
 PART_FILES = [f"{p}.{e}" for p in ("body", "cap_top", "cap_bottom") for e in ("stl", "step", "3mf")]
 ALL_FILES = PART_FILES + ["assembly.step", "geometry.yaml", "preview.png", "report.md",
-                          "tilt_limits.png", "feasibility.json", "plate.3mf"]
+                          "tilt_limits.png", "feasibility.json", "plate.3mf",
+                          "fill_guide.png", "fill_guide.html", "fill_guide.pdf"]
 
 
 @pytest.fixture(scope="module")
@@ -171,6 +172,11 @@ def test_report_has_volumes_and_filling(built):
     total_ml = (math.pi / 4 * 500 * 50 - volumes["body"]) / 1000
     assert f"{total_ml:.3f} mL" in text
     assert "FAIL" not in text
+    # the fill guide's section, and its files listed with the build's
+    for needle in ("[fill_guide.pdf](fill_guide.pdf)", "| 9 | 10.83 | -6.25 | O1 | 3 | fill |",
+                   "Seal the ports in this order", "D0 and H0: touch in the wall"):
+        assert needle in text, needle
+    assert {"fill_guide.png", "fill_guide.html", "fill_guide.pdf"} <= set(result.files)
 
 
 def test_section_heights_avoid_touching_channels(neuro_geometry):
