@@ -155,7 +155,7 @@ def build_design(spec_path, out_root="exports", force: bool = False, progress: b
             files += ["preview.png", "tilt_limits.png", "precision.md"]
             files += ["precision.png"] if (tmp / "precision.png").is_file() else []
         with steps.step("fill guide"):
-            guide = fill_guide(geometry, parts.cap_dims)
+            guide = fill_guide(geometry, parts.cap_dims, vent_grooves=spec.print.printer == "resin")
             files += write_fill_guide(guide, tmp)
         with steps.step("report"):
             files.append("report.md")

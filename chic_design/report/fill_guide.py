@@ -119,6 +119,7 @@ class FillGuide:
     needle_od_mm: float | None
     procedure: tuple[str, ...] = ()
     bubble_check: tuple[str, ...] = ()
+    vent_grooves: bool = False
 
     @property
     def has_ports(self) -> bool:
@@ -166,8 +167,9 @@ def fmt_xy(p) -> str:
     return f"({float(p[0]):.1f}, {float(p[1]):.1f})"
 
 
-def fill_guide(geometry: FiducialGeometry, cap_dims: CapDims) -> FillGuide:
-    """The fill guide of ``geometry`` with caps of ``cap_dims`` (a :class:`~chic_design.cad.parts.CapDims`).
+def fill_guide(geometry: FiducialGeometry, cap_dims: CapDims, vent_grooves: bool = False) -> FillGuide:
+    """The fill guide of ``geometry`` with caps of ``cap_dims`` (a :class:`~chic_design.cad.parts.CapDims`);
+    ``vent_grooves``: the body has a resin print's vent grooves in its lower end face, which the glue must fill.
 
     Ports are numbered in tube order. A group is injected through the port whose channel reaches the bottom
     first (the shortest channel), preferring a port over one channel (the fluid then runs one way) and then
@@ -222,6 +224,7 @@ def fill_guide(geometry: FiducialGeometry, cap_dims: CapDims) -> FillGuide:
         openings_xy_mm={i: (float(top[i][0]), float(top[i][1])) for i in ids},
         channel_diameters_mm={i: float(tubes[i].diameter) for i in ids},
         needle_gauge=needle[0] if needle else None, needle_od_mm=needle[1] if needle else None,
+        vent_grooves=vent_grooves,
     )
     return replace(guide, procedure=procedure_steps(guide), bubble_check=bubble_check_steps())
 
@@ -245,9 +248,10 @@ def procedure_steps(guide: FillGuide) -> tuple[str, ...]:
     sizes = sorted(set(guide.channel_diameters_mm.values()))
     wire = f"the {sizes[0]:g} mm channels" if len(sizes) == 1 else f"the channels (narrowest {sizes[0]:g} mm)"
     steps = [
-        "Print the body and both caps. Each file is in frame F in its assembled position; the slicer puts it "
-        "on the bed. The body prints standing on an end face. Print both caps plate down: `cap_bottom` already "
-        "is; turn `cap_top` upside down in the slicer.",
+        "Print the body and both caps: open `plate.3mf` in PrusaSlicer, where they lie in their print "
+        "orientation (the body on an end face, both caps plate down) with the settings the channels need; "
+        "choose your printer and material and keep those settings. (The STL files are in frame F, in their "
+        "assembled positions.)",
         f"Clear every channel with a wire slightly thinner than {wire} and check that "
         "light shows through each one, end to end. Blow out the dust.",
         "Glue the **bottom cap** (`cap_bottom`) onto the body: a thin bead of epoxy (or cyanoacrylate for "
@@ -255,6 +259,10 @@ def procedure_steps(guide: FillGuide) -> tuple[str, ...]:
         f"slip fit with {guide.clearance_mm:g} mm radial clearance; the plate seals every channel opening at "
         "z = 0. Let it cure.",
     ]
+    if guide.vent_grooves:
+        steps[-1] = steps[-1].replace(" Let it cure.", " Work the glue into the vent grooves in the lower end "
+                                      "face (one from each channel to the outside, for the resin print): "
+                                      "filled, they seal. Let it cure.")
     if guide.has_ports:
         steps.append(
             "Glue the **top cap** (`cap_top`) the same way, turned so that every fill port sits over its channel "

@@ -180,3 +180,12 @@ def test_the_needle_guide_design_fills_with_a_thinner_needle(tmp_path):
     guide = fill_guide(geom, RoundCapDims.from_spec(spec, geom))
     assert guide.port_diameter_mm == 0.8 and guide.needle_gauge == 30
     assert len(guide.ports) == len(geom.tubes) == 9
+
+
+def test_a_resin_print_s_vent_grooves_are_glued_shut_with_the_bottom_cap():
+    geom, dims = preset("chic", RoundCapDims)
+    plain = fill_guide(geom, dims)
+    resin = fill_guide(geom, dims, vent_grooves=True)
+    assert "plate.3mf" in plain.procedure[0]
+    assert not any("vent grooves" in s for s in plain.procedure)
+    assert "Work the glue into the vent grooves" in resin.procedure[2]
