@@ -132,6 +132,9 @@ def build_design(spec_path, out_root="exports", force: bool = False, progress: b
         with steps.step("print plate"):
             plate = write_print_plate(tmp, spec, geometry, parts.cap_dims)
             files.append(PLATE_NAME)
+            if not plate.fits_bed and progress:
+                status(f"the parts do not fit on the printer's bed together; {PLATE_NAME} is laid out on a "
+                       f"{plate.bed_mm[0]:g} x {plate.bed_mm[1]:g} mm bed: print them one at a time")
         with steps.step("print check"):
             print_result, print_note = None, ""
             slicer = find_slicer()
