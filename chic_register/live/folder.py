@@ -22,7 +22,7 @@ import importlib
 import os
 import sys
 import time
-from dataclasses import dataclass
+from dataclasses import dataclass, replace
 from pathlib import Path
 
 import numpy as np
@@ -57,6 +57,11 @@ class TrackEvent:
     igtl: str = ""  # "", "sent" or the send error
     T_scanner_from_tool: np.ndarray | None = None
     failed: tuple[str, ...] = ()  # outputs that failed (OpenIGTLink, scene), one line each
+
+    def kept(self) -> "TrackEvent":
+        """This event without its per-slice records: what a run's summary keeps of it (a tracker runs for
+        hours, at 10 images a second; the pose, status and timings are a few hundred bytes)."""
+        return replace(self, slices=())
 
     def to_dict(self) -> dict:
         out = {"source": self.source, "status": self.status}
@@ -97,7 +102,10 @@ class TrackEvent:
 
 @dataclass(frozen=True)
 class TrackSummary:
-    """Everything one tracking run did; ``stopped_by`` is ``"max_files"``, ``"timeout"`` or ``"interrupt"``."""
+    """Everything one tracking run did; ``stopped_by`` is ``"max_files"``, ``"timeout"`` or ``"interrupt"``.
+
+    ``events`` are :meth:`TrackEvent.kept` copies: poses, statuses and timings, not the per-slice records.
+    """
 
     events: tuple[TrackEvent, ...]
     pending: tuple[str, ...]
@@ -381,7 +389,7 @@ def track(
                     continue
                 done[path] = sig
                 del pending[path]
-                events.append(event)
+                events.append(event.kept())
                 on_event(event)
                 if max_files is not None and len(events) >= max_files:
                     stopped_by = "max_files"

@@ -129,7 +129,7 @@ def track_images(geom, *, connect=None, listen=None, name: str = "CHIC", max_ima
             else:
                 event = TrackEvent(source, "ok", reg.T_scanner_from_fiducial, tuple(reg.slices),
                                    T_scanner_from_tool=tool_pose(reg, geom), **common)
-            events.append(event)
+            events.append(event.kept())
             on_event(event)
             if max_images is not None and len(events) >= max_images:
                 stopped_by = "max_files"
