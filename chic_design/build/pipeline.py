@@ -138,9 +138,7 @@ def build_design(spec_path, out_root="exports", force: bool = False, progress: b
         with steps.step("print check"):
             print_result, print_note = None, ""
             slicer = find_slicer()
-            if plate.info["printer"] == "resin" and printcheck is not True:
-                print_note = "the print check reads FDM toolpaths; not run for a resin plate"
-            elif printcheck is False:
+            if printcheck is False:
                 print_note = "skipped (printcheck off)"
             elif slicer is None and printcheck is None:
                 print_note = "skipped: prusa-slicer is not on the PATH (install PrusaSlicer, then run chic-design printcheck)"

@@ -34,7 +34,9 @@ from chic_design.printing.limits import (
     MIN_CLEAR_NOZZLE_SHARE,
     MIN_CLEAR_SHARE,
     MIN_OPEN_SHARE,
+    MIN_WALL_SHARE,
     OVERHANG_PERCENTILE,
+    WALL_RING_MM,
 )
 from chic_design.printing.plate import Placement
 from chic_design.printing.toolpaths import KIND_CODE, Layer
@@ -80,6 +82,7 @@ class LayerMeasure:
     offset_mm: tuple[float, float]
     overhang_mm: float
     centre_mm: tuple[float, float] = (0.0, 0.0)
+    wall_share: float = 1.0
 
 
 @dataclass(frozen=True)
@@ -99,6 +102,7 @@ class ChannelResult:
     overhang_z_mm: float
     ok: bool
     problems: tuple[str, ...] = ()
+    wall_share: float = 1.0
 
     @property
     def clear_share(self) -> float:
@@ -234,6 +238,8 @@ def measure_channel(channel: CheckedChannel, placement: Placement, layers, extru
             continue
         paths = paths_near(layer, section.bounds, 2 * extrusion_width_mm)
         opening = section.difference(paths) if not paths.is_empty else section
+        ring = section.buffer(WALL_RING_MM).difference(section)
+        wall = ring.intersection(paths).area / ring.area if not paths.is_empty else 0.0
         share = opening.area / section.area
         clear = inscribed_width_mm(opening)
         if opening.area > 0:
@@ -246,13 +252,14 @@ def measure_channel(channel: CheckedChannel, placement: Placement, layers, extru
             overhang = inscribed_width_mm(paths.intersection(previous_open))
         c_f = channel.tube.point_at_z(z_f)[0, :2]
         out.append(LayerMeasure(layer.z_mm, float(share), float(clear), offset, float(overhang),
-                                (float(c_f[0]), float(c_f[1]))))
+                                (float(c_f[0]), float(c_f[1])), float(wall)))
         previous_open = opening
     return out
 
 
-def judge(channel: CheckedChannel, measures, extrusion_width_mm: float, nozzle_mm: float = 0.0) -> ChannelResult:
-    """The verdict on one channel from its layer measures (``nozzle_mm``: the FDM nozzle, 0 for none)."""
+def judge(channel: CheckedChannel, measures, max_overhang_mm: float | None, nozzle_mm: float = 0.0) -> ChannelResult:
+    """The verdict on one channel from its layer measures (``max_overhang_mm``: None where nothing sags, as in a
+    resin print; ``nozzle_mm``: the FDM nozzle, 0 for none)."""
     d = channel.diameter_mm
     if not measures:
         return ChannelResult(channel.id, channel.part, d, 0, float("nan"), float("nan"), float("nan"), float("nan"),
@@ -282,12 +289,17 @@ def judge(channel: CheckedChannel, measures, extrusion_width_mm: float, nozzle_m
             i = int(np.argmin(share))
             problems.append(f"open area {share[i]:.0%} of nominal (< {MIN_OPEN_SHARE:.0%}) at layer "
                             f"z = {measures[i].z_mm:g} mm")
-    if over_typical > MAX_OVERHANG_SHARE * extrusion_width_mm:
+    wall = float(np.median([m.wall_share for m in measures]))
+    if wall < MIN_WALL_SHARE:
+        problems.append(f"not walled in: material covers {wall:.0%} of a {WALL_RING_MM:g} mm ring round it (median "
+                        "over its layers): the part is not where the plate places it, or its walls are missing")
+    if max_overhang_mm is not None and over_typical > max_overhang_mm:
         problems.append(f"overhang of {over_typical:.2f} mm over its opening (> {MAX_OVERHANG_SHARE:g} x the "
-                        f"{extrusion_width_mm:g} mm extrusion) at layer z = {measures[j].z_mm:g} mm: its roof sags")
+                        f"{max_overhang_mm / MAX_OVERHANG_SHARE:g} mm extrusion) at layer z = {measures[j].z_mm:g} mm: "
+                        "its roof sags")
     return ChannelResult(channel.id, channel.part, d, len(measures), measures[k].z_mm, float(clear[k]),
                          float(share.min()), max_off, mean_off, over_typical, measures[j].z_mm,
-                         not problems, tuple(problems))
+                         not problems, tuple(problems), wall)
 
 
 def toolpath_scale(measures) -> tuple[float, float]:
@@ -316,10 +328,70 @@ def check_channels(channels, placements: dict[str, Placement], layers, extrusion
     results, body_measures = [], []
     for ch in channels:
         measures = measure_channel(ch, placements[ch.part], layers, extrusion_width_mm)
-        results.append(judge(ch, measures, extrusion_width_mm, nozzle_mm))
+        results.append(judge(ch, measures, MAX_OVERHANG_SHARE * extrusion_width_mm, nozzle_mm))
         if ch.part == "body":
             body_measures += measures
         if progress is not None:
             progress(ch.id)
     scale, scale_sd = toolpath_scale(body_measures)
     return PrintCheck(tuple(results), extrusion_width_mm, layer_mm, slicer, len(layers), nozzle_mm, scale, scale_sd)
+
+
+def measure_channel_raster(channel: CheckedChannel, placement: Placement, stack) -> list[LayerMeasure]:
+    """:class:`LayerMeasure` of ``channel`` in a resin print's layer masks (a
+    :class:`~chic_design.printing.sla_layers.SlaStack`): what of its nominal section stays uncured."""
+    from scipy.ndimage import distance_transform_edt  # loaded only for resin prints
+
+    lo, hi = channel.tube.z_range
+    R = placement.T_bed_from_F[:3, :3]
+    px = min(abs(stack.dx_mm), abs(stack.dy_mm))
+    out = []
+    for k, z_top in enumerate(stack.z_top_mm):
+        z_f = _plane_to_f(placement, float(z_top - stack.height_mm[k] / 2))
+        if z_f is None or not (lo < z_f < hi):
+            continue
+        section, centre = nominal_section(channel, placement, z_f)
+        if section is None:
+            continue
+        ring = section.buffer(WALL_RING_MM)
+        x0, y0, x1, y1 = ring.bounds
+        (r0, r1), (c0, c1) = (np.sort(v) for v in stack.pixel_of(np.array([x0, x1]), np.array([y0, y1])))
+        rows = np.arange(max(int(np.floor(r0)) - 1, 0), min(int(np.ceil(r1)) + 2, stack.masks.shape[1]))
+        cols = np.arange(max(int(np.floor(c0)) - 1, 0), min(int(np.ceil(c1)) + 2, stack.masks.shape[2]))
+        if rows.size == 0 or cols.size == 0:
+            continue
+        rr, cc = np.meshgrid(rows, cols, indexing="ij")
+        x, y = stack.x0_mm + cc * stack.dx_mm, stack.y0_mm + rr * stack.dy_mm
+        inside = shapely.contains_xy(section, x, y)
+        if not inside.any():
+            continue
+        around = shapely.contains_xy(ring, x, y) & ~inside
+        cured = stack.masks[k][rr, cc]
+        wall = float(cured[around].mean()) if around.any() else 0.0
+        opening = inside & ~cured
+        share = opening.sum() / inside.sum()
+        clear = 2.0 * float(distance_transform_edt(np.pad(opening, 1)).max()) * px if opening.any() else 0.0
+        if opening.any():
+            c = np.array([x[opening].mean(), y[opening].mean()])
+            offset = tuple(float(v) for v in R[:2, :2].T @ (c - centre))
+        else:
+            offset = (float("nan"), float("nan"))
+        c_f = channel.tube.point_at_z(z_f)[0, :2]
+        out.append(LayerMeasure(float(z_top), float(share), clear, offset, 0.0, (float(c_f[0]), float(c_f[1])),
+                                wall))
+    return out
+
+
+def check_channels_raster(channels, placements: dict[str, Placement], stack, layer_mm: float, slicer: str = "",
+                          progress=None) -> PrintCheck:
+    """Check every channel against a resin print's layer masks (no beads: nothing overhangs or sags)."""
+    results, body_measures = [], []
+    for ch in channels:
+        measures = measure_channel_raster(ch, placements[ch.part], stack)
+        results.append(judge(ch, measures, None, 0.0))
+        if ch.part == "body":
+            body_measures += measures
+        if progress is not None:
+            progress(ch.id)
+    scale, scale_sd = toolpath_scale(body_measures)
+    return PrintCheck(tuple(results), 0.0, layer_mm, slicer, len(stack.z_top_mm), 0.0, scale, scale_sd)

@@ -21,12 +21,14 @@ from chic_design.printing.check import (
     CheckedChannel,
     PrintCheck,
     check_channels,
+    check_channels_raster,
     nominal_section,
     paths_near,
     port_channels,
 )
 from chic_design.printing.plate import Plate, make_plate, read_plate, write_plate
 from chic_design.printing.settings import print_settings
+from chic_design.printing.sla_layers import read_sla_layers
 from chic_design.printing.slicer import find_slicer, slice_plate, slicer_version
 from chic_design.printing.toolpaths import read_toolpaths
 from chic_register.errors import InputFileError
@@ -118,22 +120,26 @@ def run_printcheck(folder, exe: str | None = None, progress=None, calibration=No
     folder = Path(folder)
     geometry, plate = load_export(folder)
     scan = scan_calibration(calibration) if calibration is not None else None
-    if plate.info.get("printer") == "resin":
-        raise PrintFileError(f"{folder / PLATE_NAME}: the print check reads FDM toolpaths; this plate is set up "
-                             "for a resin printer (print.printer: resin)")
+    resin = plate.info.get("printer") == "resin"
     exe = exe or find_slicer()
     say = progress or (lambda _text: None)
-    with tempfile.TemporaryDirectory(prefix="chic-printcheck-") as tmp:
-        say("slicing plate.3mf with prusa-slicer")
-        gcode = slice_plate(folder / PLATE_NAME, Path(tmp) / "plate.gcode", exe=exe)
-        say("reading the toolpaths")
-        layers = read_toolpaths(gcode)
     placements = {p.name: p for p in plate.placements}
     channels = checked_channels(geometry, plate)
-    say(f"checking {len(channels)} channels in {len(layers)} layers")
-    result = check_channels(channels, placements, layers, float(plate.info["extrusion_width_mm"]),
-                            float(plate.info["layer_mm"]), nozzle_mm=float(plate.info.get("nozzle_mm", 0.0)),
-                            slicer=slicer_version(exe) if exe else "")
+    with tempfile.TemporaryDirectory(prefix="chic-printcheck-") as tmp:
+        say("slicing plate.3mf with prusa-slicer")
+        sliced = slice_plate(folder / PLATE_NAME, Path(tmp) / ("plate.sl1" if resin else "plate.gcode"), exe=exe,
+                             sla=resin)
+        say("reading the layer images" if resin else "reading the toolpaths")
+        layers = read_sla_layers(sliced) if resin else read_toolpaths(sliced)
+    version = slicer_version(exe) if exe else ""
+    if resin:
+        say(f"checking {len(channels)} channels in {len(layers.z_top_mm)} layers")
+        result = check_channels_raster(channels, placements, layers, float(plate.info["layer_mm"]), slicer=version)
+    else:
+        say(f"checking {len(channels)} channels in {len(layers)} layers")
+        result = check_channels(channels, placements, layers, float(plate.info["extrusion_width_mm"]),
+                                float(plate.info["layer_mm"]), nozzle_mm=float(plate.info.get("nozzle_mm", 0.0)),
+                                slicer=version)
     out = folder if out is None else Path(out)
     out.mkdir(parents=True, exist_ok=True)
     write_json(out / "printcheck.json", {**result.to_dict(), **({"scan_calibration": scan} if scan else {})})
@@ -154,14 +160,20 @@ def draw_worst_layer(result: PrintCheck, channels, placements, layers, png_path)
     from matplotlib.path import Path as MplPath
 
     worst = result.worst()
-    layer = min(layers, key=lambda lay: abs(lay.z_mm - worst.worst_z_mm))
+    resin = not isinstance(layers, (list, tuple))
+    if resin:
+        k = int(np.argmin(np.abs(layers.z_top_mm - worst.worst_z_mm)))
+        z_top, z_mid = float(layers.z_top_mm[k]), float(layers.z_top_mm[k] - layers.height_mm[k] / 2)
+    else:
+        layer = min(layers, key=lambda lay: abs(lay.z_mm - worst.worst_z_mm))
+        z_top, z_mid = layer.z_mm, layer.mid_z_mm
     place = placements[worst.part]
     ok = {c.id: c.ok for c in result.channels}
     sections = []
     for ch in channels:
         if ch.part != worst.part:
             continue
-        z_f = float((layer.mid_z_mm - place.T_bed_from_F[2, 3]) / place.T_bed_from_F[2, 2])
+        z_f = float((z_mid - place.T_bed_from_F[2, 3]) / place.T_bed_from_F[2, 2])
         lo, hi = ch.tube.z_range
         if lo < z_f < hi:
             sec, centre = nominal_section(ch, place, z_f)
@@ -174,7 +186,7 @@ def draw_worst_layer(result: PrintCheck, channels, placements, layers, png_path)
     x1 = max(s.bounds[2] for _, s, _ in sections)
     y1 = max(s.bounds[3] for _, s, _ in sections)
     pad = 4.0
-    paths = paths_near(layer, (x0 - pad, y0 - pad, x1 + pad, y1 + pad), 0.0)
+    paths = None if resin else paths_near(layer, (x0 - pad, y0 - pad, x1 + pad, y1 + pad), 0.0)
 
     def patch(geom, **kw):
         verts, codes = [], []
@@ -188,15 +200,21 @@ def draw_worst_layer(result: PrintCheck, channels, placements, layers, png_path)
         return PathPatch(MplPath(verts, codes), **kw) if verts else None
 
     fig, ax = plt.subplots(figsize=(8, 8))
-    p = patch(shapely.clip_by_rect(paths, x0 - pad, y0 - pad, x1 + pad, y1 + pad), facecolor="0.75",
-              edgecolor="0.45", linewidth=0.3)
-    if p is not None:
-        ax.add_patch(p)
+    if resin:  # the cured pixels of the layer, grey
+        img = layers.masks[k]
+        ax.imshow(np.where(img, 0.75, 1.0), cmap="gray", vmin=0, vmax=1, origin="upper", interpolation="nearest",
+                  extent=(layers.x0_mm - layers.dx_mm / 2, layers.x0_mm + (img.shape[1] - 0.5) * layers.dx_mm,
+                          layers.y0_mm + (img.shape[0] - 0.5) * layers.dy_mm, layers.y0_mm - layers.dy_mm / 2))
+    else:
+        p = patch(shapely.clip_by_rect(paths, x0 - pad, y0 - pad, x1 + pad, y1 + pad), facecolor="0.75",
+                  edgecolor="0.45", linewidth=0.3)
+        if p is not None:
+            ax.add_patch(p)
     measure = {c.id: c for c in result.channels}
     for cid, sec, centre in sections:
         colour = "tab:green" if ok[cid] else "tab:red"
         ax.add_patch(patch(sec, facecolor="none", edgecolor=colour, linewidth=1.5))
-        opening = sec.difference(paths)
+        opening = sec.difference(paths) if paths is not None else shapely.Polygon()
         if not opening.is_empty:
             q = patch(opening, facecolor=colour, alpha=0.25, edgecolor="none")
             if q is not None:
@@ -210,9 +228,10 @@ def draw_worst_layer(result: PrintCheck, channels, placements, layers, png_path)
     ax.set_xlabel("bed x (mm)")
     ax.set_ylabel("bed y (mm)")
     verdict = "all channels open" if result.ok else f"{len(result.failures)} channel(s) fail"
-    ax.set_title(f"{worst.part}, layer z = {layer.z_mm:g} mm (worst: {worst.id}); {verdict}\n"
-                 "grey: toolpaths at their bead width; outline: nominal section; fill: what stays open; "
-                 "labels: least clear width / diameter", fontsize=8)
+    what = ("grey: cured resin; outline: nominal section" if resin else
+            "grey: toolpaths at their bead width; outline: nominal section; fill: what stays open")
+    ax.set_title(f"{worst.part}, layer z = {z_top:g} mm (worst: {worst.id}); {verdict}\n"
+                 f"{what}; labels: least clear width / diameter", fontsize=8)
     return save_figure(fig, png_path)
 
 

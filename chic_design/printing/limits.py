@@ -22,6 +22,12 @@ MAX_OVERHANG_SHARE = 0.5
 #: The overhang judged is this percentile of a channel's layers: one layer's value carries the slicer's polygon
 #: noise (a few hundredths of a mm), while a roof sags only where it overhangs layer after layer.
 OVERHANG_PERCENTILE = 90
+#: A channel must be walled in: material over at least this share of a ring of :data:`WALL_RING_MM` round its
+#: section (median over its layers; channels that meet others or the bore stay far above it). An opening in
+#: empty space would pass every other test: this is what catches a part the slicer did not put where the
+#: plate says.
+MIN_WALL_SHARE = 0.5
+WALL_RING_MM = 0.5
 
 
 def print_violations(settings, geometry, overhangs: tuple[Overhang, ...], port_diameter_mm: float) -> list[Finding]:

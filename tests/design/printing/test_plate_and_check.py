@@ -271,3 +271,14 @@ def test_printcheck_refuses_what_it_cannot_check_in_one_line(tmp_path, capsys):
     assert main(["printcheck", str(folder), "--quiet"]) == 2
     assert "no such plate" in capsys.readouterr().err
     assert not (folder / "printcheck.json").exists()
+
+
+def test_an_opening_in_empty_space_is_not_a_pass():
+    """Toolpaths 20 mm away from where the plate puts the part: every section is 'open', but nothing walls it in."""
+    tube = LineTube("A0", "axial", (0, 0, 0), (0, 0, 2), 3.0)
+    ch = CheckedChannel("A0", "body", tube)
+    place = {"body": Placement("body", np.eye(4))}
+    layers = [_ring_layer(0.2 * (k + 1), 0.2, (20.0, 0.0), 3.0) for k in range(9)]
+    res = check_channels([ch], place, layers, 0.45, 0.2, nozzle_mm=0.4)
+    assert not res.ok and "not walled in" in res.channels[0].problems[0]
+    assert res.channels[0].wall_share == pytest.approx(0.0)

@@ -1,6 +1,6 @@
 """The print check with the real PrusaSlicer: shipped designs slice with the plate's own settings and keep every
 channel open; a channel too small for the nozzle and a helix too steep for the layer height are failed, named
-with their layer; a resin plate slices as SLA layers. (`.ci/run` installs prusa-slicer.)"""
+with their layer; a resin plate slices as SLA layer images, checked the same way. (`.ci/run` installs prusa-slicer.)"""
 
 from __future__ import annotations
 
@@ -98,12 +98,15 @@ def _without_print_violations(spec):
     return dataclasses.replace(report, violations=kept)
 
 
-def test_a_resin_plate_carries_an_sla_profile_that_prusaslicer_slices(tmp_path):
+def test_a_resin_plate_carries_an_sla_profile_that_prusaslicer_slices_and_keeps_every_channel_open(tmp_path):
     spec = (DATA / "steep-helix.yaml").read_text().replace("  layer_height: 0.3", "  printer: resin")
     path = tmp_path / "resin.yaml"
     path.write_text(spec.replace("name: steep-helix", "name: resin-helix"))
     result = build_design(path, out_root=tmp_path / "out", progress=False, pictures_in_worker=False)
-    assert not (result.folder / "printcheck.json").exists()  # the toolpath check is for FDM plates
+    check = json.loads((result.folder / "printcheck.json").read_text())  # checked in the layer images
+    assert check["ok"] and check["layers"] == pytest.approx(15 / 0.05, abs=2)
+    for c in check["channels"]:  # 0.05 mm pixels: every channel and port open to within about two pixels
+        assert c["min_clear_mm"] > c["diameter_mm"] - 0.15 and c["max_offset_mm"] < 0.05, c["id"]
     plate = read_plate(result.folder / "plate.3mf")
     assert plate.config["printer_technology"] == "SLA" and plate.info["printer"] == "resin"
     sl1 = slice_plate(result.folder / "plate.3mf", tmp_path / "plate.sl1", sla=True)
