@@ -22,7 +22,9 @@ import importlib
 import os
 import sys
 import time
-from dataclasses import dataclass, replace
+from array import array
+from collections import deque
+from dataclasses import dataclass, field, replace
 from pathlib import Path
 
 import numpy as np
@@ -100,36 +102,66 @@ class TrackEvent:
         return line
 
 
+#: A run's summary keeps this many of its latest events in full; its counts and latency figures cover them all
+#: (a tracker runs for hours at 10 images a second, and its memory must not grow with every image).
+KEPT_EVENTS = 100
+
+
+class EventLog:
+    """What a tracking run keeps of its events as they come: counts, every latency, the latest few events."""
+
+    def __init__(self):
+        self.recent: deque[TrackEvent] = deque(maxlen=KEPT_EVENTS)
+        self.n = 0
+        self.counts: dict[str, int] = {"ok": 0, "no_lock": 0, "error": 0}
+        self.outputs_failed = 0
+        self.ok_latency_ms = array("d")
+
+    def add(self, event: TrackEvent) -> None:
+        self.n += 1
+        self.counts[event.status] = self.counts.get(event.status, 0) + 1
+        self.outputs_failed += bool(event.failed)
+        if event.status == "ok":
+            self.ok_latency_ms.append(event.latency_ms)
+        self.recent.append(event.kept())
+
+    def summary(self, pending, stopped_by: str, duration_s: float) -> "TrackSummary":
+        return TrackSummary(tuple(self.recent), tuple(pending), stopped_by, duration_s, files=self.n,
+                            counts=dict(self.counts), outputs_failed=self.outputs_failed,
+                            ok_latency_ms=tuple(self.ok_latency_ms))
+
+
 @dataclass(frozen=True)
 class TrackSummary:
     """Everything one tracking run did; ``stopped_by`` is ``"max_files"``, ``"timeout"`` or ``"interrupt"``.
 
-    ``events`` are :meth:`TrackEvent.kept` copies: poses, statuses and timings, not the per-slice records.
+    ``events`` are the last :data:`KEPT_EVENTS` events (:meth:`TrackEvent.kept` copies: poses, statuses and
+    timings, not the per-slice records); ``files``, ``counts`` (per status), ``outputs_failed`` and
+    ``ok_latency_ms`` cover every event of the run.
     """
 
     events: tuple[TrackEvent, ...]
     pending: tuple[str, ...]
     stopped_by: str
     duration_s: float
+    files: int = 0
+    counts: dict = field(default_factory=dict)
+    outputs_failed: int = 0
+    ok_latency_ms: tuple[float, ...] = ()
 
     @property
     def n_ok(self) -> int:
-        return sum(e.status == "ok" for e in self.events)
-
-    @property
-    def outputs_failed(self) -> int:
-        """How many events had an output (OpenIGTLink, scene) fail."""
-        return sum(bool(e.failed) for e in self.events)
+        return self.counts.get("ok", 0)
 
     def to_dict(self) -> dict:
-        lat = [e.latency_ms for e in self.events if e.status == "ok"]
+        lat = self.ok_latency_ms
         return {
             "status": "stopped",
             "stopped_by": self.stopped_by,
-            "files": len(self.events),
+            "files": self.files,
             "ok": self.n_ok,
-            "no_lock": sum(e.status == "no_lock" for e in self.events),
-            "errors": sum(e.status == "error" for e in self.events),
+            "no_lock": self.counts.get("no_lock", 0),
+            "errors": self.counts.get("error", 0),
             "pending": list(self.pending),
             "latency_ms": {"median": float(np.median(lat)), "max": float(np.max(lat))} if lat else None,
             "outputs_failed": self.outputs_failed,
@@ -311,7 +343,7 @@ def track(
     done: dict[str, tuple] = {} if include_existing else _scan(folder)
     pending: dict[str, _Pending] = {}
     first_poll = True
-    events: list[TrackEvent] = []
+    log = EventLog()
     stopped_by = "interrupt"
 
     def process(path: str, state: _Pending, now: float) -> TrackEvent | None:
@@ -389,9 +421,9 @@ def track(
                     continue
                 done[path] = sig
                 del pending[path]
-                events.append(event.kept())
+                log.add(event)
                 on_event(event)
-                if max_files is not None and len(events) >= max_files:
+                if max_files is not None and log.n >= max_files:
                     stopped_by = "max_files"
                     break
             if stopped_by == "max_files":
@@ -403,4 +435,4 @@ def track(
     finally:
         if sender is not None:
             sender.close()
-    return TrackSummary(tuple(events), tuple(sorted(pending)), stopped_by, time.monotonic() - start)
+    return log.summary(sorted(pending), stopped_by, time.monotonic() - start)

@@ -26,7 +26,7 @@ from chic_register.io.igtl import (
     pose_messages,
     read_message,
 )
-from chic_register.live.folder import Publisher, TrackEvent, TrackSummary, warm_up
+from chic_register.live.folder import EventLog, Publisher, TrackEvent, TrackSummary, warm_up
 from chic_register.outputs.deliver import quality, tool_pose
 from chic_register.pipeline.register import register as register_slices
 
@@ -63,7 +63,7 @@ def track_images(geom, *, connect=None, listen=None, name: str = "CHIC", max_ima
     warm_up()
     start = time.monotonic()
     deadline = None if timeout_s is None else start + timeout_s
-    events: list[TrackEvent] = []
+    log = EventLog()
     ignored: set[str] = set()
     stopped_by = "interrupt"
     sock = client = None
@@ -99,7 +99,7 @@ def track_images(geom, *, connect=None, listen=None, name: str = "CHIC", max_ima
                     ignored.add(msg.message_type)
                     on_message(f"ignoring {msg.message_type} messages from the scanner bridge (only IMAGE is read)")
                 continue
-            n = len(events) + 1
+            n = log.n + 1
             source = f"igtl:{msg.device_name or 'IMAGE'}#{n}"
             reg, reason, slices, t1 = None, "", [], t_recv
             try:
@@ -129,9 +129,9 @@ def track_images(geom, *, connect=None, listen=None, name: str = "CHIC", max_ima
             else:
                 event = TrackEvent(source, "ok", reg.T_scanner_from_fiducial, tuple(reg.slices),
                                    T_scanner_from_tool=tool_pose(reg, geom), **common)
-            events.append(event.kept())
+            log.add(event)
             on_event(event)
-            if max_images is not None and len(events) >= max_images:
+            if max_images is not None and log.n >= max_images:
                 stopped_by = "max_files"
                 break
     except KeyboardInterrupt:
@@ -141,4 +141,4 @@ def track_images(geom, *, connect=None, listen=None, name: str = "CHIC", max_ima
             sock.close()
         if client is not None:
             client.close()
-    return TrackSummary(tuple(events), (), stopped_by, time.monotonic() - start)
+    return log.summary((), stopped_by, time.monotonic() - start)

@@ -257,3 +257,22 @@ def test_track_reports_an_unexpected_failure_and_goes_on(tmp_path, dicom_slice, 
     assert [(Path(e.source).name, e.status) for e in events] == [("a.dcm", "error"), ("b.dcm", "ok")]
     assert "ZeroDivisionError" in events[0].reason and "a.dcm: error: ZeroDivisionError" in events[0].text()
     assert summary.to_dict()["errors"] == 1 and summary.to_dict()["no_lock"] == 0
+
+
+def test_a_long_run_keeps_its_latest_events_and_counts_every_one():
+    """A tracker at 10 images a second for hours: the summary counts every image and keeps the latest
+    KEPT_EVENTS in full, so its memory does not grow with each image."""
+    from chic_register.live.folder import KEPT_EVENTS, EventLog, TrackEvent
+
+    log = EventLog()
+    n = 3 * KEPT_EVENTS + 7
+    for k in range(n):
+        ok = k % 4 != 0
+        log.add(TrackEvent(f"igtl:MRI#{k + 1}", "ok" if ok else "no_lock", np.eye(4) if ok else None,
+                           slices=("a record",), latency_ms=float(k)))
+    summary = log.summary((), "timeout", 1.0)
+    assert summary.files == n and len(summary.events) == KEPT_EVENTS
+    assert summary.events[-1].source == f"igtl:MRI#{n}" and summary.events[-1].slices == ()
+    d = summary.to_dict()
+    assert d["ok"] + d["no_lock"] == n and d["no_lock"] == len(range(0, n, 4))
+    assert d["latency_ms"]["max"] == float(n - 1)  # the oldest events count, though they are not kept
