@@ -103,6 +103,12 @@ SECTIONS: tuple[Section, ...] = (
             "Rician SNR 20; with the default solver and with the verification off. Target: median < 30 ms.",
             (f"{PY} benchmarks/bench_igtl.py --images 100", f"{PY} benchmarks/bench_igtl.py --images 100 --verify off"),
             (f"{PY} benchmarks/bench_igtl.py --images 5 --distinct 5",)),
+    Section("igtl_loop", "The robot's loop, sustained",
+            "A scanner-bridge stand-in sends IMAGE messages (256 x 256 int16, `neuro`, Rician SNR 20) at 10 Hz over "
+            "loopback for 10 minutes, on its own clock, to the real `chic-register track - --igtl-images` "
+            "(verification on); latency IMAGE sent -> TRANSFORM received at the bridge, dropped images, the "
+            "tracker's memory over the run. Goal: median <= 15 ms, p99 <= 40 ms, no drops, flat memory.",
+            (f"{PY} benchmarks/bench_igtl_loop.py --minutes 10",), (f"{PY} benchmarks/bench_igtl_loop.py --minutes 0.1",)),
     Section("volume", "Whole volumes without `--slices`",
             "60-slice volumes of `neuro` and of the z001 Z-frame: every native slice tried, the ones that lock "
             "registered jointly.",
