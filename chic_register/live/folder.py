@@ -33,6 +33,7 @@ from chic_register.errors import ChicRegisterError, ImageReadError, NoLock
 from chic_register.io.images import read_slices
 from chic_register.outputs.deliver import quality, tool_pose
 from chic_register.pipeline.register import register as register_slices
+from chic_register.util.memory import release_freed_memory
 
 IGNORED_SUFFIXES = (".tmp", ".part", ".partial", "~", ".json", ".swp")
 RETRY_FIRST_S = 1.0
@@ -105,6 +106,9 @@ class TrackEvent:
 #: A run's summary keeps this many of its latest events in full; its counts and latency figures cover them all
 #: (a tracker runs for hours at 10 images a second, and its memory must not grow with every image).
 KEPT_EVENTS = 100
+#: Every this many events a tracker hands freed heap memory back to the OS (a few ms; see
+#: :mod:`chic_register.util.memory`), so its resident size stays flat over hours.
+TRIM_EVERY = 100
 
 
 class EventLog:
@@ -124,6 +128,8 @@ class EventLog:
         if event.status == "ok":
             self.ok_latency_ms.append(event.latency_ms)
         self.recent.append(event.kept())
+        if self.n % TRIM_EVERY == 0:
+            release_freed_memory()
 
     def summary(self, pending, stopped_by: str, duration_s: float) -> "TrackSummary":
         return TrackSummary(tuple(self.recent), tuple(pending), stopped_by, duration_s, files=self.n,
