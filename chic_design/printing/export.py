@@ -28,7 +28,7 @@ from chic_design.printing.check import (
 )
 from chic_design.printing.plate import Plate, make_plate, read_plate, write_plate
 from chic_design.printing.settings import print_settings
-from chic_design.printing.sla_layers import read_sla_layers
+from chic_design.printing.sla_layers import SlaStack, read_sla_layers
 from chic_design.printing.slicer import find_slicer, slice_plate, slicer_version
 from chic_design.printing.toolpaths import read_toolpaths
 from chic_register.errors import InputFileError
@@ -149,7 +149,9 @@ def run_printcheck(folder, exe: str | None = None, progress=None, calibration=No
 
 
 def draw_worst_layer(result: PrintCheck, channels, placements, layers, png_path) -> Path:
-    """The worst channel's worst layer: the toolpaths of its part (grey), every channel's nominal section
+    """The worst channel's worst layer: the toolpaths of its part (grey; ``layers`` a tuple of
+    :class:`~chic_design.printing.toolpaths.Layer`) or the cured resin (``layers`` a
+    :class:`~chic_design.printing.sla_layers.SlaStack`), every channel's nominal section
     (green: passes, red: fails) and its opening, labelled with its clear width."""
     import matplotlib  # the plotting library: loaded only by the process that draws
 
@@ -160,7 +162,7 @@ def draw_worst_layer(result: PrintCheck, channels, placements, layers, png_path)
     from matplotlib.path import Path as MplPath
 
     worst = result.worst()
-    resin = not isinstance(layers, (list, tuple))
+    resin = isinstance(layers, SlaStack)
     if resin:
         k = int(np.argmin(np.abs(layers.z_top_mm - worst.worst_z_mm)))
         z_top, z_mid = float(layers.z_top_mm[k]), float(layers.z_top_mm[k] - layers.height_mm[k] / 2)
