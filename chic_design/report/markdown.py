@@ -11,7 +11,13 @@ from chic_design.cad.channels import blank_volume_mm3, channel_volume_mm3
 from chic_design.cad.parts import CapDims
 from chic_design.families import family_of
 from chic_design.feasibility.contacts import touching_channels
-from chic_design.report.fill_guide import EXTRA_ML_PER_PORT, FillGuide, fill_guide, fill_guide_markdown
+from chic_design.report.fill_guide import (
+    EXTRA_ML_PER_PORT,
+    FillGuide,
+    connected_groups,
+    fill_guide,
+    fill_guide_markdown,
+)
 from chic_register.model.geometry import FiducialGeometry
 
 
@@ -20,12 +26,8 @@ def touching_text(geometry: FiducialGeometry) -> str:
     pairs = touching_channels(geometry)
     if not pairs:
         return "No two channels touch: each fills on its own."
-    group = {t: {t} for t in geometry.ids}
-    for a, b, _, _ in pairs:
-        merged = group[a] | group[b]
-        for t in merged:
-            group[t] = merged
-    groups = sorted({tuple(sorted(g)) for g in group.values() if len(g) > 1})
+    joined = connected_groups(geometry.ids, [(a, b) for a, b, _, _ in pairs])
+    groups = sorted(tuple(sorted(g)) for g in joined if len(g) > 1)
     where = "; ".join(f"{a}-{b} at z {lo:.1f}..{hi:.1f} mm" for a, b, lo, hi in pairs)
     names = "; ".join(", ".join(g) for g in groups)
     return (f"Channels that touch, and are connected there: {where}. Connected groups: {names}. "
