@@ -185,7 +185,52 @@ def read_volume(path, series_id: str | None = None) -> Volume:
             raise ImageReadError(path, f"cannot read volume: {last_line(exc)}") from None
     if img.GetDimension() == 4 and img.GetSize()[3] == 1:
         img = img[:, :, :, 0]
+    if img.GetDimension() == 2:
+        img = single_slice_3d(img, reader if not path.is_dir() else None)
     return volume_from_sitk(img, source=str(path))
+
+
+def _srow_lps(reader) -> np.ndarray | None:
+    """A NIfTI header's sform (``srow_x/y/z``, RAS) as a 4x4 affine in LPS, or None without one."""
+    try:
+        if int(reader.GetMetaData("sform_code")) <= 0:
+            return None
+        rows = [[float(v) for v in reader.GetMetaData(f"srow_{a}").split()] for a in "xyz"]
+    except (RuntimeError, ValueError):
+        return None
+    A = np.vstack([np.array(rows), [0.0, 0.0, 0.0, 1.0]])
+    if A.shape != (4, 4) or not np.all(np.isfinite(A)):
+        return None
+    return np.diag([-1.0, -1.0, 1.0, 1.0]) @ A  # RAS -> LPS
+
+
+def single_slice_3d(img: sitk.Image, reader=None) -> sitk.Image:
+    """A 2-D image (one slice, as a 2-D NIfTI or NRRD) as a one-slice 3-D image.
+
+    A NIfTI file keeps its full 3-D place from the sform (SimpleITK drops the
+    third row and column when it reads a 2-D file); otherwise the slice lies
+    in the plane z = 0 of its own frame, its normal +z, and its third spacing
+    is 1 mm (the slice's thickness is not known from a 2-D file).
+    """
+    import SimpleITK as sitk
+
+    out = sitk.JoinSeries(img)
+    A = _srow_lps(reader) if reader is not None else None
+    if A is not None:
+        spacing = np.linalg.norm(A[:3, :3], axis=0)
+        if np.all(spacing > 0):
+            direction = A[:3, :3] / spacing
+            if np.allclose(direction.T @ direction, np.eye(3), atol=1e-3):
+                out.SetSpacing(tuple(float(v) for v in spacing))
+                out.SetOrigin(tuple(float(v) for v in A[:3, 3]))
+                out.SetDirection(tuple(float(v) for v in direction.ravel()))
+                return out
+    d2 = np.array(img.GetDirection()).reshape(2, 2)
+    direction = np.eye(3)
+    direction[:2, :2] = d2
+    out.SetDirection(tuple(direction.ravel()))
+    out.SetOrigin((*img.GetOrigin(), 0.0))
+    return out
 
 
 def _replace_dir(tmp: Path, path: Path) -> None:

@@ -1,8 +1,9 @@
 """The fiducial's body (its cross-section and surfaces) and the optional tool frame.
 
 The parts of a geometry file besides its tubes (docs/interfaces.md section 2):
-``body`` (a round annulus for CHIC, a square frame for the Z-frame) and
-``tool`` (the tool tip's frame in F). :mod:`chic_register.model.geometry` builds
+``body`` (a round annulus for CHIC, a square frame for the Z-frame, a
+rectangular box for an N-localizer), ``tool`` (the tool tip's frame in F) and
+``frame_coordinates`` (a stereotactic frame's own coordinate system). :mod:`chic_register.model.geometry` builds
 and validates them; both are importable from there too.
 """
 
@@ -13,8 +14,8 @@ from dataclasses import dataclass
 
 import numpy as np
 
-#: Body cross-sections: a round annulus (CHIC) or a square frame (Z-frame).
-BODY_SHAPES = ("annulus", "square")
+#: Body cross-sections: a round annulus (CHIC), a square frame (Z-frame) or a rectangular box (N-localizer).
+BODY_SHAPES = ("annulus", "square", "box")
 
 
 @dataclass(frozen=True)
@@ -27,6 +28,9 @@ class Body:
     its ``outer_diameter`` is then the circumscribed circle of the outside and
     ``inner_diameter`` the circle inscribed in the bore, so a reader that knows
     only circles still gets one enclosing the body and one inside the bore.
+    ``shape="box"`` (N-localizer): a rectangular frame, outside ``outer_size``
+    (x, y) around a bore ``inner_size`` (x, y), both centred on the z axis;
+    the diameters as for the square.
     """
 
     length: float
@@ -35,6 +39,8 @@ class Body:
     shape: str = "annulus"
     outer_side: float | None = None
     inner_side: float | None = None
+    outer_size: tuple[float, float] | None = None
+    inner_size: tuple[float, float] | None = None
 
     @classmethod
     def square(cls, length: float, outer_side: float, inner_side: float) -> "Body":
@@ -42,33 +48,60 @@ class Body:
         return cls(float(length), float(outer_side) * math.sqrt(2.0), float(inner_side), "square",
                    float(outer_side), float(inner_side))
 
+    @classmethod
+    def box(cls, length: float, outer_size, inner_size) -> "Body":
+        """A rectangular frame body: outside ``outer_size`` = (x, y) mm around a bore ``inner_size``."""
+        (ox, oy), (ix, iy) = (tuple(float(v) for v in outer_size), tuple(float(v) for v in inner_size))
+        return cls(float(length), math.hypot(ox, oy), min(ix, iy), "box", outer_size=(ox, oy), inner_size=(ix, iy))
+
+    @property
+    def outer_half_mm(self) -> np.ndarray | None:
+        """Half the outside width along x and y of a square or box body, (2,); None for an annulus."""
+        if self.shape == "square":
+            return np.array([self.outer_side, self.outer_side]) / 2
+        if self.shape == "box":
+            return np.array(self.outer_size) / 2
+        return None
+
+    @property
+    def inner_half_mm(self) -> np.ndarray | None:
+        """Half the bore's width along x and y of a square or box body, (2,); None for an annulus."""
+        if self.shape == "square":
+            return np.array([self.inner_side, self.inner_side]) / 2
+        if self.shape == "box":
+            return np.array(self.inner_size) / 2
+        return None
+
     def bore_gap_mm(self, xy) -> np.ndarray:
         """Distance (mm) from in-body points ``xy`` (N, 2) to the bore surface; shape (N,)."""
         xy = np.atleast_2d(np.asarray(xy, dtype=float))
-        if self.shape == "square":
-            h = self.inner_side / 2
-            return np.hypot(np.maximum(np.abs(xy[:, 0]) - h, 0.0), np.maximum(np.abs(xy[:, 1]) - h, 0.0))
+        h = self.inner_half_mm
+        if h is not None:
+            return np.hypot(np.maximum(np.abs(xy[:, 0]) - h[0], 0.0), np.maximum(np.abs(xy[:, 1]) - h[1], 0.0))
         return np.hypot(xy[:, 0], xy[:, 1]) - self.inner_diameter / 2
 
     def outside_gap_mm(self, xy) -> np.ndarray:
         """Distance (mm) from in-body points ``xy`` (N, 2) to the outside surface; shape (N,)."""
         xy = np.atleast_2d(np.asarray(xy, dtype=float))
-        if self.shape == "square":
-            return self.outer_side / 2 - np.max(np.abs(xy), axis=1)
+        h = self.outer_half_mm
+        if h is not None:
+            return np.min(h[None, :] - np.abs(xy), axis=1)
         return self.outer_diameter / 2 - np.hypot(xy[:, 0], xy[:, 1])
 
     @property
     def outline_area_mm2(self) -> float:
         """Area enclosed by the outside surface in a section across z."""
-        if self.shape == "square":
-            return self.outer_side ** 2
+        h = self.outer_half_mm
+        if h is not None:
+            return float(4 * h[0] * h[1])
         return math.pi * self.outer_diameter ** 2 / 4
 
     @property
     def bore_area_mm2(self) -> float:
         """Area of the bore in a section across z."""
-        if self.shape == "square":
-            return self.inner_side ** 2
+        h = self.inner_half_mm
+        if h is not None:
+            return float(4 * h[0] * h[1])
         return math.pi * self.inner_diameter ** 2 / 4
 
     def to_dict(self) -> dict:
@@ -77,8 +110,11 @@ class Body:
             "outer_diameter": float(self.outer_diameter),
             "inner_diameter": float(self.inner_diameter),
         }
-        if self.shape != "annulus":  # CHIC files keep their content (and hash) unchanged
+        if self.shape == "square":  # CHIC files keep their content (and hash) unchanged
             out.update(shape=self.shape, outer_side=float(self.outer_side), inner_side=float(self.inner_side))
+        elif self.shape == "box":
+            out.update(shape=self.shape, outer_size=[float(v) for v in self.outer_size],
+                       inner_size=[float(v) for v in self.inner_size])
         return out
 
 
@@ -127,3 +163,43 @@ class ToolFrame:
     def to_dict(self) -> dict:
         return {"T_fiducial_from_tool": [[float(v) for v in row] for row in self.T_fiducial_from_tool]}
 
+
+
+#: Stereotactic coordinate systems a geometry file may name (``frame_coordinates.system``).
+FRAME_SYSTEMS = ("leksell", "brw", "custom")
+
+
+@dataclass(frozen=True, eq=False)
+class FrameCoordinates:
+    """A stereotactic frame's own coordinate system: optional key ``frame_coordinates`` of the geometry file.
+
+    ``T_frame_from_fiducial`` (4x4, rigid, mm) maps points of F to the frame's
+    coordinates (Leksell: X, Y, Z with the frame centre at (100, 100, 100));
+    ``system`` names the convention (:data:`FRAME_SYSTEMS`), ``axes`` says in
+    words where each axis points and ``reference`` where the convention is
+    defined.
+    """
+
+    system: str
+    T_frame_from_fiducial: np.ndarray
+    axes: str = ""
+    reference: str = ""
+
+    def __post_init__(self):
+        if self.system not in FRAME_SYSTEMS:
+            raise ValueError(f"frame_coordinates.system is {self.system!r}; allowed: {', '.join(FRAME_SYSTEMS)}")
+        T = rigid_4x4(self.T_frame_from_fiducial)
+        if T is None:
+            raise ValueError("frame_coordinates.T_frame_from_fiducial must be a rigid 4x4 matrix "
+                             "(orthonormal rotation, det +1, last row 0 0 0 1)")
+        object.__setattr__(self, "T_frame_from_fiducial", T)
+
+    def to_frame_mm(self, points_f_mm) -> np.ndarray:
+        """Points of F (N, 3) in the frame's coordinates (N, 3)."""
+        p = np.atleast_2d(np.asarray(points_f_mm, dtype=float))
+        return p @ self.T_frame_from_fiducial[:3, :3].T + self.T_frame_from_fiducial[:3, 3]
+
+    def to_dict(self) -> dict:
+        return {"system": self.system,
+                "T_frame_from_fiducial": [[float(v) for v in row] for row in self.T_frame_from_fiducial],
+                "axes": self.axes, "reference": self.reference}

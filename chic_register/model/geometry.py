@@ -32,7 +32,7 @@ import numpy as np
 import yaml
 
 from chic_register.errors import GeometryFileError, InputFileError
-from chic_register.model.body import BODY_SHAPES, Body, ToolFrame, rigid_4x4
+from chic_register.model.body import BODY_SHAPES, Body, FrameCoordinates, ToolFrame, rigid_4x4
 from chic_register.model.tubes import HelixTube, LineTube, Tube
 from chic_register.util.atomic import write_text
 from chic_register.util.safeload import load_yaml_file
@@ -48,7 +48,7 @@ FORMAT = "chic-geometry"
 VERSION = 1
 ROLES = ("diametric", "helix", "orientation", "axial", "diagonal", "other")
 #: Fiducial families (docs/interfaces.md section 1); a file without ``family`` is ``chic``.
-FAMILIES = ("chic", "zframe")
+FAMILIES = ("chic", "zframe", "nlocalizer")
 
 
 @dataclass(frozen=True)
@@ -62,6 +62,7 @@ class FiducialGeometry:
     units: str = "mm"
     tool: ToolFrame | None = None
     family: str = "chic"
+    frame_coordinates: FrameCoordinates | None = None
 
     def __post_init__(self):
         object.__setattr__(self, "tubes", tuple(self.tubes))
@@ -104,6 +105,8 @@ class FiducialGeometry:
             out["source"] = dict(self.source)
         if self.tool is not None:
             out["tool"] = self.tool.to_dict()
+        if self.frame_coordinates is not None:
+            out["frame_coordinates"] = self.frame_coordinates.to_dict()
         return out
 
     def to_dict(self) -> dict:
@@ -290,6 +293,16 @@ def _body_from_dict(path, b: dict) -> Body:
         raise GeometryFileError(path, f"body.shape is {_short(shape)}; allowed: {', '.join(BODY_SHAPES)}")
     if shape == "annulus":
         return Body(*dims)
+    if shape == "box":
+        sizes = []
+        for k in ("outer_size", "inner_size"):
+            v = _require(path, b, k, "body.")
+            if not isinstance(v, list) or len(v) != 2:
+                raise GeometryFileError(path, f"body.{k} must be a list of 2 numbers (x, y), got {_short(v)}")
+            sizes.append(tuple(_positive(path, f"body.{k}[{i}]", x) for i, x in enumerate(v)))
+        if not all(i < o for i, o in zip(sizes[1], sizes[0])):
+            raise GeometryFileError(path, "body.inner_size must be smaller than body.outer_size along x and y")
+        return Body(*dims, shape, outer_size=sizes[0], inner_size=sizes[1])
     sides = [_positive(path, f"body.{k}", _require(path, b, k, "body.")) for k in ("outer_side", "inner_side")]
     if sides[1] >= sides[0]:
         raise GeometryFileError(path, "body.inner_side must be smaller than body.outer_side")
@@ -305,6 +318,22 @@ def tool_from_dict(data, path="<geometry>") -> ToolFrame:
         raise GeometryFileError(path, "tool.T_fiducial_from_tool must be a rigid 4x4 matrix "
                                 "(orthonormal rotation, det +1, last row 0 0 0 1)")
     return ToolFrame(T)
+
+
+def frame_coordinates_from_dict(data, path="<geometry>") -> FrameCoordinates:
+    """Parse the optional ``frame_coordinates`` entry: ``{system, T_frame_from_fiducial, axes, reference}``."""
+    allowed = {"system", "T_frame_from_fiducial", "axes", "reference"}
+    if not isinstance(data, dict) or not {"system", "T_frame_from_fiducial"} <= set(data) <= allowed:
+        raise GeometryFileError(path, "frame_coordinates must be a mapping with system and T_frame_from_fiducial "
+                                f"(and optional axes, reference), got {_short(data)}")
+    for k in ("axes", "reference"):
+        if not isinstance(data.get(k, ""), str) or len(data.get(k, "")) > 2000:
+            raise GeometryFileError(path, f"frame_coordinates.{k} must be a string of at most 2000 characters")
+    try:
+        return FrameCoordinates(data["system"], data["T_frame_from_fiducial"], data.get("axes", ""),
+                                data.get("reference", ""))
+    except (ValueError, TypeError) as exc:
+        raise GeometryFileError(path, str(exc)) from None
 
 
 def geometry_from_dict(data, path="<geometry>", check_hash: bool = True) -> FiducialGeometry:
@@ -358,8 +387,10 @@ def geometry_from_dict(data, path="<geometry>", check_hash: bool = True) -> Fidu
         raise GeometryFileError(path, f"tubes must be a list of 1..{MAX_TUBES} tubes")
     tubes = [tube_from_dict(t, path, f"tubes[{i}]") for i, t in enumerate(tubes_raw)]
     tool = tool_from_dict(data["tool"], path) if "tool" in data else None
+    frame = frame_coordinates_from_dict(data["frame_coordinates"], path) if "frame_coordinates" in data else None
     try:
-        geom = FiducialGeometry(str(name), body, tuple(tubes), source, units, tool=tool, family=family)
+        geom = FiducialGeometry(str(name), body, tuple(tubes), source, units, tool=tool, family=family,
+                                frame_coordinates=frame)
     except ValueError as exc:
         raise GeometryFileError(path, str(exc)) from None
     check_plausible(geom, path)
@@ -391,7 +422,9 @@ def scaled_geometry(geom: FiducialGeometry, factor: float, calibration: dict) ->
     body = dataclasses.replace(
         b, length=b.length * k, outer_diameter=b.outer_diameter * k, inner_diameter=b.inner_diameter * k,
         outer_side=None if b.outer_side is None else b.outer_side * k,
-        inner_side=None if b.inner_side is None else b.inner_side * k)
+        inner_side=None if b.inner_side is None else b.inner_side * k,
+        outer_size=None if b.outer_size is None else tuple(k * v for v in b.outer_size),
+        inner_size=None if b.inner_size is None else tuple(k * v for v in b.inner_size))
     tubes = []
     for t in geom.tubes:
         if isinstance(t, LineTube):
