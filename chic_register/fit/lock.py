@@ -32,7 +32,16 @@ from chic_register.model.tube_model import (
 from chic_register.options import SolveOptions
 
 
-def lock_slice(model: TubeModel, xy: np.ndarray, S: np.ndarray, opts: SolveOptions, pixel_mm: float):
+#: A slice with more candidate sections than this many per tube (a CT's phantom grid, bone specks) is first guessed
+#: from its :data:`BRIGHT_PER_TUBE` brightest candidates per tube: the tubes of one fiducial hold one fill, so they are
+#: among the brightest sections, and every triple of hundreds of candidates is too many to try (the generic guess
+#: then samples them at random). The fits are refined on every candidate all the same.
+MANY_PER_TUBE = 4
+BRIGHT_PER_TUBE = 2
+
+
+def lock_slice(model: TubeModel, xy: np.ndarray, S: np.ndarray, opts: SolveOptions, pixel_mm: float,
+               contrast: np.ndarray | None = None):
     """Refined hypotheses of one slice, best first, and the ellipse (or None). Raises NoLock if there are none.
 
     First guesses come from the paper's closed form when the layout allows it
@@ -41,7 +50,9 @@ def lock_slice(model: TubeModel, xy: np.ndarray, S: np.ndarray, opts: SolveOptio
     (:func:`~chic_register.guess.generic.family_hypotheses`). Every guess gets a
     short refinement; the best, and any distinct rival as good as it, are then
     refined to convergence. With a prior orientation (``opts.prior``), guesses
-    and fits farther from it are dropped.
+    and fits farther from it are dropped. ``contrast`` (N,), each candidate's
+    contrast, orders the generic stage's guesses in a slice with many
+    candidates (:data:`MANY_PER_TUBE`).
     """
     if xy.shape[0] < opts.min_tubes:
         raise NoLock(f"found {xy.shape[0]} candidate tube cross-sections; need at least {opts.min_tubes}",
@@ -64,8 +75,14 @@ def lock_slice(model: TubeModel, xy: np.ndarray, S: np.ndarray, opts: SolveOptio
                              "plane, which the generic first guess needs, and no ellipse of tube centres "
                              "was found", {"n_candidates": int(xy.shape[0])})
         else:
-            hyps = family_hypotheses(model, xy, gate_mm=gate, max_tilt_deg=opts.max_tilt_deg,
-                                     max_hypotheses=6 * opts.max_hypotheses)
+            hyps = []
+            n_tubes = len(model.ids)
+            if contrast is not None and len(contrast) == xy.shape[0] and xy.shape[0] > MANY_PER_TUBE * n_tubes:
+                bright = np.argsort(-np.asarray(contrast, float), kind="stable")[:BRIGHT_PER_TUBE * n_tubes]
+                hyps = family_hypotheses(model, xy[np.sort(bright)], gate_mm=gate, max_tilt_deg=opts.max_tilt_deg,
+                                         max_hypotheses=6 * opts.max_hypotheses)
+            hyps += family_hypotheses(model, xy, gate_mm=gate, max_tilt_deg=opts.max_tilt_deg,
+                                      max_hypotheses=6 * opts.max_hypotheses)
             extra = _refine_guesses(model, xy, S, hyps, opts, pixel_mm, gate)
             if ell is not None or ellipse_layout(model):
                 # a fallback where the closed form applies but found nothing: only a fit that explains

@@ -232,6 +232,7 @@ def read_dicom_file(path, has_preamble: bool) -> list[Slice]:
     if frames > 1 and "PerFrameFunctionalGroupsSequence" not in ds and "SharedFunctionalGroupsSequence" not in ds:
         raise ImageReadError(path, f"DICOM holds {frames} frames without per-frame geometry: cannot place them")
     invert = str(ds.get("PhotometricInterpretation", "MONOCHROME2")).strip() == "MONOCHROME1"
+    modality = {"CT": "CT", "MR": "MR"}.get(str(ds.get("Modality", "")).strip().upper(), "auto")
     slices = []
     for k in range(arr.shape[0]):
         frame = k if per_frame else None
@@ -244,7 +245,7 @@ def read_dicom_file(path, has_preamble: bool) -> list[Slice]:
         if invert:
             pixels = pixels.max() + pixels.min() - pixels
         source = str(path) if arr.shape[0] == 1 else f"{path}#{k + 1}"
-        slices.append(Slice(pixels, spacing, origin, col_dir, row_dir, thickness, source))
+        slices.append(Slice(pixels, spacing, origin, col_dir, row_dir, thickness, source, modality=modality))
     return slices
 
 

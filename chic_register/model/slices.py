@@ -34,6 +34,11 @@ class Slice:
     #: (rows, cols) bool, or None: pixels that carry no measurement (lost to dropout: filled by the solver, or zeros
     #: it leaves; a caller may mark more), which the section fit leaves out (:mod:`chic_register.detect.dropout`)
     lost: np.ndarray | None = None
+    #: "MR" (a magnitude image: Rician noise, never below zero), "CT" (Hounsfield units: signed, Gaussian noise)
+    #: or "auto" (the detection stage decides from the pixels: :func:`chic_register.detect.ct.looks_hounsfield`)
+    modality: str = "auto"
+    #: True when ``pixels`` are the detection image made from the file's (a CT slice's white top-hat), not the file's
+    detection_image: bool = False
 
     @property
     def shape(self) -> tuple[int, int]:

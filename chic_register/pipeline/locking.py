@@ -79,7 +79,7 @@ def _lock_run(run: SliceRun, model: TubeModel, opts: SolveOptions, n_slices: int
     """One slice locked on its own blobs (``run.fit``, ``ellipse``, ``rivals``), or :class:`NoLock`."""
     d = run.seen
     try:
-        fits, ellipse = lock_slice(model, d.xy_mm, d.T_scanner_from_image, opts, d.resolution_mm)
+        fits, ellipse = lock_slice(model, d.xy_mm, d.T_scanner_from_image, opts, d.resolution_mm, d.blobs.contrast)
         check_trust(fits[0], fits[1:], model, [d.slice], opts, [d.T_scanner_from_image], [d.resolution_mm])
     except AmbiguousFit as exc:
         if n_slices == 1 and opts.verify and not skip_failed:
@@ -103,7 +103,8 @@ def _second_look(run: SliceRun, model: TubeModel, opts: SolveOptions, detect_opt
     (nearly) every tube; ``first``, the plain image's reason, when they fail."""
     flat = second_look(run.seen, model, detect_options)
     try:
-        fits, ellipse = lock_slice(model, flat.xy_mm, flat.T_scanner_from_image, opts, flat.resolution_mm)
+        fits, ellipse = lock_slice(model, flat.xy_mm, flat.T_scanner_from_image, opts, flat.resolution_mm,
+                                   flat.blobs.contrast)
         check_trust(fits[0], fits[1:], model, [flat.slice], opts, [flat.T_scanner_from_image], [flat.resolution_mm])
         if unexplained_tubes(fits[0]) > 1:
             raise NoLock("more than one predicted tube unexplained on the flattened image")

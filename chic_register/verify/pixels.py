@@ -68,6 +68,7 @@ the section's own size); each has its reason beside it.
 
 from __future__ import annotations
 
+import functools
 import math
 from dataclasses import dataclass
 
@@ -88,6 +89,7 @@ from chic_register.imaging.psf import blurred_windows, fit_psf
 from chic_register.model.envelope import plane_status
 from chic_register.model.pose import slice_angles
 from chic_register.model.tube_model import plane_crossings, section_extent
+from chic_register.model.tubes import sample_centreline
 from chic_register.verify.rivals import check_rivals, slice_contenders
 from chic_register.verify.windows import (
     MODEL_FLOOR,
@@ -267,12 +269,12 @@ def verify_slice(geom, model, T_F_from_I: np.ndarray, pixels: np.ndarray, spacin
                              f"{'wider' if mean > 1 else 'narrower'} along the columns than along the rows relative to "
                              f"the pose's prediction: is the pixel spacing ({rs:g}, {cs:g}) mm right?",
                              {"spacing_ratio": round(mean, 4)})
-        strays = _unexplained(model, T_F_from_I, blobs, assignment, canvas, (rs, cs))
+        strays = _unexplained(model, T_F_from_I, blobs, assignment, canvas, (rs, cs), geom.body)
         # a stray blob beside a missing tube is the signature of a wrong pose (the tube is there, elsewhere)
         if strays and (envelope != "ok" or len(strays) > MAX_STRAYS or missing):
             r, c = blobs.centres_rc[strays[0]]
-            raise NoLock(f"{source}: a bright blob at pixel ({r:.0f}, {c:.0f}) lies on the tubes' circle inside the "
-                         f"body where the pose ({where}) predicts no tube",
+            raise NoLock(f"{source}: a bright blob at pixel ({r:.0f}, {c:.0f}) lies where the tubes run, inside "
+                         f"the body, where the pose ({where}) predicts no tube",
                          {"blob_rc": [round(float(r), 1), round(float(c), 1)]})
         psf_rc = (float(psf_px), float(psf_px)) if np.ndim(psf_px) == 0 else tuple(float(v) for v in psf_px)
         return SliceCheck(tuple(present), tuple(missing), scale, envelope, merged, canvas, level, sigma,
@@ -314,12 +316,21 @@ def verify_slice(geom, model, T_F_from_I: np.ndarray, pixels: np.ndarray, spacin
             raise exc from None
 
 
-def _unexplained(model, T_F_from_I, blobs: Blobs, assignment, canvas, spacing) -> list[int]:
-    """Indices of the detected blobs the model does not explain that sit on the circle of tube centres, inside the body.
+@functools.lru_cache(maxsize=8)
+def tube_tracks_xy(model) -> np.ndarray:
+    """Every tube centreline's points seen along z of F (M, 2), 1 mm apart: where a slice can meet a tube."""
+    return np.concatenate([sample_centreline(t, 1.0)[:, :2] for t in model.tubes])
 
-    A blob is explained when :data:`EXPLAINED_SHARE` of its footprint lies on
-    a predicted section (``canvas`` > :data:`SECTION_LEVEL`): split halves
-    and edges of predicted sections are.
+
+def _unexplained(model, T_F_from_I, blobs: Blobs, assignment, canvas, spacing, body=None) -> list[int]:
+    """Indices of the detected blobs the model does not explain that sit where tubes run, inside the body.
+
+    Where tubes run: on the circle of tube centres (a round body), or, in a
+    square or box frame, within a tube diameter of a tube centreline seen
+    along z (a Z-frame's faces, an N-localizer's plates). A blob
+    is explained when :data:`EXPLAINED_SHARE` of its footprint lies on a
+    predicted section (``canvas`` > :data:`SECTION_LEVEL`): split halves and
+    edges of predicted sections are.
     """
     rs, cs = spacing
     used = {int(i) for i in assignment if i >= 0}
@@ -328,12 +339,19 @@ def _unexplained(model, T_F_from_I, blobs: Blobs, assignment, canvas, spacing) -
     r_lo = float(model.axis_radius_mm.min() - model.diameter_mm.max())
     r_hi = float(model.axis_radius_mm.max() + model.diameter_mm.max())
     on = canvas > SECTION_LEVEL
+    walls = body is not None and body.shape != "annulus"
+    grow = float(model.diameter_mm.max())
     out = []
     for i, (r, c) in enumerate(blobs.centres_rc):
         if i in used:
             continue
         p = R @ np.array([c * cs, r * rs, 0.0]) + o
-        if not (r_lo <= math.hypot(p[0], p[1]) <= r_hi and 0.0 <= p[2] <= model.length_mm):
+        if not 0.0 <= p[2] <= model.length_mm:
+            continue
+        if walls:
+            if float(np.min(np.hypot(*(tube_tracks_xy(model) - p[:2]).T))) > grow:
+                continue
+        elif not r_lo <= math.hypot(p[0], p[1]) <= r_hi:
             continue
         if i < len(blobs.footprints):
             r0, c0, mask = blobs.footprints[i]

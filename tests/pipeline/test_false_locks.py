@@ -91,5 +91,5 @@ def test_a_blob_on_the_tube_circle_that_no_pose_uses_is_left_alone(neuro_geometr
 def test_a_blob_on_the_tube_circle_beside_a_missing_tube_is_refused(neuro_geometry):
     """A stray on the circle and a predicted tube missing: the signature of a wrong pose, whatever the fit says."""
     sim, img = _circle_blob_slice(neuro_geometry, missing=("O0",))
-    with pytest.raises(NoLock, match="tubes' circle"):
+    with pytest.raises(NoLock, match="where the tubes run"):
         register([Slice(img, (0.5, 0.5), slice_thickness_mm=2.0, source="blob")], neuro_geometry)
