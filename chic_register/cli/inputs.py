@@ -7,6 +7,7 @@ reads the pose of reslice --reference, load_prior that of solve --prior.
 
 from __future__ import annotations
 
+import dataclasses
 import json
 from pathlib import Path
 from typing import TYPE_CHECKING
@@ -113,7 +114,8 @@ def read_image_inputs(args) -> tuple[list, bool, tuple | None]:
     None: every native slice, those that do not lock skipped and reported).
 
     2-D image files as they are; a volume by its --slices indices and
-    ranges, or, without them, every native slice.
+    ranges, or, without them, every native slice; a volume file of one
+    slice (a 2-D NIfTI) as a slice.
     """
     from chic_register.io.images import is_volume_path, read_slices  # here, not at the top: keeps start-up fast
 
@@ -123,7 +125,7 @@ def read_image_inputs(args) -> tuple[list, bool, tuple | None]:
         raise ChicRegisterError("--slices applies to volume inputs (.nii, .nii.gz, .nrrd, .mha, DICOM series folder)")
     if args.series is not None and not any(Path(p).is_dir() for p in args.images):
         raise ChicRegisterError("--series applies to a folder of DICOM files (the series to read from it)")
-    slices, volume = [], None
+    slices, volume, single = [], None, []
     for path in args.images:
         if is_volume_path(path):
             # here, not in run: a one-shot solve of 2-D slices stays fast without the volume readers (SimpleITK)
@@ -131,13 +133,23 @@ def read_image_inputs(args) -> tuple[list, bool, tuple | None]:
             from chic_register.pipeline.volume import parse_slice_indices
 
             vol = read_volume(path, args.series)
+            if getattr(args, "modality", "auto") != "auto":
+                vol = dataclasses.replace(vol, modality=args.modality)
             nk = vol.shape[0]
+            if nk == 1:  # a one-slice file (a 2-D NIfTI): a slice, registered as one
+                single.append(path)
+                slices.append(vol.native_slice(0))
+                continue
             ks = parse_slice_indices(args.slices, nk) if args.slices else range(nk)
             slices.extend(vol.native_slice(k) for k in ks)
             volume = (vol, list(ks) if args.slices else None)
         else:
-            slices.extend(read_slices([path], args.pixel_spacing))
-    return slices, bool(volumes) and not args.slices, volume if len(args.images) == 1 else None
+            read = read_slices([path], args.pixel_spacing)
+            if getattr(args, "modality", "auto") != "auto":
+                read = [dataclasses.replace(sl, modality=args.modality) for sl in read]
+            slices.extend(read)
+    skip = bool(set(volumes) - set(single)) and not args.slices
+    return slices, skip, volume if len(args.images) == 1 else None
 
 
 def prior_options(args) -> dict:

@@ -36,6 +36,10 @@ def add_parser(subparsers) -> None:
                    help="for a volume IMAGE (.nii, .nii.gz, .nrrd, .mha or a DICOM series folder): "
                         "indices (5) or ranges (5-11) of its slices to register jointly; each must lock. "
                         "Default: every slice that shows the fiducial (the others are listed as skipped)")
+    s.add_argument("--modality", choices=("auto", "MR", "CT"), default="auto",
+                   type=lambda v: "auto" if v.lower() == "auto" else v.upper(),
+                   help="what the images are: MR (magnitude, Rician noise), CT (Hounsfield units) or auto (default: "
+                        "DICOM's Modality, else CT when the pixels hold air near -1000 HU)")
     s.add_argument("--prior", metavar="FILE",
                    help="an approximate pose of the fiducial (JSON with T_scanner_from_fiducial, or .tfm), or "
                         "the scanner directions the frame's x, y, z point along: RAS, LPS (also 'identity'), LAI, "

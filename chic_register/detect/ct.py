@@ -18,9 +18,12 @@ the file and the overlay.
 
 from __future__ import annotations
 
+import dataclasses
 import math
 
 import numpy as np
+
+from chic_register.model.slices import Slice
 
 #: Modalities of :attr:`chic_register.model.slices.Slice.modality`: "auto" decides from the pixels
 #: (:func:`looks_hounsfield`).
@@ -83,3 +86,15 @@ def ct_detection_image(pixels_hu: np.ndarray, pixel_spacing_mm, rod_diameter_mm:
         fp = line_footprint(length, math.pi * k / LINE_DIRECTIONS)
         np.maximum(base, ndi.grey_opening(img, footprint=fp, mode="nearest"), out=base)
     return (img - base).astype(float)
+
+
+def detection_slice(sl: Slice, rod_diameter_mm: float) -> Slice:
+    """``sl`` with its modality decided (:func:`slice_modality`); a CT slice with its pixels replaced by
+    :func:`ct_detection_image` (``detection_image`` set), the image the detector and every later stage read."""
+    if sl.detection_image:
+        return sl
+    modality = slice_modality(sl.modality, sl.pixels)
+    if modality != "CT":
+        return sl if sl.modality == modality else dataclasses.replace(sl, modality=modality)
+    return dataclasses.replace(sl, pixels=ct_detection_image(sl.pixels, sl.pixel_spacing_mm, rod_diameter_mm),
+                               modality="CT", detection_image=True)

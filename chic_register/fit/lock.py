@@ -31,7 +31,6 @@ from chic_register.model.tube_model import (
 )
 from chic_register.options import SolveOptions
 
-
 #: A slice with more candidate sections than this many per tube (a CT's phantom grid, bone specks) is first guessed
 #: from its :data:`BRIGHT_PER_TUBE` brightest candidates per tube: the tubes of one fiducial hold one fill, so they are
 #: among the brightest sections, and every triple of hundreds of candidates is too many to try (the generic guess

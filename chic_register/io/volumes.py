@@ -53,6 +53,7 @@ class Volume:
     direction: np.ndarray = field(default_factory=lambda: np.eye(3))
     source: str = "<array>"
     slice_thickness_mm: float | None = None  # when the file says (DICOM SliceThickness); else the k spacing
+    modality: str = "auto"  # each native slice's (chic_register.model.slices.Slice.modality)
 
     def __post_init__(self):
         if np.ndim(self.voxels) != 3:
@@ -101,6 +102,7 @@ class Volume:
             row_dir=self.direction[:, 1].copy(),
             slice_thickness_mm=self.thickness_mm,
             source=f"{self.source}[k={k}]",
+            modality=self.modality,
         )
 
     @property

@@ -16,6 +16,7 @@ from pathlib import Path
 import numpy as np
 
 from chic_register.detect.blobs import detect_blobs
+from chic_register.detect.ct import detection_slice
 from chic_register.errors import ChicRegisterError
 from chic_register.outputs.overlay import draw_overlay
 from chic_register.util.atomic import check_parent
@@ -211,7 +212,8 @@ def deliver_no_lock(plan: OutputPlan, reason: str, geom, slices, link=None) -> D
     if plan.overlay:
         def overlay():
             d_mm = min(t.diameter for t in geom.tubes)
-            blobs = [detect_blobs(sl.pixels, sl.pixel_spacing_mm, d_mm) for sl in slices]
+            seen = [detection_slice(sl, d_mm) for sl in slices]  # a CT slice's candidates are the top-hat's
+            blobs = [detect_blobs(sl.pixels, sl.pixel_spacing_mm, d_mm) for sl in seen]
             return f"wrote {draw_overlay(plan.overlay, slices, None, blobs, tube_radius_mm=0.5 * d_mm)}"
 
         out.attempt("--overlay", overlay)

@@ -8,13 +8,12 @@ been lost to their surroundings (:func:`worth_flattening`).
 
 from __future__ import annotations
 
-import dataclasses
 import math
 
 import numpy as np
 
 from chic_register.detect.blobs import Blobs, detect_blobs
-from chic_register.detect.ct import ct_detection_image, slice_modality
+from chic_register.detect.ct import detection_slice
 from chic_register.detect.detected import DetectedSlice
 from chic_register.detect.filters import SAFE_MAGNITUDE
 from chic_register.detect.magnitude import refuse_signed
@@ -39,16 +38,9 @@ def detect_slices(slices: list[Slice], lows: list[float], model: TubeModel,
 
 
 def as_detected_image(sl: Slice, model: TubeModel) -> Slice:
-    """``sl`` with its modality decided; a CT slice as its white top-hat
-    (:func:`~chic_register.detect.ct.ct_detection_image`), the image every later stage reads."""
-    if sl.detection_image:
-        return sl
-    modality = slice_modality(sl.modality, sl.pixels)
-    if modality != "CT":
-        return sl if sl.modality == modality else dataclasses.replace(sl, modality=modality)
-    rod_mm = float(np.median(np.atleast_1d(model.diameter_mm)))
-    return dataclasses.replace(sl, pixels=ct_detection_image(sl.pixels, sl.pixel_spacing_mm, rod_mm), modality="CT",
-                               detection_image=True)
+    """``sl`` as the detector reads it (:func:`~chic_register.detect.ct.detection_slice` at the tubes' median
+    diameter): a CT slice as its linear top-hat."""
+    return detection_slice(sl, float(np.median(np.atleast_1d(model.diameter_mm))))
 
 
 def second_look(d: DetectedSlice, model: TubeModel, detect_options: dict | None = None) -> DetectedSlice:
