@@ -49,8 +49,8 @@ def nlocalizer_unambiguity(geom, usable_ranges_mm, slice_mismatch_mm: float | No
             f"a {fs.what} maps the rods onto themselves (worst rod off by {fs.mismatch_mm:.2g} mm; tolerance "
             f"{tolerance_mm:.2f} mm): every slice fits two poses and an image fixes the pose only up to this "
             "rotation, so registration needs a prior on the frame's orientation (chic-register solve --prior "
-            "LPS for a head-first supine patient with F's axes along the scanner's); a plate whose diagonal "
-            "starts at the other end breaks the symmetry", "whole frame"))
+            "LPS for a head-first supine patient with F's axes along the scanner's); two equal plates are "
+            "always symmetric, a third plate can break it", "whole frame"))
     bands: tuple[Symmetry, ...] = ()
     if not frame_syms:
         dots = replace(geom, tubes=dot_tubes(geom))

@@ -173,7 +173,7 @@ class NLocalizerSpec(Strict):
         for i, (na, a) in enumerate(ends):
             for nb, b in ends[i + 1:]:
                 if na != nb and np.linalg.norm(a - b) < 2 * d:
-                    raise ValueError(f"plates {na} and {nb} have rods {np.linalg.norm(a - b):.3g} mm apart: "
+                    raise ValueError(f"plates {na} and {nb} have rods {np.linalg.norm(a - b):.1f} mm apart: "
                                      f"keep them at least 2 x rods.diameter ({2 * d:g} mm) apart")
         if self.hardware == "printed":
             self._printable()
