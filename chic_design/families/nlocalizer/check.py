@@ -24,7 +24,7 @@ from dataclasses import replace
 
 import numpy as np
 
-from chic_design.families.zframe.check import TWIN_STEP_MM, _twin_bands
+from chic_design.families.zframe.check import TWIN_STEP_MM, twin_bands
 from chic_design.families.zframe.twins import slice_twins
 from chic_design.feasibility.records import Finding, Symmetry, Unambiguity
 from chic_register.model.symmetry import frame_symmetries
@@ -55,7 +55,7 @@ def nlocalizer_unambiguity(geom, usable_ranges_mm, slice_mismatch_mm: float | No
     if not frame_syms:
         dots = replace(geom, tubes=dot_tubes(geom))
         depths = np.concatenate([np.arange(a, b + 1e-9, TWIN_STEP_MM) for a, b in usable_ranges_mm] or [np.empty(0)])
-        bands = _twin_bands(slice_twins(dots, depths, tolerance_mm), TWIN_STEP_MM)
+        bands = twin_bands(slice_twins(dots, depths, tolerance_mm), TWIN_STEP_MM)
     for sym in bands:
         a, b = sym.depth_range_mm
         warnings.append(Finding(
