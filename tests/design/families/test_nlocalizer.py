@@ -237,3 +237,25 @@ def test_the_brw_frame_builds_its_parts(tmp_path):
     assert any("section" in c.name and "post_d" in c.name for c in result.checks.checks)
     report = (result.folder / "report.md").read_text()
     assert report.startswith("# N-localizer `brw-nlocalizer`") and "fill ports (top cap) | 6 x 1.2 mm" in report
+
+
+def test_check_and_solver_agree_the_leksell_box_needs_a_prior_and_the_brw_frame_does_not(ct):
+    """design -> geometry.yaml -> simulated slice (SNR 20, tilted) -> solve: the Leksell box, which check calls
+    symmetric, is refused without a prior and registers with one; the BRW frame registers alone."""
+    from chic_register.errors import NoLock
+    from chic_register.imaging.simulate import simulate_slice
+    from chic_register.pipeline.register import register
+
+    def tre(reg, sim, centre):
+        c = np.array([*centre, 1.0])
+        return np.linalg.norm((reg.T_scanner_from_fiducial @ c)[:3] - (sim.truth.T_scanner_from_fiducial @ c)[:3])
+
+    _, geom = ct
+    sim = simulate_slice(geom, 72.0, 8.0, 30.0, 10.0, shape=(320, 320), pixel_spacing_mm=(0.8, 0.8),
+                         noise="rician", snr=20, rng=3)
+    with pytest.raises(NoLock, match="half turn about the x axis"):
+        register([sim.slice], geom)
+    assert tre(register([sim.slice], geom, prior=sim.truth.T_scanner_from_fiducial), sim, (0, 0, 60)) < 0.3
+    brw = NLOC.geometry(load_spec(BRW))
+    sim = simulate_slice(brw, 52.0, 8.0, 30.0, 10.0, noise="rician", snr=20, rng=3)
+    assert tre(register([sim.slice], brw), sim, (0, 0, 40)) < 0.3
