@@ -54,7 +54,8 @@ class NLocalizerFamily(Family):
         return dot_tubes(geometry)
 
     def parts(self, spec, geometry):
-        from chic_design.families.nlocalizer.cad import nlocalizer_parts  # the CAD kernel: check and schema start without it
+        # the CAD kernel: check and schema start without it
+        from chic_design.families.nlocalizer.cad import nlocalizer_parts
 
         return nlocalizer_parts(spec, geometry)
 
