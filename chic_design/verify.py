@@ -160,6 +160,8 @@ def check_body_sections(mesh: trimesh.Trimesh, geometry: FiducialGeometry, heigh
         )
         if body.shape == "square":
             size = f"sides {math.sqrt(a_out):.3f} / {math.sqrt(a_in):.3f} mm"
+        elif body.shape == "box":
+            size = f"outline / bore areas {a_out:.1f} / {a_in:.1f} mm^2"
         else:
             size = f"diameters {2 * math.sqrt(a_out / math.pi):.3f} / {2 * math.sqrt(a_in / math.pi):.3f} mm"
         checks.append(Check(
@@ -223,8 +225,10 @@ def _load_3mf(path: Path, part: str) -> tuple[trimesh.Trimesh | None, str]:
 
 def verify_export(folder, cad_volumes_mm3: dict[str, float],
                   cad_overlaps_mm3: dict[str, float] | None = None,
-                  n_sections: int = 5, raise_on_failure: bool = True) -> VerifyResult:
+                  n_sections: int = 5, raise_on_failure: bool = True, printed: bool = True) -> VerifyResult:
     """Check every part file in ``folder`` against ``geometry.yaml`` in it and the CAD volumes.
+
+    ``printed=False`` (hardware described for the solver only): ``geometry.yaml`` alone, no part files.
 
     Args:
         folder: export folder with ``geometry.yaml`` and ``<part>.stl/.step/.3mf``.
@@ -238,7 +242,7 @@ def verify_export(folder, cad_volumes_mm3: dict[str, float],
     geometry = load_geometry(folder / "geometry.yaml")
     checks.append(Check("geometry.yaml loads and its hash checks", True, f"{len(geometry.tubes)} tubes"))
     meshes: dict[str, trimesh.Trimesh] = {}
-    for part in PART_NAMES:
+    for part in PART_NAMES if printed else ():
         for ext in ("stl", "step", "3mf"):
             path = folder / f"{part}.{ext}"
             if not path.is_file() or path.stat().st_size == 0:
@@ -254,7 +258,7 @@ def verify_export(folder, cad_volumes_mm3: dict[str, float],
                 checks.append(Check(f"{part}.3mf named part", False, why))
             else:
                 checks += check_mesh(f"{part}.3mf", mesh, cad_volumes_mm3.get(part))
-    heights = section_heights(geometry, n_sections)
+    heights = section_heights(geometry, n_sections) if printed else ()
     if "body" in meshes:
         checks += check_body_sections(meshes["body"], geometry, heights)
         for cap in ("cap_top", "cap_bottom"):

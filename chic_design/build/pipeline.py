@@ -8,6 +8,9 @@ the geometry and are drawn in a worker process while the CAD work runs. On any
 failure the temporary folder is removed and an earlier export is left as it was.
 The family of the spec (:func:`chic_design.families.family_of`) makes the
 geometry, checks it and makes the parts; everything else is the same for all.
+For hardware the family does not print (:meth:`~chic_design.families.base.Family.printed`:
+a commercial frame described for the solver) the part steps are skipped: the
+folder holds geometry.yaml, feasibility.json, the pictures and the report.
 """
 
 from __future__ import annotations
@@ -96,6 +99,7 @@ def build_design(spec_path, out_root="exports", force: bool = False, progress: b
     with steps.step("spec"):
         spec = load_spec(spec_path)
         family = family_of(spec)
+        printed = family.printed(spec)
     with steps.step("geometry"):
         source = {"spec": str(spec_path), "spec_sha256": spec_sha256(spec_path)}
         geometry = family.geometry(spec, source=source)
@@ -117,28 +121,34 @@ def build_design(spec_path, out_root="exports", force: bool = False, progress: b
             pictures.submit("precision", precision_job, geometry, spec.imaging.pixel_size,
                             spec.imaging.slice_thickness, tmp)
         with steps.step("CAD model"):
-            parts = family.parts(spec, geometry)
-            if spec.print.printer == "resin":
-                parts = with_resin_vents(parts, geometry)
-            volumes = {name: float(p.volume) for name, p in parts.items()}
+            parts, volumes = None, {}
+            if printed:
+                parts = family.parts(spec, geometry)
+                if spec.print.printer == "resin":
+                    parts = with_resin_vents(parts, geometry)
+                volumes = {name: float(p.volume) for name, p in parts.items()}
+        cap_dims = parts.cap_dims if parts is not None else None
         with steps.step("export STL/STEP/3MF"):
             write_geometry(geometry, tmp / "geometry.yaml")
-            files = export_parts(parts, tmp, spec.name) + ["geometry.yaml"]
+            files = (export_parts(parts, tmp, spec.name) if parts is not None else []) + ["geometry.yaml"]
             (tmp / "feasibility.json").write_text(json.dumps(feasibility.to_dict(), indent=2), encoding="utf-8")
             files.append("feasibility.json")
         with steps.step("verify outputs"):
-            overlaps = {cap: overlap_mm3(parts.body, getattr(parts, cap)) for cap in ("cap_top", "cap_bottom")}
-            checks = verify_export(tmp, volumes, overlaps)
+            overlaps = ({cap: overlap_mm3(parts.body, getattr(parts, cap)) for cap in ("cap_top", "cap_bottom")}
+                        if parts is not None else {})
+            checks = verify_export(tmp, volumes, overlaps, printed=printed)
         with steps.step("print plate"):
-            plate = write_print_plate(tmp, spec, geometry, parts.cap_dims)
-            files.append(PLATE_NAME)
-            if not plate.fits_bed and progress:
+            plate = write_print_plate(tmp, spec, geometry, cap_dims) if printed else None
+            files += [PLATE_NAME] if printed else []
+            if plate is not None and not plate.fits_bed and progress:
                 status(f"the parts do not fit on the printer's bed together; {PLATE_NAME} is laid out on a "
                        f"{plate.bed_mm[0]:g} x {plate.bed_mm[1]:g} mm bed: print them one at a time")
         with steps.step("print check"):
             print_result, print_note = None, ""
             slicer = find_slicer()
-            if printcheck is False:
+            if not printed:
+                print_note = "nothing is printed (commercial hardware)"
+            elif printcheck is False:
                 print_note = "skipped (printcheck off)"
             elif slicer is None and printcheck is None:
                 print_note = "skipped: prusa-slicer is not on the PATH (install PrusaSlicer, then run chic-design printcheck)"
@@ -149,21 +159,23 @@ def build_design(spec_path, out_root="exports", force: bool = False, progress: b
                     raise ChannelsNotPrintable(f"{spec_path}: the sliced plate does not print every channel "
                                                f"(fix the spec or build anyway with --force): "
                                                f"{print_result.failure_text()}")
-            if print_note and progress:
+            if print_note and progress and printed:
                 status(f"print check {print_note}")
         with steps.step("preview and tilt plot"):
             picture_times = pictures.collect()
             files += ["preview.png", "tilt_limits.png", "precision.md"]
             files += ["precision.png"] if (tmp / "precision.png").is_file() else []
         with steps.step("fill guide"):
-            guide = fill_guide(geometry, parts.cap_dims, vent_grooves=spec.print.printer == "resin")
-            files += write_fill_guide(guide, tmp)
+            guide = None
+            if printed:
+                guide = fill_guide(geometry, cap_dims, vent_grooves=spec.print.printer == "resin")
+                files += write_fill_guide(guide, tmp)
         with steps.step("report"):
             files.append("report.md")
             timings = {**steps.timings, **{f"{k} (parallel)": v for k, v in picture_times.items()}}
             print_md = ((tmp / "printcheck.md").read_text(encoding="utf-8") if print_result is not None
                         else f"## Print check (toolpaths)\n\nNot run: {print_note}.\n")
-            text = build_report(spec, spec_path, geometry, parts.cap_dims, volumes, checks, feasibility.markdown(),
+            text = build_report(spec, spec_path, geometry, cap_dims, volumes, checks, feasibility.markdown(),
                                 timings, files, (tmp / "precision.md").read_text(encoding="utf-8"), print_md,
                                 guide)
             (tmp / "report.md").write_text(text, encoding="utf-8")

@@ -193,7 +193,8 @@ def vent_grooves(geometry: FiducialGeometry) -> list[Part]:
     """One groove (``VENT_WIDTH_MM`` wide, ``VENT_DEPTH_MM`` deep from z = 0) per distinct channel opening in the
     bottom face, running radially outward from the opening's centre to beyond the body's outside."""
     b = geometry.body
-    reach = (b.outer_side * math.sqrt(0.5) if b.shape == "square" else b.outer_diameter / 2) + 2.0
+    h = b.outer_half_mm
+    reach = (float(np.hypot(*h)) if h is not None else b.outer_diameter / 2) + 2.0
     grooves = []
     for xy in distinct_points(channel_openings_xy(geometry, 0.0).values()):
         r = float(np.hypot(*xy))

@@ -11,10 +11,11 @@ from __future__ import annotations
 from chic_design.errors import SpecError
 from chic_design.families.base import Family
 from chic_design.families.chic import ChicFamily
+from chic_design.families.nlocalizer import NLocalizerFamily
 from chic_design.families.zframe import ZFrameFamily
 
 #: Every family by its ``family`` value, in the order messages list them.
-FAMILIES: dict[str, Family] = {"chic": ChicFamily(), "zframe": ZFrameFamily()}
+FAMILIES: dict[str, Family] = {"chic": ChicFamily(), "zframe": ZFrameFamily(), "nlocalizer": NLocalizerFamily()}
 #: The family of a spec without a ``family`` key.
 DEFAULT_FAMILY = "chic"
 

@@ -28,7 +28,7 @@ from chic_design.feasibility.printability import build_violations
 from chic_design.feasibility.records import FeasibilityReport, Finding, Symmetry, Unambiguity
 from chic_design.printing.limits import print_violations
 from chic_design.printing.settings import print_settings
-from chic_register.model.body import Body, ToolFrame
+from chic_register.model.body import Body, FrameCoordinates, ToolFrame
 from chic_register.model.geometry import FiducialGeometry
 from chic_register.model.tubes import Tube
 from chic_register.version import __version__
@@ -92,7 +92,20 @@ class Family(ABC):
         if source is not None:
             source = {**source, "generator": f"chic-design {__version__}"}
         return FiducialGeometry(spec.name, self.body(spec), self.tubes(spec), source, tool=tool_frame(spec),
-                                family=self.name)
+                                family=self.name, frame_coordinates=self.frame_coordinates(spec))
+
+    def frame_coordinates(self, spec) -> FrameCoordinates | None:
+        """The frame's own stereotactic coordinates for geometry.yaml (None: the file has none)."""
+        return None
+
+    def printed(self, spec) -> bool:
+        """Whether ``build`` makes printed parts for ``spec`` (False: hardware described for the solver only,
+        whose build writes geometry.yaml, pictures, check and report, and no part files)."""
+        return True
+
+    def required_tubes(self, geometry: FiducialGeometry) -> tuple[Tube, ...]:
+        """The tubes an image must show as separate dots for a slice to be usable (default: all)."""
+        return geometry.tubes
 
     # ------------------------------------------------------------ CAD
 
@@ -127,16 +140,23 @@ class Family(ABC):
               slice_thickness_mm: float | None = None) -> FeasibilityReport:
         """Feasibility of ``spec`` for its imaging protocol (pixel size and slice thickness overridable).
 
-        The generic checks of :func:`~chic_design.feasibility.engine.check_geometry` plus the rules
-        ``build`` refuses even forced (:func:`~chic_design.feasibility.printability.build_violations`),
-        so that a design ``check`` calls feasible always builds, and what the print check of the
-        sliced plate will fail (:func:`~chic_design.printing.limits.print_violations`).
+        Tilt limits and usable depth are judged on :meth:`required_tubes`. The generic checks of
+        :func:`~chic_design.feasibility.engine.check_geometry` plus the rules ``build`` refuses even
+        forced (:func:`~chic_design.feasibility.printability.build_violations`), so that a design ``check`` calls feasible always builds, and what the print check of the
+        sliced plate will fail (:func:`~chic_design.printing.limits.print_violations`); for hardware
+        that is not :meth:`printed`, none of the printability rules.
         """
         geom = self.geometry(spec)
         pixel = spec.imaging.pixel_size if pixel_size_mm is None else float(pixel_size_mm)
         thickness = spec.imaging.slice_thickness if slice_thickness_mm is None else float(slice_thickness_mm)
+        required = self.required_tubes(geom)
+        printed = self.printed(spec)
         report = check_geometry(geom, self, pixel_size_mm=pixel, slice_thickness_mm=thickness,
-                                min_wall_mm=spec.print.min_wall, max_overhang_deg=spec.print.max_overhang_deg)
+                                min_wall_mm=spec.print.min_wall, max_overhang_deg=spec.print.max_overhang_deg,
+                                required_tubes=None if len(required) == len(geom.tubes) else required,
+                                printed=printed)
+        if not printed:  # nothing is printed: the rules of the build and the print plate do not apply
+            return report
         extra = build_violations(spec, geom, pixel, self.length_key)
         port = spec.caps.fill_port_diameter
         extra += print_violations(print_settings(spec, geom), geom, report.overhangs, port)

@@ -98,10 +98,17 @@ class FamilyRules(Protocol):
 
 
 def check_geometry(geom: FiducialGeometry, family: FamilyRules, *, pixel_size_mm: float, slice_thickness_mm: float,
-                   min_wall_mm: float, max_overhang_deg: float) -> FeasibilityReport:
-    """All feasibility checks on a geometry of ``family`` (its unambiguity judged by the family)."""
-    full = tilt_limits(geom, pixel_size_mm, slice_thickness_mm)
-    vis = tilt_limits(geom, pixel_size_mm, slice_thickness_mm, merges=False)
+                   min_wall_mm: float, max_overhang_deg: float, required_tubes=None,
+                   printed: bool = True) -> FeasibilityReport:
+    """All feasibility checks on a geometry of ``family`` (its unambiguity judged by the family).
+
+    ``required_tubes``: the tubes an image must show as separate dots (None: all); the tilt limits,
+    usable depth and pattern symmetries are judged on them alone. ``printed=False`` (hardware not
+    made here) leaves out the printability checks (items 3 and 4).
+    """
+    seen = geom if required_tubes is None else replace(geom, tubes=tuple(required_tubes))
+    full = tilt_limits(seen, pixel_size_mm, slice_thickness_mm)
+    vis = tilt_limits(seen, pixel_size_mm, slice_thickness_mm, merges=False)
     limits = tuple(replace(f, visibility_tilt_deg=v.max_tilt_deg if v.usable_at_zero_tilt else 0.0)
                    for f, v in zip(full, vis))
     usable = usable_depth(limits)
@@ -111,22 +118,24 @@ def check_geometry(geom: FiducialGeometry, family: FamilyRules, *, pixel_size_mm
         mid = limits[len(limits) // 2]
         violations.append(Finding("no_usable_depth", "no depth is usable even at tilt 0 "
                                   f"(e.g. z = {mid.depth_mm:g} mm: {mid.limited_by})", "all depths"))
-    clearances, v, w = channel_clearances(geom, min_wall_mm)
-    violations += v
-    warnings += w
-    overhangs, v = channel_overhangs(geom, max_overhang_deg)
-    violations += v
-    crossings = helix_quadrant_crossings(geom)
+    clearances, overhangs = (), ()
+    if printed:
+        clearances, v, w = channel_clearances(geom, min_wall_mm)
+        violations += v
+        warnings += w
+        overhangs, v = channel_overhangs(geom, max_overhang_deg)
+        violations += v
+    crossings = helix_quadrant_crossings(seen)
     violations += crossings
-    tol = symmetry_tolerance(geom, pixel_size_mm)
+    tol = symmetry_tolerance(seen, pixel_size_mm)
     usable_z = np.concatenate([np.linspace(a, b, max(2, int(math.ceil((b - a) / 0.1)) + 1))
                                for a, b in usable[0].ranges_mm] or [np.empty(0)])
-    syms, mismatch = pattern_symmetries(geom, usable_z, tol)
+    syms, mismatch = pattern_symmetries(seen, usable_z, tol)
     unamb, v, w = family.unambiguity(geom, usable_ranges_mm=usable[0].ranges_mm, tolerance_mm=tol, symmetries=syms,
                                      min_mismatch_mm=mismatch, helix_crossings=crossings)
     violations += v
     warnings += w
-    sens = depth_sensitivity(geom, pixel_size_mm)
+    sens = depth_sensitivity(seen, pixel_size_mm)
     return FeasibilityReport(
         name=geom.name,
         pixel_size_mm=float(pixel_size_mm),

@@ -215,7 +215,7 @@ def fill_guide(geometry: FiducialGeometry, cap_dims: CapDims, vent_grooves: bool
     seal = tuple(k for g in groups for k in (*g.vent_ports, g.fill_port) if k)
     needle = needle_for(cap_dims.port_diameter) if cap_dims.port_diameter > 0 else None
     b = geometry.body
-    body_outline = b.outer_side / 2 if b.shape == "square" else b.outer_diameter / 2
+    body_outline = float(max(b.outer_half_mm)) if b.outer_half_mm is not None else b.outer_diameter / 2
     guide = FillGuide(
         name=geometry.name, body=b, port_diameter_mm=float(cap_dims.port_diameter),
         port_depth_mm=float(cap_dims.thickness), clearance_mm=float(cap_dims.clearance),
@@ -325,12 +325,13 @@ def draw_top_cap(ax, guide: FillGuide) -> None:
     from matplotlib.patches import Circle, Patch, Rectangle  # deferred: matplotlib loads only when drawing
 
     b, r = guide.body, guide.cap_outline_mm
-    if b.shape == "square":
-        ax.add_patch(Rectangle((-r, -r), 2 * r, 2 * r, fc="0.92", ec="0.3", lw=1.2))
-        h = b.inner_side / 2
-        ax.add_patch(Rectangle((-h, -h), 2 * h, 2 * h, fc="white", ec="0.3", lw=1.2))
-        hb = b.outer_side / 2
-        ax.add_patch(Rectangle((-hb, -hb), 2 * hb, 2 * hb, fc="none", ec="0.6", lw=0.8, ls="--"))
+    if b.outer_half_mm is not None:  # square or rectangular frame: the cap is its outside grown by the skirt
+        (ox, oy), (ix, iy) = b.outer_half_mm, b.inner_half_mm
+        grow = r - max(ox, oy)
+        cx, cy = ox + grow, oy + grow
+        ax.add_patch(Rectangle((-cx, -cy), 2 * cx, 2 * cy, fc="0.92", ec="0.3", lw=1.2))
+        ax.add_patch(Rectangle((-ix, -iy), 2 * ix, 2 * iy, fc="white", ec="0.3", lw=1.2))
+        ax.add_patch(Rectangle((-ox, -oy), 2 * ox, 2 * oy, fc="none", ec="0.6", lw=0.8, ls="--"))
     else:
         ax.add_patch(Circle((0, 0), r, fc="0.92", ec="0.3", lw=1.2))
         ax.add_patch(Circle((0, 0), b.inner_diameter / 2, fc="white", ec="0.3", lw=1.2))

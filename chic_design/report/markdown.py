@@ -7,6 +7,8 @@ The title, frame F and dimension table come from the design's family
 
 from __future__ import annotations
 
+import numpy as np
+
 from chic_design.cad.channels import blank_volume_mm3, channel_volume_mm3
 from chic_design.cad.parts import CapDims
 from chic_design.families import family_of
@@ -49,14 +51,30 @@ def channel_rows(geometry: FiducialGeometry) -> list[dict]:
     return rows
 
 
-def build_report(spec, spec_path, geometry: FiducialGeometry, cap_dims: CapDims,
+def rod_table(geometry: FiducialGeometry) -> list[str]:
+    """The rods of hardware that is not printed here: id, role, kind, angle, diameter, length (no fluid)."""
+    out = ["| id | role | kind | angle (deg) | diameter (mm) | centreline length (mm) | from (mm) | to (mm) |",
+           "|---|---|---|---|---|---|---|---|"]
+    for t in geometry.tubes:
+        kind, angles, _ = t.describe()
+        a, b = t.points([0.0, 1.0])
+        out.append(f"| {t.id} | {t.role} | {kind} | {angles} | {t.diameter:g} | {t.length_mm:.2f} | "
+                   f"{', '.join(f'{v:g}' for v in np.round(a, 3))} | {', '.join(f'{v:g}' for v in np.round(b, 3))} |")
+    return out
+
+
+def build_report(spec, spec_path, geometry: FiducialGeometry, cap_dims: CapDims | None,
                  part_volumes_mm3: dict[str, float], verify_result, feasibility_markdown: str | None,
                  timings_s: dict[str, float], files: list[str], precision_markdown: str | None = None,
                  print_markdown: str | None = None, guide: FillGuide | None = None) -> str:
     """The text of ``report.md``; ``cap_dims`` are the caps' dimensions the parts were made with.
 
     ``guide``: the fill guide written beside the report (made from ``geometry`` and ``cap_dims`` if None).
+    ``cap_dims`` None: hardware that is not printed here (no parts, no filling).
     """
+    if cap_dims is None:
+        return _unprinted_report(spec, spec_path, geometry, verify_result, feasibility_markdown, timings_s, files,
+                                 precision_markdown)
     guide = guide if guide is not None else fill_guide(geometry, cap_dims)
     head = family_of(spec).report_head(spec, geometry, cap_dims)
     rows = channel_rows(geometry)
@@ -129,6 +147,64 @@ def build_report(spec, spec_path, geometry: FiducialGeometry, cap_dims: CapDims,
         verify_result.markdown(),
         "",
         *([print_markdown.strip(), ""] if print_markdown else []),
+        "## Build",
+        "",
+        "| step | seconds |",
+        "|---|---|",
+    ]
+    out += [f"| {k} | {v:.2f} |" for k, v in timings_s.items()]
+    out += ["", "Files: " + ", ".join(f"`{f}`" for f in files), ""]
+    return "\n".join(out)
+
+
+def _unprinted_report(spec, spec_path, geometry: FiducialGeometry, verify_result, feasibility_markdown: str | None,
+                      timings_s: dict[str, float], files: list[str], precision_markdown: str | None) -> str:
+    """``report.md`` of hardware described for the solver only: dimensions, rods, coordinates, feasibility."""
+    head = family_of(spec).report_head(spec, geometry, None)
+    src = geometry.source or {}
+    out = [
+        f"# {head.title} `{geometry.name}`",
+        "",
+        f"{spec.description}".strip() or "",
+        "",
+        f"Built from `{spec_path}` (sha256 `{src.get('spec_sha256', '?')[:16]}...`) by "
+        f"{src.get('generator', 'chic-design')}. Coordinates are in the fiducial frame F ({head.frame_text}).",
+        "",
+        "Commercial hardware: nothing is printed. `geometry.yaml` describes its rods for the registration "
+        "solver; there are no part files, print plate or fill guide.",
+        "",
+        "## Dimensions",
+        "",
+        "| quantity | value |",
+        "|---|---|",
+        *head.dimension_rows,
+        "",
+        "## Rods",
+        "",
+        *rod_table(geometry),
+        "",
+    ]
+    fc = geometry.frame_coordinates
+    if fc is not None:
+        T = fc.T_frame_from_fiducial
+        out += ["## Frame coordinates", "", f"System `{fc.system}`: {fc.axes}.", "",
+                "T_frame_from_fiducial (F to the frame's coordinates, mm):", "", "```",
+                *("[" + ", ".join(f"{v:g}" for v in row) + "]" for row in T), "```", ""]
+        if fc.reference:
+            out += [f"Source: {fc.reference}.", ""]
+    out += [
+        "`geometry.yaml` is what the registration solver reads; `preview.png` shows the rods; "
+        "`feasibility.json` is the feasibility report (as `chic-design check --json`).",
+        "",
+        "![preview](preview.png)",
+        "",
+        feasibility_markdown.strip() if feasibility_markdown else "## Feasibility\n\n(not checked)",
+        "",
+        *([precision_markdown.strip(), ""] if precision_markdown else []),
+        "## Output checks",
+        "",
+        verify_result.markdown(),
+        "",
         "## Build",
         "",
         "| step | seconds |",

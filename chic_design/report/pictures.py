@@ -33,10 +33,13 @@ def render_preview(geometry: FiducialGeometry, png_path, window_size: tuple[int,
     vtk.vtkObject.GlobalWarningDisplayOff()  # no "bad X server connection" noise off-screen
     png_path = Path(png_path)
     b = geometry.body
-    if b.shape == "square":  # the Z-frame's square frame: outside box minus the bore
-        body = pv.Box((-b.outer_side / 2, b.outer_side / 2, -b.outer_side / 2, b.outer_side / 2, 0.0, b.length))
-        size = f"L {b.length:g}, outside {b.outer_side:g}, bore {b.inner_side:g} mm"
-        legend = "red: axial rods  blue: diagonal rods"
+    h = b.outer_half_mm
+    if h is not None:  # a square (Z-frame) or rectangular (N-localizer) frame: its outside box
+        body = pv.Box((-h[0], h[0], -h[1], h[1], 0.0, b.length))
+        (ox, oy), (ix, iy) = 2 * h, 2 * b.inner_half_mm
+        size = (f"L {b.length:g}, outside {ox:g}, bore {ix:g} mm" if b.shape == "square" else
+                f"L {b.length:g}, outside {ox:g} x {oy:g}, bore {ix:g} x {iy:g} mm")
+        legend = "red: axial rods  blue: diagonal rods" + ("  orange: edge rods" if geometry.by_role("other") else "")
     else:
         body = pv.Disc(inner=b.inner_diameter / 2, outer=b.outer_diameter / 2, r_res=1, c_res=120)
         body = body.extrude((0.0, 0.0, b.length), capping=True)
@@ -56,7 +59,7 @@ def render_preview(geometry: FiducialGeometry, png_path, window_size: tuple[int,
         # a helix ends next to a diametric tube, and the two labels would overlap
         if tube.curved:
             label_pts.append(pts[np.argmin(pts[:, 2])] - np.array([0.0, 0.0, 3.0]))
-        elif tube.role == "diagonal":  # a Z-frame diagonal ends on the axial rods' corners
+        elif tube.role == "diagonal" or np.ptp(pts[:, 2]) < 1e-9:  # ends on other rods: label the middle
             label_pts.append(pts[len(pts) // 2])
         else:
             label_pts.append(pts[np.argmax(pts[:, 2])] + np.array([0.0, 0.0, 2.0]))

@@ -32,7 +32,7 @@ from chic_register.model.symmetry import frame_symmetries
 TWIN_STEP_MM = 0.5
 
 
-def _twin_bands(twins, step_mm: float) -> tuple[Symmetry, ...]:
+def twin_bands(twins, step_mm: float) -> tuple[Symmetry, ...]:
     """Runs of consecutive depths with a twin, as :class:`Symmetry` (best twin of each run)."""
     out, run = [], []
     for tw in twins + [None]:
@@ -62,7 +62,7 @@ def zframe_unambiguity(geom, usable_ranges_mm, slice_mismatch_mm: float | None, 
     bands: tuple[Symmetry, ...] = ()
     if not frame_syms:
         depths = np.concatenate([np.arange(a, b + 1e-9, TWIN_STEP_MM) for a, b in usable_ranges_mm] or [np.empty(0)])
-        bands = _twin_bands(slice_twins(geom, depths, tolerance_mm), TWIN_STEP_MM)
+        bands = twin_bands(slice_twins(geom, depths, tolerance_mm), TWIN_STEP_MM)
     for sym in bands:
         a, b = sym.depth_range_mm
         warnings.append(Finding(

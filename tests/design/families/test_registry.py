@@ -23,7 +23,7 @@ from chic_register.model.tubes import LineTube
 
 
 def test_the_registry_names_each_family_by_its_own_name():
-    assert list(FAMILIES) == ["chic", "zframe"] and DEFAULT_FAMILY == "chic"
+    assert list(FAMILIES) == ["chic", "zframe", "nlocalizer"] and DEFAULT_FAMILY == "chic"
     for name, family in FAMILIES.items():
         assert isinstance(family, Family) and family.name == name
         assert family.spec_model.model_fields["family"].annotation.__args__ == (name,)
@@ -49,6 +49,12 @@ def test_every_family_builds_its_parts_from_its_preset(name):
     family = FAMILIES[name]
     spec = parse_spec(family.preset)
     geom = family.geometry(spec)
+    if not family.printed(spec):  # a commercial preset (the Leksell box): described, never printed
+        with pytest.raises(ValueError, match="no printed parts"):
+            family.parts(spec, geom)
+        head = family.report_head(spec, geom, None)
+        assert head.title == family.title and all(r.startswith("| ") for r in head.dimension_rows)
+        return
     parts = family.parts(spec, geom)
     assert [n for n, _ in parts.items()] == ["body", "cap_top", "cap_bottom"]
     for part_name, part in parts.items():
@@ -65,8 +71,8 @@ def test_every_family_builds_its_parts_from_its_preset(name):
 def test_an_unknown_family_is_a_one_line_error_naming_the_file_and_what_is_allowed(value):
     with pytest.raises(SpecError) as err:
         parse_spec({"family": value, "name": "x"}, "t.yaml")
-    assert str(err.value) == f"t.yaml: family: unknown family {value!r}; allowed: chic, zframe"
-    with pytest.raises(SpecError, match=r"^family: unknown family 'tripod'; allowed: chic, zframe$"):
+    assert str(err.value) == f"t.yaml: family: unknown family {value!r}; allowed: chic, zframe, nlocalizer"
+    with pytest.raises(SpecError, match=r"^family: unknown family 'tripod'; allowed: chic, zframe, nlocalizer$"):
         json_schema("tripod")
     assert family_named("zframe") is FAMILIES["zframe"]
 
@@ -74,7 +80,7 @@ def test_an_unknown_family_is_a_one_line_error_naming_the_file_and_what_is_allow
 def test_schema_cli_refuses_an_unknown_family_in_one_line(capsys):
     assert design_main(["schema", "--family", "tripod"]) == 2
     out, err = capsys.readouterr()
-    assert out == "" and err == "chic-design: error: --family: unknown family 'tripod'; allowed: chic, zframe\n"
+    assert out == "" and err == "chic-design: error: --family: unknown family 'tripod'; allowed: chic, zframe, nlocalizer\n"
     assert design_main(["schema", "--family", "zframe"]) == 0
     assert '"title": "Z-frame fiducial design spec"' in capsys.readouterr().out
 
