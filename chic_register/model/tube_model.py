@@ -60,6 +60,7 @@ class TubeModel:
     probe_points_mm: np.ndarray = None  # (5, 3) points of F two poses are compared at (trust._distinct)
     line_dd: np.ndarray = None  # the line tubes' d . d
     line_length_mm: np.ndarray = None  # and |d|
+    flat_rise_mm: tuple = ()  # per tube: a line rising less than this in z (its diameter) is tested by its parameter
     strict_terms: tuple = ()  # per tube (half diameter, z_lo, z_hi) as floats (plane_crossings' strict extent test)
     crossing_memo: dict = None  # plane_crossings' memo: pose bytes -> _crossings' result
     crossing_template: tuple = ()  # _crossings' flat slots and tangent z with the line tubes' constants
@@ -80,6 +81,7 @@ class TubeModel:
         object.__setattr__(self, "line_dunit", d / np.linalg.norm(d, axis=1, keepdims=True))
         object.__setattr__(self, "line_dd", np.einsum("ij,ij->i", d, d))
         object.__setattr__(self, "line_length_mm", np.linalg.norm(d, axis=1))
+        object.__setattr__(self, "flat_rise_mm", tuple(self.diameter_mm.tolist()))
         object.__setattr__(self, "strict_terms", tuple(zip(
             (0.5 * self.diameter_mm).tolist(), self.z_lo.tolist(), self.z_hi.tolist())))
         object.__setattr__(self, "crossing_memo", {})
@@ -281,7 +283,9 @@ def _crossings(model: TubeModel, T_F_from_I: np.ndarray):
         z = pz + t * dz
         flat[k6:k6 + 3] = (px + t * dx - ox, py + t * dy - oy, z - oz)
         zF[k] = z
-        found[k] = safe
+        # a line that barely rises in z (an N-localizer's edge rods, across the box): its z range cannot tell
+        # whether the plane meets it, its own parameter does (0..1 from p0 to p1)
+        found[k] = safe and (abs(dz) >= model.flat_rise_mm[k] or -1e-9 <= t <= 1.0 + 1e-9)
     if model.helix_params:
         z_axis = no / nz if abs(nz) > 1e-9 else 0.0
         cos, sin = math.cos, math.sin
