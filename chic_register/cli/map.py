@@ -45,7 +45,7 @@ def add_parser(subparsers) -> None:
 
 def _check_args(args):
     """The output file's format and folder and the point sources, before any file is read."""
-    from chic_register.io.markups import point_format
+    from chic_register.io.markups import point_format  # here, not at the top: keeps start-up fast
     from chic_register.util.atomic import check_parent
 
     if args.out:
@@ -60,7 +60,7 @@ def _check_args(args):
 
 def _check_pose_geometry(pose, geom, geometry_path) -> None:
     """A pose solved with another fiducial is refused; one solved before the geometry named its frame is not."""
-    from chic_register.model.geometry import content_sha256
+    from chic_register.model.geometry import content_sha256  # here, not at the top: keeps start-up fast
 
     if not pose.geometry_sha256:
         return
@@ -76,11 +76,12 @@ def _check_pose_geometry(pose, geom, geometry_path) -> None:
 def _input_points(args, frame_system: str):
     """(positions (N, 3) in the input's system, labels, the input's system): scanner points in LPS for
     ``--to frame``, frame coordinates for ``--to scanner``."""
+    # here, not at the top: keeps start-up fast
     from chic_register.io.markups import SLICER_SYSTEMS, point_format, read_points
 
     scanner_default = "RAS" if args.ras else "LPS"
     if args.point:
-        import numpy as np
+        import numpy as np  # here, not at the top: keeps start-up fast
 
         P = np.array(args.point, dtype=float)
         labels = [f"P{i + 1}" for i in range(len(P))]
