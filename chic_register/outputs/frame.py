@@ -84,7 +84,7 @@ class MappedPoint:
         """The position in ``system``: ``LPS``, ``RAS`` or the frame's name ``frame_system``."""
         if system == frame_system:
             return self.frame_mm
-        return self.scanner_lps_mm * np.diag(_LPS_TO_RAS_3) if system == "RAS" else self.scanner_lps_mm
+        return self.scanner_lps_mm * np.diag(_LPS_TO_RAS_3) + 0.0 if system == "RAS" else self.scanner_lps_mm
 
 
 def map_points(points_mm, to: str, T_scanner_from_fiducial, frame: FrameCoordinates, covariance_deg_mm=None,
@@ -105,6 +105,7 @@ def map_points(points_mm, to: str, T_scanner_from_fiducial, frame: FrameCoordina
         frame_mm, scanner_mm = P, apply(T_sf, p_F)
     labels = list(labels) if labels is not None else [f"P{i + 1}" for i in range(len(P))]
     cov = None if covariance_deg_mm is None else np.asarray(covariance_deg_mm, dtype=float)
+    frame_mm, scanner_mm = frame_mm + 0.0, scanner_mm + 0.0  # no -0.0 in the files
     return [MappedPoint(labels[i], frame_mm[i], scanner_mm[i],
                         None if cov is None else point_covariance_F(cov, p_F[i])) for i in range(len(P))]
 

@@ -136,6 +136,19 @@ def test_ras_and_lps_inputs_give_the_same_frame_point(tmp_path, geom_file, capsy
     assert np.allclose(ras["scanner_mm"], [-q[0], -q[1], q[2]]) and ras["frame_mm"] == ras["output_mm"]
 
 
+def test_frame_coordinates_slicer_saved_in_lps_are_its_ras_numbers(tmp_path, geom_file, capsys):
+    """A frame-coordinate list typed into Slicer's table (which shows RAS) and saved by Slicer in LPS."""
+    typed = tmp_path / "typed.mrk.json"
+    typed.write_text(json.dumps({"markups": [{"coordinateSystem": "LPS", "controlPoints": [
+        {"label": "centre", "position": [-100.0, -100.0, 100.0]}]}]}))
+    pose = pose_file(tmp_path, rigid(np.eye(3), (10.0, -20.0, 30.0)))
+    doc = run_json(capsys, ["map", "--geometry", str(geom_file), "--pose", str(pose), "--to", "scanner",
+                            "--points", str(typed)])
+    assert doc["input_coordinates"] == "leksell" and doc["points"][0]["label"] == "centre"
+    assert np.allclose(doc["points"][0]["frame_mm"], [100, 100, 100])
+    assert np.allclose(doc["points"][0]["output_mm"], [10, -20, 90], atol=1e-12)
+
+
 def test_uncertainty_grows_with_distance_from_the_fiducial_under_a_rotation_only_covariance(tmp_path, geom_file,
                                                                                              capsys):
     sd_deg = 0.1
