@@ -40,6 +40,7 @@ def rotate_covariance(cov_mm2: np.ndarray, R: np.ndarray) -> np.ndarray:
     return 0.5 * (out + out.T)
 
 
+_CHI2_1_99, _CHI2_3_99 = 6.635, 11.345  # chi-square 0.99 quantiles, 1 and 3 degrees of freedom: bracket the root
 #: Gauss-Legendre nodes on [-1, 1] of the nested quadrature in :func:`prob_inside_sphere`.
 _GL_X, _GL_W = np.polynomial.legendre.leggauss(64)
 _REACH_SIGMA = 9.0  # each standard normal integrated over +-9 (the rest weighs < 1e-18)
@@ -85,12 +86,13 @@ def sphere_radius_mm(cov_mm2: np.ndarray, level: float = RADIUS_LEVEL) -> float:
     top = float(lam.max())
     if not top > 0:
         return 0.0
+    from scipy.optimize import brentq  # deferred: only a mapped point's radius needs it (one-shot start-up)
+
     lam = lam / top  # scale-free: solve the case whose largest eigenvalue is 1, then scale back
-    lo, hi = 0.0, 3.0 * 16.27  # chi-square(3)'s 0.999 quantile is 16.27: three times it bounds every case
-    while hi - lo > 1e-12 * hi:
-        mid = 0.5 * (lo + hi)
-        lo, hi = (mid, hi) if prob_inside_sphere(lam, mid) < level else (lo, mid)
-    return math.sqrt(0.5 * (lo + hi) * top)
+    # the largest axis alone needs 1.96^2 = 3.84 at 95 %; three isotropic unit axes 7.81 (chi-square(3)): brackets
+    lo, hi = 0.5 * _CHI2_1_99, 2.0 * _CHI2_3_99 * float(lam.sum())
+    r2 = brentq(lambda y: prob_inside_sphere(lam, y) - level, lo, hi, xtol=1e-12, rtol=1e-12)
+    return math.sqrt(r2 * top)
 
 
 @dataclass(frozen=True, eq=False)
