@@ -19,8 +19,8 @@ from chic_register.model.pose_params import PARAMETER_ORDER, tre_rms_mm
 from chic_register.outputs.frame import map_points
 from chic_register.precision.points import PointUncertainty, point_covariance_F
 
-#: Leksell frame coordinates of a frame whose F has +z from the frame's top (superior) face downwards... inverted:
-#: X = x_F + 100, Y = 100 - y_F, Z = 160 - z_F: F's (0, 0, 60) is the frame centre (100, 100, 100).
+#: Leksell coordinates of a fiducial whose F has x to the patient's left, y posterior and z superior, its origin
+#: 60 mm below the frame centre: X = x + 100, Y = 100 - y, Z = 160 - z; F's (0, 0, 60) is (100, 100, 100).
 LEKSELL = np.array([[1.0, 0, 0, 100], [0, -1.0, 0, 100], [0, 0, -1.0, 160], [0, 0, 0, 1]])
 AXES = "X patient right to left, Y posterior to anterior, Z superior to inferior; centre (100, 100, 100)"
 
