@@ -11,6 +11,10 @@ vtk), started by the tests as ``PYTHON tests/slicer_probe.py REQUEST.json``:
 - ``{"mode": "scene", "mrml": M}``: the scene imported into a vtkMRMLScene;
   prints every node with its class, name, parent transform, its world
   matrix, markup points (RAS) and volume geometry.
+- ``{"mode": "markups", "files": [F, ...]}``: each point file (``.mrk.json``
+  by vtkMRMLMarkupsJsonStorageNode, ``.fcsv`` by
+  vtkMRMLMarkupsFiducialStorageNode) read into a fiducial node; prints its
+  points (label, description, position in RAS) per file.
 """
 
 from __future__ import annotations
@@ -127,10 +131,32 @@ def probe_scene(req: dict) -> dict:
     return {"imported": bool(ok), "nodes": nodes}
 
 
+def probe_markups(req: dict) -> dict:
+    out = {}
+    for path in req["files"]:
+        scene = _new_scene()
+        if path.endswith(".fcsv") and scene.GetClassNameByTag("MarkupsFiducialStorage") is None:
+            scene.RegisterNodeClass(slicer.vtkMRMLMarkupsFiducialStorageNode())
+        node = scene.AddNewNodeByClass("vtkMRMLMarkupsFiducialNode")
+        cls = "vtkMRMLMarkupsFiducialStorageNode" if path.endswith(".fcsv") else "vtkMRMLMarkupsJsonStorageNode"
+        storage = scene.AddNewNodeByClass(cls)
+        storage.SetFileName(path)
+        assert storage.ReadData(node), f"{cls} cannot read {path}"
+        pts = []
+        for k in range(node.GetNumberOfControlPoints()):
+            p = [0.0, 0.0, 0.0]
+            node.GetNthControlPointPosition(k, p)
+            pts.append({"label": node.GetNthControlPointLabel(k),
+                        "description": node.GetNthControlPointDescription(k), "ras": p})
+        out[path] = pts
+    return out
+
+
 def main(argv) -> int:
     with open(argv[1], encoding="utf-8") as f:
         req = json.load(f)
-    result = probe_model(req) if req["mode"] == "model" else probe_scene(req)
+    probes = {"model": probe_model, "scene": probe_scene, "markups": probe_markups}
+    result = probes[req["mode"]](req)
     print("PROBE-JSON " + json.dumps(result))
     return 0
 

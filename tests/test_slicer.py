@@ -98,3 +98,29 @@ def test_model_lands_on_the_fiducial_under_the_tfm_and_under_the_igtl_transform(
     assert off[0] == pytest.approx(2 * 12.5, abs=0.01)
     # ... but it maps F as designed to RAS, which is what a robot working in F needs
     np.testing.assert_allclose((to_ras.matrix @ np.r_[p_F[0], 1.0])[:3], truth[0], atol=1e-3)
+
+
+@pytest.mark.slow
+@needs_slicer
+def test_slicer_reads_the_point_files_of_map_at_their_positions(tmp_path):
+    """``map --out`` files as Slicer's own storage nodes read them: scanner files at their RAS positions (LPS or
+    RAS declared), frame files with the frame's X, Y, Z as Slicer's R, A, S."""
+    from chic_register.io.markups import MarkupPoint, PointList, as_system, write_points
+
+    lps = np.array([[12.25, -40.5, 77.0], [-3.0, 0.125, -60.0], [100.0, 100.0, 100.0]])
+    labels = ["entry", "target, deep", "centre"]
+    pts = PointList(tuple(MarkupPoint(lab, tuple(p), f"desc {i}") for i, (lab, p) in enumerate(zip(labels, lps))), "LPS")
+    files = {}
+    for system in ("LPS", "RAS"):
+        for suffix in (".mrk.json", ".fcsv"):
+            files[str(write_points(as_system(pts, system), tmp_path / f"{system}{suffix}"))] = system
+    frame = tmp_path / "frame.fcsv"
+    frame_mm = np.array([[100.0, 100.0, 100.0], [110.5, 90.25, 160.0]])
+    write_points(PointList((MarkupPoint("c", tuple(frame_mm[0])), MarkupPoint("d", tuple(frame_mm[1]))), "RAS"), frame)
+    seen = run_probe(tmp_path, {"mode": "markups", "files": [*files, str(frame)]})
+    ras = lps * [-1.0, -1.0, 1.0]
+    for path in files:
+        got = seen[path]
+        assert [p["label"] for p in got] == labels and [p["description"] for p in got] == ["desc 0", "desc 1", "desc 2"]
+        assert np.abs(np.array([p["ras"] for p in got]) - ras).max() < 1e-9, path
+    assert np.abs(np.array([p["ras"] for p in seen[str(frame)]]) - frame_mm).max() < 1e-9

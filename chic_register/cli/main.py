@@ -14,12 +14,13 @@ import json
 import sys
 
 from chic_register.cli import calibrate, evaluate, exits, precision, reslice, simulate, solve, track
+from chic_register.cli import map as map_command  # (the module is named for the subcommand)
 from chic_register.cli.console import PROG
 from chic_register.errors import ChicRegisterError, NoLock
 from chic_register.version import __version__
 
 #: the subcommands, in the order --help lists them
-COMMANDS = (solve, calibrate, precision, simulate, evaluate, reslice, track)
+COMMANDS = (solve, map_command, calibrate, precision, simulate, evaluate, reslice, track)
 DESCRIPTION = "chic-register: register MRI slices of a CHIC fiducial, simulate slices, evaluate accuracy."
 
 

@@ -140,9 +140,10 @@ def run(args) -> int:
 def _print_pose(args, reg, geom) -> None:
     """The pose of solve: one JSON object (--json) or the human summary."""
     from chic_register.outputs.deliver import registration_json, tool_pose  # here, not at the top: as in run
+    from chic_register.outputs.frame import frame_report
 
     if args.json:
-        print(json.dumps(registration_json(reg, geom), indent=2), flush=True)
+        print(json.dumps(registration_json(reg, geom, args.target), indent=2), flush=True)
         return
     t = reg.timing_ms
     print(f"status: ok ({len(reg.slices)} slice{'s' if len(reg.slices) > 1 else ''} of '{geom.name}'"
@@ -157,6 +158,9 @@ def _print_pose(args, reg, geom) -> None:
         for row in T_tool:
             print("  " + "  ".join(f"{v:11.5f}" for v in row))
         print("tool tip (scanner, mm): " + ", ".join(f"{v:.3f}" for v in T_tool[:3, 3]))
+    frame = frame_report(reg, geom, args.target)
+    if frame is not None:
+        print(_frame_line(frame))
     for s in reg.slices:
         print(f"{s.source}: depth {s.depth_mm:.3f} mm, tilt {s.tilt_deg:.3f}, azimuth {s.azimuth_deg:.3f}, "
               f"twist {s.twist_deg:.3f} deg; residual RMS {s.residual_rms_mm:.3f} mm over {s.n_tubes} tubes")
@@ -175,6 +179,19 @@ def _print_pose(args, reg, geom) -> None:
               f"SD rotation {max(sd[:3]):.3f} deg, translation {max(sd[3:]):.3f} mm (largest axis); "
               f"image noise sigma {', '.join(f'{n.sigma:.4g}' for n in u.noise)}")
     sys.stdout.flush()
+
+
+def _frame_line(frame: dict) -> str:
+    """The human line of a pose in a stereotactic frame's coordinates: where the scanner's origin and axes lie."""
+    import numpy as np  # here, not at the top: as in run
+
+    T = np.asarray(frame["T_frame_from_scanner"])
+    axes = "; ".join(f"{a} ({', '.join(f'{v:.4f}' for v in T[:3, i])})" for i, a in enumerate("LPS"))
+    line = (f"{frame['system']} frame coordinates: scanner origin at ({', '.join(f'{v:.3f}' for v in T[:3, 3])}) mm, "
+            f"scanner axes {axes} (T_frame_from_scanner in the JSON)")
+    if "target_frame_mm" in frame:
+        line += f"; target at ({', '.join(f'{v:.3f}' for v in frame['target_frame_mm'])}) mm"
+    return line
 
 
 def _series_hint(args, slices, skip: bool) -> str:

@@ -32,7 +32,7 @@ from chic_register.util.atomic import atomic_path
 from chic_register.util.safeload import open_regular_file
 
 if TYPE_CHECKING:  # annotations only: SimpleITK is imported where it is used
-    import SimpleITK as sitk
+    import SimpleITK as sitk  # deferred: loads SimpleITK only when used (one-shot start-up)
 
 WRITE_SUFFIXES = (".nii", ".nii.gz", ".nrrd", ".mha")
 
@@ -214,7 +214,7 @@ def single_slice_3d(img: sitk.Image, reader=None) -> sitk.Image:
     in the plane z = 0 of its own frame, its normal +z, and its third spacing
     is 1 mm (the slice's thickness is not known from a 2-D file).
     """
-    import SimpleITK as sitk
+    import SimpleITK as sitk  # deferred: loads SimpleITK only when used (one-shot start-up)
 
     out = sitk.JoinSeries(img)
     A = _srow_lps(reader) if reader is not None else None

@@ -18,6 +18,7 @@ import numpy as np
 from chic_register.detect.blobs import detect_blobs
 from chic_register.detect.ct import detection_slice
 from chic_register.errors import ChicRegisterError
+from chic_register.outputs.frame import frame_report
 from chic_register.outputs.overlay import draw_overlay
 from chic_register.util.atomic import check_parent
 
@@ -56,8 +57,10 @@ def quality(reg) -> dict:
     return out
 
 
-def registration_json(reg, geom) -> dict:
-    """``solve --json``: the contract's object, plus the candidates ``assignment`` indexes and the tool."""
+def registration_json(reg, geom, target_F_mm=None) -> dict:
+    """``solve --json``: the contract's object, plus the candidates ``assignment`` indexes, the tool and, for a
+    geometry naming a stereotactic frame, ``frame_coordinates`` (:func:`~chic_register.outputs.frame.frame_report`,
+    with ``target_F_mm`` in the frame when given)."""
     doc = reg.to_dict()
     for sd, res in zip(doc.get("slices", []), reg.slices):
         if res.blobs_rc is not None:
@@ -66,6 +69,9 @@ def registration_json(reg, geom) -> dict:
     if T_tool is not None:
         doc["T_scanner_from_tool"] = [[float(v) for v in row] for row in T_tool]
         doc["tool_tip_mm"] = [float(v) for v in T_tool[:3, 3]]
+    frame = frame_report(reg, geom, target_F_mm)
+    if frame is not None:
+        doc["frame_coordinates"] = frame
     return doc
 
 

@@ -12,7 +12,7 @@ import pytest
 from chic_register.cli import main as cli_main
 
 ROOT = Path(__file__).resolve().parents[2]
-SUBCOMMANDS = ("solve", "calibrate", "precision", "simulate", "evaluate", "reslice", "track")
+SUBCOMMANDS = ("solve", "map", "calibrate", "precision", "simulate", "evaluate", "reslice", "track")
 #: reStructuredText and Sphinx markup that has no place in a terminal
 MARKUP = re.compile(r"``|:(mod|func|class|meth|data|attr):|`[^`]+`_?")
 
@@ -48,7 +48,8 @@ def test_each_subcommand_is_one_module_owning_its_parser_and_its_run():
         assert callable(command.add_parser) and callable(command.run)
         argv = {"solve": ["solve", "x.dcm"], "reslice": ["reslice", "v.nii", "--reference", "r.json"],
                 "calibrate": ["calibrate", "v.nii", "--out", "g2.yaml"],
-                "simulate": ["simulate", "--depth", "1", "--out", "x.npy"]}.get(name, [name])
+                "simulate": ["simulate", "--depth", "1", "--out", "x.npy"],
+                "map": ["map", "--pose", "p.json", "--to", "frame"]}.get(name, [name])
         args = parser.parse_args([*argv, "--geometry", "g.yaml"])
         assert args.command == name and args.run is command.run
 
