@@ -76,7 +76,7 @@ def ct_detection_image(pixels_hu: np.ndarray, pixel_spacing_mm, rod_diameter_mm:
     """The linear top-hat of a CT slice (rows, cols), see the module docstring: Hounsfield values less the
     largest of their openings by lines :data:`LINE_WIDTHS` rod diameters long in :data:`LINE_DIRECTIONS`
     directions. Padding below air is set to air first, so the reconstruction circle's edge is no structure."""
-    from scipy import ndimage as ndi
+    from scipy import ndimage as ndi  # deferred: a CT slice only; keeps a one-shot MR solve from loading scipy.ndimage
 
     img = np.maximum(np.asarray(pixels_hu, dtype=np.float32), AIR_HU)
     px = min(float(pixel_spacing_mm[0]), float(pixel_spacing_mm[1]))

@@ -50,7 +50,34 @@ STRETCH_MOVE_SHARE = 1.0 / PRECISION_SIGMAS
 
 
 def pose_precision(model, fit, Ss, pixel_mm: float, exclude=None):
-    """1-sigma bounds ``(TRE at the frame centre (mm), rotation (deg))`` of a fit, to first order.
+    """1-sigma bounds ``(TRE at the frame centre (mm), rotation (deg))`` of a fit, to first order
+    (:func:`twist_covariance`'s worst directions)."""
+    C = twist_covariance(model, fit, Ss, pixel_mm, exclude)
+    if C is None:
+        return math.inf, math.inf
+    return worst_errors(C, _frame_centre_scanner(model, fit))
+
+
+def weakest_rotation(C: np.ndarray, fit) -> tuple[np.ndarray, float]:
+    """The least determined rotation of a twist covariance ``C`` (6, 6; scanner frame): its axis in F (3,, unit)
+    and its 1-sigma (deg)."""
+    w, V = np.linalg.eigh(np.asarray(C, float)[:3, :3])
+    axis = np.asarray(fit.T_F_from_scanner, float)[:3, :3] @ V[:, -1]
+    axis = axis if axis[int(np.argmax(np.abs(axis)))] > 0 else -axis
+    return axis, math.degrees(math.sqrt(max(float(w[-1]), 0.0)))
+
+
+def weakest_rotation_text(C: np.ndarray, fit) -> str:
+    """``C``'s least determined rotation in words: "about F's x axis (1 sigma 9.8 deg)" or the axis's components."""
+    axis, sigma = weakest_rotation(C, fit)
+    k = int(np.argmax(np.abs(axis)))
+    where = (f"F's {'xyz'[k]} axis" if abs(axis[k]) >= 0.95
+             else "the axis (" + ", ".join(f"{v:.2f}" for v in axis) + ") of F")
+    return f"the rotation about {where} is the least determined ({sigma:.2g} deg, 1 sigma)"
+
+
+def twist_covariance(model, fit, Ss, pixel_mm: float, exclude=None) -> np.ndarray | None:
+    """The covariance (6, 6) of a fit's twist (scanner frame), to first order; None when not determined.
 
     The crossings' Jacobian (:func:`chic_register.model.tube_model.crossing_jacobian`)
     of every matched tube, with a per-coordinate scatter from the residuals
@@ -76,15 +103,14 @@ def pose_precision(model, fit, Ss, pixel_mm: float, exclude=None):
         sq += float(np.sum(r[np.isfinite(r)] ** 2))
     dof = 2 * n - 6
     if not Js or dof <= 0:
-        return math.inf, math.inf
+        return None
     chi2_low = 2.0 * gamma_p_inverse(0.5 * dof, 1.0 - SCATTER_CONFIDENCE)  # chi-square quantile, dof degrees
     sigma = max(math.sqrt(sq / chi2_low), POSITION_FLOOR_PX * pixel_mm)
     J = np.concatenate(Js)
     try:
-        C = sigma * sigma * np.linalg.inv(J.T @ J)
+        return sigma * sigma * np.linalg.inv(J.T @ J)
     except np.linalg.LinAlgError:
-        return math.inf, math.inf
-    return worst_errors(C, _frame_centre_scanner(model, fit))
+        return None
 
 
 def check_noise_precision(unc, model, opts, sigmas: float = PRECISION_SIGMAS) -> None:

@@ -32,7 +32,7 @@ from chic_register.util.atomic import atomic_path
 from chic_register.util.safeload import open_regular_file
 
 if TYPE_CHECKING:  # annotations only: SimpleITK is imported where it is used
-    import SimpleITK as sitk  # deferred: loads SimpleITK only when used (one-shot start-up)
+    import SimpleITK as sitk
 
 WRITE_SUFFIXES = (".nii", ".nii.gz", ".nrrd", ".mha")
 

@@ -12,7 +12,7 @@ import math
 
 import numpy as np
 
-from chic_register.detect.blobs import Blobs, detect_blobs
+from chic_register.detect.blobs import Blobs, detect_blobs, median
 from chic_register.detect.ct import detection_slice
 from chic_register.detect.detected import DetectedSlice
 from chic_register.detect.filters import SAFE_MAGNITUDE
@@ -40,7 +40,7 @@ def detect_slices(slices: list[Slice], lows: list[float], model: TubeModel,
 def as_detected_image(sl: Slice, model: TubeModel) -> Slice:
     """``sl`` as the detector reads it (:func:`~chic_register.detect.ct.detection_slice` at the tubes' median
     diameter): a CT slice as its linear top-hat."""
-    return detection_slice(sl, float(np.median(np.atleast_1d(model.diameter_mm))))
+    return detection_slice(sl, median(np.atleast_1d(model.diameter_mm)))
 
 
 def second_look(d: DetectedSlice, model: TubeModel, detect_options: dict | None = None) -> DetectedSlice:

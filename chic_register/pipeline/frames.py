@@ -116,7 +116,7 @@ def mask_sections(sl: Slice, mask: np.ndarray) -> Slice:
     """``sl`` with the pixels of ``mask`` set to the median of the ring around them and marked ``lost``."""
     if not mask.any():
         return sl
-    from scipy import ndimage as ndi
+    from scipy import ndimage as ndi  # deferred: only a scan with two fiducials needs it
 
     ring = ndi.binary_dilation(mask, iterations=3) & ~mask
     pixels = np.array(sl.pixels, dtype=float, copy=True)

@@ -108,7 +108,10 @@ def _second_look(run: SliceRun, model: TubeModel, opts: SolveOptions, detect_opt
         check_trust(fits[0], fits[1:], model, [flat.slice], opts, [flat.T_scanner_from_image], [flat.resolution_mm])
         if unexplained_tubes(fits[0]) > 1:
             raise NoLock("more than one predicted tube unexplained on the flattened image")
-    except NoLock:
+    except NoLock as flat_reason:
+        if run.seen.xy_mm.shape[0] < opts.min_tubes <= flat.xy_mm.shape[0] or (
+                run.seen.xy_mm.shape[0] < flat.xy_mm.shape[0] < opts.min_tubes):
+            raise flat_reason from None  # the plain image had too few candidates to say anything
         raise first from None  # the plain image's reason says more
     run.seen = flat
     return fits, ellipse

@@ -84,6 +84,8 @@ from chic_register.fit.checks import (
     STRETCH_P,
     pose_precision,
     stretch_test,
+    twist_covariance,
+    weakest_rotation_text,
 )
 from chic_register.imaging.psf import blurred_windows, fit_psf
 from chic_register.model.envelope import plane_status
@@ -462,10 +464,13 @@ def verify_fit(geom, model, fit, rivals, seen: list[DetectedSlice], opts, precis
     k = precision_sigmas
     tre_tol, rot_tol = opts.trust_tre_mm, opts.trust_rot_deg
     if k * tre > tre_tol or k * rot > rot_tol:
+        C = None if precision is not None else twist_covariance(model, fit, Ss, px, exclude=[c.merged for c in out])
+        weakest = f"; {weakest_rotation_text(C * f * f, fit)}" if C is not None and k * rot > rot_tol else ""
         raise ImprecisePose(f"the pose is not precise enough to trust: {k:g} sigma of its predicted error is "
                             f"{k * tre:.2f} mm at the frame centre and {k * rot:.2f} deg (limits {tre_tol:g} mm, "
-                            f"{rot_tol:g} deg; a tilted slice or several parallel slices are more precise; --trust MM DEG sets "
-                            f"the limits)", {"sigma_tre_mm": round(tre, 4), "sigma_rot_deg": round(rot, 4)})
+                            f"{rot_tol:g} deg{weakest}; a tilted slice or several parallel slices are more precise; "
+                            f"--trust MM DEG sets the limits)",
+                            {"sigma_tre_mm": round(tre, 4), "sigma_rot_deg": round(rot, 4)})
     return out
 
 

@@ -22,7 +22,7 @@ LEKSELL_G_CT = {
         {"name": "right", "azimuth_deg": 180, "distance": 95, "width": 120, "diagonal_from": "right"},
         {"name": "left", "azimuth_deg": 0, "distance": 95, "width": 120, "diagonal_from": "left"},
     ],
-    "frame": {"height": 120, "wall": 8}, "rods": {"diameter": 3},
+    "frame": {"height": 120, "wall": 8}, "rods": {"diameter": 2},
     "coordinates": {"system": "leksell"},
     "imaging": {"pixel_size": 0.6, "slice_thickness": 1.0},
 }
@@ -54,8 +54,7 @@ class NLocalizerFamily(Family):
         return dot_tubes(geometry)
 
     def parts(self, spec, geometry):
-        # the CAD kernel: check and schema start without it
-        from chic_design.families.nlocalizer.cad import nlocalizer_parts
+        from chic_design.families.nlocalizer.cad import nlocalizer_parts  # the CAD kernel: check and schema start without it
 
         return nlocalizer_parts(spec, geometry)
 

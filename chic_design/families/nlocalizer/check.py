@@ -14,6 +14,15 @@ their registration uses the frame's known orientation on the patient.
   that show as dots has a twin pose
   (:func:`chic_design.families.zframe.twins.slice_twins`).
 
+- ``one_plate_direction``: when every N-plate faces along one axis (the
+  Leksell box's two lateral plates), a slice's dots fix the rotation about
+  that axis only to second order: tilting the plane about it moves every dot
+  of a plate along the plate's own line, where only the rods' spacing
+  (``width / cos``) and the sections' shapes tell the tilt, and not its sign.
+  A single axial slice is then too imprecise to trust and a tilted one has a
+  mirrored twin; several parallel slices (a volume) fix the pose, as does a
+  plate facing another way.
+
 Edge rods (role ``other``) lie in axial planes: they are part of the 3-D
 symmetry test but not of the slice tests.
 """
@@ -38,6 +47,29 @@ def dot_tubes(geom):
     return tuple(t for t in geom.tubes if t.role in DOT_ROLES)
 
 
+def common_plate_normal(geom) -> np.ndarray | None:
+    """The one direction (3,, unit, in the xy plane) that every plate of vertical rods faces, or None.
+
+    A plate is the plane of a diagonal and the vertical rods at its ends; its
+    normal is horizontal. None when the plates face two or more ways.
+    """
+    normals = []
+    for t in geom.tubes:
+        if t.role != "diagonal":
+            continue
+        d = np.asarray(t.p1, float) - np.asarray(t.p0, float)
+        n = np.cross(d, [0.0, 0.0, 1.0])
+        if np.linalg.norm(n) < 1e-9:
+            continue
+        normals.append(n / np.linalg.norm(n))
+    if not normals:
+        return None
+    ref = normals[0]
+    if all(abs(float(np.dot(ref, n))) > 1 - 1e-6 for n in normals):
+        return ref if ref[int(np.argmax(np.abs(ref)))] > 0 else -ref
+    return None
+
+
 def nlocalizer_unambiguity(geom, usable_ranges_mm, slice_mismatch_mm: float | None, helix_crossings,
                            tolerance_mm: float) -> tuple[Unambiguity, list[Finding]]:
     """The N-localizer's :class:`Unambiguity` (3-D symmetries, slices with a twin) and the warnings it raises."""
@@ -51,6 +83,17 @@ def nlocalizer_unambiguity(geom, usable_ranges_mm, slice_mismatch_mm: float | No
             "rotation, so registration needs a prior on the frame's orientation (chic-register solve --prior "
             "LPS for a head-first supine patient with F's axes along the scanner's); two equal plates are "
             "always symmetric, a third plate can break it", "whole frame"))
+    axis = common_plate_normal(geom)
+    if axis is not None:
+        name = {0: "x", 1: "y"}.get(int(np.argmax(np.abs(axis))), "") if np.max(np.abs(axis)) > 0.999 else ""
+        about = f"F's {name} axis" if name else "the axis (" + ", ".join(f"{v:.2f}" for v in axis) + ")"
+        warnings.append(Finding(
+            "one_plate_direction",
+            f"every N-plate faces along {about}: a slice's dots fix the rotation about it only to second order "
+            "(tilting the plane about it slides each plate's dots along the plate's own line; only the rods' "
+            "spacing tells the tilt, and not its sign), so one axial slice is refused as imprecise and a tilted "
+            "one has a mirrored twin; register several parallel slices (a volume), or add a plate facing "
+            "another way", "every slice"))
     bands: tuple[Symmetry, ...] = ()
     if not frame_syms:
         dots = replace(geom, tubes=dot_tubes(geom))

@@ -55,7 +55,7 @@ def test_leksell_ct_rods_are_at_the_hand_worked_points(ct):
     for tid, (p0, p1) in want.items():
         t = geom.tube(tid)
         assert t.p0 == p0 and t.p1 == p1, tid  # exact: no rounding noise in geometry.yaml
-        assert t.diameter == 3.0
+        assert t.diameter == 2.0
     assert [t.role for t in geom.tubes] == ["axial", "diagonal", "axial"] * 2
     assert geom.family == "nlocalizer" and geom.body.shape == "box" and geom.body.length == 120.0
     # the body encloses every rod: rod planes at x = +-95 in 8 mm walls
