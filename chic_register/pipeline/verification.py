@@ -76,8 +76,11 @@ def _verify_leaving_out(geom, model, refined: Refined, out: Verified, opts: Solv
         except BetterRival as exc:  # the pixels prefer a rival the blob centres rated equal: it is verified instead
             if swapped or refined.precision is not None:
                 raise
+            locked, best = _rival_fits(model, exc.T_F_from_scanner, seen, opts)
+            if not _same_blobs(locked, out.best):  # another copy of the pattern (a ghost): a true ambiguity
+                raise
             swapped = True
-            out.locked, out.best = _rival_fits(model, exc.T_F_from_scanner, seen, opts)
+            out.locked, out.best = locked, best
         except SliceRefused as exc:  # a volume: those slices are left out, the rest verified again
             gone = {j for j, _ in exc.refused}
             for j, reason in exc.refused:
@@ -99,6 +102,11 @@ def _rival_fits(model: TubeModel, T_F_from_scanner, seen: list[DetectedSlice], o
                     gates_mm=(gate, 0.6 * gate))
     fine = section_refine(model, locked, seen, opts) if opts.section_fit and not opts.centroid_model else None
     return locked, fine or locked
+
+
+def _same_blobs(a: Fit, b: Fit) -> bool:
+    """Do two fits match the same blobs in every slice (twins the blob centres cannot tell apart)?"""
+    return all(set(x[x >= 0].tolist()) == set(y[y >= 0].tolist()) for x, y in zip(a.assignments, b.assignments))
 
 
 def _when_imprecise(exc: ImprecisePose, geom, model, out: Verified, opts: SolveOptions) -> None:
