@@ -98,3 +98,19 @@ def test_tilted_ct_grid(nloc, tilt, azimuth, seed):
     sim = simulate_ct_slice(nloc, depth, tilt, azimuth, rng.uniform(-5, 5), scene=CTScene(skull=seed % 2 == 1),
                             rng=rng)
     _check(register([sim.slice], nloc, options=PRIOR), sim.truth.T_scanner_from_fiducial)
+
+
+def test_dicom_ct_round_trip_keeps_hounsfield_units(nloc, tmp_path):
+    """Written as DICOM CT (RescaleIntercept -1024, signed for the -2048 padding), read back as CT in whole HU."""
+    import pydicom
+
+    from chic_register.io.dicom import read_dicom_file
+    from chic_register.imaging.simulate import write_simulated
+
+    sim = simulate_ct_slice(nloc, 60, 25, 0, 0, scene=CTScene(metal=True), rng=np.random.default_rng(3))
+    path, _ = write_simulated(sim, tmp_path / "ct.dcm")
+    ds = pydicom.dcmread(path)
+    assert (ds.Modality, float(ds.RescaleIntercept), float(ds.RescaleSlope), ds.PixelRepresentation) == ("CT", -1024.0, 1.0, 1)
+    sl = read_dicom_file(path, True)[0]
+    assert sl.modality == "CT" and np.abs(sl.pixels - sim.slice.pixels).max() <= 0.5 + 1e-9
+    _check(register([sl], nloc, options=PRIOR), sim.truth.T_scanner_from_fiducial)
