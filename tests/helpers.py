@@ -1,7 +1,7 @@
 """Helpers shared by tests in several folders (a test module never imports another).
 
 The false-lock hunts' geometries and cases; simulated slices (square, Rician, blurred, near an end) and volumes (an
-oblique placement); the z001 Z-frame; pose errors and round-trip checks; one-line error checks and fuzzing settings;
+oblique placement); the z001 Z-frame and a Leksell-G-like N-localizer; pose errors and round-trip checks; one-line error checks and fuzzing settings;
 the modules a fresh interpreter imports.
 """
 
@@ -27,7 +27,7 @@ from chic_design.families import geometry_of
 from chic_design.spec import load_spec
 from chic_register.errors import NoLock
 from chic_register.imaging.simulate import add_rician_noise, simulate_slice, simulate_volume
-from chic_register.model.body import Body
+from chic_register.model.body import Body, FrameCoordinates
 from chic_register.model.geometry import FiducialGeometry, load_geometry
 from chic_register.model.pose import apply, invert, rigid, rot_y, rot_z, slice_frame, wrap_deg
 from chic_register.model.slices import Slice
@@ -112,6 +112,25 @@ def zframe(d_mm: float = 3.0) -> FiducialGeometry:
             ("Z2", (-a, -a, 0), (-a, a, 60))]
     tubes = [LineTube(i, "other", p0, p1, d_mm) for i, p0, p1 in rods]
     return FiducialGeometry("zframe", Body(60.0, 2 * a * math.sqrt(2) + d_mm, 2 * a - d_mm), tuple(tubes))
+
+
+#: The N-localizer's frame centre in its frame F.
+NLOC_CENTRE = np.array([0.0, 0.0, 60.0])
+
+
+def leksell_g_ct(rod_mm: float = 2.0) -> FiducialGeometry:
+    """A Leksell-G-like CT N-localizer: two lateral plates at x = +-95 mm, each with two vertical rods 120 mm apart
+    (y = -+60) and a diagonal from (y -60, z 0) to (y 60, z 120). F: x patient left, y posterior, z superior,
+    origin at the centre of the box's bottom face (so F's axes are the scanner's LPS axes for a supine head)."""
+    tubes = []
+    for side, sx in (("right", -1), ("left", 1)):
+        x = sx * 95.0
+        tubes += [LineTube(f"{side}_a", "axial", (x, -60, 0), (x, -60, 120), rod_mm),
+                  LineTube(f"{side}_d", "diagonal", (x, -60, 0), (x, 60, 120), rod_mm),
+                  LineTube(f"{side}_b", "axial", (x, 60, 0), (x, 60, 120), rod_mm)]
+    T = np.array([[1, 0, 0, 100], [0, -1, 0, 100], [0, 0, -1, 160], [0, 0, 0, 1.0]])
+    return FiducialGeometry("leksell-g-ct", Body.box(120, (200, 130), (180, 126)), tuple(tubes), family="nlocalizer",
+                            frame_coordinates=FrameCoordinates("leksell", T))
 
 
 def tre_mm(T, T_true, point):

@@ -27,9 +27,21 @@ def add_parser(subparsers) -> None:
     m.add_argument("--noise-level", type=float, default=0.1, metavar="X",
                    help="uniform noise amplitude, fluid = 1 (default 0.1)")
     m.add_argument("--snr", type=float, default=20.0, metavar="S", help="Rician noise SNR of fluid (default 20)")
-    m.add_argument("--slice-thickness", type=float, default=2.0, metavar="MM", help="slice thickness (default 2)")
-    m.add_argument("--pixel-size", type=float, default=0.5, metavar="MM", help="square pixel size (default 0.5)")
-    m.add_argument("--size", type=int, default=256, metavar="N", help="image size N x N pixels (default 256)")
+    m.add_argument("--slice-thickness", type=float, default=None, metavar="MM",
+                   help="slice thickness (default 2; CT 1)")
+    m.add_argument("--pixel-size", type=float, default=None, metavar="MM",
+                   help="square pixel size (default 0.5; CT 0.6)")
+    m.add_argument("--size", type=int, default=None, metavar="N", help="image size N x N pixels (default 256; CT 512)")
+    m.add_argument("--modality", default="mr", choices=["mr", "ct"],
+                   help="mr: fluid = 1 (default); ct: Hounsfield units (air -1000, plates, contrast rods, Gaussian "
+                        "noise, -2048 outside the reconstruction circle; DICOM CT with RescaleIntercept -1024)")
+    m.add_argument("--rod-hu", type=float, default=1500.0, metavar="HU", help="CT: the rods' fill (default 1500)")
+    m.add_argument("--plate-hu", type=float, default=150.0, metavar="HU", help="CT: the plates (default 150)")
+    m.add_argument("--plate-mm", type=float, default=4.0, metavar="MM",
+                   help="CT: plate thickness around each plane of 3+ coplanar rods (default 4; 0: none)")
+    m.add_argument("--noise-hu", type=float, default=18.0, metavar="HU", help="CT: Gaussian noise sigma (default 18)")
+    m.add_argument("--skull", action="store_true", help="CT: a bone ring (+1000 HU) around brain inside the frame")
+    m.add_argument("--metal", action="store_true", help="CT: a metal blob with bright and dark streaks through the image")
     m.add_argument("--seed", type=int, default=None, metavar="N", help="random seed (noise, distractors)")
     m.add_argument("--distractors", type=int, default=0, metavar="N",
                    help="N anatomy-like bright blobs outside the fiducial (default 0)")
@@ -73,8 +85,23 @@ def run(args) -> int:
     from chic_register.io.limits import MAX_SPACING_MM, MIN_SPACING_MM
     from chic_register.model.geometry import load_geometry
 
+    from chic_register.imaging.ct import CT_PIXEL_MM, CT_SHAPE, CT_THICKNESS_MM, CTScene  # here: fast start-up
+
+    ct = args.modality == "ct"
+    if args.size is None:
+        args.size = CT_SHAPE[0] if ct else 256
+    if args.pixel_size is None:
+        args.pixel_size = CT_PIXEL_MM if ct else 0.5
+    if args.slice_thickness is None:
+        args.slice_thickness = CT_THICKNESS_MM if ct else 2.0
     out = Path(args.out)
     checks = [
+        (not ct or args.noise == "none", "--noise applies to MR; a CT slice's noise is --noise-hu"),
+        (not ct or out.suffix.lower() not in (".png", ".tif", ".tiff"),
+         "--modality ct writes Hounsfield units: .dcm (DICOM CT) or .npy"),
+        (all(np.isfinite(v) and abs(v) <= 1e4 for v in (args.rod_hu, args.plate_hu, args.noise_hu))
+         and args.noise_hu >= 0 and 0 <= args.plate_mm <= 50,
+         "--rod-hu, --plate-hu, --noise-hu must be finite within +-10000 (noise >= 0), --plate-mm 0..50"),
         (args.size >= 8 and args.size <= 4096, f"--size must be 8..4096 pixels, got {args.size}"),
         (np.isfinite(args.pixel_size) and MIN_SPACING_MM <= args.pixel_size <= MAX_SPACING_MM,
          f"--pixel-size must be {MIN_SPACING_MM:g}..{MAX_SPACING_MM:g} mm, got {args.pixel_size:g}"),
@@ -113,6 +140,9 @@ def run(args) -> int:
             image_position=(0.0, 0.0, 0.0) if plain else args.image_position,
             image_orientation=args.image_orientation,
             rng=np.random.default_rng(args.seed), blob_width=args.blob_width,
+            modality="CT" if ct else "MR",
+            ct=CTScene(rod_hu=args.rod_hu, plate_hu=args.plate_hu, plate_mm=args.plate_mm, noise_hu=args.noise_hu,
+                       skull=args.skull, metal=args.metal) if ct else None,
         )
         n_in_view = len(sim.truth.centres_px)
         if n_in_view == 0 and not args.allow_empty:  # an empty image is a mistake unless asked for
@@ -151,7 +181,8 @@ def _run_volume(args) -> int:
     vs = given * 3 if len(given) == 1 else given
     unsupported = [flag for flag, on in (("--distractors", args.distractors), ("--bore-signal", args.bore_signal),
                                          ("--missing", args.missing), ("--image-position", args.image_position),
-                                         ("--image-orientation", args.image_orientation)) if on]
+                                         ("--image-orientation", args.image_orientation),
+                                         ("--modality ct", args.modality == "ct")) if on]
     checks = [
         (min(nx, ny, nz) >= 2 and max(nx, ny, nz) <= 1024, f"--volume-shape must be 2..1024 voxels each, got {nx} {ny} {nz}"),
         (nx * ny * nz <= MAX_VOXELS, f"--volume-shape {nx} {ny} {nz} is {nx * ny * nz} voxels; at most {MAX_VOXELS}"),

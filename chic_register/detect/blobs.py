@@ -256,6 +256,7 @@ def detect_blobs(
     split_touching: bool = True,
     size_from_image: bool = True,
     flatten_background: bool = False,
+    noise_threshold_sigmas: float | None = None,
 ) -> Blobs:
     """Candidate tube cross-sections in ``pixels`` (rows, cols).
 
@@ -276,11 +277,15 @@ def detect_blobs(
     so tubes touching them or lying in a dim part of the image stay separate
     blobs (centres are then weighted by the flattened image). The solver
     retries a slice this way when it does not lock as it is.
+    ``noise_threshold_sigmas``: the level is at most this many robust noise
+    sigmas of the smoothed image above its median: on a flat background (a CT
+    slice's top-hat) one very bright object (metal) would draw Otsu's level
+    above the tubes.
     """
     diam = np.atleast_1d(np.asarray(tube_diameter_mm, dtype=float))
     d_lo, d_mid, d_hi = float(diam.min()), median(diam), float(diam.max())
     kw = dict(smooth_sigma_px=smooth_sigma_px, min_contrast=min_contrast, dilate_px=dilate_px,
-              split_touching=split_touching)
+              split_touching=split_touching, noise_threshold_sigmas=noise_threshold_sigmas)
     if flatten_background:
         pixels = _flatten(pixels, pixel_spacing_mm, d_mid, smooth_sigma_px, min_area_factor, max_area_factor,
                           min_contrast)
@@ -298,7 +303,8 @@ def detect_blobs(
 
 
 def _detect(pixels, pixel_spacing_mm, tube_diameter_mm: float, min_area_factor: float, max_area_factor: float, *,
-            smooth_sigma_px, min_contrast, dilate_px, split_touching, threshold_fraction: float = 1.0) -> Blobs:
+            smooth_sigma_px, min_contrast, dilate_px, split_touching, threshold_fraction: float = 1.0,
+            noise_threshold_sigmas: float | None = None) -> Blobs:
     """One detection pass at the blob size of a tube of ``tube_diameter_mm`` (see :func:`detect_blobs`).
 
     ``threshold_fraction``: the level used, as a fraction of the way from the
@@ -324,6 +330,10 @@ def _detect(pixels, pixel_spacing_mm, tube_diameter_mm: float, min_area_factor: 
     thr = otsu_threshold(sub_smooth)
     base = median(smooth[::4, ::4])
     thr = base + threshold_fraction * (thr - base)
+    if noise_threshold_sigmas is not None:
+        spread = 1.4826 * median(np.abs(sub_smooth - base))  # robust sigma of the (mostly background) image
+        if spread > 0:
+            thr = min(thr, base + noise_threshold_sigmas * spread)
     mask = smooth > thr
     flat = mask.ravel().nonzero()[0]  # the pixels above the threshold (a few per cent of a slice): np.flatnonzero
     # background and noise: the pixels well below the threshold (mean and spread)

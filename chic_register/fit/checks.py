@@ -18,7 +18,7 @@ import numpy as np
 from chic_register.errors import ImprecisePose
 from chic_register.fit.refine import scanner_crossing_jacobian
 from chic_register.model.pose import invert
-from chic_register.model.tube_model import plane_crossings, skew
+from chic_register.model.tube_model import exp_se3, plane_crossings, skew
 from chic_register.util.roots import bracketed_root
 
 #: The predicted error is held to the trust limits (:data:`~chic_register.options.TRE_TOL_MM`,
@@ -49,13 +49,65 @@ STRETCH_MIN = 0.02
 STRETCH_MOVE_SHARE = 1.0 / PRECISION_SIGMAS
 
 
+#: The first-order covariance of a pose holds only where the crossings' Jacobian barely changes over the pose's own
+#: predicted error: it is evaluated again at poses this many of its standard deviations (and the steps between) along
+#: its worst rotation and its worst displacement, and the worst of them is the pose's. Where the crossings fix a
+#: direction only to second order (a single slice normal to the rods of N-localizer plates: a turn about the
+#: left-right axis moves no crossing to first order), the Jacobian's hold on it there is the fit's own error along it,
+#: which vanishes within that error: the precision is then that of the pose where it vanishes.
+REGION_SIGMAS = (-3.0, -2.0, -1.0, 1.0, 2.0, 3.0)
+
+
+def _crossings_jacobian(model, fit, Ss, T_F_from_scanner, exclude):
+    """The matched tubes' crossings' Jacobian at a pose (rows: 2 per crossing, 6 columns), or None."""
+    Js = []
+    for j, S in enumerate(Ss):
+        q, tan, _, _ = plane_crossings(model, T_F_from_scanner @ S, margin_mm=1e-9)
+        use = fit.assignments[j] >= 0
+        if exclude is not None:
+            use &= ~np.isin(np.asarray(model.ids), list(exclude[j]))
+        k = np.flatnonzero(use)
+        if k.size:
+            Js.append(scanner_crossing_jacobian(q[k], tan[k], S).reshape(-1, 6))
+    return np.concatenate(Js) if Js else None
+
+
+def _covariance(J, sigma: float):
+    """``sigma^2 (J^T J)^-1`` (6, 6), or None when singular."""
+    try:
+        C = sigma * sigma * np.linalg.inv(J.T @ J)
+    except np.linalg.LinAlgError:
+        return None
+    return C if np.all(np.isfinite(C)) else None
+
+
 def pose_precision(model, fit, Ss, pixel_mm: float, exclude=None):
-    """1-sigma bounds ``(TRE at the frame centre (mm), rotation (deg))`` of a fit, to first order
-    (:func:`twist_covariance`'s worst directions)."""
-    C = twist_covariance(model, fit, Ss, pixel_mm, exclude)
+    """1-sigma bounds ``(TRE at the frame centre (mm), rotation (deg))`` of a fit, to first order: the largest
+    eigenvalue of each block of the twist's covariance (:func:`_twist_terms`) is the worst direction, and the
+    worst over the poses of :data:`REGION_SIGMAS` is the fit's."""
+    terms = _twist_terms(model, fit, Ss, pixel_mm, exclude)
+    C = None if terms is None else _covariance(*terms)
     if C is None:
         return math.inf, math.inf
-    return worst_errors(C, _frame_centre_scanner(model, fit))
+    sigma = terms[1]
+    lever = _frame_centre_scanner(model, fit)
+    tre, rot = worst_errors(C, lever)
+    for step in _worst_steps(C, lever):
+        for t in REGION_SIGMAS:
+            Jt = _crossings_jacobian(model, fit, Ss, fit.T_F_from_scanner @ exp_se3(t * step), exclude)
+            Ct = None if Jt is None else _covariance(Jt, sigma)
+            if Ct is None:
+                return math.inf, math.inf
+            tre_t, rot_t = worst_errors(Ct, lever)
+            tre, rot = max(tre, tre_t), max(rot, rot_t)
+    return tre, rot
+
+
+def twist_covariance(model, fit, Ss, pixel_mm: float, exclude=None) -> np.ndarray | None:
+    """The covariance (6, 6) of a fit's twist (scanner frame) at its pose, to first order (:func:`_twist_terms`);
+    None when not determined."""
+    terms = _twist_terms(model, fit, Ss, pixel_mm, exclude)
+    return None if terms is None else _covariance(*terms)
 
 
 def weakest_rotation(C: np.ndarray, fit) -> tuple[np.ndarray, float]:
@@ -76,41 +128,49 @@ def weakest_rotation_text(C: np.ndarray, fit) -> str:
     return f"the rotation about {where} is the least determined ({sigma:.2g} deg, 1 sigma)"
 
 
-def twist_covariance(model, fit, Ss, pixel_mm: float, exclude=None) -> np.ndarray | None:
-    """The covariance (6, 6) of a fit's twist (scanner frame), to first order; None when not determined.
+def _twist_terms(model, fit, Ss, pixel_mm: float, exclude=None):
+    """``(J, sigma)``: the matched crossings' Jacobian of a fit's twist (scanner frame) and the per-coordinate
+    scatter; None when not determined.
 
     The crossings' Jacobian (:func:`chic_register.model.tube_model.crossing_jacobian`)
     of every matched tube, with a per-coordinate scatter from the residuals
     (``sum r^2`` over its :data:`SCATTER_CONFIDENCE` chi-square bound with
     ``2 n - 6`` degrees of freedom, at least :data:`POSITION_FLOOR_PX`), gives the
     covariance of the twist ``(omega, v)`` of ``T_F_from_scanner``; the frame
-    centre ``(0, 0, L/2)`` then moves by ``[p]x omega - v``. The largest
-    eigenvalue of each block is the worst direction. ``exclude``: per slice,
-    tube ids that are no evidence (merged sections).
+    centre ``(0, 0, L/2)`` then moves by ``[p]x omega - v``. ``exclude``: per
+    slice, tube ids that are no evidence (merged sections).
     """
-    Js, n, sq = [], 0, 0.0
-    for j, S in enumerate(Ss):
-        q, tan, _, _ = plane_crossings(model, fit.T_F_from_scanner @ S, margin_mm=1e-9)
+    n, sq = 0, 0.0
+    for j in range(len(Ss)):
         use = fit.assignments[j] >= 0
         if exclude is not None:
             use &= ~np.isin(np.asarray(model.ids), list(exclude[j]))
         k = np.flatnonzero(use)
-        if k.size == 0:
-            continue
-        Js.append(scanner_crossing_jacobian(q[k], tan[k], S).reshape(-1, 6))
         r = fit.residuals[j][k]
         n += k.size
         sq += float(np.sum(r[np.isfinite(r)] ** 2))
     dof = 2 * n - 6
-    if not Js or dof <= 0:
+    J = _crossings_jacobian(model, fit, Ss, fit.T_F_from_scanner, exclude)
+    if J is None or dof <= 0:
         return None
     chi2_low = 2.0 * gamma_p_inverse(0.5 * dof, 1.0 - SCATTER_CONFIDENCE)  # chi-square quantile, dof degrees
     sigma = max(math.sqrt(sq / chi2_low), POSITION_FLOOR_PX * pixel_mm)
-    J = np.concatenate(Js)
-    try:
-        return sigma * sigma * np.linalg.inv(J.T @ J)
-    except np.linalg.LinAlgError:
-        return None
+    return J, sigma
+
+
+def _worst_steps(C: np.ndarray, lever_mm: np.ndarray) -> list[np.ndarray]:
+    """One standard deviation of the twist (6,) along the worst rotation and along the worst displacement of the
+    point ``lever_mm``, each with the other parameters at their conditional means (the fit's own compensation)."""
+    A = np.hstack([skew(np.asarray(lever_mm, float)), -np.eye(3)])
+    steps = []
+    for B in (np.hstack([np.eye(3), np.zeros((3, 3))]), A):
+        M = B @ C @ B.T
+        w, V = np.linalg.eigh(M)
+        e = V[:, -1]
+        if w[-1] <= 0:
+            continue
+        steps.append(C @ B.T @ e / math.sqrt(w[-1]))  # cov(x, e.y) / sd(e.y): x's conditional move per sd of e.y
+    return steps
 
 
 def check_noise_precision(unc, model, opts, sigmas: float = PRECISION_SIGMAS) -> None:

@@ -23,6 +23,7 @@ from pathlib import Path
 import numpy as np
 
 from chic_register.imaging.blob_width import render_tubes_widened
+from chic_register.imaging.ct import CT_PIXEL_MM, CT_SHAPE, CT_THICKNESS_MM, CTScene, hounsfield_slice
 from chic_register.imaging.render import check_grid, render_tubes, sample_offsets
 from chic_register.io.images import PLAIN_SUFFIXES, write_plain_image
 from chic_register.io.volumes import Volume, plane_frame
@@ -263,6 +264,8 @@ def simulate_slice(
     supersample: int = 4,
     thickness_samples: int = 5,
     blob_width: float = 1.0,
+    modality: str = "MR",
+    ct: CTScene | None = None,
 ) -> SimulatedSlice:
     """A synthetic slice of ``geom`` at a known pose, with its truth.
 
@@ -280,11 +283,17 @@ def simulate_slice(
     (4x4): the fiducial's pose in the scanner, from which the slice is placed
     (slices of one series share it). ``blob_width`` draws every tube's blob
     that many times its nominal width, as real images do (0.7-2.5x; see
-    :class:`BlobWidth`).
+    :class:`BlobWidth`). ``modality="CT"``: the slice in Hounsfield units, its rods, plates, distractors and
+    Gaussian noise as ``ct`` (a :class:`~chic_register.imaging.ct.CTScene`, default its defaults) says; the
+    fluid share (with distractors and tool) is filled at the scene's ``rod_hu``; ``noise`` must be "none".
     ``truth.T_scanner_from_fiducial = slice.T_scanner_from_image() @ T_image_from_S @ invert(T_F_from_S)``.
     """
     if noise not in NOISE_KINDS:
         raise ValueError(f"noise is {noise!r}; allowed: {', '.join(NOISE_KINDS)}")
+    if modality not in ("MR", "CT"):
+        raise ValueError(f"modality is {modality!r}; allowed: MR, CT")
+    if modality == "CT" and noise != "none":
+        raise ValueError("a CT slice's noise is the scene's Gaussian noise_hu; give noise='none'")
     missing = tuple(str(m) for m in missing_tubes)
     unknown = [m for m in missing if m not in geom.ids]
     if unknown:
@@ -311,7 +320,11 @@ def simulate_slice(
     if distractors:
         blobs = _render_distractors(int(distractors), geom, T_F_from_S, (rows, cols), spacing, center, rng, supersample)
         image = np.maximum(image, blobs)
-    if noise == "uniform":
+    if modality == "CT":
+        ct = ct or CTScene()
+        image = hounsfield_slice(geom, np.clip(image, 0.0, 1.0), T_F_from_S, spacing, center,
+                                 float(slice_thickness_mm), ct, rng)
+    elif noise == "uniform":
         image = add_uniform_noise(image, noise_level, rng)
     elif noise == "rician":
         image = add_rician_noise(image, snr, rng)
@@ -328,7 +341,8 @@ def simulate_slice(
     origin, col_dir, row_dir = _scanner_placement(
         (rows, cols), spacing, T_scanner_from_image, image_position, image_orientation
     )
-    sl = Slice(image, (rs, cs), origin, col_dir, row_dir, float(slice_thickness_mm), "<simulated>")
+    sl = Slice(image, (rs, cs), origin, col_dir, row_dir, float(slice_thickness_mm), "<simulated>",
+               modality="CT" if modality == "CT" else "auto")
     T_scanner_from_fiducial = sl.T_scanner_from_image() @ T_image_from_S @ invert(T_F_from_S)
 
     all_px = crossings_px(geom, T_F_from_S, spacing, center)
@@ -351,6 +365,8 @@ def simulate_slice(
         "center_offset_mm": [dx, dy],
         "geometry": geom.name,
         "blob_width": float(blob_width),
+        "modality": modality,
+        **({"ct": ct.to_dict()} if modality == "CT" else {}),
     }
     truth = SliceTruth(
         angles=slice_angles(T_F_from_S),
@@ -367,6 +383,17 @@ def simulate_slice(
         T_fiducial_from_tool=None if geom.tool is None else geom.tool.T_fiducial_from_tool,
     )
     return SimulatedSlice(sl, truth)
+
+
+def simulate_ct_slice(geom: FiducialGeometry, depth_mm: float, tilt_deg: float, azimuth_deg: float = 0.0,
+                      twist_deg: float = 0.0, *, scene: CTScene | None = None, shape=CT_SHAPE,
+                      pixel_spacing_mm=(CT_PIXEL_MM, CT_PIXEL_MM), slice_thickness_mm: float = CT_THICKNESS_MM,
+                      **kwargs) -> SimulatedSlice:
+    """A synthetic CT slice (Hounsfield units) on a CT's usual grid: :func:`simulate_slice` with
+    ``modality="CT"``; ``kwargs`` go to it."""
+    return simulate_slice(geom, depth_mm, tilt_deg, azimuth_deg, twist_deg, shape=shape,
+                          pixel_spacing_mm=pixel_spacing_mm, slice_thickness_mm=slice_thickness_mm,
+                          modality="CT", ct=scene or CTScene(), **kwargs)
 
 
 # --------------------------------------------------------------------------- files

@@ -9,7 +9,9 @@ one slice per frame, placed by their functional groups; compressed pixel data py
 Writing (:func:`write_dicom`, :func:`write_dicom_series`): MR Image Storage files that carry the same geometry;
 pixels stored as unsigned 16-bit integers, the real values back through RescaleSlope / RescaleIntercept (one
 scaling for a whole series). A file holds the modules of the MR Image IOD with their type 1 and type 2 attributes
-and passes ``dciodvfy`` (dicom3tools) without errors.
+and passes ``dciodvfy`` (dicom3tools) without errors. A CT slice (``Slice.modality == "CT"``, pixels in Hounsfield
+units) is written as CT Image Storage the way scanners store it: whole HU, RescaleSlope 1 and RescaleIntercept
+-1024, unsigned 16 bits, or signed when padding lies below -1024 HU.
 """
 
 from __future__ import annotations
@@ -28,6 +30,7 @@ from pydicom.uid import (
     UID,
     ExplicitVRBigEndian,
     ExplicitVRLittleEndian,
+    CTImageStorage,
     ImplicitVRLittleEndian,
     MRImageStorage,
     generate_uid,
@@ -381,6 +384,34 @@ def pixel_scaling(pixels: np.ndarray) -> tuple[float, float]:
     return float(_ds_number(slope)), float(_ds_number(lo))
 
 
+#: A CT's stored values: HU = stored + CT_INTERCEPT_HU (RescaleSlope 1).
+CT_INTERCEPT_HU = -1024.0
+
+
+def ct_stored(pixels_hu: np.ndarray) -> np.ndarray:
+    """A CT slice's stored values (rows, cols): whole HU less :data:`CT_INTERCEPT_HU`, as uint16, or as int16 when
+    some lie below the intercept (padding at -2048 or -3024 HU); clipped to the type's range."""
+    v = np.rint(np.asarray(pixels_hu, dtype=float) - CT_INTERCEPT_HU)
+    if v.min() >= 0:
+        return np.clip(v, 0, STORED_MAX).astype(np.uint16)
+    return np.clip(v, -32768, 32767).astype(np.int16)
+
+
+def _mr_image_module(ds: Dataset, spacing_between_slices_mm) -> None:
+    """The MR Image module's attributes of a simulated spin-echo slice."""
+    ds.ScanningSequence = "SE"
+    ds.SequenceVariant = "NONE"
+    ds.ScanOptions = ""
+    ds.MRAcquisitionType = "2D" if spacing_between_slices_mm is None else "3D"
+    ds.RepetitionTime = "3000"
+    ds.EchoTime = "90"
+    ds.EchoTrainLength = 1
+    ds.MagneticFieldStrength = "3"
+    ds.ImagedNucleus = "1H"
+    ds.FlipAngle = "90"
+    ds.NumberOfAverages = "1"
+
+
 def _stored(pixels: np.ndarray, slope: float, intercept: float) -> np.ndarray:
     """uint16 stored values of ``pixels`` at ``(slope, intercept)``."""
     p = np.asarray(pixels, dtype=float)
@@ -399,7 +430,8 @@ def dicom_dataset(
     scaling: tuple[float, float] | None = None,
     spacing_between_slices_mm: float | None = None,
 ) -> Dataset:
-    """The MR Image Storage dataset of a slice (file meta included), not yet written.
+    """The MR Image Storage dataset of a slice (file meta included), not yet written; CT Image Storage for a CT
+    slice (stored as :func:`ct_stored` says; ``scaling`` does not apply).
 
     ``truth``: an object with ``to_dict()`` (or a dict) stored as JSON in
     ImageComments when it fits. Slices sharing ``series_uid`` also share the
@@ -414,14 +446,20 @@ def dicom_dataset(
     for_uid = frame_of_reference_uid or _derived_uid(series_uid, "frame-of-reference")
     sop_uid = generate_uid()
     rows, cols = sl.pixels.shape
-    slope, intercept = scaling or pixel_scaling(sl.pixels)
-    stored = _stored(sl.pixels, slope, intercept)
+    ct = sl.modality == "CT"
+    if ct:
+        slope, intercept = 1.0, CT_INTERCEPT_HU
+        stored = ct_stored(sl.pixels)
+    else:
+        slope, intercept = scaling or pixel_scaling(sl.pixels)
+        stored = _stored(sl.pixels, slope, intercept)
+    sop_class = CTImageStorage if ct else MRImageStorage
     col_dir = np.asarray(sl.col_dir, dtype=float)
     row_dir = np.asarray(sl.row_dir, dtype=float)
     origin = np.asarray(sl.origin_mm, dtype=float)
 
     meta = FileMetaDataset()
-    meta.MediaStorageSOPClassUID = MRImageStorage
+    meta.MediaStorageSOPClassUID = sop_class
     meta.MediaStorageSOPInstanceUID = sop_uid
     meta.TransferSyntaxUID = ExplicitVRLittleEndian
     meta.ImplementationVersionName = f"CHIC_{__version__}"[:16]
@@ -430,7 +468,7 @@ def dicom_dataset(
     ds.file_meta = meta
     # SOP Common
     ds.SpecificCharacterSet = "ISO_IR 100"
-    ds.SOPClassUID = MRImageStorage
+    ds.SOPClassUID = sop_class
     ds.SOPInstanceUID = sop_uid
     ds.InstanceCreationDate = date
     ds.InstanceCreationTime = time
@@ -448,7 +486,7 @@ def dicom_dataset(
     ds.AccessionNumber = ""
     ds.StudyDescription = "CHIC fiducial registration"
     # General Series
-    ds.Modality = "MR"
+    ds.Modality = "CT" if ct else "MR"
     ds.SeriesInstanceUID = series_uid
     ds.SeriesNumber = 1
     ds.SeriesDescription = series_description
@@ -465,7 +503,7 @@ def dicom_dataset(
     ds.InstanceNumber = int(instance_number)
     ds.ContentDate = date
     ds.ContentTime = time
-    ds.ImageType = ["DERIVED", "SECONDARY", "OTHER"]
+    ds.ImageType = ["DERIVED", "SECONDARY", "AXIAL" if ct else "OTHER"]
     ds.DerivationDescription = "synthetic slice rendered from a CHIC geometry file"
     # Image Plane
     ds.PixelSpacing = [_ds_number(sl.pixel_spacing_mm[0]), _ds_number(sl.pixel_spacing_mm[1])]
@@ -483,24 +521,22 @@ def dicom_dataset(
     ds.BitsAllocated = 16
     ds.BitsStored = 16
     ds.HighBit = 15
-    ds.PixelRepresentation = 0
+    ds.PixelRepresentation = 1 if stored.dtype == np.int16 else 0
     ds.PixelData = stored.tobytes()
     ds.RescaleIntercept = _ds_number(intercept)
     ds.RescaleSlope = _ds_number(slope)
-    ds.WindowCenter = _ds_number(intercept + 0.5 * slope * float(stored.max()))
-    ds.WindowWidth = _ds_number(max(slope * float(stored.max()), slope))
-    # MR Image
-    ds.ScanningSequence = "SE"
-    ds.SequenceVariant = "NONE"
-    ds.ScanOptions = ""
-    ds.MRAcquisitionType = "2D" if spacing_between_slices_mm is None else "3D"
-    ds.RepetitionTime = "3000"
-    ds.EchoTime = "90"
-    ds.EchoTrainLength = 1
-    ds.MagneticFieldStrength = "3"
-    ds.ImagedNucleus = "1H"
-    ds.FlipAngle = "90"
-    ds.NumberOfAverages = "1"
+    if ct:
+        ds.RescaleType = "HU"
+        ds.WindowCenter = "400"
+        ds.WindowWidth = "2000"
+        # CT Image
+        ds.KVP = "120"
+        ds.AcquisitionNumber = 1
+        ds.ConvolutionKernel = "STANDARD"
+    else:
+        ds.WindowCenter = _ds_number(intercept + 0.5 * slope * float(stored.max()))
+        ds.WindowWidth = _ds_number(max(slope * float(stored.max()), slope))
+        _mr_image_module(ds, spacing_between_slices_mm)
     if truth is not None:
         data = truth.to_dict() if hasattr(truth, "to_dict") else dict(truth)
         text = "chic-truth " + json.dumps(data, separators=(",", ":"))
@@ -517,7 +553,7 @@ def write_dicom(
     instance_number: int = 1,
     **kwargs,
 ) -> Path:
-    """Write ``sl`` as an MR Image Storage file at ``path`` atomically; returns the path.
+    """Write ``sl`` as an MR (a CT slice: CT) Image Storage file at ``path`` atomically; returns the path.
 
     Keyword arguments go to :func:`dicom_dataset` (``study_uid``,
     ``frame_of_reference_uid``, ``series_description``).

@@ -30,7 +30,7 @@ def detect_slices(slices: list[Slice], lows: list[float], model: TubeModel,
     seen = []
     for sl, lo in zip(slices, lows):
         sl = as_detected_image(sl, model)
-        b = detect_blobs(sl.pixels, sl.pixel_spacing_mm, model.diameter_mm, **(detect_options or {}))
+        b = detect_blobs(sl.pixels, sl.pixel_spacing_mm, model.diameter_mm, **_modality_options(sl, detect_options))
         if sl.modality == "MR":
             refuse_signed(sl.pixels, b, sl.source, lo)
         seen.append(DetectedSlice.of(sl, b))
@@ -43,10 +43,24 @@ def as_detected_image(sl: Slice, model: TubeModel) -> Slice:
     return detection_slice(sl, median(np.atleast_1d(model.diameter_mm)))
 
 
+#: A CT slice's detection level, at most this many noise sigmas above its top-hat's median
+#: (:func:`~chic_register.detect.blobs.detect_blobs`' ``noise_threshold_sigmas``): metal or bone far brighter than
+#: the rods would otherwise draw Otsu's level above them.
+CT_THRESHOLD_SIGMAS = 25.0
+
+
+def _modality_options(sl: Slice, detect_options: dict | None) -> dict:
+    """The detector's options for ``sl``: ``detect_options``, and a CT slice's noise-bound level."""
+    out = dict(detect_options or {})
+    if sl.modality == "CT":
+        out.setdefault("noise_threshold_sigmas", CT_THRESHOLD_SIGMAS)
+    return out
+
+
 def second_look(d: DetectedSlice, model: TubeModel, detect_options: dict | None = None) -> DetectedSlice:
     """``d`` detected again on its flattened image (tissue touching the tubes, a dim side of the image)."""
     b = detect_blobs(d.slice.pixels, d.slice.pixel_spacing_mm, model.diameter_mm, flatten_background=True,
-                     **(detect_options or {}))
+                     **_modality_options(d.slice, detect_options))
     return DetectedSlice.of(d.slice, b, d.T_scanner_from_image)
 
 

@@ -17,9 +17,9 @@ from dataclasses import dataclass
 
 from chic_register.detect.detected import DetectedSlice
 from chic_register.errors import ImprecisePose, NoLock, SliceRefused
-from chic_register.fit.accuracy import centroid_refine, drop_section_outliers
+from chic_register.fit.accuracy import centroid_refine, drop_section_outliers, section_refine
 from chic_register.fit.checks import OUTLIER_PRECISION_SIGMAS, PRECISION_SIGMAS
-from chic_register.fit.refine import Fit, refine
+from chic_register.fit.refine import Fit, match_gate_mm, refine
 from chic_register.model.geometry import FiducialGeometry
 from chic_register.model.tube_model import TubeModel, poses_distinct
 from chic_register.options import SolveOptions
@@ -27,6 +27,7 @@ from chic_register.pipeline.joint import no_slice_locked
 from chic_register.pipeline.locking import SliceRun
 from chic_register.pipeline.refinement import Refined
 from chic_register.pipeline.results import SkippedSlice
+from chic_register.verify.rivals import BetterRival
 from chic_register.verify.pixels import SliceCheck, verify_fit
 from chic_register.verify.trust import check_trust
 
@@ -65,12 +66,21 @@ def _verify_leaving_out(geom, model, refined: Refined, out: Verified, opts: Solv
     """Verify ``out.best``; slices a volume's verification refuses are left out (``out`` updated as it goes, so a
     later refusal finds the slices that remain) and the rest verified again."""
     sigmas = OUTLIER_PRECISION_SIGMAS if refined.moved else PRECISION_SIGMAS
+    swapped = False
     while True:
         seen = [r.seen for r in out.runs]
         try:
             out.checks = verify_fit(geom, model, out.best, [r.rivals for r in out.runs], seen, opts,
                                     precision=refined.precision, name_slice=skip_failed, precision_sigmas=sigmas)
             return
+        except BetterRival as exc:  # the pixels prefer a rival the blob centres rated equal: it is verified instead
+            if swapped or refined.precision is not None:
+                raise
+            locked, best = _rival_fits(model, exc.T_F_from_scanner, seen, opts)
+            if not _same_blobs(locked, out.best):  # another copy of the pattern (a ghost): a true ambiguity
+                raise
+            swapped = True
+            out.locked, out.best = locked, best
         except SliceRefused as exc:  # a volume: those slices are left out, the rest verified again
             gone = {j for j, _ in exc.refused}
             for j, reason in exc.refused:
@@ -82,6 +92,21 @@ def _verify_leaving_out(geom, model, refined: Refined, out: Verified, opts: Solv
             out.best = _only_slices(model, out.best, keep, [r.seen for r in out.runs])
             out.locked = _only_slices(model, out.locked, keep, [r.seen for r in out.runs])
             # (the locked pose is refitted on its own even where it was the pose itself: it stays apart from it)
+
+
+def _rival_fits(model: TubeModel, T_F_from_scanner, seen: list[DetectedSlice], opts: SolveOptions) -> tuple[Fit, Fit]:
+    """``(blob fit, section fit)`` of a rival pose on the slices' blobs (the section fit: the blob fit where the
+    sections cannot be fitted, or with the section fit off)."""
+    gate = match_gate_mm(model, min(float(max(d.slice.pixel_spacing_mm)) for d in seen))
+    locked = refine(model, [d.xy_mm for d in seen], [d.T_scanner_from_image for d in seen], T_F_from_scanner,
+                    gates_mm=(gate, 0.6 * gate))
+    fine = section_refine(model, locked, seen, opts) if opts.section_fit and not opts.centroid_model else None
+    return locked, fine or locked
+
+
+def _same_blobs(a: Fit, b: Fit) -> bool:
+    """Do two fits match the same blobs in every slice (twins the blob centres cannot tell apart)?"""
+    return all(set(x[x >= 0].tolist()) == set(y[y >= 0].tolist()) for x, y in zip(a.assignments, b.assignments))
 
 
 def _when_imprecise(exc: ImprecisePose, geom, model, out: Verified, opts: SolveOptions) -> None:

@@ -66,6 +66,15 @@ def slice_contenders(model, fit, rivals, strays, xy: np.ndarray, S: np.ndarray, 
     return out
 
 
+class BetterRival(NoLock):
+    """A distinct rival explains the pixels better than the pose by more than the margin: the pose is the wrong one
+    of two that fit the blob centres equally (a slice's mirrored tilt); ``T_F_from_scanner`` is the rival's."""
+
+    def __init__(self, reason: str, T_F_from_scanner: np.ndarray, detail: dict | None = None):
+        super().__init__(reason, detail)
+        self.T_F_from_scanner = T_F_from_scanner
+
+
 def check_rivals(geom, model, fit, contenders, checks, seen: list[DetectedSlice], opts, section_pose: bool = False) -> None:
     """:class:`NoLock` ("ambiguous") when a distinct rival explains the pixels of the slices nearly as well.
 
@@ -96,6 +105,10 @@ def check_rivals(geom, model, fit, contenders, checks, seen: list[DetectedSlice]
     for T_rival in unique:
         scores = [_compare_rival(geom, model, check, T_rival @ S, sl) for check, S, sl in zip(checks, Ss, slices)]
         gap, margin = sum(g for g, _ in scores), sum(m for _, m in scores)
+        if gap < -margin:  # the rival, not the pose, is what the pixels show
+            raise BetterRival(f"{slices[0].source}: ambiguous: a distinct pose explains the pixels better than the "
+                              f"pose found (residual smaller by {-gap:.3g}; margin {margin:.3g})", T_rival,
+                              {"n_tubes": int(fit.n_matched)})
         if gap < margin and not (section_pose and falls_onto_pose(model, fit, T_rival, seen, opts)):
             a = slice_angles(T_rival @ Ss[0])
             where = slices[0].source if len(slices) == 1 else f"{len(slices)} slices"
