@@ -80,12 +80,11 @@ def run(args) -> int:
         return _run_volume(args)
     import numpy as np  # here, not at the top: keeps chic-register's start-up fast (every command module is imported)
 
+    from chic_register.imaging.ct import CT_PIXEL_MM, CT_SHAPE, CT_THICKNESS_MM, CTScene  # here: fast start-up
     from chic_register.imaging.simulate import DICOM_SUFFIXES, simulate_slice, write_simulated
     from chic_register.io.images import PLAIN_SUFFIXES
     from chic_register.io.limits import MAX_SPACING_MM, MIN_SPACING_MM
     from chic_register.model.geometry import load_geometry
-
-    from chic_register.imaging.ct import CT_PIXEL_MM, CT_SHAPE, CT_THICKNESS_MM, CTScene  # here: fast start-up
 
     ct = args.modality == "ct"
     if args.size is None:

@@ -302,6 +302,26 @@ def detect_blobs(
     return blobs
 
 
+#: The detection level is at least this many noise sigmas of the smoothed image above its median: a noise pixel
+#: passes with odds of 3e-7, so a 512 x 512 slice of noise alone gives no candidate.
+FLOOR_SIGMAS = 5.0
+#: Median absolute difference of two neighbouring pixels of independent Gaussian noise, in its sigma.
+_PAIR_MAD = math.sqrt(2.0) * 0.6745
+
+
+def smoothed_noise_sigma(img: np.ndarray, sigma_px: float) -> float:
+    """The pixel noise of ``img`` (rows, cols) after :func:`~chic_register.detect.filters.gaussian_smooth` at
+    ``sigma_px``: the raw noise from the differences of neighbouring pixels along rows (every fourth row; an edge
+    is a small share of them), times the smoothing's noise gain (the kernel's L2 norm: ``n`` binomial passes per
+    axis keep ``C(4n, 2n) / 16^n`` of the noise's sigma)."""
+    rows = img[::4]
+    if rows.shape[1] < 2:
+        return 0.0
+    raw = median(np.abs(np.diff(rows, axis=1)).ravel()) / _PAIR_MAD
+    n = min(3, max(1, int(round(2 * sigma_px * sigma_px))))
+    return float(raw) * math.comb(4 * n, 2 * n) / 16.0 ** n
+
+
 def _detect(pixels, pixel_spacing_mm, tube_diameter_mm: float, min_area_factor: float, max_area_factor: float, *,
             smooth_sigma_px, min_contrast, dilate_px, split_touching, threshold_fraction: float = 1.0,
             noise_threshold_sigmas: float | None = None) -> Blobs:
@@ -334,6 +354,9 @@ def _detect(pixels, pixel_spacing_mm, tube_diameter_mm: float, min_area_factor: 
         spread = 1.4826 * median(np.abs(sub_smooth - base))  # robust sigma of the (mostly background) image
         if spread > 0:
             thr = min(thr, base + noise_threshold_sigmas * spread)
+    # a nearly empty image (a few small tubes on a wide field of noise): Otsu's split falls into the noise and
+    # every speck is a candidate; the level is at least FLOOR_SIGMAS of the smoothed image's noise above its median
+    thr = max(thr, base + FLOOR_SIGMAS * smoothed_noise_sigma(img, sig))
     mask = smooth > thr
     flat = mask.ravel().nonzero()[0]  # the pixels above the threshold (a few per cent of a slice): np.flatnonzero
     # background and noise: the pixels well below the threshold (mean and spread)

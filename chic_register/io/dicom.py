@@ -28,9 +28,9 @@ from pydicom.dataset import Dataset, FileMetaDataset
 from pydicom.errors import InvalidDicomError
 from pydicom.uid import (
     UID,
+    CTImageStorage,
     ExplicitVRBigEndian,
     ExplicitVRLittleEndian,
-    CTImageStorage,
     ImplicitVRLittleEndian,
     MRImageStorage,
     generate_uid,

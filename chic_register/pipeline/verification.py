@@ -27,8 +27,8 @@ from chic_register.pipeline.joint import no_slice_locked
 from chic_register.pipeline.locking import SliceRun
 from chic_register.pipeline.refinement import Refined
 from chic_register.pipeline.results import SkippedSlice
-from chic_register.verify.rivals import BetterRival
 from chic_register.verify.pixels import SliceCheck, verify_fit
+from chic_register.verify.rivals import BetterRival
 from chic_register.verify.trust import check_trust
 
 

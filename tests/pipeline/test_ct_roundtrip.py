@@ -6,7 +6,6 @@ an orientation prior (the box is symmetric under a half turn about x) -> the tar
 A single slice normal to the rods does not fix the turn about the left-right axis to first order: refused.
 """
 
-import math
 
 import numpy as np
 import pytest
@@ -79,19 +78,19 @@ def test_ct_slice_with_a_rod_missing_registers(nloc):
 
 @pytest.mark.parametrize("pose", [(60, 20, 90, 0), (60, 25, 0, 0)])
 def test_mr_counterpart_registers(nloc, pose):
-    """The same box in MR: a magnitude slice with Rician noise (SNR 40), 2 mm slices of 0.6 mm pixels. (At SNR 20
-    the 512 x 512 slice is almost all Rayleigh background and Otsu's level falls into it: hundreds of candidates.)"""
+    """The same box in MR: a magnitude slice with Rician noise (SNR 20), 2 mm slices of 0.6 mm pixels. The 512 x 512
+    slice is almost all Rayleigh background: the detection level is held above its noise, not Otsu's split of it."""
     rng = np.random.default_rng(2)
     sim = simulate_slice(nloc, *pose, shape=(512, 512), pixel_spacing_mm=(0.6, 0.6), slice_thickness_mm=2.0, rng=rng)
     sl = sim.slice
-    sl = type(sl)(add_rician_noise(sl.pixels, 40.0, rng), sl.pixel_spacing_mm, sl.origin_mm, sl.col_dir, sl.row_dir,
+    sl = type(sl)(add_rician_noise(sl.pixels, 20.0, rng), sl.pixel_spacing_mm, sl.origin_mm, sl.col_dir, sl.row_dir,
                   sl.slice_thickness_mm, sl.source)
     _check(register([sl], nloc, options=PRIOR), sim.truth.T_scanner_from_fiducial)
 
 
 @pytest.mark.slow
 @pytest.mark.parametrize("seed", range(4))
-@pytest.mark.parametrize("tilt, azimuth", [(15, 90), (25, 90), (15, 0), (28, 0), (20, 45)])
+@pytest.mark.parametrize("tilt, azimuth", [(15, 90), (25, 90), (15, 0), (25, 0), (20, 45)])  # within check's 26 deg limit
 def test_tilted_ct_grid(nloc, tilt, azimuth, seed):
     rng = np.random.default_rng(seed)
     depth = 60 + rng.uniform(-10, 10)
@@ -104,8 +103,8 @@ def test_dicom_ct_round_trip_keeps_hounsfield_units(nloc, tmp_path):
     """Written as DICOM CT (RescaleIntercept -1024, signed for the -2048 padding), read back as CT in whole HU."""
     import pydicom
 
-    from chic_register.io.dicom import read_dicom_file
     from chic_register.imaging.simulate import write_simulated
+    from chic_register.io.dicom import read_dicom_file
 
     sim = simulate_ct_slice(nloc, 60, 25, 0, 0, scene=CTScene(metal=True), rng=np.random.default_rng(3))
     path, _ = write_simulated(sim, tmp_path / "ct.dcm")

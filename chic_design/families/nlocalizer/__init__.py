@@ -54,7 +54,7 @@ class NLocalizerFamily(Family):
         return dot_tubes(geometry)
 
     def parts(self, spec, geometry):
-        from chic_design.families.nlocalizer.cad import nlocalizer_parts  # the CAD kernel: check and schema start without it
+        from chic_design.families.nlocalizer.cad import nlocalizer_parts  # CAD kernel: not needed by check
 
         return nlocalizer_parts(spec, geometry)
 
