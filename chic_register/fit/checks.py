@@ -120,12 +120,12 @@ def weakest_rotation(C: np.ndarray, fit) -> tuple[np.ndarray, float]:
 
 
 def weakest_rotation_text(C: np.ndarray, fit) -> str:
-    """``C``'s least determined rotation in words: "about F's x axis (1 sigma 9.8 deg)" or the axis's components."""
-    axis, sigma = weakest_rotation(C, fit)
+    """``C``'s least determined rotation in words: "the rotation about F's x axis ..." or about the axis's components."""
+    axis, _ = weakest_rotation(C, fit)
     k = int(np.argmax(np.abs(axis)))
     where = (f"F's {'xyz'[k]} axis" if abs(axis[k]) >= 0.95
              else "the axis (" + ", ".join(f"{v:.2f}" for v in axis) + ") of F")
-    return f"the rotation about {where} is the least determined ({sigma:.2g} deg, 1 sigma)"
+    return f"the rotation about {where} is the least determined"
 
 
 def _twist_terms(model, fit, Ss, pixel_mm: float, exclude=None):
@@ -255,6 +255,54 @@ def gamma_p_inverse(a: float, p: float) -> float:
     return bracketed_root(lambda x: gamma_p(a, x) - p, 0.0, hi, -p, gamma_p(a, hi) - p, xtol=1e-12 * hi)
 
 
+def _stretch_terms(model, fit, xys, Ss):
+    """The pose Jacobian ``Jp`` (m, 6), the stretch Jacobian ``Js`` (m, 2) and the residuals ``r`` (m,) of
+    :func:`stretch_test` (whitened as the fit weighed them), or None without residuals."""
+    meas = getattr(fit, "measurements", None)
+    Jp, Js, rs = [], [], []
+    for j, S in enumerate(Ss):
+        q, tan, _, inside = plane_crossings(model, fit.T_F_from_scanner @ S, margin_mm=1e-9)
+        a = fit.assignments[j]
+        k = np.flatnonzero((a >= 0) & inside)
+        if k.size == 0:
+            continue
+        xy = np.asarray(meas[j][0] if meas is not None else xys[j], float)[a[k]]
+        L = meas[j][1][k] if meas is not None else np.broadcast_to(np.eye(2), (k.size, 2, 2))
+        J = scanner_crossing_jacobian(q[k], tan[k], S)
+        D = np.zeros((k.size, 2, 2))
+        D[:, 0, 0], D[:, 1, 1] = -xy[:, 0], -xy[:, 1]  # d(q - (1 + s) xy) / ds
+        Jp.append(np.einsum("kij,kjl->kil", L, J).reshape(-1, 6))
+        Js.append(np.einsum("kij,kjl->kil", L, D).reshape(-1, 2))
+        rs.append(np.einsum("kij,kj->ki", L, q[k] - xy).ravel())
+    if not rs:
+        return None
+    return np.concatenate(Jp), np.concatenate(Js), np.concatenate(rs)
+
+
+def anisotropic_stretch(model, fit, xys, Ss) -> tuple[float, float]:
+    """The difference of the column and row stretches the tube positions fit with the pose, and its standard error
+    (from the residuals' scatter); ``(nan, inf)`` when the positions cannot tell (too few, or degenerate)."""
+    terms = _stretch_terms(model, fit, xys, Ss)
+    if terms is None:
+        return math.nan, math.inf
+    Jp, Js, r = terms
+    dof = r.size - 8
+    if dof <= 0:
+        return math.nan, math.inf
+    Q, _ = np.linalg.qr(Jp)
+    Js_perp = Js - Q @ (Q.T @ Js)
+    r_perp = r - Q @ (Q.T @ r)
+    s, *_ = np.linalg.lstsq(Js_perp, -r_perp, rcond=None)
+    rest = max(float(r_perp @ r_perp) - float(np.sum((Js_perp @ s) ** 2)), 0.0)
+    try:
+        cov = (rest / dof) * np.linalg.inv(Js_perp.T @ Js_perp)
+    except np.linalg.LinAlgError:
+        return math.nan, math.inf
+    c = np.array([1.0, -1.0])
+    var = float(c @ cov @ c)
+    return float(s[0] - s[1]), (math.sqrt(var) if var >= 0 and math.isfinite(var) else math.inf)
+
+
 def stretch_test(model, fit, xys, Ss):
     """Does a stretch of the image along its rows or columns explain the fit's residuals? ``(scale, F, p)``.
 
@@ -273,25 +321,10 @@ def stretch_test(model, fit, xys, Ss):
     :data:`STRETCH_P`). Returns ``(scale, F, p, moved)``. The
     residuals are whitened as the fit weighed them (``fit.measurements``).
     """
-    meas = getattr(fit, "measurements", None)
-    Jp, Js, rs = [], [], []
-    for j, S in enumerate(Ss):
-        q, tan, _, inside = plane_crossings(model, fit.T_F_from_scanner @ S, margin_mm=1e-9)
-        a = fit.assignments[j]
-        k = np.flatnonzero((a >= 0) & inside)
-        if k.size == 0:
-            continue
-        xy = np.asarray(meas[j][0] if meas is not None else xys[j], float)[a[k]]
-        L = meas[j][1][k] if meas is not None else np.broadcast_to(np.eye(2), (k.size, 2, 2))
-        J = scanner_crossing_jacobian(q[k], tan[k], S)
-        D = np.zeros((k.size, 2, 2))
-        D[:, 0, 0], D[:, 1, 1] = -xy[:, 0], -xy[:, 1]  # d(q - (1 + s) xy) / ds
-        Jp.append(np.einsum("kij,kjl->kil", L, J).reshape(-1, 6))
-        Js.append(np.einsum("kij,kjl->kil", L, D).reshape(-1, 2))
-        rs.append(np.einsum("kij,kj->ki", L, q[k] - xy).ravel())
-    if not rs:
+    terms = _stretch_terms(model, fit, xys, Ss)
+    if terms is None:
         return np.zeros(2), 0.0, 1.0, (0.0, 0.0)
-    Jp, Js, r = np.concatenate(Jp), np.concatenate(Js), np.concatenate(rs)
+    Jp, Js, r = terms
     dof = r.size - 8
     if dof <= 0:
         return np.zeros(2), 0.0, 1.0, (0.0, 0.0)

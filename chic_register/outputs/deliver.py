@@ -19,7 +19,7 @@ from chic_register.detect.blobs import detect_blobs
 from chic_register.detect.ct import detection_slice
 from chic_register.errors import ChicRegisterError
 from chic_register.outputs.frame import frame_report
-from chic_register.outputs.overlay import draw_overlay
+from chic_register.outputs.overlay import draw_overlay, predicted_crossings_rc
 from chic_register.util.atomic import check_parent
 
 EXIT_OUTPUT_FAILED = 4
@@ -212,15 +212,24 @@ def deliver(plan: OutputPlan, reg, geom, slices, link=None) -> Delivery:
     return out
 
 
-def deliver_no_lock(plan: OutputPlan, reason: str, geom, slices, link=None) -> Delivery:
-    """On no lock: the overlay of the candidates and the OpenIGTLink STATUS ``no_lock``; nothing else."""
+def deliver_no_lock(plan: OutputPlan, reason: str, geom, slices, link=None, refused_pose=None) -> Delivery:
+    """On no lock: the overlay of the candidates (and of the crossings of ``refused_pose``, a pose that fitted but was
+    refused as imprecise) and the OpenIGTLink STATUS ``no_lock``; nothing else."""
     out = Delivery()
     if plan.overlay:
         def overlay():
             d_mm = min(t.diameter for t in geom.tubes)
             seen = [detection_slice(sl, d_mm) for sl in slices]  # a CT slice's candidates are the top-hat's
             blobs = [detect_blobs(sl.pixels, sl.pixel_spacing_mm, d_mm) for sl in seen]
-            return f"wrote {draw_overlay(plan.overlay, slices, None, blobs, tube_radius_mm=0.5 * d_mm)}"
+            predicted = None
+            title = None
+            if refused_pose is not None:
+                T = np.asarray(refused_pose, float)
+                predicted = [predicted_crossings_rc(geom, T, sl) for sl in slices]
+                title = "refused as imprecise: the fitted pose's crossings (+)"
+            path = draw_overlay(plan.overlay, slices, None, blobs, title=title, tube_radius_mm=0.5 * d_mm,
+                                predicted=predicted)
+            return f"wrote {path}"
 
         out.attempt("--overlay", overlay)
     if link is not None:

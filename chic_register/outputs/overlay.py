@@ -159,8 +159,21 @@ def place_labels(ax, labels: dict, blobs_rc, radius_px: float, obstacles=(), fon
     return artists
 
 
+def predicted_crossings_rc(geom, T_scanner_from_fiducial: np.ndarray, sl) -> dict:
+    """``{tube id: (row, col)}``: where each tube of ``geom`` at a pose crosses slice ``sl`` (pixels)."""
+    T_I_from_F = np.linalg.inv(sl.T_scanner_from_image()) @ np.asarray(T_scanner_from_fiducial, float)
+    T_F_from_I = np.linalg.inv(T_I_from_F)
+    rs, cs = (float(v) for v in sl.pixel_spacing_mm)
+    out = {}
+    for t in geom.tubes:
+        for p in t.intersect_plane(T_F_from_I[:3, 3], T_F_from_I[:3, 2]):
+            q = T_I_from_F[:3, :3] @ p + T_I_from_F[:3, 3]
+            out[t.id] = (float(q[1] / rs), float(q[0] / cs))
+    return out
+
+
 def overlay_figure(slices, registration=None, blobs=None, title: str | None = None,
-                   tube_radius_mm: float = DEFAULT_TUBE_RADIUS_MM):
+                   tube_radius_mm: float = DEFAULT_TUBE_RADIUS_MM, predicted=None):
     """The overlay figure of ``slices`` (a list of Slice), not yet saved; see :func:`draw_overlay`."""
     import matplotlib  # deferred: loads matplotlib only when used (one-shot start-up)
 
@@ -207,6 +220,12 @@ def overlay_figure(slices, registration=None, blobs=None, title: str | None = No
             ax.set_title(f"depth {res.depth_mm:.2f} mm  tilt {res.tilt_deg:.2f}  twist {res.twist_deg:.2f} deg"
                          f"  rms {res.residual_rms_mm:.3f} mm", fontsize=9)
         else:
+            if predicted is not None and predicted[j]:
+                p = np.array(list(predicted[j].values()), dtype=float).reshape(-1, 2)
+                ax.plot(p[:, 1], p[:, 0], "+", color="red", ms=10, mew=1.2, label="refused pose's crossings")
+                for tid, (r, c) in predicted[j].items():
+                    if lo[0] <= r <= hi[0] and lo[1] <= c <= hi[1]:
+                        ax.annotate(tid, (c, r), xytext=(6, 6), textcoords="offset points", color="red", fontsize=7)
             ax.set_title(title or "no lock: candidates only", fontsize=9)
         ax.legend(loc="upper center", bbox_to_anchor=(0.5, 0.0), ncol=3, fontsize=8, frameon=False)
         layout.append((ax, lo, hi, spacing, rc, res))
@@ -221,17 +240,18 @@ def overlay_figure(slices, registration=None, blobs=None, title: str | None = No
 
 
 def draw_overlay(path, slices, registration=None, blobs=None, title: str | None = None,
-                 tube_radius_mm: float = DEFAULT_TUBE_RADIUS_MM) -> Path:
+                 tube_radius_mm: float = DEFAULT_TUBE_RADIUS_MM, predicted=None) -> Path:
     """Write a PNG overlay of ``slices`` (list of Slice) to ``path``.
 
     ``registration``: a :class:`~chic_register.pipeline.register.Registration`
     (labels, ellipse, predictions); without it (no lock) only ``blobs`` (a list
-    of :class:`~chic_register.detect.blobs.Blobs`, one per slice) are drawn.
+    of :class:`~chic_register.detect.blobs.Blobs`, one per slice) are drawn, and
+    ``predicted`` (per slice, ``{tube id: (row, col)}``: a refused pose's crossings).
     ``tube_radius_mm`` sizes the room kept around each blob.
     """
     path = Path(path)
     if path.suffix.lower() != ".png":
         raise ChicRegisterError(f"--overlay {path}: the overlay is a PNG file (give a name ending in .png)")
-    fig = overlay_figure(slices, registration, blobs, title, tube_radius_mm)
+    fig = overlay_figure(slices, registration, blobs, title, tube_radius_mm, predicted)
     save_figure(fig, path)
     return path

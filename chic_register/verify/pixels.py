@@ -83,13 +83,14 @@ from chic_register.fit.checks import (
     STRETCH_MOVE_SHARE,
     STRETCH_P,
     pose_precision,
+    anisotropic_stretch,
     stretch_test,
     twist_covariance,
     weakest_rotation_text,
 )
 from chic_register.imaging.psf import blurred_windows, fit_psf
 from chic_register.model.envelope import plane_status
-from chic_register.model.pose import slice_angles
+from chic_register.model.pose import invert, slice_angles
 from chic_register.model.tube_model import plane_crossings, section_extent
 from chic_register.model.tubes import sample_centreline
 from chic_register.verify.rivals import check_rivals, slice_contenders
@@ -175,11 +176,14 @@ def shape_tolerance(radius_px: float) -> float:
 
 def verify_slice(geom, model, T_F_from_I: np.ndarray, pixels: np.ndarray, spacing, thickness_mm: float,
                  blobs: Blobs, assignment: np.ndarray, source: str, *,
-                 check_envelope: bool = True, psf_px: float | None = None) -> SliceCheck:
+                 check_envelope: bool = True, psf_px: float | None = None, check_aspect: bool = True) -> SliceCheck:
     """Prove one slice's pose against its pixels; :class:`NoLock` with the reason, else what was seen.
 
     ``psf_px``: the point spread's sigma (pixels) when a fit to the pixels found it
     (:mod:`chic_register.fit.blurred`); else it is fitted here when the sharp model fails.
+    ``check_aspect``: refuse sections wider along one image axis than the other (a wrong
+    pixel spacing); off when the tube positions already rule out such a stretch
+    (:func:`positions_rule_out_stretch`).
     """
     rs, cs = (float(v) for v in spacing)
     px = max(rs, cs)
@@ -266,7 +270,7 @@ def verify_slice(geom, model, T_F_from_I: np.ndarray, pixels: np.ndarray, spacin
             se = max(float(np.std(ratio) / math.sqrt(len(ratio))), noise_se)  # the tubes' scatter, or their noise
             tol = max(SPACING_TOL, 3 * se)
             scale = (median(s[:, 0]), median(s[:, 1]))
-            if abs(mean - 1.0) > tol:
+            if abs(mean - 1.0) > tol and check_aspect:
                 raise NoLock(f"{source}: the tube sections are {abs(mean - 1) * 100:.0f} % "
                              f"{'wider' if mean > 1 else 'narrower'} along the columns than along the rows relative to "
                              f"the pose's prediction: is the pixel spacing ({rs:g}, {cs:g}) mm right?",
@@ -364,6 +368,24 @@ def _unexplained(model, T_F_from_I, blobs: Blobs, assignment, canvas, spacing, b
     return out
 
 
+#: The tube positions rule out a stretch of the image along one axis when they measure it to within this share of
+#: the stretch the sections' aspect shows (three standard errors), and see none of it.
+STRETCH_RESOLUTION_SHARE = 1.0 / 3.0
+
+
+def positions_rule_out_stretch(model, fit, xys, Ss, aspect_stretch: float) -> bool:
+    """Do the tube positions show the image is not stretched by ``aspect_stretch`` (the relative difference of the
+    column and row scales the sections' second moments read)? True when the positions measure that difference
+    with a standard error under :data:`STRETCH_RESOLUTION_SHARE` of it and find it within three standard errors of
+    zero: a frame whose rods span the image (an N-localizer, a Z-frame) pins both axes' scales, and its
+    sections' aspect is then the point spread's, not the spacing's. A small fiducial reads a stretch as a tilt:
+    its positions cannot rule one out, and the aspect test stands."""
+    diff, se = anisotropic_stretch(model, fit, xys, Ss)
+    if not (math.isfinite(diff) and math.isfinite(se) and se > 0):
+        return False
+    return 3 * se <= STRETCH_RESOLUTION_SHARE * abs(aspect_stretch) and abs(diff) <= 3 * se
+
+
 def _check_stretch(model, fit, xys, Ss, opts, slices, scale_fitted: bool) -> None:
     """:class:`NoLock` naming the axis when the tube positions fit a stretch of the image (a wrong pixel spacing,
     :func:`stretch_test`) beyond ``opts.max_scale_error`` (2 %), or one that moves the pose by more than a third of
@@ -433,6 +455,20 @@ def verify_fit(geom, model, fit, rivals, seen: list[DetectedSlice], opts, precis
         except NoLock as exc:
             if "shift_px" in exc.detail:  # sections off where the pose puts them: a wrong spacing says why, if it is one
                 _check_stretch(model, fit, xys, Ss, opts, slices, scale_fitted)
+            check = None
+            if "spacing_ratio" in exc.detail and positions_rule_out_stretch(model, fit, xys, Ss,
+                                                                            exc.detail["spacing_ratio"] - 1.0):
+                try:  # the sections' aspect is the image's point spread (an MR phase-encoding blur), not its spacing
+                    check = verify_slice(geom, model, T_F_from_I, np.asarray(sl.pixels), sl.pixel_spacing_mm,
+                                         float(sl.slice_thickness_mm), b, fit.assignments[j], sl.source,
+                                         psf_px=psf_px, check_aspect=False)
+                except NoLock as again:
+                    exc = again
+            if check is not None:
+                contenders += slice_contenders(model, fit, rivals[j] if rivals is not None else (), check.strays,
+                                               xys[j], S, j, sl, opts)
+                out.append(check)
+                continue
             if not name_slice or len(slices) < 2:
                 raise
             refused.append((j, exc.reason))
@@ -470,7 +506,8 @@ def verify_fit(geom, model, fit, rivals, seen: list[DetectedSlice], opts, precis
                             f"{k * tre:.2f} mm at the frame centre and {k * rot:.2f} deg (limits {tre_tol:g} mm, "
                             f"{rot_tol:g} deg{weakest}; a tilted slice or several parallel slices are more precise; "
                             f"--trust MM DEG sets the limits)",
-                            {"sigma_tre_mm": round(tre, 4), "sigma_rot_deg": round(rot, 4)})
+                            {"sigma_tre_mm": round(tre, 4), "sigma_rot_deg": round(rot, 4),
+                             "refused_T_scanner_from_fiducial": invert(fit.T_F_from_scanner).tolist()})
     return out
 
 
