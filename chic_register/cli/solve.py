@@ -53,6 +53,13 @@ def add_parser(subparsers) -> None:
     s.add_argument("--scene", metavar="DIR", help="also write a 3D Slicer scene (DIR/scene.mrml with the slices, "
                    "the fiducial and tool models under their transforms, detected and predicted tube centres)")
     add_igtl_args(s)
+    s.add_argument("--frame", metavar="GEOMETRY",
+                   help="a second fiducial in the same images, as a stereotactic frame around the first: both are "
+                        "registered without each other's sections, and the first (its --target, tool tip or body "
+                        "centre) is reported in the frame's coordinates with its uncertainty")
+    s.add_argument("--frame-prior", metavar="FILE",
+                   help="--prior for the --frame fiducial (a frame that maps onto itself, as the Leksell box, "
+                        "needs one: LPS for a head-first supine patient)")
     s.add_argument("--target", nargs=3, type=float, metavar=("X", "Y", "Z"),
                    help="point of F (mm) whose predicted TRE is reported (default: the tool tip, else the body centre)")
     s.add_argument("--max-tre", type=float, metavar="MM",
@@ -113,6 +120,8 @@ def run(args) -> int:
     if skip and len(slices) > 1:  # a whole volume: one register call over every slice, seconds without a word
         status(f"registering {len(slices)} slices of {', '.join(p for p in args.images if is_volume_path(p))} "
                "(those that do not show the fiducial are skipped)")
+    if args.frame is not None:
+        return _run_with_frame(args, plan, geom, slices, skip, options, extra, early, link)
     try:
         try:
             reg = register_inputs(slices, skip, volume, geom, **options, **extra)
@@ -136,6 +145,69 @@ def run(args) -> int:
         note(args, done)
     _report_failures(out)
     return EXIT_OUTPUT_FAILED if out.failed else 0
+
+
+def _run_with_frame(args, plan, geom, slices, skip, options, extra, early, link) -> int:
+    """``solve --frame``: both fiducials from the same slices (:func:`~chic_register.pipeline.frames.register_frames`),
+    the first printed as a plain solve, then the frame's pose and the first in the frame's coordinates. Exit 3
+    when either does not lock (the one that did is still printed)."""
+    import dataclasses
+
+    from chic_register.model.geometry import load_geometry  # here, not at the top: as in run
+    from chic_register.options import SolveOptions
+    from chic_register.outputs.deliver import registration_json
+    from chic_register.pipeline.frames import register_frames, relative_pose
+
+    frame_geom = load_geometry(args.frame)
+    frame_options = {}
+    if args.frame_prior:
+        frame_options = prior_options(argparse_namespace(prior=args.frame_prior, prior_max_deg=args.prior_max_deg))
+    shared = {k: v for k, v in extra.items() if k != "target_F_mm"}
+    opts = [dataclasses.replace(SolveOptions(), **options, **shared),
+            dataclasses.replace(SolveOptions(), **frame_options, **shared)]
+    try:
+        results = register_frames(slices, [geom, frame_geom], options_for=lambda i: opts[i], skip_failed=skip)
+    finally:
+        if link is not None:
+            link.close()
+    _report_failures(early)
+    main, frame = results
+    rel = relative_pose(main.registration, geom, frame.registration, frame_geom, args.target) \
+        if main.ok and frame.ok else None
+    if args.json:
+        doc = registration_json(main.registration, geom, args.target) if main.ok else \
+            {"status": "no_lock", "reason": main.reason}
+        doc["frame"] = (registration_json(frame.registration, frame_geom) if frame.ok
+                        else {"status": "no_lock", "reason": frame.reason})
+        if rel is not None:
+            doc["frame"]["fiducial_in_frame"] = rel.to_dict()
+        print(json.dumps(doc, indent=2), flush=True)
+    else:
+        if main.ok:
+            _print_pose(args, main.registration, geom)
+        else:
+            print(f"{geom.name}: no lock: {main.reason}")
+        if frame.ok:
+            print(f"frame '{frame_geom.name}':")
+            _print_pose(args, frame.registration, frame_geom)
+        else:
+            print(f"frame '{frame_geom.name}': no lock: {frame.reason}")
+        if rel is not None:
+            p, q, sd = rel.target_a_mm, rel.target_b_mm, rel.sigma_mm
+            print(f"'{geom.name}' at ({', '.join(f'{v:g}' for v in p)}) mm of its F in {rel.frame} coordinates: "
+                  + ", ".join(f"{a} {v:.3f} (SD {d:.3f})" for a, v, d in zip("XYZ", q, sd))
+                  + f" mm; predicted error {rel.tre_mm:.3f} mm RMS")
+    if not (main.ok and frame.ok):
+        failed = [f"{g.name}: {r.reason}" for g, r in ((geom, main), (frame_geom, frame)) if not r.ok]
+        raise NoLock("; ".join(failed))
+    return 0
+
+
+def argparse_namespace(**kw):
+    """A namespace of ``kw`` (the flags :func:`~chic_register.cli.inputs.prior_options` reads)."""
+    import argparse
+
+    return argparse.Namespace(**kw)
 
 
 def _print_pose(args, reg, geom) -> None:
