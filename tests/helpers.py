@@ -22,10 +22,12 @@ import pytest
 from hypothesis import HealthCheck, settings
 from hypothesis import strategies as st
 from scipy import ndimage as ndi
+from scipy.spatial.transform import Rotation
 
 from chic_design.families import geometry_of
 from chic_design.spec import load_spec
 from chic_register.errors import NoLock
+from chic_register.imaging.render import render_tubes
 from chic_register.imaging.simulate import add_rician_noise, simulate_slice, simulate_volume
 from chic_register.model.body import Body, FrameCoordinates
 from chic_register.model.geometry import FiducialGeometry, load_geometry
@@ -285,3 +287,50 @@ def wide_blob_volume(geom, name, tilt, az, width, seed):
     sv = simulate_volume(geom, T, shape, spacing, noise="rician", snr=20, rng=seed, supersample=2,
                          thickness_samples=2, blob_width=width)
     return sv.volume, T, np.array([0.0, 0.0, L / 2])
+
+
+LEKSELL_T = np.array([[1, 0, 0, 100], [0, -1, 0, 100], [0, 0, -1, 160], [0, 0, 0, 1.0]])
+TWO_SHAPE, TWO_PX = (512, 512), 0.5
+
+
+def three_plate_frame(d_mm: float = 3.0) -> FiducialGeometry:
+    """An N-localizer with N's on the right, left and anterior plates (a single slice fixes its pose), in Leksell
+    coordinates."""
+    tubes = []
+    for side, sx in (("right", -1), ("left", 1)):
+        x = sx * 95.0
+        tubes += [LineTube(f"{side}_a", "axial", (x, -60, 0), (x, -60, 120), d_mm),
+                  LineTube(f"{side}_d", "diagonal", (x, -60, 0), (x, 60, 120), d_mm),
+                  LineTube(f"{side}_b", "axial", (x, 60, 0), (x, 60, 120), d_mm)]
+    tubes += [LineTube("front_a", "axial", (-50, -65, 0), (-50, -65, 120), d_mm),
+              LineTube("front_d", "diagonal", (-50, -65, 0), (50, -65, 120), d_mm),
+              LineTube("front_b", "axial", (50, -65, 0), (50, -65, 120), d_mm)]
+    return FiducialGeometry("three-plate", Body.box(120, (200, 140), (180, 120)), tuple(tubes), family="nlocalizer",
+                            frame_coordinates=FrameCoordinates("leksell", LEKSELL_T))
+
+
+def both_in_one_slice(frame, chic, tilt_deg: float, modality: str, seed: int = 0):
+    """One slice through the frame (centred on the scanner origin) and a CHIC on a tool inside it; the truths."""
+    T_s_frame = np.eye(4)
+    T_s_frame[:3, 3] = [0, 0, -60]
+    R = Rotation.from_euler("x", tilt_deg, degrees=True).as_matrix()
+    half = np.array([(TWO_SHAPE[1] - 1) / 2 * TWO_PX, (TWO_SHAPE[0] - 1) / 2 * TWO_PX, 0.0])
+    T_s_image = np.eye(4)
+    T_s_image[:3, :3], T_s_image[:3, 3] = R, -R @ half
+    T_image_S = np.eye(4)
+    T_image_S[:3, 3] = half
+    axis = Rotation.from_euler("y", 12, degrees=True).apply(R[:, 2])
+    crossing = R @ np.array([20.0, 15.0, 0.0])
+    T_s_chic = np.eye(4)
+    T_s_chic[:3, :3] = (Rotation.align_vectors([axis], [[0, 0, 1]])[0].as_matrix()
+                        @ Rotation.from_euler("z", 37, degrees=True).as_matrix())
+    T_s_chic[:3, 3] = crossing - 25.0 * axis
+    img = render_tubes(frame.tubes, invert(T_s_frame) @ T_s_image @ T_image_S, TWO_SHAPE, (TWO_PX, TWO_PX), 2.0)
+    img = np.clip(img + render_tubes(chic.tubes, invert(T_s_chic) @ T_s_image @ T_image_S, TWO_SHAPE, (TWO_PX, TWO_PX), 2.0), 0, 1)
+    rng = np.random.default_rng(seed)
+    if modality == "MR":
+        img = add_rician_noise(img, 20.0, rng)
+    else:  # Hounsfield units: air, contrast-filled rods, Gaussian noise
+        img = -1000.0 + 2500.0 * img + rng.normal(0.0, 20.0, img.shape)
+    sl = Slice(img, (TWO_PX, TWO_PX), T_s_image[:3, 3].copy(), R[:, 0].copy(), R[:, 1].copy(), 2.0, f"two-{modality}")
+    return sl, T_s_frame, T_s_chic

@@ -6,63 +6,11 @@ import dataclasses
 
 import numpy as np
 import pytest
-from scipy.spatial.transform import Rotation
 
-from chic_register.imaging.render import render_tubes
-from chic_register.imaging.simulate import add_rician_noise
-from chic_register.model.body import Body, FrameCoordinates
-from chic_register.model.geometry import FiducialGeometry
 from chic_register.model.pose import invert
-from chic_register.model.slices import Slice
-from chic_register.model.tubes import LineTube
 from chic_register.options import SolveOptions
 from chic_register.pipeline.frames import mask_sections, register_frames, relative_pose, section_mask
-
-LEKSELL_T = np.array([[1, 0, 0, 100], [0, -1, 0, 100], [0, 0, -1, 160], [0, 0, 0, 1.0]])
-SHAPE, PX = (512, 512), 0.5
-
-
-def three_plate_frame(d_mm: float = 3.0) -> FiducialGeometry:
-    """An N-localizer with N's on the right, left and anterior plates (a single slice fixes its pose), in Leksell
-    coordinates."""
-    tubes = []
-    for side, sx in (("right", -1), ("left", 1)):
-        x = sx * 95.0
-        tubes += [LineTube(f"{side}_a", "axial", (x, -60, 0), (x, -60, 120), d_mm),
-                  LineTube(f"{side}_d", "diagonal", (x, -60, 0), (x, 60, 120), d_mm),
-                  LineTube(f"{side}_b", "axial", (x, 60, 0), (x, 60, 120), d_mm)]
-    tubes += [LineTube("front_a", "axial", (-50, -65, 0), (-50, -65, 120), d_mm),
-              LineTube("front_d", "diagonal", (-50, -65, 0), (50, -65, 120), d_mm),
-              LineTube("front_b", "axial", (50, -65, 0), (50, -65, 120), d_mm)]
-    return FiducialGeometry("three-plate", Body.box(120, (200, 140), (180, 120)), tuple(tubes), family="nlocalizer",
-                            frame_coordinates=FrameCoordinates("leksell", LEKSELL_T))
-
-
-def both_in_one_slice(frame, chic, tilt_deg: float, modality: str, seed: int = 0):
-    """One slice through the frame (centred on the scanner origin) and a CHIC on a tool inside it; the truths."""
-    T_s_frame = np.eye(4)
-    T_s_frame[:3, 3] = [0, 0, -60]
-    R = Rotation.from_euler("x", tilt_deg, degrees=True).as_matrix()
-    half = np.array([(SHAPE[1] - 1) / 2 * PX, (SHAPE[0] - 1) / 2 * PX, 0.0])
-    T_s_image = np.eye(4)
-    T_s_image[:3, :3], T_s_image[:3, 3] = R, -R @ half
-    T_image_S = np.eye(4)
-    T_image_S[:3, 3] = half
-    axis = Rotation.from_euler("y", 12, degrees=True).apply(R[:, 2])
-    crossing = R @ np.array([20.0, 15.0, 0.0])
-    T_s_chic = np.eye(4)
-    T_s_chic[:3, :3] = (Rotation.align_vectors([axis], [[0, 0, 1]])[0].as_matrix()
-                        @ Rotation.from_euler("z", 37, degrees=True).as_matrix())
-    T_s_chic[:3, 3] = crossing - 25.0 * axis
-    img = render_tubes(frame.tubes, invert(T_s_frame) @ T_s_image @ T_image_S, SHAPE, (PX, PX), 2.0)
-    img = np.clip(img + render_tubes(chic.tubes, invert(T_s_chic) @ T_s_image @ T_image_S, SHAPE, (PX, PX), 2.0), 0, 1)
-    rng = np.random.default_rng(seed)
-    if modality == "MR":
-        img = add_rician_noise(img, 20.0, rng)
-    else:  # Hounsfield units: air, contrast-filled rods, Gaussian noise
-        img = -1000.0 + 2500.0 * img + rng.normal(0.0, 20.0, img.shape)
-    sl = Slice(img, (PX, PX), T_s_image[:3, 3].copy(), R[:, 0].copy(), R[:, 1].copy(), 2.0, f"two-{modality}")
-    return sl, T_s_frame, T_s_chic
+from tests.helpers import LEKSELL_T, both_in_one_slice, three_plate_frame
 
 
 def _pose_error(T, T_true, point):
