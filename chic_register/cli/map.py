@@ -18,7 +18,7 @@ from chic_register.errors import ChicRegisterError
 HELP = "map points between scanner coordinates (LPS/RAS) and a stereotactic frame's, with their uncertainty"
 DESCRIPTION = ("Map points between scanner coordinates (LPS, or RAS) and the stereotactic frame coordinates the "
                "geometry names (frame_coordinates), through a registered pose; each mapped point gets its 1-sigma "
-               "per axis, RMS and 95 %% radius from the pose's covariance. Exit codes: 0 ok, 2 bad input.")
+               "per axis, RMS and 95 % radius from the pose's covariance. Exit codes: 0 ok, 2 bad input.")
 
 
 def add_parser(subparsers) -> None:

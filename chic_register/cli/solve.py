@@ -6,6 +6,8 @@ Exit codes: 0, 2 bad input, 3 no lock, 4 when an output (--tfm, --scene,
 
 from __future__ import annotations
 
+import argparse
+import dataclasses
 import json
 import math
 import sys
@@ -151,9 +153,8 @@ def _run_with_frame(args, plan, geom, slices, skip, options, extra, early, link)
     """``solve --frame``: both fiducials from the same slices (:func:`~chic_register.pipeline.frames.register_frames`),
     the first printed as a plain solve, then the frame's pose and the first in the frame's coordinates. Exit 3
     when either does not lock (the one that did is still printed)."""
-    import dataclasses
-
-    from chic_register.model.geometry import load_geometry  # here, not at the top: as in run
+    # here, not at the top: as in run
+    from chic_register.model.geometry import load_geometry
     from chic_register.options import SolveOptions
     from chic_register.outputs.deliver import registration_json
     from chic_register.pipeline.frames import register_frames, relative_pose
@@ -205,8 +206,6 @@ def _run_with_frame(args, plan, geom, slices, skip, options, extra, early, link)
 
 def argparse_namespace(**kw):
     """A namespace of ``kw`` (the flags :func:`~chic_register.cli.inputs.prior_options` reads)."""
-    import argparse
-
     return argparse.Namespace(**kw)
 
 

@@ -356,7 +356,10 @@ def _detect(pixels, pixel_spacing_mm, tube_diameter_mm: float, min_area_factor: 
             thr = min(thr, base + noise_threshold_sigmas * spread)
     # a nearly empty image (a few small tubes on a wide field of noise): Otsu's split falls into the noise and
     # every speck is a candidate; the level is at least FLOOR_SIGMAS of the smoothed image's noise above its median
-    thr = max(thr, base + FLOOR_SIGMAS * smoothed_noise_sigma(img, sig))
+    # (not on a flattened image, read at a lower level on purpose: tubes in tissue stand out less there; nor where
+    # Otsu's level lies below the median: an image mostly of bright water around dark plastic, split well below it)
+    if threshold_fraction >= 1.0 and thr > base:
+        thr = max(thr, base + FLOOR_SIGMAS * smoothed_noise_sigma(img, sig))
     mask = smooth > thr
     flat = mask.ravel().nonzero()[0]  # the pixels above the threshold (a few per cent of a slice): np.flatnonzero
     # background and noise: the pixels well below the threshold (mean and spread)
