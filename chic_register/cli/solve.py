@@ -133,8 +133,11 @@ def run(args) -> int:
                 exc.reason += hint
                 exc.args = (exc.reason,)
             _report_failures(early)
-            _report_failures(deliver_no_lock(plan, exc.reason, geom, slices, link,
-                                             exc.detail.get("refused_T_scanner_from_fiducial")))
+            refused = deliver_no_lock(plan, exc.reason, geom, slices, link,
+                                      exc.detail.get("refused_T_scanner_from_fiducial"))
+            for done in refused.done:
+                note(args, done)
+            _report_failures(refused)
             raise
         # the pose is printed first: a failing optional output (overlay, --tfm, --scene, --igtl) must not lose it
         _print_pose(args, reg, geom)
