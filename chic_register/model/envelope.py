@@ -378,7 +378,10 @@ def plane_status(geom: FiducialGeometry, depth_mm: float, tilt_deg: float, azimu
     checker = PlaneChecker(geom, pixel_size_mm, slice_thickness_mm, exact=exact)
     cnt, margin = checker.margins(np.array([float(depth_mm)]), float(tilt_deg), float(azimuth_deg))
     ids = [t.id for t in geom.tubes]
-    outside = tuple(ids[k] for k in np.flatnonzero(cnt[0] == 0))
+    # a tube that barely rises in z (an N-localizer's edge rods, across the box) is seen only by planes along it:
+    # a plane across the axis that misses it is not outside the envelope
+    flat = {k for k, t in enumerate(geom.tubes) if t.z_range[1] - t.z_range[0] < t.diameter}
+    outside = tuple(ids[k] for k in np.flatnonzero(cnt[0] == 0) if k not in flat)
     twice = tuple(ids[k] for k in np.flatnonzero(cnt[0] > 1))
     merged = tuple((ids[checker.I[m]], ids[checker.J[m]]) for m in np.flatnonzero(margin[0] < 0)) if margin.size else ()
     failure = ("tube_outside_body" if outside else f"tube_crosses_twice:{twice[0]}" if twice else

@@ -81,6 +81,8 @@ def _verify_leaving_out(geom, model, refined: Refined, out: Verified, opts: Solv
                 raise
             swapped = True
             out.locked, out.best = locked, best
+        except ImprecisePose:
+            raise
         except SliceRefused as exc:  # a volume: those slices are left out, the rest verified again
             gone = {j for j, _ in exc.refused}
             for j, reason in exc.refused:
@@ -92,6 +94,14 @@ def _verify_leaving_out(geom, model, refined: Refined, out: Verified, opts: Solv
             out.best = _only_slices(model, out.best, keep, [r.seen for r in out.runs])
             out.locked = _only_slices(model, out.locked, keep, [r.seen for r in out.runs])
             # (the locked pose is refitted on its own even where it was the pose itself: it stays apart from it)
+        except NoLock:
+            # the pose fails the pixels' tests (a section's shape or width): a rival on the same blobs, as good on
+            # their centres (the mirrored tilt of an N-localizer's one plate direction), is verified in its place
+            twin = None if swapped or refined.precision is not None else _same_blob_twin(model, out, seen, opts)
+            if twin is None:
+                raise
+            swapped = True
+            out.locked, out.best = twin
 
 
 def _rival_fits(model: TubeModel, T_F_from_scanner, seen: list[DetectedSlice], opts: SolveOptions) -> tuple[Fit, Fit]:
@@ -102,6 +112,20 @@ def _rival_fits(model: TubeModel, T_F_from_scanner, seen: list[DetectedSlice], o
                     gates_mm=(gate, 0.6 * gate))
     fine = section_refine(model, locked, seen, opts) if opts.section_fit and not opts.centroid_model else None
     return locked, fine or locked
+
+
+def _same_blob_twin(model: TubeModel, out: Verified, seen: list[DetectedSlice], opts: SolveOptions):
+    """``(blob fit, section fit)`` of a single slice's rival on the same blobs as the pose and distinct from it,
+    or None (several slices: the series decides between them)."""
+    if len(out.runs) != 1:
+        return None
+    for rival in out.runs[0].rivals:
+        if not poses_distinct(rival.T_F_from_scanner, out.best.T_F_from_scanner, model):
+            continue
+        locked, best = _rival_fits(model, rival.T_F_from_scanner, seen, opts)
+        if _same_blobs(locked, out.locked) and locked.rms_mm <= opts.max_rms_px * seen[0].resolution_mm:
+            return locked, best
+    return None
 
 
 def _same_blobs(a: Fit, b: Fit) -> bool:

@@ -74,3 +74,23 @@ def test_masking_a_fiducials_sections_removes_its_blobs_and_marks_them_lost(neur
     assert masked.lost is not None and masked.lost.sum() == mask.sum() > 0
     # the frame's nine sections were bright; now nothing in the mask stands out from its surroundings
     assert sl.pixels[mask].max() > 0.8 and masked.pixels[mask].max() < 0.2
+
+
+@pytest.mark.parametrize("modality", ["MR", "CT"])
+def test_a_chic_inside_the_leksell_box_registers_from_one_tilted_slice(neuro_geometry, modality):
+    """The Leksell G CT box of designs/: two lateral plates, so the slice is tilted (15 deg about F's x) to fix
+    the turn about x; the box needs its prior, the CHIC does not."""
+    from chic_design.families import family_named
+    from chic_design.spec import load_spec
+    from tests.helpers import ROOT
+
+    box = family_named("nlocalizer").geometry(load_spec(ROOT / "designs" / "leksell-g-ct.yaml"))
+    sl, T_frame, T_chic = both_in_one_slice(box, neuro_geometry, 15.0, modality)
+    prior = SolveOptions(prior=np.eye(4))
+    results = register_frames([sl], [neuro_geometry, box], options_for=lambda i: prior if i == 1 else None)
+    assert [r.ok for r in results] == [True, True], [r.reason for r in results]
+    chic_reg, frame_reg = (r.registration for r in results)
+    rel = relative_pose(chic_reg, neuro_geometry, frame_reg, box)
+    true = LEKSELL_T @ invert(T_frame) @ T_chic
+    assert np.linalg.norm(rel.target_b_mm - (true[:3, :3] @ rel.target_a_mm + true[:3, 3])) < 0.3
+    assert _pose_error(frame_reg.T_scanner_from_fiducial, T_frame, (0, 0, 60)) < 0.3
