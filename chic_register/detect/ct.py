@@ -97,4 +97,20 @@ def detection_slice(sl: Slice, rod_diameter_mm: float) -> Slice:
     if modality != "CT":
         return sl if sl.modality == modality else dataclasses.replace(sl, modality=modality)
     return dataclasses.replace(sl, pixels=ct_detection_image(sl.pixels, sl.pixel_spacing_mm, rod_diameter_mm),
-                               modality="CT", detection_image=True)
+                               modality="CT", detection_image=True, pixel_noise_sigma=ct_noise_sigma(sl.pixels))
+
+
+def ct_noise_sigma(pixels_hu: np.ndarray) -> float | None:
+    """The noise sigma (HU) of a CT slice: the median absolute difference of neighbouring pixels along rows,
+    over pairs inside the reconstruction circle (both above the padding), as for Gaussian noise; None if
+    too few. Edges are a small share of the pairs."""
+    img = np.asarray(pixels_hu, dtype=float)
+    if img.ndim != 2 or img.shape[1] < 2:
+        return None
+    inside = img > AIR_HU - AIR_BAND_HU
+    both = inside[:, 1:] & inside[:, :-1]
+    d = np.abs(np.diff(img, axis=1))[both]
+    if d.size < 256:
+        return None
+    sigma = float(np.median(d)) / (math.sqrt(2.0) * 0.6745)
+    return sigma if sigma > 0 else None

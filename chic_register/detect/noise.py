@@ -72,6 +72,14 @@ def background_noise(pixels: np.ndarray, footprints, guard_px: int = 3) -> Noise
     return NoiseEstimate(max(q75 - q25, 0.0) / 1.349, "gaussian", int(bg.size))
 
 
+def slice_noise(sl, footprints, guard_px: int = 3) -> NoiseEstimate:
+    """A slice's pixel noise: its ``pixel_noise_sigma`` (Gaussian) when it carries one, else :func:`background_noise`."""
+    known = getattr(sl, "pixel_noise_sigma", None)
+    if known is not None and known > 0:
+        return NoiseEstimate(float(known), "gaussian", int(np.asarray(sl.pixels).size))
+    return background_noise(sl.pixels, footprints, guard_px)
+
+
 #: A background whose smallest value holds this share of its pixels exactly is masked there (a region set to zero
 #: outside the object, as exported masked volumes are): no noise makes one value that common.
 MASKED_SHARE = 0.25

@@ -39,6 +39,9 @@ class Slice:
     modality: str = "auto"
     #: True when ``pixels`` are the detection image made from the file's (a CT slice's white top-hat), not the file's
     detection_image: bool = False
+    #: the pixels' noise sigma when measured before ``pixels`` were made (a CT slice's, on its Hounsfield values:
+    #: its top-hat's own background reads lower than the noise on the rods), else None
+    pixel_noise_sigma: float | None = None
 
     @property
     def shape(self) -> tuple[int, int]:

@@ -37,7 +37,7 @@ import numpy as np
 from chic_register.detect.blobs import detect_blobs
 from chic_register.detect.detected import DetectedSlice
 from chic_register.detect.dropout import fill_slice_dropouts
-from chic_register.detect.noise import background_noise
+from chic_register.detect.noise import slice_noise
 from chic_register.errors import AmbiguousFit, NoLock
 from chic_register.fit.checks import gamma_p
 from chic_register.fit.lock import lock_slice
@@ -236,7 +236,7 @@ def _centre_noise(d: DetectedSlice) -> np.ndarray:
     b = d.blobs
     if not len(b.footprints):
         return np.zeros(0)
-    n = background_noise(d.slice.pixels, b.footprints)
+    n = slice_noise(d.slice, b.footprints)
     out = []
     for fp in b.footprints:
         C = centroid_covariance(d.slice.pixels, fp, b.background, n, d.slice.pixel_spacing_mm)

@@ -38,7 +38,7 @@ from chic_register.detect.blobs import median
 from chic_register.detect.detected import DetectedSlice
 from chic_register.detect.noise import (
     NoiseEstimate,
-    background_noise,
+    slice_noise,
 )
 from chic_register.fit.refine import scanner_crossing_jacobian, whitened_residuals
 from chic_register.model.pose import invert
@@ -320,7 +320,7 @@ def pixel_fit_uncertainty(blurred, seen: list[DetectedSlice], target_F_mm) -> Po
     """The uncertainty of a pose fitted to the pixels through the blurred model (a
     :class:`chic_register.fit.blurred.BlurredFit`): its sandwich covariance, in F's parameters. The residual
     chi-square per degree of freedom is the fit's residual variance over the background's."""
-    noises = tuple(background_noise(d.slice.pixels, d.blobs.footprints) for d in seen)
+    noises = tuple(slice_noise(d.slice, d.blobs.footprints) for d in seen)
     bg = float(np.mean([n.sigma for n in noises]))
     chi = (blurred.noise_sigma / bg) ** 2 if bg > 0 else float("nan")
     cov = blurred.covariance_F()
@@ -363,7 +363,7 @@ def registration_uncertainty(model, fit, seen: list[DetectedSlice], target_F_mm,
     Js, rs, blocks, noises = [], [], [], []
     for j, d in enumerate(seen):
         sl, S, b = d.slice, d.T_scanner_from_image, d.blobs
-        noise = background_noise(sl.pixels, b.footprints)
+        noise = slice_noise(sl, b.footprints)
         noises.append(noise)
         a = fit.assignments[j]
         q, tan, _, inside = plane_crossings(model, X @ S, margin_mm=1e-9)
@@ -406,7 +406,7 @@ def scatter_uncertainty(model, fit, seen: list[DetectedSlice], sigma_mm: list[np
     Ad_sf = adjoint(invert(X))
     Js, rs, var, noises = [], [], [], []
     for j, d in enumerate(seen):
-        noises.append(background_noise(d.slice.pixels, d.blobs.footprints))
+        noises.append(slice_noise(d.slice, d.blobs.footprints))
         a = fit.assignments[j]
         q, tan, _, inside = plane_crossings(model, X @ d.T_scanner_from_image, margin_mm=1e-9)
         k = np.flatnonzero((a >= 0) & inside)

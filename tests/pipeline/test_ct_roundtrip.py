@@ -113,3 +113,14 @@ def test_dicom_ct_round_trip_keeps_hounsfield_units(nloc, tmp_path):
     sl = read_dicom_file(path, True)[0]
     assert sl.modality == "CT" and np.abs(sl.pixels - sim.slice.pixels).max() <= 0.5 + 1e-9
     _check(register([sl], nloc, options=PRIOR), sim.truth.T_scanner_from_fiducial)
+
+
+def test_a_ct_slices_noise_is_read_on_its_hounsfield_values(nloc):
+    """The top-hat's own background reads about two thirds of the noise on the rods: the covariance takes the
+    noise of the Hounsfield values (simulated: 20 HU), and its chi-square is then about one."""
+    rng = np.random.default_rng(4)
+    sim = simulate_ct_slice(nloc, 60, 20, 90, 0, scene=CTScene(noise_hu=20.0), rng=rng)
+    reg = register([sim.slice], nloc, options=PRIOR)
+    noise = reg.uncertainty.noise[0]
+    assert noise.model == "gaussian" and 17.0 < noise.sigma < 23.0
+    assert reg.uncertainty.residual_chi2_per_dof < 4
