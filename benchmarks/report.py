@@ -148,6 +148,15 @@ SECTIONS: tuple[Section, ...] = (
             "draws per seed, Rician SNR 20.",
             (f"OMP_NUM_THREADS=1 {PY} benchmarks/bench_uncertainty.py --draws 50 --seeds 21 5 11",),
             (f"OMP_NUM_THREADS=1 {PY} benchmarks/bench_uncertainty.py --draws 2 --seeds 21",)),
+    Section("nlocalizer", "The Leksell G localizer box: simulated CT and MR, and real slices",
+            "`designs/leksell-g-ct.yaml` and `leksell-g-mr.yaml` against their truth: single CT slices (512 x 512, "
+            "0.6 mm, plates, a skull on every other) and MR slices (Rician SNR 20) tilted about F's x and y, the "
+            "same axial, four parallel axial CT slices, and 24-slice MR volumes whole and as two halves; TRE at the "
+            "frame centre (Leksell (100, 100, 100)) beside the pose's own predicted TRE. Target: every tilted "
+            "slice within the check's tilt limit (26 deg) locks within 0.3 mm, an axial slice is refused (two "
+            "plates facing along x fix the turn about x only to second order), halves agree within their "
+            "uncertainty. Then the five real slices of `tests/data/real/leksell`.",
+            (f"{PY} benchmarks/bench_nlocalizer.py --seeds 6",), (f"{PY} benchmarks/bench_nlocalizer.py --seeds 1",)),
     Section("hunt", "False-lock hunt",
             "5000 random slices of `neuro` and `needle-guide` over and beyond the usable envelope (depth -15 % to "
             "115 %, tilt 0-80 deg, random pixel size, thickness, field of view and SNR), each with one damage kind, "

@@ -69,7 +69,8 @@ def test_ct_slice_with_skull_and_metal_streaks_registers(nloc):
 
 
 def test_ct_slice_with_a_rod_missing_registers(nloc):
-    """Five of six rods (a diagonal's fill lost): with ``min_tubes=5``, the six-rod box's fewest."""
+    """Five of six rods (one rod's fill lost), with ``min_tubes=5``: the default (six) refuses a six-rod box with a
+    rod missing; five fix its pose too."""
     sim = simulate_ct_slice(nloc, 60, 20, 90, 0, missing_tubes=("left_b",), rng=np.random.default_rng(1))
     reg = register([sim.slice], nloc, options=PRIOR, min_tubes=5)
     _check(reg, sim.truth.T_scanner_from_fiducial)
@@ -124,3 +125,24 @@ def test_a_ct_slices_noise_is_read_on_its_hounsfield_values(nloc):
     noise = reg.uncertainty.noise[0]
     assert noise.model == "gaussian" and 17.0 < noise.sigma < 23.0
     assert reg.uncertainty.residual_chi2_per_dof < 4
+
+
+@pytest.mark.parametrize("modality", ["MR", "CT"])
+@pytest.mark.parametrize("tilt, missing", [(0, ()), (0, ("left_a",)), (15, ()), (15, ("post_d",))])
+def test_the_printable_brw_frame_registers_axial_and_tilted_with_a_rod_missing(modality, tilt, missing):
+    """designs/brw-nlocalizer.yaml: three plates facing three ways, no symmetry: one axial slice fixes its pose,
+    without a prior, with one of its nine rods missing too."""
+    from chic_design.families import family_named
+    from chic_design.spec import load_spec
+    from tests.helpers import ROOT
+
+    brw = family_named("nlocalizer").geometry(load_spec(ROOT / "designs" / "brw-nlocalizer.yaml"))
+    rng = np.random.default_rng(5)
+    if modality == "MR":
+        sim = simulate_slice(brw, 40, tilt, 30, 5, noise="rician", snr=20, rng=rng, missing_tubes=missing)
+    else:
+        sim = simulate_ct_slice(brw, 40, tilt, 30, 5, rng=rng, missing_tubes=missing)
+    reg = register([sim.slice], brw)
+    centre = np.array([0.0, 0.0, 0.5 * brw.body.length, 1.0])
+    err = np.linalg.norm((reg.T_scanner_from_fiducial @ centre - sim.truth.T_scanner_from_fiducial @ centre)[:3])
+    assert err < 0.3 and reg.slices[0].n_tubes == 9 - len(missing)
