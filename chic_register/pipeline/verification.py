@@ -19,7 +19,7 @@ from chic_register.detect.detected import DetectedSlice
 from chic_register.errors import ImprecisePose, NoLock, SliceRefused
 from chic_register.fit.accuracy import centroid_refine, drop_section_outliers, section_refine
 from chic_register.fit.checks import OUTLIER_PRECISION_SIGMAS, PRECISION_SIGMAS
-from chic_register.fit.refine import Fit, match_gate_mm, refine
+from chic_register.fit.refine import Fit, match_gate_mm, refine, unexplained_tubes
 from chic_register.model.geometry import FiducialGeometry
 from chic_register.model.tube_model import TubeModel, poses_distinct
 from chic_register.options import SolveOptions
@@ -79,10 +79,12 @@ def _verify_leaving_out(geom, model, refined: Refined, out: Verified, opts: Solv
             locked, best = _rival_fits(model, exc.T_F_from_scanner, seen, opts)
             if not _same_blobs(locked, out.best):  # another copy of the pattern (a ghost): a true ambiguity
                 raise
+            if unexplained_tubes(out.best) or unexplained_tubes(locked):
+                # a tube either pose puts in the slice is not there: their model images differ by where each puts
+                # it, not only by how they draw the rest, and the comparison cannot choose between them
+                raise
             swapped = True
             out.locked, out.best = locked, best
-        except ImprecisePose:
-            raise
         except SliceRefused as exc:  # a volume: those slices are left out, the rest verified again
             gone = {j for j, _ in exc.refused}
             for j, reason in exc.refused:
@@ -94,14 +96,6 @@ def _verify_leaving_out(geom, model, refined: Refined, out: Verified, opts: Solv
             out.best = _only_slices(model, out.best, keep, [r.seen for r in out.runs])
             out.locked = _only_slices(model, out.locked, keep, [r.seen for r in out.runs])
             # (the locked pose is refitted on its own even where it was the pose itself: it stays apart from it)
-        except NoLock:
-            # the pose fails the pixels' tests (a section's shape or width): a rival on the same blobs, as good on
-            # their centres (the mirrored tilt of an N-localizer's one plate direction), is verified in its place
-            twin = None if swapped or refined.precision is not None else _same_blob_twin(model, out, seen, opts)
-            if twin is None:
-                raise
-            swapped = True
-            out.locked, out.best = twin
 
 
 def _rival_fits(model: TubeModel, T_F_from_scanner, seen: list[DetectedSlice], opts: SolveOptions) -> tuple[Fit, Fit]:
@@ -112,20 +106,6 @@ def _rival_fits(model: TubeModel, T_F_from_scanner, seen: list[DetectedSlice], o
                     gates_mm=(gate, 0.6 * gate))
     fine = section_refine(model, locked, seen, opts) if opts.section_fit and not opts.centroid_model else None
     return locked, fine or locked
-
-
-def _same_blob_twin(model: TubeModel, out: Verified, seen: list[DetectedSlice], opts: SolveOptions):
-    """``(blob fit, section fit)`` of a single slice's rival on the same blobs as the pose and distinct from it,
-    or None (several slices: the series decides between them)."""
-    if len(out.runs) != 1:
-        return None
-    for rival in out.runs[0].rivals:
-        if not poses_distinct(rival.T_F_from_scanner, out.best.T_F_from_scanner, model):
-            continue
-        locked, best = _rival_fits(model, rival.T_F_from_scanner, seen, opts)
-        if _same_blobs(locked, out.locked) and locked.rms_mm <= opts.max_rms_px * seen[0].resolution_mm:
-            return locked, best
-    return None
 
 
 def _same_blobs(a: Fit, b: Fit) -> bool:

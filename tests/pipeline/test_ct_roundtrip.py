@@ -70,8 +70,9 @@ def test_ct_slice_with_skull_and_metal_streaks_registers(nloc):
 
 def test_ct_slice_with_a_rod_missing_registers(nloc):
     """Five of six rods (one rod's fill lost), with ``min_tubes=5``: the default (six) refuses a six-rod box with a
-    rod missing; five fix its pose too."""
-    sim = simulate_ct_slice(nloc, 60, 20, 90, 0, missing_tubes=("left_b",), rng=np.random.default_rng(1))
+    rod missing; five fix its pose too, in a slice tilted about F's y. (Tilted about x, a rod missing leaves the
+    mirrored-tilt twin to the pixels, which cannot then choose: refused as ambiguous.)"""
+    sim = simulate_ct_slice(nloc, 60, 20, 0, 0, missing_tubes=("left_b",), rng=np.random.default_rng(1))
     reg = register([sim.slice], nloc, options=PRIOR, min_tubes=5)
     _check(reg, sim.truth.T_scanner_from_fiducial)
     assert reg.slices[0].n_tubes == 5
@@ -128,10 +129,11 @@ def test_a_ct_slices_noise_is_read_on_its_hounsfield_values(nloc):
 
 
 @pytest.mark.parametrize("modality", ["MR", "CT"])
-@pytest.mark.parametrize("tilt, missing", [(0, ()), (0, ("left_a",)), (15, ()), (15, ("post_d",))])
+@pytest.mark.parametrize("tilt, missing", [(0, ()), (0, ("left_a",)), (15, ()), (15, ("right_b",))])
 def test_the_printable_brw_frame_registers_axial_and_tilted_with_a_rod_missing(modality, tilt, missing):
-    """designs/brw-nlocalizer.yaml: three plates facing three ways, no symmetry: one axial slice fixes its pose,
-    without a prior, with one of its nine rods missing too."""
+    """designs/brw-nlocalizer.yaml: three plates facing three ways, no whole-frame symmetry: one axial slice
+    outside the band where check finds a flipped twin (z 36.5-44 mm) fixes its pose without a prior, with one of
+    its nine rods missing too. (Inside the band the solver refuses it as ambiguous.)"""
     from chic_design.families import family_named
     from chic_design.spec import load_spec
     from tests.helpers import ROOT
@@ -139,10 +141,43 @@ def test_the_printable_brw_frame_registers_axial_and_tilted_with_a_rod_missing(m
     brw = family_named("nlocalizer").geometry(load_spec(ROOT / "designs" / "brw-nlocalizer.yaml"))
     rng = np.random.default_rng(5)
     if modality == "MR":
-        sim = simulate_slice(brw, 40, tilt, 30, 5, noise="rician", snr=20, rng=rng, missing_tubes=missing)
+        sim = simulate_slice(brw, 25, tilt, 30, 5, noise="rician", snr=20, rng=rng, missing_tubes=missing)
     else:
-        sim = simulate_ct_slice(brw, 40, tilt, 30, 5, rng=rng, missing_tubes=missing)
+        sim = simulate_ct_slice(brw, 25, tilt, 30, 5, rng=rng, missing_tubes=missing)
     reg = register([sim.slice], brw)
-    centre = np.array([0.0, 0.0, 0.5 * brw.body.length, 1.0])
-    err = np.linalg.norm((reg.T_scanner_from_fiducial @ centre - sim.truth.T_scanner_from_fiducial @ centre)[:3])
-    assert err < 0.3 and reg.slices[0].n_tubes == 9 - len(missing)
+    T, T_true = reg.T_scanner_from_fiducial, sim.truth.T_scanner_from_fiducial
+    for p in ((0, 0, 0.5 * brw.body.length), (50, 50, 0), (-50, -50, brw.body.length)):  # not only the centre
+        q = np.array([*p, 1.0])
+        assert np.linalg.norm((T @ q - T_true @ q)[:3]) < 0.3
+    assert reg.slices[0].n_tubes == 9 - len(missing)
+
+
+def test_the_brw_frame_is_refused_inside_its_twin_band():
+    """At mid-height (z = 40 mm) a tilt-0 slice of the BRW frame fits a flipped twin (check's ambiguous_slices)."""
+    from chic_design.families import family_named
+    from chic_design.spec import load_spec
+    from tests.helpers import ROOT
+
+    brw = family_named("nlocalizer").geometry(load_spec(ROOT / "designs" / "brw-nlocalizer.yaml"))
+    sim = simulate_slice(brw, 40, 0, 30, 5, noise="rician", snr=20, rng=np.random.default_rng(5))
+    with pytest.raises(NoLock, match="ambiguous"):
+        register([sim.slice], brw)
+
+
+@pytest.mark.parametrize("modality", ["MR", "CT"])
+def test_the_brw_frame_without_its_posterior_diagonal_is_refused_as_ambiguous(modality):
+    """Without post_d the other eight rods are mirror-symmetric (x -> -x): the pose and the mirrored twin (28 mm
+    away at the frame's ends) show the same slice but for where each puts the missing rod, so the solver refuses
+    rather than report either."""
+    from chic_design.families import family_named
+    from chic_design.spec import load_spec
+    from tests.helpers import ROOT
+
+    brw = family_named("nlocalizer").geometry(load_spec(ROOT / "designs" / "brw-nlocalizer.yaml"))
+    rng = np.random.default_rng(5)
+    if modality == "MR":
+        sim = simulate_slice(brw, 25, 15, 30, 5, noise="rician", snr=20, rng=rng, missing_tubes=("post_d",))
+    else:
+        sim = simulate_ct_slice(brw, 25, 15, 30, 5, rng=rng, missing_tubes=("post_d",))
+    with pytest.raises(NoLock, match="ambiguous"):
+        register([sim.slice], brw)
