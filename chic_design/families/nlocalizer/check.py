@@ -33,8 +33,7 @@ from dataclasses import replace
 
 import numpy as np
 
-from chic_design.families.zframe.check import TWIN_STEP_MM, twin_bands
-from chic_design.families.zframe.twins import slice_twins
+from chic_design.families.zframe.check import ambiguous_slice_findings, slice_twin_bands
 from chic_design.feasibility.records import Finding, Symmetry, Unambiguity
 from chic_register.model.symmetry import frame_symmetries
 
@@ -96,17 +95,8 @@ def nlocalizer_unambiguity(geom, usable_ranges_mm, slice_mismatch_mm: float | No
             "another way", "every slice"))
     bands: tuple[Symmetry, ...] = ()
     if not frame_syms:
-        dots = replace(geom, tubes=dot_tubes(geom))
-        depths = np.concatenate([np.arange(a, b + 1e-9, TWIN_STEP_MM) for a, b in usable_ranges_mm] or [np.empty(0)])
-        bands = twin_bands(slice_twins(dots, depths, tolerance_mm), TWIN_STEP_MM)
-    for sym in bands:
-        a, b = sym.depth_range_mm
-        warnings.append(Finding(
-            "ambiguous_slices",
-            f"tilt-0 slices at z {a:.1f}-{b:.1f} mm have a twin pose: the dots re-labelled by a {sym.describe()} "
-            f"fit a re-fitted pose within {tolerance_mm:.2f} mm (best {sym.mismatch_mm:.3f} mm RMS at z = "
-            f"{sym.at_depth_mm:.1f} mm): a single slice there fits two poses; image other depths or several "
-            "slices, or give the solver the frame's approximate orientation", f"z {a:.1f}-{b:.1f} mm"))
+        bands = slice_twin_bands(replace(geom, tubes=dot_tubes(geom)), usable_ranges_mm, tolerance_mm)
+    warnings += ambiguous_slice_findings(bands, tolerance_mm)
     unamb = Unambiguity(tolerance_mm, slice_mismatch_mm, bands, tuple(helix_crossings),
                         frame_symmetries=frame_syms, frame_min_mismatch_mm=frame_mismatch)
     return unamb, warnings

@@ -47,6 +47,27 @@ def twin_bands(twins, step_mm: float) -> tuple[Symmetry, ...]:
     return tuple(out)
 
 
+def slice_twin_bands(geom, usable_ranges_mm, tolerance_mm: float) -> tuple[Symmetry, ...]:
+    """The depth bands, over the depths usable at tilt 0 (:data:`TWIN_STEP_MM` apart), where a slice of ``geom``'s
+    straight tubes has a twin (:func:`~chic_design.families.zframe.twins.slice_twins`)."""
+    depths = np.concatenate([np.arange(a, b + 1e-9, TWIN_STEP_MM) for a, b in usable_ranges_mm] or [np.empty(0)])
+    return twin_bands(slice_twins(geom, depths, tolerance_mm), TWIN_STEP_MM)
+
+
+def ambiguous_slice_findings(bands, tolerance_mm: float) -> list[Finding]:
+    """One ``ambiguous_slices`` warning per twin band."""
+    out = []
+    for sym in bands:
+        a, b = sym.depth_range_mm
+        out.append(Finding(
+            "ambiguous_slices",
+            f"tilt-0 slices at z {a:.1f}-{b:.1f} mm have a twin pose: the dots re-labelled by a {sym.describe()} "
+            f"fit a re-fitted pose within {tolerance_mm:.2f} mm (best {sym.mismatch_mm:.3f} mm RMS at z = "
+            f"{sym.at_depth_mm:.1f} mm): a single slice there fits two poses; image other depths or several "
+            "slices, or give the solver the frame's approximate orientation", f"z {a:.1f}-{b:.1f} mm"))
+    return out
+
+
 def zframe_unambiguity(geom, usable_ranges_mm, slice_mismatch_mm: float | None, helix_crossings,
                        tolerance_mm: float) -> tuple[Unambiguity, list[Finding]]:
     """The Z-frame's :class:`Unambiguity` (3-D symmetries, slices with a twin) and the warnings it raises."""
@@ -61,16 +82,8 @@ def zframe_unambiguity(geom, usable_ranges_mm, slice_mismatch_mm: float | None, 
             "usually assumes); diagonals.reversed_faces can break the symmetry", "whole frame"))
     bands: tuple[Symmetry, ...] = ()
     if not frame_syms:
-        depths = np.concatenate([np.arange(a, b + 1e-9, TWIN_STEP_MM) for a, b in usable_ranges_mm] or [np.empty(0)])
-        bands = twin_bands(slice_twins(geom, depths, tolerance_mm), TWIN_STEP_MM)
-    for sym in bands:
-        a, b = sym.depth_range_mm
-        warnings.append(Finding(
-            "ambiguous_slices",
-            f"tilt-0 slices at z {a:.1f}-{b:.1f} mm have a twin pose: the dots re-labelled by a {sym.describe()} "
-            f"fit a re-fitted pose within {tolerance_mm:.2f} mm (best {sym.mismatch_mm:.3f} mm RMS at z = "
-            f"{sym.at_depth_mm:.1f} mm): a single slice there fits two poses; image other depths or several "
-            "slices, or give the solver the frame's approximate orientation", f"z {a:.1f}-{b:.1f} mm"))
+        bands = slice_twin_bands(geom, usable_ranges_mm, tolerance_mm)
+    warnings += ambiguous_slice_findings(bands, tolerance_mm)
     unamb = Unambiguity(tolerance_mm, slice_mismatch_mm, bands, tuple(helix_crossings),
                         frame_symmetries=frame_syms, frame_min_mismatch_mm=frame_mismatch)
     return unamb, warnings
