@@ -147,14 +147,8 @@ def build_report(spec, spec_path, geometry: FiducialGeometry, cap_dims: CapDims 
         verify_result.markdown(),
         "",
         *([print_markdown.strip(), ""] if print_markdown else []),
-        "## Build",
-        "",
-        "| step | seconds |",
-        "|---|---|",
     ]
-    out += [f"| {k} | {v:.2f} |" for k, v in timings_s.items()]
-    out += ["", "Files: " + ", ".join(f"`{f}`" for f in files), ""]
-    return "\n".join(out)
+    return "\n".join(out + build_section(timings_s, files))
 
 
 def _unprinted_report(spec, spec_path, geometry: FiducialGeometry, verify_result, feasibility_markdown: str | None,
@@ -205,11 +199,12 @@ def _unprinted_report(spec, spec_path, geometry: FiducialGeometry, verify_result
         "",
         verify_result.markdown(),
         "",
-        "## Build",
-        "",
-        "| step | seconds |",
-        "|---|---|",
     ]
-    out += [f"| {k} | {v:.2f} |" for k, v in timings_s.items()]
-    out += ["", "Files: " + ", ".join(f"`{f}`" for f in files), ""]
-    return "\n".join(out)
+    return "\n".join(out + build_section(timings_s, files))
+
+
+def build_section(timings_s: dict, files) -> list[str]:
+    """The report's closing lines: each build step's seconds and the files written."""
+    return (["## Build", "", "| step | seconds |", "|---|---|"]
+            + [f"| {k} | {v:.2f} |" for k, v in timings_s.items()]
+            + ["", "Files: " + ", ".join(f"`{f}`" for f in files), ""])
