@@ -118,6 +118,8 @@ def zframe(d_mm: float = 3.0) -> FiducialGeometry:
 
 #: The N-localizer's frame centre in its frame F.
 NLOC_CENTRE = np.array([0.0, 0.0, 60.0])
+#: Leksell coordinates of the 120 mm box's F: X = 100 + x, Y = 100 - y, Z = 160 - z.
+LEKSELL_T = np.array([[1, 0, 0, 100], [0, -1, 0, 100], [0, 0, -1, 160], [0, 0, 0, 1.0]])
 
 
 def leksell_g_ct(rod_mm: float = 2.0) -> FiducialGeometry:
@@ -296,12 +298,7 @@ TWO_SHAPE, TWO_PX = (512, 512), 0.5
 def three_plate_frame(d_mm: float = 3.0) -> FiducialGeometry:
     """An N-localizer with N's on the right, left and anterior plates (a single slice fixes its pose), in Leksell
     coordinates."""
-    tubes = []
-    for side, sx in (("right", -1), ("left", 1)):
-        x = sx * 95.0
-        tubes += [LineTube(f"{side}_a", "axial", (x, -60, 0), (x, -60, 120), d_mm),
-                  LineTube(f"{side}_d", "diagonal", (x, -60, 0), (x, 60, 120), d_mm),
-                  LineTube(f"{side}_b", "axial", (x, 60, 0), (x, 60, 120), d_mm)]
+    tubes = list(leksell_g_ct(d_mm).tubes)  # the Leksell box's lateral plates, and one facing anterior
     tubes += [LineTube("front_a", "axial", (-50, -65, 0), (-50, -65, 120), d_mm),
               LineTube("front_d", "diagonal", (-50, -65, 0), (50, -65, 120), d_mm),
               LineTube("front_b", "axial", (50, -65, 0), (50, -65, 120), d_mm)]

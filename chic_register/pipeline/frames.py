@@ -20,7 +20,6 @@ covariance of its target point there, from both poses' covariances
 from __future__ import annotations
 
 import dataclasses
-import math
 from dataclasses import dataclass
 
 import numpy as np
@@ -28,10 +27,11 @@ import numpy as np
 from chic_register.errors import NoLock
 from chic_register.model.geometry import FiducialGeometry
 from chic_register.model.pose import invert
-from chic_register.model.pose_params import default_target, deg_mm_scale, target_jacobian
+from chic_register.model.pose_params import default_target
 from chic_register.model.slices import Slice
 from chic_register.pipeline.register import register
 from chic_register.pipeline.results import Registration
+from chic_register.precision.points import PointUncertainty, point_covariance_F, rotate_covariance
 
 #: The cut-out around each predicted section: its half-length across the plane (half a diameter over the cosine
 #: of the tube's angle to the normal, at most :data:`MAX_STRETCH` diameters) plus this many diameters for the blur
@@ -76,11 +76,11 @@ class RelativePose:
 
     @property
     def sigma_mm(self) -> np.ndarray:
-        return np.sqrt(np.clip(np.diag(self.covariance_mm2), 0.0, None))
+        return PointUncertainty(self.covariance_mm2).sigma_mm
 
     @property
     def tre_mm(self) -> float:
-        return float(math.sqrt(max(float(np.trace(self.covariance_mm2)), 0.0)))
+        return PointUncertainty(self.covariance_mm2).rms_mm
 
     def to_dict(self) -> dict:
         return {"frame": self.frame,
@@ -187,14 +187,10 @@ def relative_pose(a: Registration, geom_a: FiducialGeometry, b: Registration, ge
     M = frame.T_frame_from_fiducial if frame is not None else np.eye(4)
     p = np.asarray(target_a_mm if target_a_mm is not None else default_target(geom_a), float)
     u = T_B_from_A[:3, :3] @ p + T_B_from_A[:3, 3]
-    s = deg_mm_scale()
-    C = np.zeros((3, 3))
-    for reg, J, R in ((a, target_jacobian(p), T_B_from_A[:3, :3]), (b, target_jacobian(u), np.eye(3))):
-        if reg.uncertainty is None:
-            C = np.full((3, 3), np.nan)
-            break
-        cov = np.asarray(reg.uncertainty.covariance, float) / np.outer(s, s)  # (deg, mm) -> (rad, mm)
-        C = C + R @ J @ cov @ J.T @ R.T
-    R_M = M[:3, :3]
+    if a.uncertainty is None or b.uncertainty is None:
+        C = np.full((3, 3), np.nan)
+    else:  # in F_B: A's point error turned into B's axes, plus B's own at that point
+        C = (rotate_covariance(point_covariance_F(a.uncertainty.covariance, p), T_B_from_A[:3, :3])
+             + point_covariance_F(b.uncertainty.covariance, u))
     name = frame.system if frame is not None else f"F of {geom_b.name}"
-    return RelativePose(M @ T_B_from_A, name, p, R_M @ u + M[:3, 3], R_M @ C @ R_M.T)
+    return RelativePose(M @ T_B_from_A, name, p, M[:3, :3] @ u + M[:3, 3], rotate_covariance(C, M[:3, :3]))
