@@ -36,6 +36,7 @@ import numpy as np
 
 from chic_register.detect.blobs import detect_blobs
 from chic_register.detect.detected import DetectedSlice
+from chic_register.detect.disc import disc_centroid
 from chic_register.detect.dropout import fill_slice_dropouts
 from chic_register.detect.noise import slice_noise
 from chic_register.errors import AmbiguousFit, NoLock
@@ -120,12 +121,15 @@ class Scatter:
 
 @dataclass(frozen=True)
 class JointFit:
-    """A pose fitted to every slice's centres: the fit (over all slices), which slices it uses, its scatter."""
+    """A pose fitted to every slice's centres: the fit (over all slices), which slices it uses, its scatter, and the
+    slices with the centres it was fitted to (the detector's, or those of :func:`disc_centres`) and their noise."""
 
     fit: Fit
     used: tuple[int, ...]
     scatter: Scatter
     dropped: tuple[tuple[int, str, float], ...]  # (slice, reason, residual RMS mm under the pose)
+    seen: tuple[DetectedSlice, ...]
+    noise: tuple[np.ndarray, ...]
 
 
 def register_every_slice(slices: list[Slice], geom: FiducialGeometry, opts: SolveOptions,
@@ -173,10 +177,11 @@ def register_every_slice(slices: list[Slice], geom: FiducialGeometry, opts: Solv
     others = sorted((g[0] for g in fits if g[0] is not best), key=lambda f: (-f.fit.n_matched, _scatter_mm(f)))
     # centres that fit no rigid pose well, or two poses nearly as well: the sections' pixels may still tell
     _check_model_error(model, best)
-    _check_explained(model, seen, best)
+    _check_explained(model, best)
     _check_rivals(model, best, others)
     try:  # a refusal from here on judged a pose the slices agree on: the volume's answer, not a reason to look further
         _check_outside_prior(model, best, outside, opts)
+        seen, noise = best.seen, best.noise
         used = [seen[j] for j in best.used]
         final, scale = scale_stage(model, _restrict(best.fit, best.used), used, opts)
         t2 = time.perf_counter()
@@ -184,7 +189,7 @@ def register_every_slice(slices: list[Slice], geom: FiducialGeometry, opts: Solv
                  for n, j in enumerate(best.used)]
         unc = scatter_uncertainty(model, final, used, sigma, target_point(geom, target_F_mm))
         return build_registration(geom, model, geom_sha, final, used, [None] * len(used), None, filled,
-                                  _skipped(model, seen, best, final), opts, target_F_mm, (t0, t1, t2), scale=scale,
+                                  _skipped(model, best, final), opts, target_F_mm, (t0, t1, t2), scale=scale,
                                   uncertainty=unc)
     except NoLock as exc:
         exc.detail.setdefault("stage", "joint")
@@ -329,6 +334,7 @@ def _joint_fit(model: TubeModel, seen, noise, parents, X: np.ndarray) -> JointFi
     if any(a.size != b.size or np.any(a != b) for a, b in zip(again, idx)):  # touching tubes: their parts instead
         idx = again
         fit = _fit_on(model, seen, idx, fit.T_F_from_scanner, keep, excl, (0.6 * gate,))
+    seen, noise, fit = _better_centres(model, seen, noise, idx, fit, keep, excl, gate)
     dropped = []
     for _ in range(2 * len(seen) + 4 * K):
         rows = _residual_rows(fit, noise, keep)
@@ -363,8 +369,53 @@ def _joint_fit(model: TubeModel, seen, noise, parents, X: np.ndarray) -> JointFi
             keep = [i for i in keep if i != j]
             fit = _fit_on(model, seen, idx, fit.T_F_from_scanner, keep, excl, (0.6 * gate,))
             continue
-        return JointFit(fit, tuple(j for j, _ in ok), sc, tuple(dropped))
+        return JointFit(fit, tuple(j for j, _ in ok), sc, tuple(dropped), tuple(seen), tuple(noise))
     return None
+
+
+def disc_centres(model: TubeModel, d: DetectedSlice, a: np.ndarray, T_F_from_scanner: np.ndarray) -> DetectedSlice:
+    """``d`` with each matched blob's centre (``a`` (K,): per tube its blob, -1 none) and footprint those of
+    :func:`~chic_register.detect.disc.disc_centroid` over a disc of the scan's blob width in radius: a disc twice
+    the blob's width holds its whole section, blur included, however the detection level cut it. Pixels nearer
+    another tube's section (its blob, else the pose's crossing) stay out; a blob whose disc wanders keeps its own."""
+    b, sl = d.blobs, d.slice
+    rs, cs = (float(v) for v in sl.pixel_spacing_mm)
+    width = b.width_mm if math.isfinite(b.width_mm) else median_diameter_mm(model)
+    radius_px = width / math.sqrt(rs * cs)
+    q, _, _, inside = plane_crossings(model, T_F_from_scanner @ d.T_scanner_from_image)
+    k_m = np.flatnonzero(a >= 0)
+    seeds = np.stack([q[:, 1] / rs, q[:, 0] / cs], axis=1)
+    seeds[k_m] = b.centres_rc[a[k_m]]
+    present = inside.copy()
+    present[k_m] = True
+    centres, feet = b.centres_rc.copy(), list(b.footprints)
+    for k in k_m:
+        i = int(a[k])
+        got = disc_centroid(sl.pixels, b.background, b.centres_rc[i], radius_px,
+                            seeds[present & (np.arange(a.size) != k)])
+        if got is not None:
+            centres[i], feet[i] = got
+    blobs = dataclasses.replace(b, centres_rc=centres, footprints=tuple(feet))
+    return DetectedSlice.of(sl, blobs, d.T_scanner_from_image)
+
+
+def _better_centres(model: TubeModel, seen, noise, idx, fit: Fit, keep: list[int], excl, gate: float):
+    """``(seen, noise, fit)``: the detector's centres or the disc centres (:func:`disc_centres`) of the matched
+    blobs, whichever the pose fits with the smaller median residual (the data say which is the less noisy
+    measurement: the detector's footprint on clean sections, the disc where texture or a faint slab breaks them
+    up), and the pose fitted to them."""
+    X = fit.T_F_from_scanner
+    disc = [disc_centres(model, d, fit.assignments[j], X) if j in keep else d for j, d in enumerate(seen)]
+    disc_noise = [_centre_noise(d) if j in keep else noise[j] for j, d in enumerate(disc)]
+    refit = _fit_on(model, disc, idx, X, keep, excl, (0.6 * gate,))
+
+    def median_r2(f: Fit) -> float:
+        r2 = np.concatenate([row[1] for row in _residual_rows(f, noise, keep)])
+        return float(np.median(r2)) if r2.size else math.inf
+
+    if refit.n_matched >= fit.n_matched and median_r2(refit) < median_r2(fit):
+        return disc, disc_noise, refit
+    return seen, noise, fit
 
 
 def _fit_on(model: TubeModel, seen, idx, X: np.ndarray, keep: list[int], excl, gates) -> Fit:
@@ -416,14 +467,14 @@ def _check_outside_prior(model: TubeModel, best: JointFit, outside: list[JointFi
                      f"mounted as --prior says", {"n_outside": o.fit.n_matched, "n_tubes": best.fit.n_matched})
 
 
-def _check_explained(model: TubeModel, seen, best: JointFit) -> None:
+def _check_explained(model: TubeModel, best: JointFit) -> None:
     """:class:`NoLock` when the pose finds blobs for fewer than :data:`EXPLAINED_SHARE` of the tubes it puts wholly
     inside the slices it uses: a pose of the frame explains its image (a bubble or an unfilled channel loses a few
     tubes); one that explains half is a guess that lines up a subset."""
     X = best.fit.T_F_from_scanner
     inner = matched = 0
     for j in best.used:
-        whole = _interior(model, X @ seen[j].T_scanner_from_image)
+        whole = _interior(model, X @ best.seen[j].T_scanner_from_image)
         inner += int(whole.sum())
         matched += int(np.sum(whole & (best.fit.assignments[j] >= 0)))
     if inner and matched < EXPLAINED_SHARE * inner:
@@ -448,8 +499,9 @@ def _check_model_error(model: TubeModel, best: JointFit) -> None:
                      f"this frame rigidly", {"model_error_mm": round(m, 4)})
 
 
-def _skipped(model: TubeModel, seen, best: JointFit, final: Fit) -> list[SkippedSlice]:
+def _skipped(model: TubeModel, best: JointFit, final: Fit) -> list[SkippedSlice]:
     """Every slice not used, in order, with its reason (and its residual under the pose when it has one)."""
+    seen = best.seen
     reasons = {j: (why, rms) for j, why, rms in best.dropped}
     out = []
     for j, d in enumerate(seen):
