@@ -59,6 +59,16 @@ def add_parser(subparsers) -> None:
     m.add_argument("--blob-width", type=float, default=1.0, metavar="FACTOR",
                    help="draw each blob FACTOR x its tube's nominal width, as real images do (0.7-2.5; "
                         "> 1 blurs, < 1 narrows; default 1)")
+    m.add_argument("--scanner-scale", nargs=2, type=float, default=(0.0, 0.0), metavar=("SX", "SY"),
+                   help="scanner effect: the image larger than the world by SX %% along its columns and SY %% along "
+                        "its rows, about the isocentre (a gradient calibration error; real scanners: within 1-2 %%)")
+    m.add_argument("--nonlinearity", type=float, default=0.0, metavar="MM",
+                   help="scanner effect: gradient non-linearity, a displacement growing with the cube of the distance "
+                        "from the isocentre, MM at 100 mm (a few mm is typical; default 0)")
+    m.add_argument("--shading", type=float, default=0.0, metavar="X",
+                   help="scanner effect: a receive coil's smooth gain across the field, X peak to peak (0..1)")
+    m.add_argument("--tissue", type=int, default=0, metavar="N",
+                   help="scanner effect: N tissue-like bright regions 5-30 mm wide at 30-100 %% of the fluid's signal")
     m.add_argument("--volume-shape", nargs=3, type=int, metavar=("NX", "NY", "NZ"),
                    help="volume mode: write a 3-D volume of NX x NY x NZ voxels (--out .nii, .nii.gz, .nrrd, "
                         ".mha or a folder for a DICOM series); its middle k-plane cuts the fiducial at "
@@ -117,6 +127,13 @@ def run(args) -> int:
          "--depth, --tilt, --azimuth and --twist must be finite numbers within +-10000"),
         (out.suffix.lower() in DICOM_SUFFIXES or not (args.image_position or args.image_orientation),
          "--image-position/--image-orientation apply to DICOM output only (.dcm)"),
+        (all(np.isfinite(v) and abs(v) <= 10 for v in args.scanner_scale),
+         "--scanner-scale takes two per cent values within +-10"),
+        (np.isfinite(args.nonlinearity) and 0 <= args.nonlinearity <= 20,
+         f"--nonlinearity must be 0..20 mm, got {args.nonlinearity:g}"),
+        (np.isfinite(args.shading) and 0 <= args.shading <= 1, f"--shading must be 0..1, got {args.shading:g}"),
+        (0 <= args.tissue <= 100, f"--tissue must be 0..100 regions, got {args.tissue}"),
+        (not ct or not _effects_asked(args), "--scanner-scale, --nonlinearity, --shading and --tissue apply to MR"),
         (not out.is_dir(), f"--out {out} is a directory; give a file name (.dcm, .npy, .png or .tif)"),
         (out.suffix.lower() in DICOM_SUFFIXES + PLAIN_SUFFIXES,
          f"--out {out}: unsupported suffix {out.suffix!r}; allowed: {', '.join(DICOM_SUFFIXES + PLAIN_SUFFIXES)}"),
@@ -144,12 +161,16 @@ def run(args) -> int:
                        skull=args.skull, metal=args.metal) if ct else None,
         )
         n_in_view = len(sim.truth.centres_px)
+        effects_doc = {}
+        if _effects_asked(args):
+            sim, effects_doc = _with_scanner_effects(sim, geom, args, plain)
         if n_in_view == 0 and not args.allow_empty:  # an empty image is a mistake unless asked for
             raise ChicRegisterError(
                 f"--depth {args.depth:g} --tilt {args.tilt:g}: no tube crosses the image (the body spans "
                 f"z = 0..{geom.body.length:g} mm; check --depth, --tilt, --center-offset, or pass --allow-empty "
                 "for a deliberately missed slice); nothing written")
-        extra = {"geometry_file": str(args.geometry), "geometry_sha256": geom.to_dict()["sha256"], "seed": args.seed}
+        extra = {"geometry_file": str(args.geometry), "geometry_sha256": geom.to_dict()["sha256"], "seed": args.seed,
+                 **effects_doc}
         image_path, truth_file = write_simulated(sim, out, extra)
     except ValueError as exc:
         raise ChicRegisterError(str(exc)) from None
@@ -162,6 +183,37 @@ def run(args) -> int:
     if n_in_view < len(geom.tubes):
         status(f"warning: only {n_in_view} of {len(geom.tubes)} tubes in view")
     return 0
+
+
+def _effects_asked(args) -> bool:
+    return bool(any(args.scanner_scale) or args.nonlinearity or args.shading or args.tissue)
+
+
+def _with_scanner_effects(sim, geom, args, plain: bool):
+    """``sim`` as a scanner with the asked effects shows it, and the truth file's record of them: the effects and
+    the pose the distorted image shows (``T_scanner_from_fiducial_shown``), which is what a solve can find."""
+    import dataclasses  # here, not at the top, as the others: keeps start-up fast
+
+    import numpy as np  # here, not at the top: keeps start-up fast
+
+    from chic_register.imaging.scanner import ScannerEffects, apply_scanner_effects  # here: fast start-up
+    from chic_register.imaging.simulate import SimulatedSlice
+    from chic_register.studies.distortion import apparent_pose
+
+    sl = sim.slice
+    rows, cols = sl.pixels.shape
+    # a plain image has no placement: its isocentre is taken at the image centre
+    iso = sl.pixel_to_scanner((rows - 1) / 2.0, (cols - 1) / 2.0)[0] if plain else np.zeros(3)
+    effects = ScannerEffects((args.scanner_scale[0] / 100.0, args.scanner_scale[1] / 100.0), args.nonlinearity,
+                             args.shading, args.tissue, tuple(float(v) for v in iso))
+    rng = np.random.default_rng(None if args.seed is None else args.seed + 1)
+    pixels = apply_scanner_effects(sl, effects, rng, signal=1.0)  # the fluid's level in a simulated MR slice
+    shown = apparent_pose(geom, sim.truth.T_scanner_from_fiducial, sl, effects)
+    doc = {"scanner_effects": {"scale_percent": [float(v) for v in args.scanner_scale],
+                               "nonlinearity_mm_at_100mm": float(args.nonlinearity), "shading": float(args.shading),
+                               "tissue": int(args.tissue), "isocentre_mm": [float(v) for v in iso]},
+           "T_scanner_from_fiducial_shown": np.asarray(shown).tolist()}
+    return SimulatedSlice(dataclasses.replace(sl, pixels=pixels), sim.truth), doc
 
 
 def _run_volume(args) -> int:
@@ -181,7 +233,9 @@ def _run_volume(args) -> int:
     unsupported = [flag for flag, on in (("--distractors", args.distractors), ("--bore-signal", args.bore_signal),
                                          ("--missing", args.missing), ("--image-position", args.image_position),
                                          ("--image-orientation", args.image_orientation),
-                                         ("--modality ct", args.modality == "ct")) if on]
+                                         ("--modality ct", args.modality == "ct"),
+                                         ("--scanner-scale, --nonlinearity, --shading, --tissue",
+                                          _effects_asked(args))) if on]
     checks = [
         (min(nx, ny, nz) >= 2 and max(nx, ny, nz) <= 1024, f"--volume-shape must be 2..1024 voxels each, got {nx} {ny} {nz}"),
         (nx * ny * nz <= MAX_VOXELS, f"--volume-shape {nx} {ny} {nz} is {nx * ny * nz} voxels; at most {MAX_VOXELS}"),

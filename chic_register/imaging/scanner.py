@@ -13,7 +13,9 @@ shows it at another pose, and no image can tell).
   100 mm (a few mm is typical at the edge of a clinical field of view);
 - ``shading``: a receive coil's smooth gain across the field, peak to peak;
 - ``anatomy``: this many tissue-like bright regions (smooth ellipses 5-30 mm
-  wide, at 30-100 % of the fluid's signal), placed anywhere in the image.
+  wide, at 30-100 % of the fluid's signal), placed anywhere in the image;
+- ``isocentre_mm`` (3,): the scanner point about which the scale and the
+  non-linearity grow (the scanner's origin unless the image has no placement).
 """
 
 from __future__ import annotations
@@ -36,11 +38,12 @@ class ScannerEffects:
     nonlinearity_mm: float = 0.0
     shading: float = 0.0
     anatomy: int = 0
+    isocentre_mm: tuple[float, float, float] = (0.0, 0.0, 0.0)
 
     def displacement_mm(self, points: np.ndarray, u: np.ndarray, v: np.ndarray) -> np.ndarray:
         """(N, 3): where a scanner point (N, 3) is shown, less where it is (in-plane axes ``u``, ``v``: the image's
         columns and rows, whose scale this is)."""
-        p = np.asarray(points, float)
+        p = np.asarray(points, float) - np.asarray(self.isocentre_mm, float)
         d = (self.scale[0] * (p @ u))[:, None] * u + (self.scale[1] * (p @ v))[:, None] * v
         if self.nonlinearity_mm:
             r2 = np.sum(p * p, axis=1, keepdims=True) / NONLINEARITY_RADIUS_MM**2

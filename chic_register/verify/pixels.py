@@ -422,8 +422,14 @@ def _check_stretch(model, fit, xys, Ss, opts, slices, scale_fitted: bool) -> Non
                      f"{hint}", detail)
     axis = "columns (x)" if abs(sx) >= abs(sy) else "rows (y)"
     worst = sx if abs(sx) >= abs(sy) else sy
+    if too_large:
+        raise NoLock(f"the tube positions fit best with the image stretched {100 * worst:+.1f} % along its {axis} "
+                     f"({test}): the pixel spacing looks wrong; check --pixel-spacing or the file's PixelSpacing",
+                     detail)
     raise NoLock(f"the tube positions fit best with the image stretched {100 * worst:+.1f} % along its {axis} "
-                 f"({test}): the pixel spacing looks wrong; check --pixel-spacing or the file's PixelSpacing", detail)
+                 f"({test}), within the {100 * opts.max_scale_error:g} % a scanner's gradient calibration explains, "
+                 f"but this slice alone cannot tell that stretch from a tilt: register several slices or a volume (fitted "
+                 f"together, they measure it)", detail)
 
 
 def verify_fit(geom, model, fit, rivals, seen: list[DetectedSlice], opts, precision=None,

@@ -14,6 +14,7 @@ from chic_register.imaging.simulate import simulate_slice, truth_path
 from chic_register.io.images import read_slices
 from chic_register.model.geometry import load_geometry, write_geometry
 from chic_register.model.pose import apply
+from chic_register.studies.damage import pose_error
 
 
 def _one_line_error(capsys, prefix: str) -> str:
@@ -64,6 +65,11 @@ def test_cli_simulate_writes_image_and_truth(neuro_geometry_file, tmp_path, caps
     (["--slice-thickness", "-1"], "--slice-thickness"),
     (["--distractors", "-2"], "--distractors"),
     (["--image-position", "0", "0", "0"], "DICOM output only"),
+    (["--scanner-scale", "12", "0"], "--scanner-scale takes two per cent values within +-10"),
+    (["--nonlinearity", "-1"], "--nonlinearity must be 0..20 mm"),
+    (["--shading", "nan"], "--shading must be 0..1"),
+    (["--tissue", "-3"], "--tissue must be 0..100"),
+    (["--modality", "ct", "--shading", "0.3"], "apply to MR"),
 ])
 def test_cli_simulate_bad_options_exit_2(neuro_geometry_file, tmp_path, capsys, extra, fragment):
     out = tmp_path / ("x.npy" if "--image-position" in extra else "x.dcm")
@@ -93,6 +99,7 @@ def test_cli_simulate_bad_files_exit_2(neuro_geometry_file, tmp_path, capsys):
     (["--center-offset", "1e300", "0"], "--center-offset, --image-position and --image-orientation"),
     (["--volume-shape", "1024", "1024", "1024"], "is 1073741824 voxels; at most 67108864"),
     (["--volume-shape", "8", "8", "8", "--voxel-size", "1e-300"], "--voxel-size takes one or three sizes in 0.01..50"),
+    (["--volume-shape", "8", "8", "8", "--tissue", "2"], "--tissue: not available in volume mode"),
 ])
 def test_simulate_flags_that_would_allocate_or_loop_without_bound_are_refused(tmp_path, capsys, neuro_geometry_file,
                                                                             extra, fragment):
@@ -191,3 +198,34 @@ def test_simulate_cli_on_a_zframe_geometry_slices_and_volume(zframe_geometry, tm
     assert register_main(["simulate", "--geometry", str(geo), "--depth", "30", "--out", str(tmp_path / "x.npy"),
                           "--blob-width", "0"]) == 2
     assert "--blob-width must be 0.2..5" in capsys.readouterr().err
+
+
+def test_scanner_effects_shift_the_pose_the_image_shows_and_the_solve_finds_that_pose(neuro_geometry_file, tmp_path,
+                                                                                     capsys):
+    """--scanner-scale, --nonlinearity, --shading, --tissue: the truth file records them and the pose the distorted
+    image shows (0.3 deg from the world pose for a 0.5 % scale with 2 mm of non-linearity); the slice's solve lands
+    on that pose, not on the world pose no image can show. A plain image's isocentre is its centre."""
+    out = tmp_path / "distorted.dcm"
+    effects = ["--scanner-scale", "0", "0.5", "--nonlinearity", "2", "--shading", "0.4"]
+    assert main(["simulate", "--geometry", str(neuro_geometry_file), "--depth", "22", "--tilt", "20", "--azimuth",
+                 "30", "--twist", "15", "--noise", "rician", "--snr", "30", "--seed", "3", "--out", str(out),
+                 *effects]) == 0
+    truth = json.loads(truth_path(out).read_text())
+    assert truth["scanner_effects"] == {"scale_percent": [0.0, 0.5], "nonlinearity_mm_at_100mm": 2.0,
+                                        "shading": 0.4, "tissue": 0, "isocentre_mm": [0.0, 0.0, 0.0]}
+    geom = load_geometry(neuro_geometry_file)
+    world, shown = np.array(truth["T_scanner_from_fiducial"]), np.array(truth["T_scanner_from_fiducial_shown"])
+    assert pose_error(shown, world, geom.body.length)[1] > 0.2
+    capsys.readouterr()
+    assert register_main(["solve", str(out), "--geometry", str(neuro_geometry_file), "--json"]) == 0
+    found = np.array(json.loads(capsys.readouterr().out)["T_scanner_from_fiducial"])
+    tre, rot = pose_error(found, shown, geom.body.length)
+    assert tre < 0.1 and rot < 0.15 and rot < pose_error(found, world, geom.body.length)[1], (tre, rot)
+    plain = tmp_path / "distorted.npy"
+    assert main(_simulate_args(neuro_geometry_file, plain, "--tissue", "2", "--seed", "1")) == 0
+    iso = json.loads(truth_path(plain).read_text())["scanner_effects"]["isocentre_mm"]
+    assert iso == pytest.approx([63.75, 63.75, 0.0])  # a plain image's centre: (256 - 1) / 2 pixels of 0.5 mm
+    undistorted = tmp_path / "plain.npy"
+    assert main(_simulate_args(neuro_geometry_file, undistorted)) == 0
+    assert "scanner_effects" not in json.loads(truth_path(undistorted).read_text())
+    assert (np.load(plain) - np.load(undistorted)).max() > 0.2  # tissue at 30-100 % of the fluid's signal
