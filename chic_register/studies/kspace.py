@@ -176,17 +176,12 @@ def slice_placement(depth_mm: float, tilt_deg: float, azimuth_deg: float = 0.0, 
     return sl, T_scanner_from_fiducial
 
 
-def kspace_slice(vertices_F_mm: np.ndarray, faces: np.ndarray, body: Body, T_scanner_from_fiducial: np.ndarray,
-                 placement: Slice, *, snr: float | None = 20.0, thickness_mm: float | None = None,
-                 oversample: int = 8, n_planes: int = 24, kspace_filter: str = "none",
-                 rng=None) -> KSpaceSlice:
-    """The magnitude MR image of the fluid in the body mesh (``vertices_F_mm`` (V, 3), ``faces`` (F, 3), in F)
-    at pose ``T_scanner_from_fiducial``, on the grid and in the place of ``placement`` (its pixels' shape
-    (rows, cols) is the acquired matrix, its spacing the pixel size).
-
-    ``thickness_mm`` defaults to the placement's. ``snr``: fluid signal over
-    the noise sigma (None: no noise, the magnitude of the band-limited image).
-    """
+def kspace_image(vertices_F_mm: np.ndarray, faces: np.ndarray, body: Body, T_scanner_from_fiducial: np.ndarray,
+                 placement: Slice, *, thickness_mm: float | None = None, oversample: int = 8, n_planes: int = 24,
+                 kspace_filter: str = "none") -> np.ndarray:
+    """The noise-free complex image (rows, cols) of the fluid in the body mesh (``vertices_F_mm`` (V, 3),
+    ``faces`` (F, 3), in F) at pose ``T_scanner_from_fiducial``, on the grid of ``placement`` (its pixels'
+    shape is the acquired matrix, its spacing the pixel size); ``thickness_mm`` defaults to the placement's."""
     rows, cols = placement.shape
     rs, cs = (float(v) for v in placement.pixel_spacing_mm)
     if rs != cs:
@@ -208,13 +203,30 @@ def kspace_slice(vertices_F_mm: np.ndarray, faces: np.ndarray, body: Body, T_sca
     r0, c0 = (q * rows) // 2 - rows // 2, (q * cols) // 2 - cols // 2
     k = spectrum[r0:r0 + rows, c0:c0 + cols] / (q * q)
     k = k * kspace_window(rows, kspace_filter)[:, None] * kspace_window(cols, kspace_filter)[None, :]
-    image = np.fft.ifft2(np.fft.ifftshift(k))
+    return np.fft.ifft2(np.fft.ifftshift(k))
+
+
+def with_noise(image: np.ndarray, placement: Slice, snr: float | None, rng=None,
+               thickness_mm: float | None = None) -> Slice:
+    """The magnitude slice of a complex ``image`` (rows, cols) plus complex Gaussian noise of sigma 1 / ``snr``
+    (None: no noise), placed as ``placement``."""
     if snr is not None:
         if not (snr > 0 and math.isfinite(snr)):
             raise ValueError(f"snr must be > 0, got {snr}")
         rng = rng if isinstance(rng, np.random.Generator) else np.random.default_rng(rng)
         s = 1.0 / float(snr)
         image = image + rng.normal(0.0, s, image.shape) + 1j * rng.normal(0.0, s, image.shape)
-    sl = Slice(np.abs(image), (rs, cs), placement.origin_mm, placement.col_dir, placement.row_dir, thk,
-               "<kspace>", modality="MR")
-    return KSpaceSlice(sl, np.asarray(T_scanner_from_fiducial, float))
+    thk = float(placement.slice_thickness_mm if thickness_mm is None else thickness_mm)
+    return Slice(np.abs(image), placement.pixel_spacing_mm, placement.origin_mm, placement.col_dir,
+                 placement.row_dir, thk, "<kspace>", modality="MR")
+
+
+def kspace_slice(vertices_F_mm: np.ndarray, faces: np.ndarray, body: Body, T_scanner_from_fiducial: np.ndarray,
+                 placement: Slice, *, snr: float | None = 20.0, thickness_mm: float | None = None,
+                 oversample: int = 8, n_planes: int = 24, kspace_filter: str = "none",
+                 rng=None) -> KSpaceSlice:
+    """:func:`kspace_image` with Rician noise at ``snr`` (:func:`with_noise`): a slice ready for ``register``."""
+    image = kspace_image(vertices_F_mm, faces, body, T_scanner_from_fiducial, placement, thickness_mm=thickness_mm,
+                         oversample=oversample, n_planes=n_planes, kspace_filter=kspace_filter)
+    return KSpaceSlice(with_noise(image, placement, snr, rng, thickness_mm),
+                       np.asarray(T_scanner_from_fiducial, float))
