@@ -1,9 +1,10 @@
 """Covariance calibration and CRLB efficiency on images the solver did not draw: the k-space model of the mesh.
 
     OMP_NUM_THREADS=1 .venv/bin/python benchmarks/bench_independent.py [--draws 30] [--snr 10 20 50] [--quick]
+        [--filter none|hamming|tukey] [--mesh exports/neuro/body.stl --geometry exports/neuro/geometry.yaml]
 
 The neuro design's body is built through the library (no files) and
-tessellated as its ``body.stl`` is; each pose (the calibration study's four
+tessellated as its ``body.stl`` is (or ``--mesh`` is read); each pose (the calibration study's four
 and a tilt grid 0-45 deg) is rendered once, noise-free, by
 :mod:`chic_register.studies.kspace` (256 x 256, 0.5 mm pixels, 2 mm sinc-pulse
 slices), then registered with the default solver (verification on) on
@@ -33,12 +34,13 @@ from chic_design.cad.export import STL_ANGULAR_TOLERANCE_RAD, STL_TOLERANCE_MM  
 from chic_design.families import family_of  # noqa: E402
 from chic_design.spec import load_spec  # noqa: E402
 from chic_register.errors import NoLock  # noqa: E402
+from chic_register.model.geometry import load_geometry  # noqa: E402
 from chic_register.pipeline.register import register  # noqa: E402
 from chic_register.precision.crlb import Protocol, pose_crlb  # noqa: E402
 from chic_register.precision.uncertainty import mahalanobis2, target_point  # noqa: E402
 from chic_register.studies.calibration import pose_error  # noqa: E402
 from chic_register.studies.efficiency import pose_errors  # noqa: E402
-from chic_register.studies.kspace import kspace_image, slice_placement, with_noise  # noqa: E402
+from chic_register.studies.kspace import kspace_image, read_body_mesh, slice_placement, with_noise  # noqa: E402
 
 ROOT = Path(__file__).resolve().parents[1]
 #: The calibration study's poses (benchmarks/bench_uncertainty.py), then a tilt grid: (depth, tilt, azimuth, twist).
@@ -67,11 +69,19 @@ def main() -> None:
     ap.add_argument("--snr", type=float, nargs="+", default=[10.0, 20.0, 50.0])
     ap.add_argument("--filter", default="none", choices=("none", "hamming", "tukey"), help="k-space filter")
     ap.add_argument("--seed", type=int, default=0)
+    ap.add_argument("--mesh", type=Path, help="a body.stl to render instead of the library's neuro body "
+                    "(with --geometry: its geometry.yaml)")
+    ap.add_argument("--geometry", type=Path, help="the geometry.yaml beside --mesh")
     ap.add_argument("--quick", action="store_true", help="two poses, 3 draws: a smoke run, not a measurement")
     args = ap.parse_args()
     c_start = time.process_time()
     print(f"before: {load_note()}")
-    geom, V, F = neuro_mesh(ROOT / "designs" / "neuro.yaml")
+    if args.mesh is not None:
+        if args.geometry is None:
+            ap.error("--mesh needs --geometry")
+        geom, (V, F) = load_geometry(args.geometry), read_body_mesh(args.mesh)
+    else:
+        geom, V, F = neuro_mesh(ROOT / "designs" / "neuro.yaml")
     poses = STUDY_POSES + TILT_POSES
     draws = args.draws
     if args.quick:

@@ -49,6 +49,16 @@ class KSpaceSlice:
     T_scanner_from_fiducial: np.ndarray
 
 
+def read_body_mesh(path) -> tuple[np.ndarray, np.ndarray]:
+    """A body mesh file (``body.stl`` of a design build, in F): vertices (V, 3) mm and faces (F, 3)."""
+    import trimesh  # deferred: only a study reading a mesh file needs it
+
+    mesh = trimesh.load_mesh(str(path), process=True)
+    if not mesh.is_watertight:
+        raise ValueError(f"{path}: the body mesh is not closed; fluid cannot be told from body")
+    return np.asarray(mesh.vertices, dtype=float), np.asarray(mesh.faces, dtype=np.int64)
+
+
 def slice_profile(thickness_mm: float, n_planes: int = 24, tbw: float = PULSE_TBW):
     """Sub-plane offsets (n_planes,) in mm across 2 x ``thickness_mm`` and their profile weights (sum 1).
 
