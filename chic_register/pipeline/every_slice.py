@@ -142,7 +142,8 @@ def register_every_slice(slices: list[Slice], geom: FiducialGeometry, opts: Solv
     model, geom_sha = prepare_geometry(geom)
     seen = _detect_at_scan_width(detect_slices(slices, lows, model, detect_options), model, opts, detect_options)
     t1 = time.perf_counter()
-    noise = [_centre_noise(d) for d in seen]
+    pixel_noise = [slice_noise(d.slice, d.blobs.footprints) if len(d.blobs.footprints) else None for d in seen]
+    noise = [_centre_noise(d, n) for d, n in zip(seen, pixel_noise)]
     parents = [enclosing_blobs(d.blobs) for d in seen]
     starts, lone_refusals = _starting_poses(model, seen, opts)
     if not starts:
@@ -151,7 +152,7 @@ def register_every_slice(slices: list[Slice], geom: FiducialGeometry, opts: Solv
     for j, X in starts:
         same = [g for g in groups if not poses_distinct(X, g[0].fit.T_F_from_scanner, model)]
         if not same:
-            jf = _joint_fit(model, seen, noise, parents, X)
+            jf = _joint_fit(model, seen, noise, pixel_noise, parents, X)
             if jf is None:
                 continue
             same = [g for g in groups if not poses_distinct(jf.fit.T_F_from_scanner, g[0].fit.T_F_from_scanner, model)]
@@ -236,12 +237,13 @@ def median_diameter_mm(model: TubeModel) -> float:
     return float(np.median(model.diameter_mm))
 
 
-def _centre_noise(d: DetectedSlice) -> np.ndarray:
-    """(N,) each blob centre's 1-sigma error per coordinate (mm) from the slice's image noise."""
+def _centre_noise(d: DetectedSlice, pixel_noise) -> np.ndarray:
+    """(N,) each blob centre's 1-sigma error per coordinate (mm) from the slice's image noise ``pixel_noise`` (a
+    :class:`~chic_register.detect.noise.NoiseEstimate`: one per slice, whichever centres its blobs are given)."""
     b = d.blobs
-    if not len(b.footprints):
+    if not len(b.footprints) or pixel_noise is None:
         return np.zeros(0)
-    n = slice_noise(d.slice, b.footprints)
+    n = pixel_noise
     out = []
     for fp in b.footprints:
         C = centroid_covariance(d.slice.pixels, fp, b.background, n, d.slice.pixel_spacing_mm)
@@ -321,7 +323,7 @@ def _residual_rows(fit: Fit, noise, js):
     return rows
 
 
-def _joint_fit(model: TubeModel, seen, noise, parents, X: np.ndarray) -> JointFit | None:
+def _joint_fit(model: TubeModel, seen, noise, pixel_noise, parents, X: np.ndarray) -> JointFit | None:
     """The pose near ``X`` fitted to every slice, blobs and then slices the scatter cannot explain left out; None
     when fewer than two slices keep :data:`MIN_SLICE_TUBES` tubes."""
     gate = match_gate_mm(model, max(d.resolution_mm for d in seen))
@@ -334,7 +336,7 @@ def _joint_fit(model: TubeModel, seen, noise, parents, X: np.ndarray) -> JointFi
     if any(a.size != b.size or np.any(a != b) for a, b in zip(again, idx)):  # touching tubes: their parts instead
         idx = again
         fit = _fit_on(model, seen, idx, fit.T_F_from_scanner, keep, excl, (0.6 * gate,))
-    seen, noise, fit = _better_centres(model, seen, noise, idx, fit, keep, excl, gate)
+    seen, noise, fit = _better_centres(model, seen, noise, pixel_noise, idx, fit, keep, excl, gate)
     dropped = []
     for _ in range(2 * len(seen) + 4 * K):
         rows = _residual_rows(fit, noise, keep)
@@ -399,14 +401,14 @@ def disc_centres(model: TubeModel, d: DetectedSlice, a: np.ndarray, T_F_from_sca
     return DetectedSlice.of(sl, blobs, d.T_scanner_from_image)
 
 
-def _better_centres(model: TubeModel, seen, noise, idx, fit: Fit, keep: list[int], excl, gate: float):
+def _better_centres(model: TubeModel, seen, noise, pixel_noise, idx, fit: Fit, keep: list[int], excl, gate: float):
     """``(seen, noise, fit)``: the detector's centres or the disc centres (:func:`disc_centres`) of the matched
     blobs, whichever the pose fits with the smaller median residual (the data say which is the less noisy
     measurement: the detector's footprint on clean sections, the disc where texture or a faint slab breaks them
     up), and the pose fitted to them."""
     X = fit.T_F_from_scanner
     disc = [disc_centres(model, d, fit.assignments[j], X) if j in keep else d for j, d in enumerate(seen)]
-    disc_noise = [_centre_noise(d) if j in keep else noise[j] for j, d in enumerate(disc)]
+    disc_noise = [_centre_noise(d, pixel_noise[j]) if j in keep else noise[j] for j, d in enumerate(disc)]
     refit = _fit_on(model, disc, idx, X, keep, excl, (0.6 * gate,))
 
     def median_r2(f: Fit) -> float:
