@@ -5,7 +5,8 @@ the distorted image shows.
 
 Each case is ``hunt.py``'s case of the same index and seed (pose, protocol, damage kind), drawn with random scanner
 effects (:func:`chic_register.studies.distortion.random_effects`: a scale of 0.1-1 % per image axis, a gradient
-non-linearity of 0-4 mm at 100 mm from the isocentre, shading up to 60 %, up to six tissue regions) and solved; a
+non-linearity of 0-4 mm at 100 mm from the isocentre, which lies within 20 mm of the image's centre, shading up
+to 60 %, up to six tissue regions) and solved; a
 pose reported ok more than 0.5 mm (frame centre) or 0.5 deg from the apparent pose
 (:func:`~chic_register.studies.distortion.apparent_pose`) is a false lock. Exit status 1 on a false lock or a crash.
 """

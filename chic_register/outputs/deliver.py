@@ -182,7 +182,10 @@ def deliver(plan: OutputPlan, reg, geom, slices, link=None) -> Delivery:
     T = reg.T_scanner_from_fiducial
     if plan.overlay:
         radius = 0.5 * max(t.diameter for t in geom.tubes)
-        out.attempt("--overlay", lambda: f"wrote {draw_overlay(plan.overlay, slices, reg, tube_radius_mm=radius)}")
+        # the slices a volume's joint pose left out are drawn with that pose's crossings, beside its reason
+        predicted = [predicted_crossings_rc(geom, T, sl) for sl in slices]
+        out.attempt("--overlay", lambda: "wrote " + str(draw_overlay(plan.overlay, slices, reg, tube_radius_mm=radius,
+                                                                     predicted=predicted)))
     if plan.tfm:
         from chic_register.io.transforms import (
             write_tfm,  # deferred: loads SimpleITK only when used (one-shot start-up)

@@ -13,6 +13,7 @@ candidate. Written with matplotlib's Agg backend, atomically.
 from __future__ import annotations
 
 import math
+import textwrap
 from pathlib import Path
 
 import numpy as np
@@ -184,10 +185,13 @@ def overlay_figure(slices, registration=None, blobs=None, title: str | None = No
     n = len(slices)
     fig, axes = plt.subplots(n, 2, figsize=(10, 5.2 * n), squeeze=False, gridspec_kw={"width_ratios": [1, 1.25]})
     layout = []
+    used = {r.source: r for r in registration.slices} if registration is not None else {}
+    left_out = {s.source: s for s in registration.skipped} if registration is not None else {}
     for j, sl in enumerate(slices):
         img = np.asarray(sl.pixels, dtype=float)
         spacing = tuple(float(v) for v in sl.pixel_spacing_mm)
-        res = registration.slices[j] if registration is not None else None
+        res = used.get(sl.source)
+        skipped = left_out.get(sl.source)
         rc = res.blobs_rc if res is not None else (blobs[j].centres_rc if blobs is not None else np.zeros((0, 2)))
         rc = np.asarray(rc if rc is not None else np.zeros((0, 2)), dtype=float).reshape(-1, 2)
         pred = (np.array(list(res.predicted_rc.values()), dtype=float).reshape(-1, 2)
@@ -195,6 +199,9 @@ def overlay_figure(slices, registration=None, blobs=None, title: str | None = No
         if res is not None and res.assignment:
             matched = rc[[int(b) for b in res.assignment.values()]]
             lo, hi = fiducial_view(np.vstack([matched, pred]), img.shape, spacing, tube_radius_mm)
+        elif res is None and predicted is not None and predicted[j]:
+            lo, hi = fiducial_view(np.array(list(predicted[j].values()), dtype=float).reshape(-1, 2), img.shape,
+                                   spacing, tube_radius_mm)
         else:
             lo, hi = view_bounds(rc, img.shape)
         whole, ax = axes[j]
@@ -222,11 +229,18 @@ def overlay_figure(slices, registration=None, blobs=None, title: str | None = No
         else:
             if predicted is not None and predicted[j]:
                 p = np.array(list(predicted[j].values()), dtype=float).reshape(-1, 2)
-                ax.plot(p[:, 1], p[:, 0], "+", color="red", ms=10, mew=1.2, label="refused pose's crossings")
+                ax.plot(p[:, 1], p[:, 0], "+", color="red", ms=10, mew=1.2,
+                        label="the pose's crossings" if registration is not None else "refused pose's crossings")
                 for tid, (r, c) in predicted[j].items():
                     if lo[0] <= r <= hi[0] and lo[1] <= c <= hi[1]:
                         ax.annotate(tid, (c, r), xytext=(6, 6), textcoords="offset points", color="red", fontsize=7)
-            ax.set_title(title or "no lock: candidates only", fontsize=9)
+            if skipped is not None:
+                title_j = f"left out: {skipped.reason}"
+                if skipped.residual_rms_mm is not None:
+                    title_j += f" (rms {skipped.residual_rms_mm:.2f} mm under the pose)"
+                ax.set_title("\n".join(textwrap.wrap(title_j, 70)), fontsize=8)
+            else:
+                ax.set_title(title or "no lock: candidates only", fontsize=9)
         ax.legend(loc="upper center", bbox_to_anchor=(0.5, 0.0), ncol=3, fontsize=8, frameon=False)
         layout.append((ax, lo, hi, spacing, rc, res))
     fig.tight_layout()

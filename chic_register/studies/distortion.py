@@ -20,12 +20,24 @@ from chic_register.model.tube_model import plane_crossings, prepare_geometry
 from chic_register.studies.damage import Case, build_case
 
 
-def random_effects(rng: np.random.Generator) -> ScannerEffects:
+#: How far (mm, per in-plane axis) the isocentre lies from the image's centre: a field of view is set about it.
+ISOCENTRE_OFFSET_MM = 20.0
+
+
+def random_effects(rng: np.random.Generator, sl: Slice | None = None) -> ScannerEffects:
     """Effects as clinical scanners show them: a scale of 0.1-1 % per axis (either sign), a non-linearity of 0-4 mm
-    at 100 mm, shading up to 60 % and up to six tissue regions."""
+    at 100 mm, shading up to 60 % and up to six tissue regions; about an isocentre within
+    :data:`ISOCENTRE_OFFSET_MM` of the centre of ``sl`` (the scanner's origin without a slice)."""
     scale = rng.uniform(0.001, 0.01, 2) * rng.choice([-1.0, 1.0], 2)
-    return ScannerEffects((float(scale[0]), float(scale[1])), float(rng.uniform(0.0, 4.0)),
-                          float(rng.uniform(0.0, 0.6)), int(rng.integers(0, 7)))
+    effects = ScannerEffects((float(scale[0]), float(scale[1])), float(rng.uniform(0.0, 4.0)),
+                             float(rng.uniform(0.0, 0.6)), int(rng.integers(0, 7)))
+    if sl is None:
+        return effects
+    rows, cols = sl.pixels.shape
+    du, dv = rng.uniform(-ISOCENTRE_OFFSET_MM, ISOCENTRE_OFFSET_MM, 2)
+    iso = sl.pixel_to_scanner((rows - 1) / 2.0, (cols - 1) / 2.0)[0] + du * np.asarray(sl.col_dir, float) \
+        + dv * np.asarray(sl.row_dir, float)
+    return dataclasses.replace(effects, isocentre_mm=tuple(float(v) for v in iso))
 
 
 def apparent_pose(geom: FiducialGeometry, T_scanner_from_fiducial: np.ndarray, sl: Slice,
@@ -54,7 +66,7 @@ def apparent_pose(geom: FiducialGeometry, T_scanner_from_fiducial: np.ndarray, s
 def distorted_case(case: Case, geom: FiducialGeometry, rng: np.random.Generator):
     """``(slice, apparent T_scanner_from_fiducial, effects)`` of a hunt case drawn with scanner effects."""
     sl, T_true, _ = build_case(case, geom)
-    effects = random_effects(rng)
+    effects = random_effects(rng, sl)
     pixels = apply_scanner_effects(sl, effects, rng, signal=1.0)
     out = dataclasses.replace(sl, pixels=pixels)
     return out, apparent_pose(geom, T_true, sl, effects), effects

@@ -7,8 +7,10 @@ import itertools
 import numpy as np
 import pytest
 
+from chic_register.cli.inputs import load_prior
 from chic_register.detect.blobs import detect_blobs
 from chic_register.imaging.simulate import simulate_slice
+from chic_register.io.volumes import read_volume
 from chic_register.outputs.overlay import (
     LABEL_GID,
     SCALE_BAR_GID,
@@ -16,10 +18,13 @@ from chic_register.outputs.overlay import (
     ZOOM_BOX_GID,
     draw_overlay,
     overlay_figure,
+    predicted_crossings_rc,
     scale_bar_mm,
     view_bounds,
 )
 from chic_register.pipeline.register import register
+from chic_register.pipeline.volume import register_volume
+from tests.conftest import REAL
 
 #: (depth, tilt, azimuth, twist): the README's slice (D3 and O0 side by side), a tilted and a steep one
 POSES = [(22.0, 20.0, 30.0, 15.0), (12.0, 35.0, 60.0, -20.0), (30.0, 45.0, 200.0, 75.0)]
@@ -143,3 +148,19 @@ def test_no_lock_overlay_draws_the_candidates(neuro_geometry, tmp_path):
     blobs = [detect_blobs(sim.slice.pixels, sim.slice.pixel_spacing_mm, 3.0)]
     path = draw_overlay(tmp_path / "o.png", [sim.slice], None, blobs, title="no lock: test")
     assert path.read_bytes()[:8] == b"\x89PNG\r\n\x1a\n"
+
+
+def test_a_volume_overlay_draws_the_slices_its_joint_pose_left_out_with_their_reasons(zframe_geometry):
+    """A real scan registered from some of its slices: each used slice has its fit's title, each left-out one its
+    reason and the joint pose's crossings, matched by slice name (not by position in the list)."""
+    vol = read_volume(REAL / "zframe-masked-b.nrrd")
+    reg = register_volume(vol, zframe_geometry, prior=load_prior("RAS"))
+    slices = [vol.native_slice(k) for k in range(vol.shape[0])]
+    assert 0 < len(reg.slices) < len(slices) and reg.skipped
+    predicted = [predicted_crossings_rc(zframe_geometry, reg.T_scanner_from_fiducial, sl) for sl in slices]
+    fig = overlay_figure(slices, reg, predicted=predicted)
+    titles = {sl.source: fig.axes[2 * j + 1].get_title() for j, sl in enumerate(slices)}
+    for r in reg.slices:
+        assert titles[r.source].startswith(f"depth {r.depth_mm:.2f} mm")
+    for s in reg.skipped:
+        assert titles[s.source].replace("\n", " ").startswith(f"left out: {s.reason[:40]}")
