@@ -196,7 +196,11 @@ def _with_scanner_effects(sim, geom, args, plain: bool):
 
     import numpy as np  # here, not at the top: keeps start-up fast
 
-    from chic_register.imaging.scanner import ScannerEffects, apply_scanner_effects  # here: fast start-up
+    from chic_register.imaging.scanner import (  # here: fast start-up
+        ScannerEffects,
+        apply_scanner_effects,
+        body_footprint,
+    )
     from chic_register.imaging.simulate import SimulatedSlice
     from chic_register.studies.distortion import apparent_pose
 
@@ -207,7 +211,8 @@ def _with_scanner_effects(sim, geom, args, plain: bool):
     effects = ScannerEffects((args.scanner_scale[0] / 100.0, args.scanner_scale[1] / 100.0), args.nonlinearity,
                              args.shading, args.tissue, tuple(float(v) for v in iso))
     rng = np.random.default_rng(None if args.seed is None else args.seed + 1)
-    pixels = apply_scanner_effects(sl, effects, rng, signal=1.0)  # the fluid's level in a simulated MR slice
+    body = body_footprint(sl, sim.truth.T_scanner_from_fiducial, 0.5 * geom.body.outer_diameter, geom.body.length)
+    pixels = apply_scanner_effects(sl, effects, rng, signal=1.0, no_tissue=body)  # 1: the fluid's level
     shown = apparent_pose(geom, sim.truth.T_scanner_from_fiducial, sl, effects)
     doc = {"scanner_effects": {"scale_percent": [float(v) for v in args.scanner_scale],
                                "nonlinearity_mm_at_100mm": float(args.nonlinearity), "shading": float(args.shading),

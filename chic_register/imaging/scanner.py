@@ -51,10 +51,12 @@ class ScannerEffects:
         return d
 
 
-def apply_scanner_effects(sl: Slice, effects: ScannerEffects, rng=None, signal: float = 1.0) -> np.ndarray:
+def apply_scanner_effects(sl: Slice, effects: ScannerEffects, rng=None, signal: float = 1.0,
+                          no_tissue=None) -> np.ndarray:
     """The pixels (rows, cols) of ``sl`` as a scanner with ``effects`` shows them: each pixel shows what lies where
     the displacement puts it (first order: the world point ``q - d(q)`` of the pixel's point ``q``), shaded, with
-    tissue added at ``signal`` (the fluid's level)."""
+    tissue added at ``signal`` (the fluid's level) except where ``no_tissue`` (rows, cols) bool is set: the
+    fiducial's own body (:func:`body_footprint`), where there is plastic, fluid or the tool and no tissue."""
     from scipy import ndimage  # deferred: loads scipy only for a simulation with scanner effects
 
     rng = np.random.default_rng(rng)
@@ -69,7 +71,10 @@ def apply_scanner_effects(sl: Slice, effects: ScannerEffects, rng=None, signal: 
     out = ndimage.map_coordinates(img, [(rel @ v / rs).reshape(rows, cols), (rel @ u / cs).reshape(rows, cols)],
                                   order=1, mode="nearest")
     if effects.anatomy:
-        out = out + _tissue(rows, cols, (rs, cs), effects.anatomy, signal, rng)
+        tissue = _tissue(rows, cols, (rs, cs), effects.anatomy, signal, rng)
+        if no_tissue is not None:
+            tissue = np.where(no_tissue, 0.0, tissue)
+        out = out + tissue
     if effects.shading:
         yy, xx = np.mgrid[-1:1:complex(0, rows), -1:1:complex(0, cols)]
         a, b = rng.uniform(-1, 1, 2)
@@ -93,3 +98,21 @@ def _tissue(rows: int, cols: int, spacing, n: int, signal: float, rng) -> np.nda
         x1, y1 = dx * np.cos(th) + dy * np.sin(th), -dx * np.sin(th) + dy * np.cos(th)
         out = np.maximum(out, rng.uniform(0.3, 1.0) * signal * ((x1 / a) ** 2 + (y1 / b) ** 2 <= 1.0))
     return ndimage.gaussian_filter(out, 1.5)
+
+
+#: The room (mm) kept between tissue and the fiducial's outer surface: the body as the distorted image shows it.
+BODY_MARGIN_MM = 0.5
+
+
+def body_footprint(sl: Slice, T_scanner_from_fiducial: np.ndarray, outer_radius_mm: float,
+                   length_mm: float) -> np.ndarray:
+    """(rows, cols) bool: the pixels of ``sl`` inside the fiducial's body (within ``outer_radius_mm`` of its axis,
+    z 0..``length_mm`` in F, both grown by :data:`BODY_MARGIN_MM`) at ``T_scanner_from_fiducial``."""
+    rows, cols = np.asarray(sl.pixels).shape
+    rr, cc = np.mgrid[0:rows, 0:cols]
+    q = sl.pixel_to_scanner(rr.ravel(), cc.ravel())
+    T = np.asarray(T_scanner_from_fiducial, float)
+    f = (q - T[:3, 3]) @ T[:3, :3]  # F coordinates of each pixel's point
+    m = BODY_MARGIN_MM
+    inside = (np.hypot(f[:, 0], f[:, 1]) <= outer_radius_mm + m) & (f[:, 2] >= -m) & (f[:, 2] <= length_mm + m)
+    return inside.reshape(rows, cols)

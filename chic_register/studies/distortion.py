@@ -12,13 +12,12 @@ import dataclasses
 import numpy as np
 
 from chic_register.fit.refine import refine
-from chic_register.imaging.scanner import ScannerEffects, apply_scanner_effects
+from chic_register.imaging.scanner import ScannerEffects, apply_scanner_effects, body_footprint
 from chic_register.model.geometry import FiducialGeometry
 from chic_register.model.pose import invert
 from chic_register.model.slices import Slice
 from chic_register.model.tube_model import plane_crossings, prepare_geometry
 from chic_register.studies.damage import Case, build_case
-
 
 #: How far (mm, per in-plane axis) the isocentre lies from the image's centre: a field of view is set about it.
 ISOCENTRE_OFFSET_MM = 20.0
@@ -67,6 +66,7 @@ def distorted_case(case: Case, geom: FiducialGeometry, rng: np.random.Generator)
     """``(slice, apparent T_scanner_from_fiducial, effects)`` of a hunt case drawn with scanner effects."""
     sl, T_true, _ = build_case(case, geom)
     effects = random_effects(rng, sl)
-    pixels = apply_scanner_effects(sl, effects, rng, signal=1.0)
+    body = body_footprint(sl, T_true, 0.5 * geom.body.outer_diameter, geom.body.length)
+    pixels = apply_scanner_effects(sl, effects, rng, signal=1.0, no_tissue=body)
     out = dataclasses.replace(sl, pixels=pixels)
     return out, apparent_pose(geom, T_true, sl, effects), effects

@@ -5,7 +5,7 @@ import dataclasses
 import numpy as np
 import pytest
 
-from chic_register.imaging.scanner import ScannerEffects, apply_scanner_effects
+from chic_register.imaging.scanner import ScannerEffects, apply_scanner_effects, body_footprint
 from chic_register.imaging.simulate import simulate_slice
 from chic_register.pipeline.register import register
 from chic_register.studies.damage import pose_error
@@ -48,3 +48,15 @@ def test_shading_and_tissue(sim):
     assert abs(shaded.mean() / sim.slice.pixels.mean() - 1.0) < 0.1 and not np.allclose(shaded, sim.slice.pixels)
     tissue = apply_scanner_effects(sim.slice, ScannerEffects(anatomy=5), 2)
     assert (tissue - sim.slice.pixels).max() > 0.2
+
+
+def test_tissue_stays_out_of_the_fiducials_body(sim, neuro_geometry):
+    """Tissue lies beside the fiducial, never inside its plastic, channels or bore: none is drawn on its footprint,
+    which holds every tube's crossing."""
+    T = sim.truth.T_scanner_from_fiducial
+    body = body_footprint(sim.slice, T, 0.5 * neuro_geometry.body.outer_diameter, neuro_geometry.body.length)
+    for r, c in sim.truth.centres_px.values():
+        assert body[round(r), round(c)]
+    assert 0 < body.mean() < 0.5
+    tissue = apply_scanner_effects(sim.slice, ScannerEffects(anatomy=40), 3, no_tissue=body) - sim.slice.pixels
+    assert np.abs(tissue[body]).max() < 1e-12 and tissue[~body].max() > 0.2
