@@ -201,8 +201,8 @@ def _with_scanner_effects(sim, geom, args, plain: bool):
         apply_scanner_effects,
         body_footprint,
     )
-    from chic_register.imaging.simulate import SimulatedSlice
-    from chic_register.studies.distortion import apparent_pose
+    from chic_register.imaging.simulate import SimulatedSlice  # here: fast start-up
+    from chic_register.studies.distortion import apparent_pose  # here: fast start-up
 
     sl = sim.slice
     rows, cols = sl.pixels.shape

@@ -246,7 +246,10 @@ def _print_pose(args, reg, geom) -> None:
         e = reg.scale
         print("image scale: " + ", ".join(f"{a} {100 * v:+.2f} % (SD {100 * d:.2f})" for a, v, d in
                                           zip(e.axes, e.scale, e.scale_sd))
-              + ("; the pose is fitted with it" if e.fitted else "; not shown by the data: the pose is rigid"))
+              + ("; the pose is fitted with it" if e.fitted
+                 else "; measured, not fitted: one slice cannot tell a stretch from a tilt (several slices or a "
+                      "volume fit it)" if len(reg.slices) == 1
+                 else "; not shown by the data: the pose is rigid"))
     u = reg.uncertainty
     if u is not None:
         sd = [math.sqrt(max(0.0, float(u.covariance[i, i]))) for i in range(6)]
