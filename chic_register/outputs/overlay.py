@@ -173,6 +173,21 @@ def predicted_crossings_rc(geom, T_scanner_from_fiducial: np.ndarray, sl) -> dic
     return out
 
 
+def _results_per_slice(slices, registration) -> tuple[list, list]:
+    """Per slice of ``slices``, its :class:`~chic_register.pipeline.results.SliceResult` and its
+    :class:`~chic_register.pipeline.results.SkippedSlice` (None where there is none): matched by the slice's name,
+    or by position where names repeat and every slice was used."""
+    n = len(slices)
+    if registration is None:
+        return [None] * n, [None] * n
+    names = [sl.source for sl in slices]
+    if len(set(names)) < n and len(registration.slices) == n:
+        return list(registration.slices), [None] * n
+    used = {r.source: r for r in registration.slices}
+    left_out = {s.source: s for s in registration.skipped}
+    return [used.get(name) for name in names], [left_out.get(name) for name in names]
+
+
 def overlay_figure(slices, registration=None, blobs=None, title: str | None = None,
                    tube_radius_mm: float = DEFAULT_TUBE_RADIUS_MM, predicted=None):
     """The overlay figure of ``slices`` (a list of Slice), not yet saved; see :func:`draw_overlay`."""
@@ -185,13 +200,11 @@ def overlay_figure(slices, registration=None, blobs=None, title: str | None = No
     n = len(slices)
     fig, axes = plt.subplots(n, 2, figsize=(10, 5.2 * n), squeeze=False, gridspec_kw={"width_ratios": [1, 1.25]})
     layout = []
-    used = {r.source: r for r in registration.slices} if registration is not None else {}
-    left_out = {s.source: s for s in registration.skipped} if registration is not None else {}
+    results, skips = _results_per_slice(slices, registration)
     for j, sl in enumerate(slices):
         img = np.asarray(sl.pixels, dtype=float)
         spacing = tuple(float(v) for v in sl.pixel_spacing_mm)
-        res = used.get(sl.source)
-        skipped = left_out.get(sl.source)
+        res, skipped = results[j], skips[j]
         rc = res.blobs_rc if res is not None else (blobs[j].centres_rc if blobs is not None else np.zeros((0, 2)))
         rc = np.asarray(rc if rc is not None else np.zeros((0, 2)), dtype=float).reshape(-1, 2)
         pred = (np.array(list(res.predicted_rc.values()), dtype=float).reshape(-1, 2)

@@ -164,3 +164,19 @@ def test_a_volume_overlay_draws_the_slices_its_joint_pose_left_out_with_their_re
         assert titles[r.source].startswith(f"depth {r.depth_mm:.2f} mm")
     for s in reg.skipped:
         assert titles[s.source].replace("\n", " ").startswith(f"left out: {s.reason[:40]}")
+
+
+def test_slices_of_one_name_are_drawn_with_their_own_fits(neuro_geometry):
+    """Two slices that share a name (two plain images both called "slice"): each drawn with its own fit."""
+    import dataclasses
+
+    slices, results = [], []
+    for pose in POSES[:2]:
+        sim, reg = _solved(neuro_geometry, pose)
+        slices.append(dataclasses.replace(sim.slice, source="slice"))
+        results.append(reg.slices[0])
+    both = dataclasses.replace(reg, slices=tuple(results))
+    fig = overlay_figure(slices, both)
+    for j, r in enumerate(results):
+        assert fig.axes[2 * j + 1].get_title().startswith(f"depth {r.depth_mm:.2f} mm")
+    assert results[0].depth_mm != pytest.approx(results[1].depth_mm, abs=0.5)
