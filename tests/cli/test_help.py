@@ -110,3 +110,32 @@ def test_help_points_at_the_projects_own_interface_document(module, argv, capsys
         importlib.import_module(module).main(argv)
     out = capsys.readouterr().out
     assert "docs/interfaces.md" in out and "CONTRACT.md" not in out
+
+
+#: Libraries a one-shot solve of one DICOM slice does not need: each costs tens to hundreds of ms of start-up.
+HEAVY_FOR_ONE_SLICE = ("scipy", "SimpleITK", "matplotlib", "skimage", "trimesh", "pyvista", "build123d",
+                       "chic_design", "dask", "optuna", "pyigtl")
+
+
+def test_a_one_shot_solve_of_a_dicom_slice_loads_only_what_it_needs(tmp_path, neuro_geometry):
+    """The first solve in a fresh process pays for its imports: a DICOM slice's solve, verification included,
+    loads none of the heavy libraries the other commands use (the start-up budget: docs/benchmarks.md)."""
+    import json
+    import subprocess
+    import sys
+
+    from chic_register.imaging.simulate import simulate_slice, write_simulated
+    from chic_register.model.geometry import write_geometry
+
+    g = write_geometry(neuro_geometry, tmp_path / "geometry.yaml")
+    sim = simulate_slice(neuro_geometry, 22, 20, 30, 15, noise="rician", snr=20, rng=3)
+    image, _ = write_simulated(sim, tmp_path / "slice.dcm")
+    code = ("import json, sys\nfrom chic_register.cli.main import main\n"
+            f"status = main(['solve', {str(image)!r}, '--geometry', {str(g)!r}, '--json'])\n"
+            "print(json.dumps({'status': status, 'modules': sorted(sys.modules)}), file=sys.stderr)")
+    out = subprocess.run([sys.executable, "-c", code], capture_output=True, text=True, encoding="utf-8",
+                         errors="replace", check=True, timeout=120)
+    doc = json.loads(out.stderr.strip().splitlines()[-1])
+    assert doc["status"] == 0 and json.loads(out.stdout)["status"] == "ok"
+    heavy = sorted({m.split(".")[0] for m in doc["modules"]} & set(HEAVY_FOR_ONE_SLICE))
+    assert not heavy, heavy
