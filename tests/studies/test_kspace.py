@@ -1,6 +1,6 @@
 """The k-space image model of the body mesh (chic_register.studies.kspace): fluid area, blob centres, noise, a solve.
 
-Occupancy comes from the neuro design's CAD body, built once per session
+Occupancy comes from the neuro design's CAD body, built once per test run
 through the library and tessellated as its ``body.stl`` is (about 5 s), so
 the tests check the model against the geometry, not against the solver's
 section model.
