@@ -192,33 +192,23 @@ def _effects_asked(args) -> bool:
 def _with_scanner_effects(sim, geom, args, plain: bool):
     """``sim`` as a scanner with the asked effects shows it, and the truth file's record of them: the effects and
     the pose the distorted image shows (``T_scanner_from_fiducial_shown``), which is what a solve can find."""
-    import dataclasses  # here, not at the top, as the others: keeps start-up fast
-
     import numpy as np  # here, not at the top: keeps start-up fast
 
-    from chic_register.imaging.scanner import (  # here: fast start-up
-        ScannerEffects,
-        apply_scanner_effects,
-        body_footprint,
-    )
+    from chic_register.imaging.scanner import ScannerEffects, image_centre_mm  # here: fast start-up
     from chic_register.imaging.simulate import SimulatedSlice  # here: fast start-up
-    from chic_register.studies.distortion import apparent_pose  # here: fast start-up
+    from chic_register.studies.distortion import distort  # here: fast start-up
 
-    sl = sim.slice
-    rows, cols = sl.pixels.shape
     # a plain image has no placement: its isocentre is taken at the image centre
-    iso = sl.pixel_to_scanner((rows - 1) / 2.0, (cols - 1) / 2.0)[0] if plain else np.zeros(3)
+    iso = image_centre_mm(sim.slice) if plain else np.zeros(3)
     effects = ScannerEffects((args.scanner_scale[0] / 100.0, args.scanner_scale[1] / 100.0), args.nonlinearity,
                              args.shading, args.tissue, tuple(float(v) for v in iso))
     rng = np.random.default_rng(None if args.seed is None else args.seed + 1)
-    body = body_footprint(sl, sim.truth.T_scanner_from_fiducial, 0.5 * geom.body.outer_diameter, geom.body.length)
-    pixels = apply_scanner_effects(sl, effects, rng, signal=1.0, no_tissue=body)  # 1: the fluid's level
-    shown = apparent_pose(geom, sim.truth.T_scanner_from_fiducial, sl, effects)
+    shown_slice, shown = distort(sim.slice, sim.truth.T_scanner_from_fiducial, geom, effects, rng)
     doc = {"scanner_effects": {"scale_percent": [float(v) for v in args.scanner_scale],
                                "nonlinearity_mm_at_100mm": float(args.nonlinearity), "shading": float(args.shading),
                                "tissue": int(args.tissue), "isocentre_mm": [float(v) for v in iso]},
            "T_scanner_from_fiducial_shown": np.asarray(shown).tolist()}
-    return SimulatedSlice(dataclasses.replace(sl, pixels=pixels), sim.truth), doc
+    return SimulatedSlice(shown_slice, sim.truth), doc
 
 
 def _run_volume(args) -> int:

@@ -116,3 +116,9 @@ def body_footprint(sl: Slice, T_scanner_from_fiducial: np.ndarray, outer_radius_
     m = BODY_MARGIN_MM
     inside = (np.hypot(f[:, 0], f[:, 1]) <= outer_radius_mm + m) & (f[:, 2] >= -m) & (f[:, 2] <= length_mm + m)
     return inside.reshape(rows, cols)
+
+
+def image_centre_mm(sl: Slice) -> np.ndarray:
+    """(3,): the scanner point at the centre of ``sl``'s pixels, where a field of view sets the isocentre."""
+    rows, cols = np.asarray(sl.pixels).shape
+    return sl.pixel_to_scanner((rows - 1) / 2.0, (cols - 1) / 2.0)[0]

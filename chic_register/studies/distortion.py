@@ -12,7 +12,7 @@ import dataclasses
 import numpy as np
 
 from chic_register.fit.refine import refine
-from chic_register.imaging.scanner import ScannerEffects, apply_scanner_effects, body_footprint
+from chic_register.imaging.scanner import ScannerEffects, apply_scanner_effects, body_footprint, image_centre_mm
 from chic_register.model.geometry import FiducialGeometry
 from chic_register.model.pose import invert
 from chic_register.model.slices import Slice
@@ -32,10 +32,8 @@ def random_effects(rng: np.random.Generator, sl: Slice | None = None) -> Scanner
                              float(rng.uniform(0.0, 0.6)), int(rng.integers(0, 7)))
     if sl is None:
         return effects
-    rows, cols = sl.pixels.shape
     du, dv = rng.uniform(-ISOCENTRE_OFFSET_MM, ISOCENTRE_OFFSET_MM, 2)
-    iso = sl.pixel_to_scanner((rows - 1) / 2.0, (cols - 1) / 2.0)[0] + du * np.asarray(sl.col_dir, float) \
-        + dv * np.asarray(sl.row_dir, float)
+    iso = image_centre_mm(sl) + du * np.asarray(sl.col_dir, float) + dv * np.asarray(sl.row_dir, float)
     return dataclasses.replace(effects, isocentre_mm=tuple(float(v) for v in iso))
 
 
@@ -66,7 +64,13 @@ def distorted_case(case: Case, geom: FiducialGeometry, rng: np.random.Generator)
     """``(slice, apparent T_scanner_from_fiducial, effects)`` of a hunt case drawn with scanner effects."""
     sl, T_true, _ = build_case(case, geom)
     effects = random_effects(rng, sl)
-    body = body_footprint(sl, T_true, 0.5 * geom.body.outer_diameter, geom.body.length)
+    return (*distort(sl, T_true, geom, effects, rng), effects)
+
+
+def distort(sl: Slice, T_scanner_from_fiducial: np.ndarray, geom: FiducialGeometry, effects: ScannerEffects,
+            rng: np.random.Generator) -> tuple[Slice, np.ndarray]:
+    """``(sl as a scanner with effects shows it, the pose that image shows)``: a simulated MR slice (the fluid at
+    1) of ``geom`` at ``T_scanner_from_fiducial``, its tissue kept out of the fiducial's body."""
+    body = body_footprint(sl, T_scanner_from_fiducial, 0.5 * geom.body.outer_diameter, geom.body.length)
     pixels = apply_scanner_effects(sl, effects, rng, signal=1.0, no_tissue=body)
-    out = dataclasses.replace(sl, pixels=pixels)
-    return out, apparent_pose(geom, T_true, sl, effects), effects
+    return dataclasses.replace(sl, pixels=pixels), apparent_pose(geom, T_scanner_from_fiducial, sl, effects)

@@ -28,7 +28,7 @@ from chic_register.studies.kspace import (
 )
 
 
-@pytest.fixture(scope="session")
+@pytest.fixture(scope="module")
 def neuro_mesh(neuro_spec, neuro_geometry):
     """The neuro body's triangles in F: vertices (V, 3) mm, faces (F, 3)."""
     body = family_of(neuro_spec).parts(neuro_spec, neuro_geometry).body
@@ -39,7 +39,7 @@ def neuro_mesh(neuro_spec, neuro_geometry):
 POSE = (25.0, 20.0, 40.0, 10.0)  # depth, tilt, azimuth, twist: every tube crosses the slice well inside the body
 
 
-@pytest.fixture(scope="session")
+@pytest.fixture(scope="module")
 def clean_image(neuro_mesh, neuro_geometry):
     """The noise-free complex image at POSE, its placement and the true pose."""
     sl, T = slice_placement(*POSE)
