@@ -11,8 +11,9 @@ variant: Rician noise, no other damage), changed by one ``KIND``:
   its bore and beyond its end faces (a fiducial scanned in a bath);
 - ``dim_tube``: one tube at 20-60 % of the others' signal (a weaker fill);
 - ``scale``: the pixel spacing declared ``--amount`` (a fraction, default
-  0.002) too large along both axes, which is what a print that much too
-  large looks like (or a gradient calibration off by as much);
+  0.002) too large along both axes about the fiducial's centre, which is
+  what a print that much too large looks like (a gradient calibration off
+  by as much scales about the isocentre: ``hunt_distortion.py``);
 - ``helix_offset``: solved with a geometry file built from the same design
   with ``helix.offset_deg`` ``--amount`` degrees larger (default 0.5): a stale
   file after a design change, or helices printed turned against the straight

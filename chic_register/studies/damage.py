@@ -487,10 +487,22 @@ def other_design_geometries(geometries: dict) -> dict:
     return {name: geometries[names[(i + 1) % len(names)]] for i, name in enumerate(names)}
 
 
+def print_scaled(sl: Slice, T_scanner_from_fiducial: np.ndarray, geom, amount: float) -> Slice:
+    """``sl`` as the image of a print ``amount`` (a fraction) larger than its geometry file: its pixel spacing
+    declared that much too large about the foot of the fiducial's centre on the slice's plane, which stays where
+    it is (a gradient calibration error scales about the isocentre instead: :mod:`chic_register.imaging.scanner`)."""
+    origin = np.asarray(sl.origin_mm, float)
+    centre = (np.asarray(T_scanner_from_fiducial, float) @ np.array([0.0, 0.0, 0.5 * geom.body.length, 1.0]))[:3]
+    n = np.asarray(sl.normal, float)
+    pivot = centre - float((centre - origin) @ n) * n
+    return dataclasses.replace(sl, pixel_spacing_mm=tuple(v * (1 + amount) for v in sl.pixel_spacing_mm),
+                               origin_mm=pivot - (1 + amount) * (pivot - origin))
+
+
 def run_print_case(index: int, seed: int, kind: str, amount: float, geometries: dict, wrong: dict | None = None) -> dict:
     """One case of the print hunt: case ``index`` of the hunt seeded ``seed`` (its ``noisy`` variant) changed by
     ``kind`` (drawn from ``default_rng([seed, index, 7])``; ``scale``: the pixel spacing declared ``amount`` too
-    large), solved with ``wrong[geometry]`` when given (``helix_offset``, ``other_design``), judged to 4 digits."""
+    large about the fiducial's centre, the image of a print that much larger), solved with ``wrong[geometry]`` when given (``helix_offset``, ``other_design``), judged to 4 digits."""
     case = noisy_case(index, seed, geometries)
     geom = geometries[case.geometry]
     out = {"index": index, "geometry": case.geometry}
@@ -500,9 +512,10 @@ def run_print_case(index: int, seed: int, kind: str, amount: float, geometries: 
     except Exception:  # the hunt's own fault, not the solver's: reported apart
         out.update(outcome="setup_error", error=traceback.format_exc(limit=3), in_envelope=False)
         return out
-    spacing = tuple(v * (1 + amount) for v in sl.pixel_spacing_mm) if kind == "scale" else sl.pixel_spacing_mm
-    out.update(solve_and_judge(Slice(img, spacing, slice_thickness_mm=sl.slice_thickness_mm,
-                                     source=f"case{index}"), geom, T_true, ndigits=4,
-                               solve_geom=(wrong or {}).get(case.geometry)))
+    damaged = Slice(img, sl.pixel_spacing_mm, origin_mm=sl.origin_mm, col_dir=sl.col_dir, row_dir=sl.row_dir,
+                    slice_thickness_mm=sl.slice_thickness_mm, source=f"case{index}")
+    if kind == "scale":
+        damaged = print_scaled(damaged, T_true, geom, amount)
+    out.update(solve_and_judge(damaged, geom, T_true, ndigits=4, solve_geom=(wrong or {}).get(case.geometry)))
     out.update(tilt_deg=round(case.tilt_deg, 1), in_envelope=bool(in_env))
     return out

@@ -11,6 +11,7 @@ import numpy as np
 import pytest
 
 from chic_register.model.pose import rigid, rot_z
+from chic_register.model.slices import Slice
 from chic_register.studies.damage import (
     MUTATIONS,
     T_old_from_new,
@@ -20,6 +21,7 @@ from chic_register.studies.damage import (
     noisy_case,
     other_design_geometries,
     pose_error,
+    print_scaled,
     run_case,
     run_print_case,
     solve_and_judge,
@@ -36,6 +38,20 @@ def test_short_seeded_hunt_has_no_false_lock_and_no_crash():
     bad = [r for r in results if r["outcome"] in ("false_lock", "crash", "setup_error")]
     assert not bad, bad
     assert sum(r["outcome"] == "ok" for r in results) >= 1  # not vacuous: some slices lock, checked against the truth
+
+
+def test_a_print_too_large_is_scaled_about_the_fiducial_centre_not_the_image_corner():
+    """Hand-worked: the fiducial's axis along z through (30, 40) mm, its centre 10 mm off the slice's plane z = 0;
+    the pixel at that centre's foot (row 80, col 60 at 0.5 mm) stays at (30, 40, 0), and pixel (0, 0) moves 0.4 %
+    further from it."""
+    geom = hunt_geometries()["neuro"]
+    T = rigid(np.eye(3), [30.0, 40.0, 10.0 - 0.5 * geom.body.length])
+    sl = Slice(np.zeros((128, 128)), (0.5, 0.5), slice_thickness_mm=2.0)
+    big = print_scaled(sl, T, geom, 0.004)
+    assert big.pixel_spacing_mm == pytest.approx((0.502, 0.502))
+    at = big.origin_mm + 60 * big.pixel_spacing_mm[1] * big.col_dir + 80 * big.pixel_spacing_mm[0] * big.row_dir
+    assert at == pytest.approx([30.0, 40.0, 0.0])
+    assert np.linalg.norm(big.origin_mm - at) == pytest.approx(1.004 * 50.0)
 
 
 @pytest.mark.parametrize("kind, cases", [("other_design", 12), ("water_bath", 12)])
