@@ -44,6 +44,10 @@ SYMMETRY_TOL_DEG = 3.0
 #: A rival whose section fit ends within this share of the trust limits of the pose (their 1 sigma, as
 #: fit_checks.STRETCH_MOVE_SHARE) has fallen back onto the pose: the same answer, not a rival.
 FALLBACK_SHARE = 1.0 / 3.0
+#: Fewest matched tubes of a rival worth comparing: fewer than the solver needs to answer (a pose that explains
+#: the blobs it matches and predicts no tube the image lacks can disprove one that matches more but predicts
+#: sections that are not there), more than the three that fix a pose.
+RIVAL_MIN_TUBES = 4
 
 def slice_contenders(model, fit, rivals, strays, xy: np.ndarray, S: np.ndarray, j: int, sl, opts) -> list:
     """The distinct rival poses (``T_F_from_scanner``) of slice ``j`` that fit its blobs within the solver's limits.
@@ -58,7 +62,7 @@ def slice_contenders(model, fit, rivals, strays, xy: np.ndarray, S: np.ndarray, 
     turned += second_copy_rivals(model, xy, S, fit.assignments[j], opts, px)
     out = []
     for other in list(rivals) + turned:
-        if (other.n_matched < opts.min_tubes or other.rms_mm > opts.max_rms_px * px
+        if (other.n_matched < RIVAL_MIN_TUBES or other.rms_mm > opts.max_rms_px * px
                 or not poses_distinct(other.T_F_from_scanner, fit.T_F_from_scanner, model)
                 or not near_prior(other.T_F_from_scanner, opts)):  # the user's prior orientation excludes it
             continue

@@ -106,3 +106,19 @@ def test_a_fiducial_in_a_water_bath_is_found_on_the_flattened_image(case):
     flattened second look is taken on the neighbour differences' noise, finds the tubes, and the slice locks."""
     out = run_print_case(case, 5, "water_bath", 0.0, hunt_geometries())
     assert out["outcome"] == "ok" and out["rot_deg"] < 0.2, out
+
+
+@pytest.mark.parametrize("case", [554, 611])
+def test_a_pose_that_predicts_sections_the_image_lacks_loses_to_a_rival_of_fewer_tubes(case, monkeypatch):
+    """hunt_print seed 6, noisy neuro slices 33-45 deg from normal near an end face: six sections show. A pose
+    65-89 deg off matches all six within 0.03 mm but predicts three more the image lacks; the truth, refined from
+    the blob centres, matches five and predicts no other. Compared on the pixels, that rival explains them
+    better, and the slice is refused. With rivals held to the six tubes a lock needs, it locked 65-89 deg off."""
+    import chic_register.verify.rivals as rv
+
+    geoms = hunt_geometries()
+    out = run_print_case(case, 6, "scale", 0.0, geoms)
+    assert out["outcome"] == "no_lock" and "explains the pixels better" in out["reason"], out
+    monkeypatch.setattr(rv, "RIVAL_MIN_TUBES", 6)
+    out = run_print_case(case, 6, "scale", 0.0, geoms)
+    assert out["outcome"] == "false_lock" and out["rot_deg"] > 60, out
