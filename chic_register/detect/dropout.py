@@ -77,6 +77,16 @@ def _neighbourhoods(img: np.ndarray, fill) -> np.ndarray:
     return sliding_window_view(np.pad(img, h, constant_values=fill), (WINDOW_PX, WINDOW_PX))
 
 
+def _box_count(mask: np.ndarray) -> np.ndarray:
+    """(rows, cols) int: the True pixels of every pixel's ``WINDOW_PX`` neighbourhood, the border padded False
+    (the sum over :func:`_neighbourhoods`, in separable passes: a reduction over a strided view costs ten times
+    more)."""
+    h, n = WINDOW_PX // 2, WINDOW_PX
+    p = np.pad(mask.astype(np.int32), h)
+    rows = sum(p[i:p.shape[0] - n + 1 + i] for i in range(n))
+    return sum(rows[:, j:rows.shape[1] - n + 1 + j] for j in range(n))
+
+
 def fill_dropouts(pixels: np.ndarray) -> tuple[np.ndarray, int]:
     """``(pixels, n_filled)``: each lost pixel (not a finite number, a bright speck, or an exact zero amid signal,
     see the module's doc) replaced by the median of the valid pixels of its ``WINDOW_PX`` neighbourhood; the input itself when there
@@ -242,10 +252,10 @@ def _fill_zeros(pixels: np.ndarray) -> tuple[np.ndarray, int, np.ndarray | None]
     background = median(valid)
     level = background + SIGNAL_SIGMAS * 1.4826 * median(np.abs(valid - background))
     # lost samples fall anywhere, signal or not; zeros that are clipped noise avoid the signal
-    near_signal = _neighbourhoods(img > level, False).any(axis=(2, 3))
+    near_signal = _box_count(img > level) > 0
     if not near_signal.any() or zero[near_signal].mean() < SCATTER_SHARE * share:
         return pixels, 0, None
-    valid_share = _neighbourhoods(~zero, False).mean(axis=(2, 3))
+    valid_share = _box_count(~zero) / float(WINDOW_PX * WINDOW_PX)
     candidates = zero & (valid_share >= MIN_VALID_SHARE)
     if not candidates.any():
         return pixels, 0, zero

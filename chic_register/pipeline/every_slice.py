@@ -149,16 +149,27 @@ def register_every_slice(slices: list[Slice], geom: FiducialGeometry, opts: Solv
     if not starts:
         raise NoLock(no_slice_locked(lone_refusals), {"n_skipped": len(lone_refusals)})
     groups: list[tuple[JointFit, set]] = []  # each distinct joint pose and the lone-locked slices that lead to it
+    led: list[tuple[np.ndarray, tuple | None]] = []  # each start's pose on all slices' blobs, and where it led
     for j, X in starts:
         same = [g for g in groups if not poses_distinct(X, g[0].fit.T_F_from_scanner, model)]
         if not same:
-            jf = _joint_fit(model, seen, noise, pixel_noise, parents, X)
+            start = _joint_start(model, seen, parents, X)
+            # a start that the blob centres of every slice take where an earlier one went leads where that one led
+            before = [g for T, g in led if not poses_distinct(start[1].T_F_from_scanner, T, model, 0.01, 0.01)]
+            if before:
+                if before[0] is not None:
+                    before[0][1].add(j)
+                continue
+            jf = _joint_fit(model, seen, noise, pixel_noise, start)
             if jf is None:
+                led.append((start[1].T_F_from_scanner, None))
                 continue
             same = [g for g in groups if not poses_distinct(jf.fit.T_F_from_scanner, g[0].fit.T_F_from_scanner, model)]
             if not same:
                 groups.append((jf, {j}))
+                led.append((start[1].T_F_from_scanner, groups[-1]))
                 continue
+            led.append((start[1].T_F_from_scanner, same[0]))
         same[0][1].add(j)
     fits = [g for g in groups if near_prior(g[0].fit.T_F_from_scanner, opts)]
     outside = [g[0] for g in groups if not near_prior(g[0].fit.T_F_from_scanner, opts)]
@@ -323,9 +334,9 @@ def _residual_rows(fit: Fit, noise, js):
     return rows
 
 
-def _joint_fit(model: TubeModel, seen, noise, pixel_noise, parents, X: np.ndarray) -> JointFit | None:
-    """The pose near ``X`` fitted to every slice, blobs and then slices the scatter cannot explain left out; None
-    when fewer than two slices keep :data:`MIN_SLICE_TUBES` tubes."""
+def _joint_start(model: TubeModel, seen, parents, X: np.ndarray) -> tuple[list[np.ndarray], Fit]:
+    """``(idx, fit)``: per slice the blobs that are candidates for tubes (:func:`_candidates`), and the pose near
+    ``X`` fitted to them on every slice (the start of :func:`_joint_fit`)."""
     gate = match_gate_mm(model, max(d.resolution_mm for d in seen))
     K = len(model.ids)
     excl = [np.zeros(K, bool) for _ in seen]
@@ -336,6 +347,17 @@ def _joint_fit(model: TubeModel, seen, noise, pixel_noise, parents, X: np.ndarra
     if any(a.size != b.size or np.any(a != b) for a, b in zip(again, idx)):  # touching tubes: their parts instead
         idx = again
         fit = _fit_on(model, seen, idx, fit.T_F_from_scanner, keep, excl, (0.6 * gate,))
+    return idx, fit
+
+
+def _joint_fit(model: TubeModel, seen, noise, pixel_noise, start: tuple[list[np.ndarray], Fit]) -> JointFit | None:
+    """The pose fitted to every slice from ``start`` (:func:`_joint_start`), blobs and then slices the scatter
+    cannot explain left out; None when fewer than two slices keep :data:`MIN_SLICE_TUBES` tubes."""
+    gate = match_gate_mm(model, max(d.resolution_mm for d in seen))
+    K = len(model.ids)
+    excl = [np.zeros(K, bool) for _ in seen]
+    keep = list(range(len(seen)))
+    idx, fit = start
     seen, noise, fit = _better_centres(model, seen, noise, pixel_noise, idx, fit, keep, excl, gate)
     dropped = []
     for _ in range(2 * len(seen) + 4 * K):
