@@ -248,15 +248,20 @@ def median_diameter_mm(model: TubeModel) -> float:
     return float(np.median(model.diameter_mm))
 
 
-def _centre_noise(d: DetectedSlice, pixel_noise) -> np.ndarray:
+def _centre_noise(d: DetectedSlice, pixel_noise, known: tuple[DetectedSlice, np.ndarray] | None = None) -> np.ndarray:
     """(N,) each blob centre's 1-sigma error per coordinate (mm) from the slice's image noise ``pixel_noise`` (a
-    :class:`~chic_register.detect.noise.NoiseEstimate`: one per slice, whichever centres its blobs are given)."""
+    :class:`~chic_register.detect.noise.NoiseEstimate`: one per slice, whichever centres its blobs are given);
+    ``known``: the same slice with other centres for some blobs, and its errors (a footprint it shares is not
+    measured again)."""
     b = d.blobs
     if not len(b.footprints) or pixel_noise is None:
         return np.zeros(0)
     n = pixel_noise
     out = []
-    for fp in b.footprints:
+    for i, fp in enumerate(b.footprints):
+        if known is not None and fp is known[0].blobs.footprints[i]:
+            out.append(float(known[1][i]))
+            continue
         C = centroid_covariance(d.slice.pixels, fp, b.background, n, d.slice.pixel_spacing_mm)
         out.append(math.sqrt(max(0.5 * float(np.trace(C)), 0.0)) if np.all(np.isfinite(C)) else math.inf)
     return np.array(out)
@@ -430,7 +435,8 @@ def _better_centres(model: TubeModel, seen, noise, pixel_noise, idx, fit: Fit, k
     up), and the pose fitted to them."""
     X = fit.T_F_from_scanner
     disc = [disc_centres(model, d, fit.assignments[j], X) if j in keep else d for j, d in enumerate(seen)]
-    disc_noise = [_centre_noise(d, pixel_noise[j]) if j in keep else noise[j] for j, d in enumerate(disc)]
+    disc_noise = [_centre_noise(d, pixel_noise[j], (seen[j], noise[j])) if j in keep else noise[j]
+                  for j, d in enumerate(disc)]
     refit = _fit_on(model, disc, idx, X, keep, excl, (0.6 * gate,))
 
     def median_r2(f: Fit) -> float:
