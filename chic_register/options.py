@@ -23,6 +23,12 @@ ROT_TOL_DEG = 0.75
 #: (a larger one is a wrong pixel spacing, and the message names the spacing that would register it), a print
 #: shrinks or grows by 0.1-0.5 %.
 MAX_SCALE_ERROR = 0.02
+#: The same across a volume's slices (``SolveOptions.max_slice_scale_error``): scanners correct the gradients'
+#: non-linearity in the image plane (2-D correction is the default of most 2-D and many 3-D protocols) but not across
+#: it, and 100-150 mm from the isocentre, where a frame on the perineum or the head sits, the slice direction's local
+#: scale is off by several per cent (a real prostate-template scan: -3 %); a wrong slice spacing is off by more
+#: (a missing gap, overlapping slices read as contiguous: 10-50 %).
+MAX_SLICE_SCALE_ERROR = 0.05
 
 
 @dataclass(frozen=True)
@@ -87,8 +93,10 @@ class SolveOptions:
     per axis (:mod:`chic_register.fit.scale`); where the data show a scale
     (its F test below :data:`~chic_register.fit.checks.STRETCH_P`) the pose
     so fitted is the answer and its covariance holds the scale's
-    uncertainty; ``max_scale_error``: a scale beyond it is refused as a
-    wrong pixel spacing (the registration reports the scale either way).
+    uncertainty; ``max_scale_error``: a scale in the image plane beyond it
+    is refused as a wrong pixel spacing, ``max_slice_scale_error`` one
+    across a volume's slices as a wrong slice spacing (the registration
+    reports the scale either way).
     """
 
     max_rms_px: float = 0.5
@@ -123,3 +131,4 @@ class SolveOptions:
     prior_max_deg: float = 60.0
     fit_scale: bool = True
     max_scale_error: float = MAX_SCALE_ERROR
+    max_slice_scale_error: float = MAX_SLICE_SCALE_ERROR

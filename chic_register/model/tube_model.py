@@ -18,6 +18,7 @@ from dataclasses import dataclass
 import numpy as np
 
 from chic_register.model.geometry import FiducialGeometry, content_sha256
+from chic_register.model.pose import invert
 from chic_register.model.tubes import HelixTube, LineTube
 
 
@@ -392,12 +393,16 @@ def adjoint(T: np.ndarray) -> np.ndarray:
     return A
 
 
-def poses_distinct(T1: np.ndarray, T2: np.ndarray, model: TubeModel, mm: float = 1.0, deg: float = 1.0) -> bool:
-    """Two fiducial poses differ by more than ``mm`` at any tube end or by more than ``deg`` (1 mm, 1 degree)."""
-    dR = T1[:3, :3].T @ T2[:3, :3]
+def poses_distinct(X1: np.ndarray, X2: np.ndarray, model: TubeModel, mm: float = 1.0, deg: float = 1.0) -> bool:
+    """Two poses (``T_F_from_scanner``) put some tube end of the fiducial more than ``mm`` apart in the scanner, or
+    differ by more than ``deg`` in rotation (1 mm, 1 degree). Measured in F (``X1 X2^-1`` moves each point of F to
+    where the second pose puts it, as the first sees it), so a frame far from the scanner's origin is judged by its
+    own size, not by its distance from the isocentre."""
+    D = X1 @ invert(X2)
+    dR = D[:3, :3]
     ang = math.degrees(math.acos(min(1.0, max(-1.0, (np.trace(dR) - 1) / 2))))
     if ang > deg:
         return True
     pts = model.probe_points_mm  # tube ends on the axis circle, the axis ends
-    d = (pts @ T1[:3, :3].T + T1[:3, 3]) - (pts @ T2[:3, :3].T + T2[:3, 3])
+    d = pts @ dR.T + D[:3, 3] - pts
     return float(np.sqrt(np.add.reduce(d * d, axis=1)).max()) > mm  # (np.linalg.norm's formula, less its checks)

@@ -40,11 +40,12 @@ from chic_register.detect.disc import disc_centroid
 from chic_register.detect.dropout import fill_slice_dropouts
 from chic_register.detect.noise import slice_noise
 from chic_register.errors import AmbiguousFit, NoLock
-from chic_register.fit.checks import gamma_p
+from chic_register.fit.checks import STRETCH_P, gamma_p
 from chic_register.fit.lock import lock_slice
 from chic_register.fit.refine import Fit, assign_blobs, match_gate_mm, refine
+from chic_register.fit.scale import fit_scale
 from chic_register.model.geometry import FiducialGeometry
-from chic_register.model.pose import near_prior, rotation_deg, slice_angles
+from chic_register.model.pose import invert, near_prior, rotation_deg, slice_angles
 from chic_register.model.slices import Slice
 from chic_register.model.tube_model import TubeModel, plane_crossings, poses_distinct, prepare_geometry
 from chic_register.options import SolveOptions
@@ -66,8 +67,16 @@ OUTLIER_P = 1e-3
 MODEL_ERROR_SHARE = 1.0 / 3.0
 #: :func:`~chic_register.detect.blobs.detect_blobs`' default smallest blob area, as a share of a channel's section.
 MIN_AREA_FACTOR = 0.3
+#: At the scan's blob width a slice is read at most this many robust noise sigmas of its smoothed image above its
+#: median (``noise_threshold_sigmas``): where anatomy far brighter than the frame fills part of the field of view
+#: (a patient's thighs), Otsu's split falls between tissue and background, above the rods of a fading slab's end;
+#: noise alone passes such a level with odds below 1e-15, so the level adds no candidate of noise.
+SCAN_LEVEL_SIGMAS = 8.0
 #: Slices locked alone to find starting poses, at most (each costs 5-200 ms; the joint fit does the rest).
 MAX_LONE_LOCKS = 5
+#: Rounds of the joint fit taken again at the scale its slices show (:func:`_joint_fit`): the first estimate, from
+#: the slices a rigid pose keeps, may see only part of a large one.
+SCALE_ROUNDS = 3
 #: A slice left out is said to disagree when this many channel diameters around the joint pose's crossings hold
 #: blobs of at least :data:`MIN_SLICE_TUBES` of its tubes (its frame is there, elsewhere).
 WIDE_GATE_SHARE = 3.0
@@ -150,27 +159,29 @@ def register_every_slice(slices: list[Slice], geom: FiducialGeometry, opts: Solv
         raise NoLock(no_slice_locked(lone_refusals), {"n_skipped": len(lone_refusals)})
     groups: list[tuple[JointFit, set]] = []  # each distinct joint pose and the lone-locked slices that lead to it
     led: list[tuple[np.ndarray, tuple | None]] = []  # each start's pose on all slices' blobs, and where it led
-    for j, X in starts:
+    begun = [(_joint_start(model, seen, parents, X), js) for X, js in _distinct_starts(model, starts)]
+    begun.sort(key=lambda b: -b[0][1].n_matched)  # the start that explains most of the volume first
+    for start, js in begun:
+        X = start[1].T_F_from_scanner
+        # a start the blob centres of every slice take within a millimetre and a degree of a pose found leads there
+        # (the same blobs, the same fit); one taken where an earlier one went leads where that one led
         same = [g for g in groups if not poses_distinct(X, g[0].fit.T_F_from_scanner, model)]
+        same = same or [g for T, g in led if not poses_distinct(X, T, model, 0.01, 0.01)]
+        if same:
+            if same[0] is not None:
+                same[0][1].update(js)
+            continue
+        jf = _joint_fit(model, seen, noise, pixel_noise, start)
+        if jf is None:
+            led.append((X, None))
+            continue
+        same = [g for g in groups if not poses_distinct(jf.fit.T_F_from_scanner, g[0].fit.T_F_from_scanner, model)]
         if not same:
-            start = _joint_start(model, seen, parents, X)
-            # a start that the blob centres of every slice take where an earlier one went leads where that one led
-            before = [g for T, g in led if not poses_distinct(start[1].T_F_from_scanner, T, model, 0.01, 0.01)]
-            if before:
-                if before[0] is not None:
-                    before[0][1].add(j)
-                continue
-            jf = _joint_fit(model, seen, noise, pixel_noise, start)
-            if jf is None:
-                led.append((start[1].T_F_from_scanner, None))
-                continue
-            same = [g for g in groups if not poses_distinct(jf.fit.T_F_from_scanner, g[0].fit.T_F_from_scanner, model)]
-            if not same:
-                groups.append((jf, {j}))
-                led.append((start[1].T_F_from_scanner, groups[-1]))
-                continue
-            led.append((start[1].T_F_from_scanner, same[0]))
-        same[0][1].add(j)
+            groups.append((jf, set(js)))
+            led.append((X, groups[-1]))
+            continue
+        led.append((X, same[0]))
+        same[0][1].update(js)
     fits = [g for g in groups if near_prior(g[0].fit.T_F_from_scanner, opts)]
     outside = [g[0] for g in groups if not near_prior(g[0].fit.T_F_from_scanner, opts)]
     if not fits and outside:
@@ -185,8 +196,8 @@ def register_every_slice(slices: list[Slice], geom: FiducialGeometry, opts: Solv
         raise NoLock(f"the slices locked alone lead to {len(supported)} distinct poses that two or more of them agree "
                      f"on (of {len(fits)} poses fitted to the volume's blob centres); one is needed",
                      {"n_poses": len(supported)})
-    best = supported[0][0]
-    others = sorted((g[0] for g in fits if g[0] is not best), key=lambda f: (-f.fit.n_matched, _scatter_mm(f)))
+    best = _with_faint_sections(model, supported[0][0], seen, noise, pixel_noise, parents, detect_options)
+    others = sorted((g[0] for g in fits if g is not supported[0]), key=lambda f: (-f.fit.n_matched, _scatter_mm(f)))
     # centres that fit no rigid pose well, or two poses nearly as well: the sections' pixels may still tell
     _check_model_error(model, best)
     _check_explained(model, best)
@@ -234,14 +245,56 @@ def _detect_at_scan_width(seen: list[DetectedSlice], model: TubeModel, opts: Sol
     width = scan_blob_width_mm(seen, model, opts.min_tubes)
     if not math.isfinite(width) or (detect_options or {}).get("size_from_image") is False:
         return seen
+    return [_detect_at_width(d, model, width, detect_options) for d in seen]
+
+
+def _detect_at_width(d: DetectedSlice, model: TubeModel, width: float, detect_options: dict | None,
+                     **extra) -> DetectedSlice:
+    """``d`` detected at the blob width ``width`` (mm), with ``detect_options`` and ``extra`` options of
+    :func:`~chic_register.detect.blobs.detect_blobs`."""
     f = width / median_diameter_mm(model)
     kw = {**(detect_options or {}), "size_from_image": False,
-          "min_area_factor": (detect_options or {}).get("min_area_factor", MIN_AREA_FACTOR) / max(f, 1.0) ** 2}
-    out = []
-    for d in seen:
-        b = detect_blobs(d.slice.pixels, d.slice.pixel_spacing_mm, model.diameter_mm * f, **kw)
-        out.append(DetectedSlice.of(d.slice, dataclasses.replace(b, width_mm=width), d.T_scanner_from_image))
-    return out
+          "min_area_factor": (detect_options or {}).get("min_area_factor", MIN_AREA_FACTOR) / max(f, 1.0) ** 2, **extra}
+    b = detect_blobs(d.slice.pixels, d.slice.pixel_spacing_mm, model.diameter_mm * f, **kw)
+    return DetectedSlice.of(d.slice, dataclasses.replace(b, width_mm=width), d.T_scanner_from_image)
+
+
+def _with_faint_sections(model: TubeModel, best: JointFit, seen, noise, pixel_noise, parents,
+                         detect_options: dict | None) -> JointFit:
+    """``best``, or its pose fitted again with the faint sections of the slices where it finds blobs for fewer tubes
+    than it puts wholly inside them, when that explains more of the volume without moving the pose beyond a
+    millimetre and a degree: such a slice is read again at a level bounded by its noise (:data:`SCAN_LEVEL_SIGMAS`),
+    kept where that finds more blobs at the pose's crossings. Anatomy far brighter than the frame (a patient's
+    thighs) draws Otsu's split between tissue and background, above the rods of a slab's fading end."""
+    X = best.fit.T_F_from_scanner
+    gate = float(np.max(model.diameter_mm))
+    again, changed = list(seen), []
+    for j, d in enumerate(seen):
+        if d.xy_mm.shape[0] == 0 and not np.isfinite(d.blobs.noise_sigma):
+            continue
+        whole = _interior(model, X @ d.T_scanner_from_image)
+        found = int(np.sum(whole & (best.fit.assignments[j] >= 0))) if j < len(best.fit.assignments) else 0
+        if not whole.any() or found >= int(whole.sum()) or not math.isfinite(d.blobs.width_mm):
+            continue
+        faint = _detect_at_width(d, model, d.blobs.width_mm, detect_options, noise_threshold_sigmas=SCAN_LEVEL_SIGMAS)
+        q, _, _, inside = plane_crossings(model, X @ d.T_scanner_from_image)
+        if int(np.sum(assign_blobs(q, inside, faint.xy_mm, gate) >= 0)) > int(np.sum(
+                assign_blobs(q, inside, d.xy_mm, gate) >= 0)):
+            again[j] = faint
+            changed.append(j)
+    if not changed:
+        return best
+    pixel_noise = list(pixel_noise)
+    noise, parents = list(noise), list(parents)
+    for j in changed:
+        d = again[j]
+        pixel_noise[j] = slice_noise(d.slice, d.blobs.footprints) if len(d.blobs.footprints) else None
+        noise[j], parents[j] = _centre_noise(d, pixel_noise[j]), enclosing_blobs(d.blobs)
+    jf = _joint_fit(model, again, noise, pixel_noise, _joint_start(model, again, parents, X))
+    if (jf is None or jf.fit.n_matched <= best.fit.n_matched
+            or poses_distinct(jf.fit.T_F_from_scanner, X, model)):
+        return best
+    return jf
 
 
 def median_diameter_mm(model: TubeModel) -> float:
@@ -321,8 +374,26 @@ def _starting_poses(model: TubeModel, seen: list[DetectedSlice], opts: SolveOpti
             refusals.append(SkippedSlice(d.source, exc.reason))
             continue
         top = fits[0].n_matched
-        starts += [(j, f.T_F_from_scanner) for f in fits if f.n_matched >= top - 1]
+        starts += [(j, f.T_F_from_scanner, f.n_matched) for f in fits if f.n_matched >= top - 1]
     return starts, refusals
+
+
+def _distinct_starts(model: TubeModel, starts) -> list[tuple[np.ndarray, set]]:
+    """``(T_F_from_scanner, slices)``: the starting poses (``starts``: slice, pose, tubes it explains there), those
+    within a millimetre and a degree of each other taken as one, with every lone-locked slice that gave it; a pose
+    that explains two tubes fewer than the best of any slice does (a slice of the four parallel rods alone locks in
+    four turns of them, all wrong but one) is dropped unless a better start gave it too."""
+    reps: list[tuple[np.ndarray, set, list]] = []
+    for j, X, n in starts:
+        for Y, js, best in reps:
+            if not poses_distinct(X, Y, model):
+                js.add(j)
+                best[0] = max(best[0], n)
+                break
+        else:
+            reps.append((X, {j}, [n]))
+    top = max((best[0] for _, _, best in reps), default=0)
+    return [(X, js) for X, js, best in reps if best[0] >= top - 1]
 
 
 def _scatter_mm(jf: JointFit) -> float:
@@ -355,15 +426,63 @@ def _joint_start(model: TubeModel, seen, parents, X: np.ndarray) -> tuple[list[n
     return idx, fit
 
 
+def _gate(model: TubeModel, seen) -> float:
+    return match_gate_mm(model, max(d.resolution_mm for d in seen))
+
+
 def _joint_fit(model: TubeModel, seen, noise, pixel_noise, start: tuple[list[np.ndarray], Fit]) -> JointFit | None:
     """The pose fitted to every slice from ``start`` (:func:`_joint_start`), blobs and then slices the scatter
-    cannot explain left out; None when fewer than two slices keep :data:`MIN_SLICE_TUBES` tubes."""
-    gate = match_gate_mm(model, max(d.resolution_mm for d in seen))
+    cannot explain left out; None when fewer than two slices keep :data:`MIN_SLICE_TUBES` tubes.
+
+    Where the fitted slices show a scale (:func:`~chic_register.fit.scale.fit_scale`'s F test), the centres and
+    slices are taken at that scale and the blobs and slices chosen again: a few per cent across a volume's slices
+    (the gradients' non-linearity far from the isocentre) puts the end slices' sections a millimetre off any rigid
+    pose, which would otherwise leave them out. The fit is then the scaled data's; ``JointFit.seen`` stays the
+    image's own (the registration fits the scale again on it, :func:`~chic_register.pipeline.scaling.scale_stage`)."""
+    gate = _gate(model, seen)
+    idx, fit = start
+    keep = list(range(len(seen)))
+    excl = [np.zeros(len(model.ids), bool) for _ in seen]
+    seen, noise, fit = _better_centres(model, seen, noise, pixel_noise, idx, fit, keep, excl, gate)
+    jf = _prune(model, seen, noise, idx, fit, gate)
+    if jf is None:
+        return None
+    scaled, rigid = list(seen), jf
+    for _ in range(SCALE_ROUNDS):
+        sf = fit_scale(model, _restrict(jf.fit, jf.used), [scaled[j] for j in jf.used])
+        if sf is None or not sf.p < STRETCH_P:
+            break
+        scaled = [at_scale(d, sf, model) for d in scaled]
+        again = _prune(model, scaled, noise, idx, _fit_on(model, scaled, idx, sf.T_F_from_scanner, keep, excl,
+                                                          (gate, 0.6 * gate)), gate)
+        if again is None or again.fit.n_matched < jf.fit.n_matched:
+            break
+        jf = again
+    return jf if jf is rigid else dataclasses.replace(jf, seen=tuple(seen))
+
+
+def at_scale(d: DetectedSlice, sf, model: TubeModel) -> DetectedSlice:
+    """``d`` as a rigid image of the fiducial at the scale ``sf`` (a :class:`~chic_register.fit.scale.ScaleFit`):
+    its centres stretched about the fiducial's centre in the image plane, the slice moved along its normal by the
+    through-plane scale times its distance from that centre."""
+    X = sf.T_F_from_scanner
+    S = d.T_scanner_from_image
+    centre = invert(S) @ (invert(X) @ np.array([0.0, 0.0, 0.5 * model.length_mm, 1.0]))
+    s = np.zeros(3)
+    s[:sf.scale.size] = sf.scale
+    xy = centre[:2] + (1.0 + s[:2]) * (d.xy_mm - centre[:2])
+    shift = np.eye(4)
+    shift[2, 3] = -s[2] * centre[2]  # the slice lies -centre[2] from the centre along its normal
+    return dataclasses.replace(d, xy_mm=xy, T_scanner_from_image=S @ shift)
+
+
+def _prune(model: TubeModel, seen, noise, idx, fit: Fit, gate: float) -> JointFit | None:
+    """From ``fit`` on every slice: blobs, then slices, whose residuals the scatter cannot explain left out in turn
+    (:data:`OUTLIER_P`), the pose refitted after each; None when fewer than two slices keep :data:`MIN_SLICE_TUBES`
+    tubes."""
     K = len(model.ids)
     excl = [np.zeros(K, bool) for _ in seen]
     keep = list(range(len(seen)))
-    idx, fit = start
-    seen, noise, fit = _better_centres(model, seen, noise, pixel_noise, idx, fit, keep, excl, gate)
     dropped = []
     for _ in range(2 * len(seen) + 4 * K):
         rows = _residual_rows(fit, noise, keep)

@@ -2,8 +2,9 @@
 
 Where the data show a scale (the F test of :func:`~chic_register.fit.scale.fit_scale` below
 :data:`~chic_register.fit.checks.STRETCH_P`), the pose fitted with it is the answer: a rigid pose would have taken
-part of the scale as a tilt. A scale beyond ``max_scale_error`` is refused as a wrong pixel spacing; one whose fit
-moves the pose beyond the trust limits is refused as not separable from the pose.
+part of the scale as a tilt. A scale beyond ``max_scale_error`` in the image plane (``max_slice_scale_error`` across
+the slices) is refused as a wrong pixel (slice) spacing; one whose fit moves the pose beyond the trust limits is
+refused as not separable from the pose.
 """
 
 from __future__ import annotations
@@ -52,6 +53,11 @@ class ImageScale:
                 **({"p": float(self.p)} if math.isfinite(self.p) else {}), "fitted": self.fitted}
 
 
+def scale_limit(axis: str, opts: SolveOptions) -> float:
+    """The largest scale fitted along ``axis`` (x, y: the image plane; z: across the slices) rather than refused."""
+    return opts.max_slice_scale_error if axis == "z" else opts.max_scale_error
+
+
 def scale_stage(model: TubeModel, fit: Fit, seen: list[DetectedSlice], opts: SolveOptions) -> tuple[Fit, ImageScale | None]:
     """``(pose, scale)``: ``fit`` or, where the data show a scale, the pose fitted with it; :class:`NoLock` for a
     scale beyond ``opts.max_scale_error`` or one the pose cannot be told apart from."""
@@ -62,12 +68,14 @@ def scale_stage(model: TubeModel, fit: Fit, seen: list[DetectedSlice], opts: Sol
         return fit, None
     if not sf.p < STRETCH_P or len(seen) < 2:  # one slice alone reads a stretch as a tilt: reported, not fitted
         return fit, ImageScale.of(sf, False)
-    worst = int(np.argmax(np.abs(sf.scale)))
-    if abs(sf.scale[worst]) > opts.max_scale_error:
+    limits = np.array([scale_limit(a, opts) for a in sf.axes])
+    worst = int(np.argmax(np.abs(sf.scale) / limits))
+    if abs(sf.scale[worst]) > limits[worst]:
+        spacing, cause = (("slice spacing", "the gradients' non-linearity across the slices")
+                          if sf.axes[worst] == "z" else ("pixel spacing", "a scanner's calibration or a print"))
         raise NoLock(f"the image's scale along {sf.axes[worst]} is {100 * sf.scale[worst]:+.2f} % "
-                     f"(+-{100 * sf.scale_sd[worst]:.2f}), beyond the {100 * opts.max_scale_error:g} % a scanner's "
-                     f"calibration or a print explains: check the pixel spacing and the slice spacing "
-                     f"(--max-scale-error sets the limit)", {"scale": sf.to_dict()})
+                     f"(+-{100 * sf.scale_sd[worst]:.2f}), beyond the {100 * limits[worst]:g} % {cause} explains: "
+                     f"check the {spacing} (--max-scale-error sets the limits)", {"scale": sf.to_dict()})
     if poses_distinct(sf.T_F_from_scanner, fit.T_F_from_scanner, model, opts.trust_tre_mm, opts.trust_rot_deg):
         raise NoLock("the image's scale cannot be told apart from the pose: fitted with it, the pose moves beyond "
                      f"the trust limits ({opts.trust_tre_mm:g} mm, {opts.trust_rot_deg:g} deg)", {"scale": sf.to_dict()})

@@ -168,10 +168,14 @@ def test_geometry_key_memo_of_the_tubes_repr_is_the_repr(neuro_geometry):
     (rigid(np.eye(3), (0.9, 0.0, 0.0)), 1.0, False),  # shifted 0.9 mm
     (rigid(np.eye(3), (0.0, 0.0, 1.1)), 1.0, True),  # shifted 1.1 mm along the axis
 ])
-def test_poses_are_distinct_beyond_a_millimetre_at_a_tube_end_or_a_degree(neuro_geometry, move, mm, distinct):
+@pytest.mark.parametrize("t_scanner_mm", [(4.0, -7.0, 60.0), (11.0, -14.8, -136.8)])
+def test_poses_are_distinct_beyond_a_millimetre_at_a_tube_end_or_a_degree(neuro_geometry, move, mm, distinct,
+                                                                           t_scanner_mm):
     """neuro's probe points: tube ends on the 12.5 mm circle at z = 0 and 50, a point on it at mid-length, the axis
-    ends; the second pose is the first (an arbitrary one) followed by ``move`` in F."""
+    ends; the second pose is the first (an arbitrary one, near the isocentre or 137 mm from it as a real scan's
+    frame) followed by ``move`` in F; both given as ``T_F_from_scanner``, as the solver holds them."""
     model, _ = prepare_geometry(neuro_geometry)
-    T1 = rigid(rot_z(30.0) @ rot_y(20.0), (4.0, -7.0, 60.0))
-    assert poses_distinct(T1, T1 @ move, model, mm=mm) is distinct
-    assert poses_distinct(T1 @ move, T1, model, mm=mm) is distinct
+    T1 = rigid(rot_z(30.0) @ rot_y(20.0), t_scanner_mm)
+    X1, X2 = invert(T1), invert(T1 @ move)
+    assert poses_distinct(X1, X2, model, mm=mm) is distinct
+    assert poses_distinct(X2, X1, model, mm=mm) is distinct
