@@ -72,3 +72,23 @@ def disc_centroid(pixels: np.ndarray, background: float, start_rc, radius_px: fl
         return None
     a0, a1, b0, b1 = rows.min(), rows.max() + 1, cols.min(), cols.max() + 1
     return (r, c), (r0 + int(a0), c0 + int(b0), mask[a0:a1, b0:b1].copy())
+
+
+def disc_contrast(pixels: np.ndarray, background: float, noise_sigma: float, centre_rc, radius_px: float) -> float:
+    """The mean of ``pixels`` over a disc of ``radius_px`` about ``centre_rc`` (row, col) above ``background``, in
+    noise sigmas of one pixel (NaN without noise or pixels): how plainly a section too faint to detect shows there."""
+    if not noise_sigma > 0:
+        return math.nan
+    img = np.asarray(pixels)
+    H, W = img.shape
+    r, c = (float(v) for v in centre_rc)
+    R = float(radius_px)
+    r0, r1 = max(0, int(math.floor(r - R))), min(H, int(math.ceil(r + R)) + 1)
+    c0, c1 = max(0, int(math.floor(c - R))), min(W, int(math.ceil(c + R)) + 1)
+    if r0 >= r1 or c0 >= c1:
+        return math.nan
+    rr, cc = np.mgrid[r0:r1, c0:c1]
+    inside = (rr - r) ** 2 + (cc - c) ** 2 <= R * R
+    values = np.asarray(img[r0:r1, c0:c1], float)[inside]
+    values = values[np.isfinite(values)]
+    return float((values.mean() - background) / noise_sigma) if values.size else math.nan

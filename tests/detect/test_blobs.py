@@ -1,11 +1,13 @@
 """Tube cross-section detection: sub-pixel centres, blank images, noise, distractors, touching tubes."""
 
+import math
 
 import numpy as np
 import pytest
 from scipy import ndimage as ndi
 
 from chic_register.detect.blobs import Blobs, detect_blobs, otsu_threshold
+from chic_register.detect.disc import disc_contrast
 from chic_register.imaging.simulate import simulate_slice
 from tests.helpers import rician_slice, zframe
 
@@ -190,3 +192,14 @@ def test_wide_z_frame_blob_is_never_split(z001):
     assert len(b) == 7 and 6.0 < b.width_mm < 8.5
     thin, _ = rician_slice(z001, (30, 5, 20, 0), render_geom=zframe(2.1), seed=4)
     assert len(detect_blobs(thin.pixels, thin.pixel_spacing_mm, 3.0)) == 7
+
+
+def test_a_disc_contrast_is_the_mean_above_the_background_in_noise_sigmas():
+    """A flat disc 4 units above a background of 10 with noise sigma 2 reads 2 sigmas at its centre, the plain
+    background 0, and no noise gives NaN."""
+    img = np.full((40, 40), 10.0)
+    rr, cc = np.mgrid[:40, :40]
+    img[(rr - 20) ** 2 + (cc - 20) ** 2 <= 36] = 14.0
+    assert disc_contrast(img, 10.0, 2.0, (20, 20), 5.0) == pytest.approx(2.0)
+    assert disc_contrast(img, 10.0, 2.0, (5, 5), 3.0) == pytest.approx(0.0)
+    assert math.isnan(disc_contrast(img, 10.0, 0.0, (20, 20), 5.0))
