@@ -66,6 +66,10 @@ class SolveOptions:
     image), the section fit models the Rician mean of the pixels
     (:mod:`chic_register.imaging.rician`): a linear model reads the lifted faint
     edges as a sub-pixel shift, a bias growing with the noise.
+    ``section_blur``: each slice's point spread (scanners' k-space filters,
+    the blob widening of real images) is measured with the sections and
+    drawn into their model; without it a sharp model weights blurred edges
+    wrongly and claims their sharpness as precision.
     ``verify``: before ``ok``, prove the pose against the image
     (:mod:`chic_register.verify.pixels`: envelope, every predicted section
     present with its shape, nothing unexplained on the tubes' circle, pixel
@@ -120,6 +124,7 @@ class SolveOptions:
     section_thickness_samples: int = 5
     section_max_shift_px: float = 1.0
     section_rician: bool = True
+    section_blur: bool = True
     verify: bool = True
     trust_tre_mm: float = TRE_TOL_MM  # (why these limits: TRE_TOL_MM above)
     trust_rot_deg: float = ROT_TOL_DEG

@@ -292,6 +292,13 @@ def _template_refine(model: TubeModel, tubes, fit: Fit, assign, xys, Ss, slices,
     return fit
 
 
+#: A section's point spread is measured up to this many tube radii (sigma): blobs wider than that are the blurred
+#: model's (:mod:`chic_register.fit.blurred`).
+MAX_PSF_RADII = 0.5
+#: The passes stop once the point spread's sigma moves by less than this share of a pixel.
+SPREAD_DONE_PX = 0.02
+
+
 def section_refine(model: TubeModel, fit: Fit, seen: list[DetectedSlice], opts) -> Fit | None:
     """Refit ``fit`` on section-fitted tube positions (:func:`~chic_register.fit.section.fit_sections`).
 
@@ -304,6 +311,10 @@ def section_refine(model: TubeModel, fit: Fit, seen: list[DetectedSlice], opts) 
     section the model expects). Fewer than ``min_tubes`` clean sections
     (tubes in tissue, blobs much wider than the channels) return ``None``:
     the blob-centre pose then stands, and is verified like any other.
+
+    Each slice's point spread is measured on the way (``opts.section_blur``): every exact pass also fits the
+    change of its variance the sections' pixels ask for (:func:`~chic_register.fit.section.blur_step`), a
+    Gauss-Newton step from none; the passes go on until neither the pose nor the spread moves.
     """
     slices = [d.slice for d in seen]
     xys = [d.xy_mm for d in seen]
@@ -312,10 +323,13 @@ def section_refine(model: TubeModel, fit: Fit, seen: list[DetectedSlice], opts) 
     assign = [a.copy() for a in fit.assignments]
     wins = [None] * len(slices)  # each tube's pixels: chosen at the first pass, kept (the pose barely moves)
     px = min(pixel_mm(sl) for sl in slices)
+    spread = [0.0] * len(slices)  # each slice's point-spread variance (mm^2)
+    limit = (MAX_PSF_RADII * 0.5 * median(model.diameter_mm)) ** 2
     exact = True
     for it in range(opts.section_iterations):
         X0 = fit.T_F_from_scanner
         new_xys, Ls, q_before = [], [], []
+        spread_moved = 0.0  # how far a slice's point spread (sigma, mm) moved in this pass
         # a pass far from the fit's fixed point only has to bring the next one close: a coarser model (3 planes,
         # straight edges) and one Gauss-Newton step of the pose do for it; exact passes repeat until one moves
         # the tube crossings by less than section_done_px (its first-order fit is then exact to ~1e-3 px)
@@ -327,8 +341,13 @@ def section_refine(model: TubeModel, fit: Fit, seen: list[DetectedSlice], opts) 
                                                           else min(3, opts.section_thickness_samples)),
                                        windows=wins[j], exact=exact,
                                        rician_sigma=rayleigh_sigma(b.background, b.noise_sigma) if opts.section_rician
-                                       else 0.0, lost=sl.lost)
+                                       else 0.0, lost=sl.lost, psf_sigma_mm=math.sqrt(spread[j]),
+                                       measure_blur=opts.section_blur and exact)
             q_before.append(sf.predicted_mm)
+            if sf.blur_info > 0:
+                before = math.sqrt(spread[j])
+                spread[j] = min(max(spread[j] + sf.blur_step_mm2, 0.0), limit)
+                spread_moved = max(spread_moved, abs(math.sqrt(spread[j]) - before))
             info = sf.info  # a window too thin to locate the section both ways (lost pixels) is no measurement
             a00, a11 = info[:, 0, 0], info[:, 1, 1]
             ok = sf.fitted & (a00 > 0) & (a00 * a11 - info[:, 0, 1] * info[:, 1, 0] > 1e-9 * a00 * a11)
@@ -356,7 +375,7 @@ def section_refine(model: TubeModel, fit: Fit, seen: list[DetectedSlice], opts) 
             q0 = q_before[j][k]
             q1 = plane_crossings(model, fit.T_F_from_scanner @ S, margin_mm=1e-9)[0][k]
             moved = max(moved, float(np.max(np.linalg.norm(q1 - q0, axis=1), initial=0.0)))
-        if exact and moved < opts.section_done_px * px:
+        if exact and moved < opts.section_done_px * px and spread_moved < SPREAD_DONE_PX * px:
             break
         exact = moved < opts.section_close_px * px
     return fit

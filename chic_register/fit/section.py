@@ -57,7 +57,7 @@ from chic_register.fit.windows import (
     section_windows,
     window_pixels,
 )
-from chic_register.imaging.pixel_coverage import box_edge, chord_m2
+from chic_register.imaging.pixel_coverage import blurred_box_edge, chord_m2
 from chic_register.imaging.rician import inner_gain, rician_model
 from chic_register.model.tube_model import plane_crossings
 
@@ -68,7 +68,9 @@ __all__ = ["SectionFit", "Windows", "fit_sections", "joint_windows", "section_mo
 class SectionFit:
     """Per tube (K,): ``position_mm`` (K, 2) image mm (NaN where not fitted), ``info`` (K, 2, 2) in mm^-2,
     ``gain`` (fitted fluid signal), ``n_pixels`` in the window, ``fitted`` (bool); ``predicted_mm`` (K, 2):
-    the crossings of the pose the model was drawn at."""
+    the crossings of the pose the model was drawn at. With the point spread measured (``fit_sections``'
+    ``measure_blur``): ``blur_step_mm2``, the change of its variance the sections ask for, and its information
+    ``blur_info`` (mm^-4; 0: not measured)."""
 
     predicted_mm: np.ndarray
     position_mm: np.ndarray
@@ -76,6 +78,8 @@ class SectionFit:
     gain: np.ndarray
     n_pixels: np.ndarray
     fitted: np.ndarray
+    blur_step_mm2: float = 0.0
+    blur_info: float = 0.0
 
 
 def tube_frames(model, T_F_from_I: np.ndarray, q: np.ndarray, tan_I: np.ndarray):
@@ -131,6 +135,8 @@ _FRAMES: dict = {}  # tube_frames' last few results: (model id, pose bytes, cros
 JOINT_PASSES = 1
 #: ... using a shared pixel only where the neighbour's model (fluid fraction) is at most this.
 JOINT_NEIGHBOUR_LEVEL = 0.05
+#: A pixel this many point-spread sigmas beyond a section's edge is drawn as having none of it.
+PSF_REACH_SIGMAS = 5.0
 
 # the products summed per window: (i, j) of [1, S, Sx, Sy] for i <= j, then each with the pixel value y
 _PAIR_I = np.array([0, 0, 0, 0, 1, 1, 1, 2, 2, 3, 0, 1, 2, 3])
@@ -145,14 +151,17 @@ _ADJUGATE_SIGN = np.array([[1.0, -1.0], [-1.0, 1.0]])
 
 
 def section_model(model, T_F_from_I: np.ndarray, q: np.ndarray, tan: np.ndarray, win: Windows, pixel_spacing_mm,
-                  slice_thickness_mm: float, thickness_samples: int = 5, exact: bool = True, *, slopes: bool = True):
+                  slice_thickness_mm: float, thickness_samples: int = 5, exact: bool = True, *, slopes: bool = True,
+                  psf_sigma_mm: float = 0.0, spread: bool = False):
     """The model image of each window pixel's tube and its derivatives for the section moving in the image.
 
     Returns ``(S, Sx, Sy)`` (P,): the fluid fraction of the pixel and its
     derivatives (per mm) for the section shifted along x (columns) and y (rows).
     ``exact=False``: without the edge-curvature term (a first approximation,
     for a pass whose only job is to bring the next one close). ``slopes=False``:
-    ``S`` alone (``Sx``, ``Sy`` None), for a neighbour's level.
+    ``S`` alone (``Sx``, ``Sy`` None), for a neighbour's level. ``psf_sigma_mm``:
+    the image's Gaussian point spread across the section's edge; ``spread``: also
+    ``Sv``, the derivative in its variance (mm^-2), as a fourth value.
     """
     rs, cs = (float(v) for v in pixel_spacing_mm)
     thick = float(slice_thickness_mm)
@@ -173,10 +182,11 @@ def section_model(model, T_F_from_I: np.ndarray, q: np.ndarray, tan: np.ndarray,
     # (per tube, then per pixel: the same values as per pixel throughout, fewer operations)
     kappa_norm = np.sqrt(np.add.reduce(kappa * kappa, axis=1))  # (np.linalg.norm's sums, without its wrapper)
     slack = ((txy * 0.5 * thick)[own] + (0.5 * kappa_norm)[own] * reach * reach
-             + 0.5 * math.hypot(cs, rs) + 1e-6)
+             + 0.5 * math.hypot(cs, rs) + 1e-6 + PSF_REACH_SIGMAS * psf_sigma_mm)
     clear_end = np.minimum(s_lo[own] + s00, s_hi[own] - s00) - reach
     S = np.zeros(own.size)
     Sx, Sy = (np.zeros(own.size), np.zeros(own.size)) if slopes else (None, None)
+    Sv = np.zeros(own.size) if spread else None
     inner = r_tube[own] - dist0
     deep = inner > slack
     S[deep & (clear_end > 0)] = 1.0
@@ -184,15 +194,18 @@ def section_model(model, T_F_from_I: np.ndarray, q: np.ndarray, tan: np.ndarray,
     if band.size:
         drawn = _section_band(tan_rows, kappa, s_lo, s_hi, r_tube, own[band], dx0[band], dy0[band], cs, rs, thick,
                               thickness_samples, ends=bool((clear_end[band] <= 0).any()), curved=exact,
-                              s00=s00[band], slopes=slopes)
+                              s00=s00[band], slopes=slopes, sigma=psf_sigma_mm, spread=spread)
         S[band] = drawn[0]
         if slopes:
-            Sx[band], Sy[band] = drawn[1:]
-    return S, Sx, Sy
+            Sx[band], Sy[band] = drawn[1:3]
+        if spread:
+            Sv[band] = drawn[-1]
+    return (S, Sx, Sy, Sv) if spread else (S, Sx, Sy)
 
 
 def _section_band(tan_rows, kappa, s_lo, s_hi, r_tube, own, dx0, dy0, cs: float, rs: float, thick: float,
-                  thickness_samples: int, ends: bool = True, curved: bool = True, s00=None, slopes: bool = True):
+                  thickness_samples: int, ends: bool = True, curved: bool = True, s00=None, slopes: bool = True,
+                  sigma: float = 0.0, spread: bool = False):
     """:func:`section_model` at pixels an edge may cross: every plane across the slice, the exact pixel coverage.
 
     ``tan_rows`` (3, K): the tubes' tangents, a row per component.
@@ -201,7 +214,9 @@ def _section_band(tan_rows, kappa, s_lo, s_hi, r_tube, own, dx0, dy0, cs: float,
     point ``s0 t + kappa s0^2 / 2`` at its arc length ``s0`` along the
     tangent (the re-projection onto the curve moves it by a second-order
     amount, below 1e-3 mm for these curvatures). ``ends``: model the end faces;
-    ``curved``: correct the coverage for the curvature of the section's edge.
+    ``curved``: correct the coverage for the curvature of the section's edge; ``sigma``: the point spread across
+    the edge (:func:`~chic_register.imaging.pixel_coverage.blurred_box_edge`), ``spread``: its variance's derivative
+    last.
     """
     # (laid out plane by pixel, (nz, P): a per-pixel value broadcasts along whole rows, where the pixel-by-plane
     # layout broadcast along rows of nz; the same values, operation by operation)
@@ -222,32 +237,40 @@ def _section_band(tan_rows, kappa, s_lo, s_hi, r_tube, own, dx0, dy0, cs: float,
     nx, ny = ex_ * inv_p, ey_ * inv_p  # the section edge's in-plane outward normal
     # in-plane signed distance to the edge (inside > 0), and the pixel's exact coverage of a straight edge
     delta = (r_tube[own] - dist) * (dist * inv_p)
-    cov, dcov = box_edge(delta, cs * np.abs(nx), rs * np.abs(ny))
+    A, B = cs * np.abs(nx), rs * np.abs(ny)
+    cov, dcov, *dv = blurred_box_edge(delta, A, B, sigma, spread=spread)
     # the edge is curved (curvature of the section's outline at the pixel): the inside loses kappa tau^2 / 2
-    # along the chord of the pixel at the edge, tau its coordinate along the edge from the foot point
+    # along the chord of the pixel at the edge, tau its coordinate along the edge from the foot point (a blurred
+    # edge's tail beyond the pixel: the chord at the pixel's side)
     if curved:
         cross = (ex_ * ty - ey_ * tx) * inv_p
-        cov -= dcov * chord_m2(delta, nx, ny, cs, rs) * (0.5 * (1.0 - cross * cross) * inv_p)
+        edge = delta if not sigma > 0 else np.clip(delta, -0.5 * (A + B), 0.5 * (A + B))
+        cov -= dcov * chord_m2(edge, nx, ny, cs, rs) * (0.5 * (1.0 - cross * cross) * inv_p)
     if ends:  # the tube's end faces: a ramp across the pixel along the centreline
         inside = np.minimum(s_lo[own] + s0, s_hi[own] - s0)
         end = np.clip(0.5 + inside / np.maximum(cs * np.abs(tx) + rs * np.abs(ty), 1e-12), 0.0, 1.0)
         cov *= end
         if slopes:
             dcov *= end
+        if spread:
+            dv[0] = dv[0] * end
     inv_nz = 1.0 / nz
+    extra = (np.ascontiguousarray(dv[0].T).sum(axis=1) * inv_nz,) if spread else ()
     if not slopes:
-        return (np.ascontiguousarray(cov.T).sum(axis=1) * inv_nz,)
+        return (np.ascontiguousarray(cov.T).sum(axis=1) * inv_nz,) + extra
     # moving the section by (dx, dy) raises delta by n . (dx, dy); the sums over the planes in pixel-by-plane
     # layout, as numpy orders them there (a sum's rounding depends on its order)
     cov, dcov, nx, ny = (np.ascontiguousarray(v.T) for v in (cov, dcov, nx, ny))
-    return cov.sum(axis=1) * inv_nz, np.einsum("ij,ij->i", dcov, nx) * inv_nz, np.einsum("ij,ij->i", dcov, ny) * inv_nz
+    return (cov.sum(axis=1) * inv_nz, np.einsum("ij,ij->i", dcov, nx) * inv_nz,
+            np.einsum("ij,ij->i", dcov, ny) * inv_nz) + extra
 
 
 def fit_sections(model, T_F_from_I: np.ndarray, assignment: np.ndarray, pixels: np.ndarray, pixel_spacing_mm,
                  slice_thickness_mm: float, noise_sigma: float, *, footprints=(), thickness_samples: int = 5,
                  margin_px: float = 1.5, windows: Windows | None = None,
                  shift_iterations: int = 1, exact: bool = True, joint: bool = True,
-                 rician_sigma: float = 0.0, lost=None) -> tuple[SectionFit, Windows]:
+                 rician_sigma: float = 0.0, lost=None, psf_sigma_mm: float = 0.0,
+                 measure_blur: bool = False) -> tuple[SectionFit, Windows]:
     """Fit each matched tube's section model to ``pixels`` (rows, cols) at the pose ``T_F_from_I`` (4x4).
 
     ``assignment`` (K,): blob index per tube, -1 for unmatched (not fitted);
@@ -263,7 +286,9 @@ def fit_sections(model, T_F_from_I: np.ndarray, assignment: np.ndarray, pixels: 
     pixels are magnitudes with Rician noise of that scale, and the fit is
     of their mean (:func:`~chic_register.imaging.rician.rician_model`); ``lost``: (rows, cols) bool, pixels lost to
     dropout (:mod:`chic_register.detect.dropout`; their filled values carry no information), left out of every window.
-    Returns the fit and the windows.
+    ``psf_sigma_mm``: the image's point spread (:func:`section_model`); ``measure_blur``: also the change of its
+    variance the sections' pixels ask for (:func:`blur_step`; ``SectionFit.blur_step_mm2``), from the tubes' own
+    windows. Returns the fit and the windows.
     See the module docstring.
     """
     q, tan, _, found = plane_crossings(model, T_F_from_I, margin_mm=1e-9)
@@ -300,14 +325,17 @@ def fit_sections(model, T_F_from_I: np.ndarray, assignment: np.ndarray, pixels: 
     at_crossing = None  # the model drawn at the crossings (the first fit's): the joint pass reuses it
     for _ in range(max(1, int(shift_iterations))):
         if at_crossing is None:
-            S, Sx, Sy = section_model(model, T_F_from_I, at, tan, drawn_on, pixel_spacing_mm, slice_thickness_mm,
-                                      thickness_samples, exact)
+            S, Sx, Sy, *Sv = section_model(model, T_F_from_I, at, tan, drawn_on, pixel_spacing_mm,
+                                           slice_thickness_mm, thickness_samples, exact, psf_sigma_mm=psf_sigma_mm,
+                                           spread=measure_blur)
             at_crossing = (drawn_on, (S, Sx, Sy))
             if ahead is not None:
                 S, Sx, Sy = S[in_windows], Sx[in_windows], Sy[in_windows]
+                Sv = [v[in_windows] for v in Sv]
         else:
-            S, Sx, Sy = section_model(model, T_F_from_I, at, tan, windows, pixel_spacing_mm, slice_thickness_mm,
-                                      thickness_samples, exact)
+            S, Sx, Sy, *Sv = section_model(model, T_F_from_I, at, tan, windows, pixel_spacing_mm, slice_thickness_mm,
+                                           thickness_samples, exact, psf_sigma_mm=psf_sigma_mm, spread=measure_blur)
+        blur_terms = None
         if rician_sigma > 0:  # the Rician mean at each tube's gain (from its inner pixels, else a linear fit)
             gain = inner_gain(S, y, own, K, rician_sigma)
             if not gain[sel].all():
@@ -317,12 +345,18 @@ def fit_sections(model, T_F_from_I: np.ndarray, assignment: np.ndarray, pixels: 
                 gain = np.where(gain > 0, gain, lin)
             gain[gain <= 0] = 1.0  # (a tube no fit locates: any gain)
             M, Mx, My, _ = rician_model(S, Sx, Sy, gain[own], None, rician_sigma)
+            if measure_blur:  # (the Rician mean's slope, as for the shifts)
+                blur_terms = (M, Mx, My, rician_model(S, Sv[0], Sv[0], gain[own], None, rician_sigma)[1], sel)
             sel, shift, info, a, n_pix = _linear_fit(M, Mx, My, y, own, starts, K, sel, noise_sigma)
         else:
+            if measure_blur:
+                blur_terms = (S, Sx, Sy, Sv[0], sel)
             sel, shift, info, a, n_pix = _linear_fit(S, Sx, Sy, y, own, starts, K, sel, noise_sigma)
         if sel.size == 0:
             return SectionFit(q, out_pos, out_info, out_gain, n_pix, fitted), windows
         at[sel] += shift
+    blur = (0.0, 0.0) if blur_terms is None else blur_step(*blur_terms[:4], y, own, starts, K, blur_terms[4],
+                                                            noise_sigma)
     if joint and windows.shared and sel.size >= 2:
         same = reach is not None and np.array_equal(sel, todo)  # the same tubes: the same joint windows
         sel, at, info, a, n_pix = joint_pass(model, T_F_from_I, q, tan, found, pixels, pixel_spacing_mm,
@@ -330,25 +364,25 @@ def fit_sections(model, T_F_from_I: np.ndarray, assignment: np.ndarray, pixels: 
                                               footprints, margin_px, sel, at, info, a, n_pix,
                                               reach if same else None, at_crossing, rician_sigma,
                                               ahead[:3] + (y_joint,) if same and ahead is not None else None,
-                                              lost)
+                                              lost, psf_sigma_mm)
     out_pos[sel] = at[sel]
     out_info[sel] = info
     out_gain[sel] = a
     fitted[sel] = True
-    return SectionFit(q, out_pos, out_info, out_gain, n_pix, fitted), windows
+    return SectionFit(q, out_pos, out_info, out_gain, n_pix, fitted, *blur), windows
 
 
 def joint_pass(model, T_F_from_I, q, tan, found, pixels, pixel_spacing_mm, slice_thickness_mm: float,
                 thickness_samples: int, exact: bool, noise_sigma: float, assignment, footprints, margin_px: float,
                 sel, at, info, a, n_pix, reach=None, at_crossing=None, rician_sigma: float = 0.0, ahead=None,
-                lost=None):
+                lost=None, psf_sigma_mm: float = 0.0):
     """Refit the tubes ``sel`` on the pixels they share with fitted neighbours, those neighbours' fitted
     sections (position ``at``, level ``a``) subtracted (:func:`joint_windows`); :data:`JOINT_PASSES` times.
     Returns ``(sel, at, info, a, n_pix)`` as :func:`_linear_fit` gives them, unchanged when no pixel is
     shared or a tube would be lost. ``at_crossing``: ``(windows, (S, Sx, Sy))``, :func:`section_model` at the
     crossings ``q`` on some windows, whose pixels are then not drawn again (the model is pixel by pixel).
     ``ahead``: ``(windows, pixel, tube, y)``, :func:`joint_windows` and their pixels' values, when ``at_crossing``
-    was drawn on exactly those windows. ``lost``: as for :func:`fit_sections`."""
+    was drawn on exactly those windows. ``lost``, ``psf_sigma_mm``: as for :func:`fit_sections`."""
     K = q.shape[0]
     if ahead is None:
         modelled = np.zeros(K, bool)
@@ -367,7 +401,7 @@ def joint_pass(model, T_F_from_I, q, tan, found, pixels, pixel_spacing_mm, slice
     # carry its partial-volume model error (largest at steep, elongated sections) into the tube's fit
     neighbours = Windows(jw.rows[nb_p], jw.cols[nb_p], nb_k)
     Sn0 = section_model(model, T_F_from_I, fitted_at, tan, neighbours, pixel_spacing_mm, slice_thickness_mm,
-                        thickness_samples, exact, slopes=False)[0]
+                        thickness_samples, exact, slopes=False, psf_sigma_mm=psf_sigma_mm)[0]
     strong = np.zeros(jw.owner.size, bool)
     strong[nb_p[Sn0 > JOINT_NEIGHBOUR_LEVEL]] = True
     if strong.any():
@@ -383,7 +417,7 @@ def joint_pass(model, T_F_from_I, q, tan, found, pixels, pixel_spacing_mm, slice
     if ahead is None:
         y = np.asarray(pixels, dtype=float)[jw.rows, jw.cols]
         S, Sx, Sy = model_reusing(model, T_F_from_I, q, tan, jw, pixels.shape, pixel_spacing_mm, slice_thickness_mm,
-                                   thickness_samples, exact, at_crossing)
+                                   thickness_samples, exact, at_crossing, psf_sigma_mm)
     else:  # at_crossing was drawn on the joint windows before the strong pixels left
         S, Sx, Sy = at_crossing[1]
         if strong.any():
@@ -394,7 +428,7 @@ def joint_pass(model, T_F_from_I, q, tan, found, pixels, pixel_spacing_mm, slice
             Sn = Sn0[pair_ok] if strong.any() else Sn0
         else:
             Sn = section_model(model, T_F_from_I, fitted_at, tan, neighbours, pixel_spacing_mm, slice_thickness_mm,
-                               thickness_samples, exact)[0]
+                               thickness_samples, exact, psf_sigma_mm=psf_sigma_mm)[0]
         nb_level = np.bincount(nb_p, gain[nb_k] * Sn, y.size)  # the neighbours' signal in each pixel (in order)
         if rician_sigma > 0:  # E[y] = R(a S + n): fit (R(a0 S + n) - R(n)) / a0 to y - (R(n) - R(0))
             M, Mx, My, lift = rician_model(S, Sx, Sy, gain[jw.owner], nb_level, rician_sigma)
@@ -412,12 +446,12 @@ def joint_pass(model, T_F_from_I, q, tan, found, pixels, pixel_spacing_mm, slice
 
 
 def model_reusing(model, T_F_from_I, q, tan, win: Windows, shape, pixel_spacing_mm, slice_thickness_mm: float,
-                   thickness_samples: int, exact: bool, drawn=None):
+                   thickness_samples: int, exact: bool, drawn=None, psf_sigma_mm: float = 0.0):
     """:func:`section_model` at ``q`` on ``win``, taking the pixels ``drawn`` = ``(windows, (S, Sx, Sy))`` already
     has (drawn at the same ``q``, pose and settings) from it: each pixel's value depends on that pixel alone."""
     if drawn is None:
         return section_model(model, T_F_from_I, q, tan, win, pixel_spacing_mm, slice_thickness_mm,
-                             thickness_samples, exact)
+                             thickness_samples, exact, psf_sigma_mm=psf_sigma_mm)
     old, old_S = drawn
     H, W = shape
     key_old = (old.owner * H + old.rows) * W + old.cols  # ascending as built: owners ascending, boxes row-major
@@ -433,10 +467,38 @@ def model_reusing(model, T_F_from_I, q, tan, win: Windows, shape, pixel_spacing_
     new = np.flatnonzero(~have)
     if new.size:
         fresh = section_model(model, T_F_from_I, q, tan, Windows(win.rows[new], win.cols[new], win.owner[new]),
-                              pixel_spacing_mm, slice_thickness_mm, thickness_samples, exact)
+                              pixel_spacing_mm, slice_thickness_mm, thickness_samples, exact, psf_sigma_mm=psf_sigma_mm)
         for o, v in zip(out, fresh):
             o[new] = v
     return out
+
+
+def blur_step(S, Sx, Sy, Sv, y, own, starts, K: int, todo, noise_sigma: float) -> tuple[float, float]:
+    """``(dv, information)``: the change of the point spread's variance (mm^2) the windows' pixels ``y`` ask for,
+    and its information (mm^-4), from the per-window least squares ``y = b + a S + (a dx) Sx + (a dy) Sy + (a dv)
+    Sv`` (``Sv``: the model's derivative in the variance) pooled over the tubes ``todo``, each weighted by its
+    information on ``dv``: blur widens every section alike, so one value holds for the slice."""
+    X = np.stack([np.ones_like(S), S, Sx, Sy, Sv, y])
+    n = X.shape[0]
+    ii, jj = np.triu_indices(n)
+    sums = np.zeros((K, ii.size))
+    sums[own[starts]] = np.add.reduceat(X[ii] * X[jj], starts, axis=1).T
+    full = np.zeros((K, n, n))
+    full[:, ii, jj] = sums
+    full[:, jj, ii] = sums
+    N, rhs = full[todo, :5, :5], full[todo, :5, 5]
+    ok = np.linalg.matrix_rank(N) == 5 if todo.size else np.zeros(0, bool)
+    if not np.any(ok):
+        return 0.0, 0.0
+    N, rhs = N[ok], rhs[ok]
+    Ninv = np.linalg.inv(N)
+    theta = np.einsum("kij,kj->ki", Ninv, rhs)
+    a, c = theta[:, 1], theta[:, 4]
+    var_c = Ninv[:, 4, 4] * max(noise_sigma, 1e-12) ** 2
+    w = np.where((a > 0) & (var_c > 0), a * a / np.where(var_c > 0, var_c, 1.0), 0.0)
+    if not w.sum() > 0:
+        return 0.0, 0.0
+    return float(np.sum(w * c / np.where(a > 0, a, 1.0)) / w.sum()), float(w.sum())
 
 
 def _linear_fit(S, Sx, Sy, y, own, starts, K: int, todo, noise_sigma: float):

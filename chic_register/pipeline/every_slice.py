@@ -47,6 +47,7 @@ from chic_register.fit.scale import fit_scale
 from chic_register.model.geometry import FiducialGeometry
 from chic_register.model.pose import invert, near_prior, rotation_deg, slice_angles
 from chic_register.model.slices import Slice
+from chic_register.model.symmetry import EXACT_SHARE, candidate_rotations, frame_symmetries
 from chic_register.model.tube_model import TubeModel, plane_crossings, poses_distinct, prepare_geometry
 from chic_register.options import SolveOptions
 from chic_register.pipeline.detection import check_pixel_range, detect_slices
@@ -154,7 +155,7 @@ def register_every_slice(slices: list[Slice], geom: FiducialGeometry, opts: Solv
     pixel_noise = [slice_noise(d.slice, d.blobs.footprints) if len(d.blobs.footprints) else None for d in seen]
     noise = [_centre_noise(d, n) for d, n in zip(seen, pixel_noise)]
     parents = [enclosing_blobs(d.blobs) for d in seen]
-    starts, lone_refusals = _starting_poses(model, seen, opts)
+    starts, lone_refusals = starting_poses(model, seen, opts, symmetry_twins(geom, model, opts))
     if not starts:
         raise NoLock(no_slice_locked(lone_refusals), {"n_skipped": len(lone_refusals)})
     groups: list[tuple[JointFit, set]] = []  # each distinct joint pose and the lone-locked slices that lead to it
@@ -353,10 +354,28 @@ def _candidates(model: TubeModel, d: DetectedSlice, parent: np.ndarray, X: np.nd
     return np.array(keep, dtype=int)
 
 
-def _starting_poses(model: TubeModel, seen: list[DetectedSlice], opts: SolveOptions):
-    """``(slice, T_F_from_scanner)`` of up to :data:`MAX_LONE_LOCKS` slices locked alone (whatever the prior), with
-    their close rivals; and the slices that did not lock (:class:`SkippedSlice`, with their reasons). Slices whose
-    blob count is nearest the tube count go first, from the middle out."""
+def symmetry_twins(geom: FiducialGeometry, model: TubeModel, opts: SolveOptions) -> list[np.ndarray]:
+    """With a prior, the motions ``H`` (4x4, in F) of every rotation that maps the frame onto itself within the
+    channels' print tolerance (z001's half turn): a pose ``X`` and ``H^-1 X`` show the same image."""
+    if opts.prior is None:
+        return []
+    found, _ = frame_symmetries(geom, EXACT_SHARE * float(np.min(model.diameter_mm)))
+    c = np.array([0.0, 0.0, 0.5 * model.length_mm])
+    out = []
+    for sym in found:
+        R = dict(candidate_rotations(model.length_mm))[sym.what]
+        H = np.eye(4)
+        H[:3, :3], H[:3, 3] = R, c - R @ c
+        out.append(H)
+    return out
+
+
+def starting_poses(model: TubeModel, seen: list[DetectedSlice], opts: SolveOptions, twins=()):
+    """``(slice, T_F_from_scanner, tubes explained)`` of up to :data:`MAX_LONE_LOCKS` slices locked alone (whatever
+    the prior), with their close rivals; and the slices that did not lock (:class:`SkippedSlice`, with their
+    reasons). Slices whose blob count is nearest the tube count go first, from the middle out. ``twins``
+    (:func:`symmetry_twins`): each start is taken as the one of its symmetric twins nearest the prior (a slice
+    alone locks either, at random where the image is stretched a little)."""
     K = len(model.ids)
     # without the prior: a pose outside it that explains more of the frame is evidence against the prior's pose
     lone = dataclasses.replace(opts, max_rms_px=max(opts.max_rms_px, 1.5), prior=None)
@@ -374,8 +393,17 @@ def _starting_poses(model: TubeModel, seen: list[DetectedSlice], opts: SolveOpti
             refusals.append(SkippedSlice(d.source, exc.reason))
             continue
         top = fits[0].n_matched
-        starts += [(j, f.T_F_from_scanner, f.n_matched) for f in fits if f.n_matched >= top - 1]
+        starts += [(j, _nearest_prior([f.T_F_from_scanner] + [invert(H) @ f.T_F_from_scanner for H in twins], opts),
+                    f.n_matched) for f in fits if f.n_matched >= top - 1]
     return starts, refusals
+
+
+def _nearest_prior(poses: list[np.ndarray], opts: SolveOptions) -> np.ndarray:
+    """The pose (``T_F_from_scanner``) of ``poses`` turned least from the prior (the first without one)."""
+    if opts.prior is None or len(poses) == 1:
+        return poses[0]
+    R_prior = np.asarray(opts.prior, float)[:3, :3]
+    return min(poses, key=lambda X: rotation_deg(X[:3, :3].T, R_prior))
 
 
 def _distinct_starts(model: TubeModel, starts) -> list[tuple[np.ndarray, set]]:

@@ -9,7 +9,7 @@ import math
 import numpy as np
 import pytest
 
-from chic_register.imaging.pixel_coverage import box_edge, chord_m2
+from chic_register.imaging.pixel_coverage import blurred_box_edge, box_edge, chord_m2
 
 
 def test_box_edge_is_the_pixel_share_inside_a_straight_edge():
@@ -40,3 +40,27 @@ def test_chord_second_moment_matches_the_chord():
             continue
         got = chord_m2(np.array([d]), np.array([nx]), np.array([ny]), 0.5, 0.4)[0]
         assert got == pytest.approx(float(np.mean(on**2)), rel=2e-3, abs=1e-6)
+
+
+@pytest.mark.parametrize("sigma", [0.08, 0.3])
+def test_a_blurred_edge_is_the_box_edge_convolved_with_the_point_spread(sigma):
+    """The closed form against a numerical convolution of :func:`box_edge` with the Gaussian, its slope and its
+    derivative in the variance against finite differences (to the erf approximation's 1e-7 over their steps); no
+    blur is the box edge itself, and a pixel far from the edge is wholly in or out."""
+    delta = np.linspace(-1.5, 1.5, 31)
+    A, B = np.full(31, 0.5), np.full(31, 0.3)
+    z = np.linspace(-7 * sigma, 7 * sigma, 6001)
+    w = np.exp(-0.5 * (z / sigma) ** 2)
+    w /= w.sum()
+    numeric = np.array([np.sum(w * box_edge(d + z, np.full(z.size, 0.5), np.full(z.size, 0.3))[0]) for d in delta])
+    share, slope, spread = blurred_box_edge(delta, A, B, sigma, spread=True)
+    np.testing.assert_allclose(share, numeric, atol=2e-6)
+    h = 1e-5
+    np.testing.assert_allclose(slope, (blurred_box_edge(delta + h, A, B, sigma)[0]
+                                       - blurred_box_edge(delta - h, A, B, sigma)[0]) / (2 * h), atol=1e-4)
+    v, dv = sigma * sigma, 1e-7
+    np.testing.assert_allclose(spread, (blurred_box_edge(delta, A, B, math.sqrt(v + dv))[0]
+                                        - blurred_box_edge(delta, A, B, math.sqrt(v - dv))[0]) / (2 * dv), atol=2e-4)
+    for got, want in zip(blurred_box_edge(delta, A, B, 0.0), box_edge(delta, A, B)):
+        np.testing.assert_array_equal(got, want)
+    assert blurred_box_edge(np.array([1e9, -1e9]), A[:2], B[:2], sigma)[0].tolist() == pytest.approx([1.0, 0.0])

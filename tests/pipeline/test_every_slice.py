@@ -135,3 +135,27 @@ def test_a_slice_with_rods_missing_still_counts_its_visible_rods(z001, cut_volum
     cut = [s for s in reg.slices if s.source.endswith(f"[k={k}]")]
     assert cut and MIN_SLICE_TUBES <= cut[0].n_tubes < 7
     assert tre_mm(reg.T_scanner_from_fiducial, T, ZF_CENTRE) < 0.3
+
+
+def test_a_symmetric_frames_starts_are_the_twins_the_prior_allows(z001, cut_volume):
+    """z001 maps onto itself under a half turn: a slice locked alone finds either twin (at random where the image is
+    stretched a little), and a volume whose slices all found the one the prior rules out was refused as mounted
+    upside down; every start is taken as its twin nearest the prior."""
+    from chic_register.model.pose import near_prior, rotation_deg
+    from chic_register.model.tube_model import prepare_geometry
+    from chic_register.options import SolveOptions
+    from chic_register.pipeline.detection import check_pixel_range, detect_slices
+    from chic_register.pipeline.every_slice import starting_poses, symmetry_twins
+
+    T = cut_volume.T_scanner_from_fiducial
+    opts = SolveOptions(prior=rigid(T[:3, :3], (0, 0, 0)))
+    slices = [cut_volume.volume.native_slice(k) for k in range(cut_volume.volume.shape[0])]
+    model, _ = prepare_geometry(z001)
+    seen = detect_slices(slices, check_pixel_range(slices), model)
+    twins = symmetry_twins(z001, model, opts)
+    assert len(twins) == 1  # the half turn about y
+    plain, _ = starting_poses(model, seen, opts)
+    assert any(not near_prior(X, opts) for _, X, _ in plain)  # a lone lock knows no prior
+    starts, _ = starting_poses(model, seen, opts, twins)
+    assert starts and all(near_prior(X, opts) for _, X, _ in starts)
+    assert min(rotation_deg(X[:3, :3].T, T[:3, :3]) for _, X, _ in starts) < 1.0
