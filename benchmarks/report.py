@@ -229,6 +229,14 @@ SECTIONS: tuple[Section, ...] = (
              "--geometry {geometry:zframe}",),
             (f"OMP_NUM_THREADS=1 PYTHONPATH=. {PY} benchmarks/stress_zframe_volume.py --cases 2 --seed 0 "
              "--geometry {geometry:zframe}",)),
+    Section("zframe_peer", "Z-frame volumes against 3D Slicer's ZFrameRegistration",
+            "40 simulated z001 volumes drawn as real scans (0.6-0.8 mm pixels, 2-3 mm slices, SNR 10-30, blobs "
+            "1.5-2.5x, tilts 0-5 deg, rod ends 0.1-0.3 mm off, a scanner's scale of 0.2-1 % in-plane and 1-3 % across "
+            "the slices) registered by the solver (with the prior) and by ZFrameRegistration's algorithm "
+            "(`benchmarks/peers/zframe_susil.py`, Susil et al. 1999), errors against the frame as the image shows it; "
+            "then both on the real scans.",
+            (f"OMP_NUM_THREADS=1 {PY} benchmarks/bench_zframe_peer.py --cases 40 --seed 0",),
+            (f"OMP_NUM_THREADS=1 {PY} benchmarks/bench_zframe_peer.py --cases 2 --seed 0",)),
     Section("optimize_speed", "`chic-design optimize`: candidates per second",
             "The same seeded search (neuro requirements, 48 candidates, nothing cached) serially, on a local pool "
             "of 2 workers and on a 2-worker Dask LocalCluster; all must find the same Pareto set.",
