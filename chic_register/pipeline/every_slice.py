@@ -685,10 +685,10 @@ def _faint_note(model: TubeModel, d: DetectedSlice, q: np.ndarray, where: np.nda
          for k in np.flatnonzero(where)]
     faint = sorted(v for v in z if v >= FAINT_SIGMAS)
     if not faint:
-        return f"; nothing stands out at the other {len(z)} crossings"
+        return f"; nothing stands out at the {len(z)} crossings without one"
     span = f"{faint[0]:.1f}" if len(faint) == 1 else f"{faint[0]:.1f}-{faint[-1]:.1f}"
-    return (f"; at {len(faint)} of the other {len(z)} crossings a section shows too faint to locate ({span} noise "
-            f"sigmas above the background over the blob's width)")
+    return (f"; at {len(faint)} of the {len(z)} crossings without one a section shows, too faint to locate ({span} "
+            f"noise sigmas above the background over the blob's width)")
 
 
 def _check_model_error(model: TubeModel, best: JointFit) -> None:
