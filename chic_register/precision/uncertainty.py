@@ -19,6 +19,10 @@ of freedom (``2 N - 6``) under the predicted position covariances; when it is
 improbably large (above its 99th percentile), the covariance is scaled up by
 it, so a model misfit widens the reported uncertainty instead of hiding.
 
+A section fit's positions also carry the section model's own error on images
+it did not draw (:data:`MODEL_ERROR_PX`), a floor that the pixel noise alone
+would leave out at high SNR.
+
 The covariance is reported for the perturbation ``delta`` of
 :data:`chic_register.model.pose_params.PARAMETER_ORDER` (rotation about F's axes in deg,
 then translation along them in mm): the fiducial's points ``p`` (F) move by
@@ -49,6 +53,14 @@ from chic_register.model.pose_params import (
     tre_rms_mm,
 )
 from chic_register.model.tube_model import adjoint, plane_crossings
+
+
+#: The section model's own error on a fitted tube position, per coordinate, in pixels: on slices rendered from the
+#: printed body's mesh through k-space (:mod:`chic_register.studies.kspace`: Gibbs ringing, a sinc pulse's slice
+#: profile, a scanner's k-space filter) its noise-free positions sit 0.0004-0.003 mm (0.001-0.006 px) off a rigid
+#: pose, and this floor, added to each position's noise covariance, calibrates the covariance there at SNR 10-50
+#: (``benchmarks/bench_independent.py``); at SNR 20 it adds ~5 % to a position's variance.
+MODEL_ERROR_PX = 0.004
 
 
 @dataclass(frozen=True)
@@ -378,7 +390,8 @@ def registration_uncertainty(model, fit, seen: list[DetectedSlice], target_F_mm,
             rs.append(whitened_residuals(meas[j], q, a, k).ravel())
             # L whitens the positions for the noise sigma it assumed; the image's own sigma rescales that
             scale = (noise.sigma / sigma_used) ** 2 if sigma_used > 0 else 1.0
-            blocks += [scale * np.eye(2)] * k.size
+            floor = (MODEL_ERROR_PX * float(min(sl.pixel_spacing_mm))) ** 2  # in the whitened positions: L L^T
+            blocks += [scale * np.eye(2) + floor * (L[i] @ L[i].T) for i in k]
             continue
         Js.append(J_F.reshape(-1, 6))
         rs.append((q[k] - xys[j][a[k]]).ravel())

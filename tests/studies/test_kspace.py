@@ -150,3 +150,28 @@ def test_a_filtered_slices_point_spread_is_measured_with_its_sections(neuro_mesh
     except NoLock:
         return
     assert np.linalg.norm(sharp[:3]) > 3 * np.linalg.norm(d[:3])
+
+
+@pytest.mark.slow
+@pytest.mark.parametrize("snr", [20.0, 50.0])
+def test_the_covariance_is_calibrated_on_slices_the_solver_did_not_draw(neuro_mesh, neuro_geometry, snr):
+    """Over three poses x 60 noise draws of k-space slices of the body mesh, the squared Mahalanobis length of the
+    pose error under the reported covariance averages 6 (its dimension) within 10 %: the noise model, the measured
+    point spread and the section model's own error floor (``MODEL_ERROR_PX``) together, at the SNR where the floor
+    matters (50) and where it does not (20)."""
+    from chic_register.errors import NoLock
+    from chic_register.precision.uncertainty import mahalanobis2
+
+    rng = np.random.default_rng(7)
+    m2 = []
+    for pose in ((35.0, 25.0, 300.0, 20.0), (30.0, 30.0, 100.0, 40.0), (25.0, 30.0, 60.0, 20.0)):
+        sl, T = slice_placement(*pose)
+        image = kspace_image(*neuro_mesh, neuro_geometry.body, T, sl)
+        for _ in range(60):
+            try:
+                reg = register([with_noise(image, sl, snr, rng)], neuro_geometry)
+            except NoLock:
+                continue
+            m2.append(mahalanobis2(pose_error(T, reg.T_scanner_from_fiducial), reg.uncertainty.covariance))
+    assert len(m2) >= 150
+    assert 5.4 <= float(np.mean(m2)) <= 6.6
