@@ -54,7 +54,6 @@ from chic_register.model.pose_params import (
 )
 from chic_register.model.tube_model import adjoint, plane_crossings
 
-
 #: The section model's own error on a fitted tube position, per coordinate, in pixels: on slices rendered from the
 #: printed body's mesh through k-space (:mod:`chic_register.studies.kspace`: Gibbs ringing, a sinc pulse's slice
 #: profile, a scanner's k-space filter) its noise-free positions sit 0.0004-0.003 mm (0.001-0.006 px) off a rigid
