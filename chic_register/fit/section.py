@@ -487,7 +487,9 @@ def blur_step(S, Sx, Sy, Sv, y, own, starts, K: int, todo, noise_sigma: float) -
     full[:, ii, jj] = sums
     full[:, jj, ii] = sums
     N, rhs = full[todo, :5, :5], full[todo, :5, 5]
-    ok = np.linalg.matrix_rank(N) == 5 if todo.size else np.zeros(0, bool)
+    scale = np.sqrt(np.einsum("kii->ki", N)) + 1e-300  # (a window's own scale: a singular one shows in its inverse)
+    Nn = N / scale[:, :, None] / scale[:, None, :]
+    ok = np.abs(np.linalg.det(Nn)) > 1e-12 if todo.size else np.zeros(0, bool)
     if not np.any(ok):
         return 0.0, 0.0
     N, rhs = N[ok], rhs[ok]

@@ -68,10 +68,11 @@ OUTLIER_P = 1e-3
 MODEL_ERROR_SHARE = 1.0 / 3.0
 #: :func:`~chic_register.detect.blobs.detect_blobs`' default smallest blob area, as a share of a channel's section.
 MIN_AREA_FACTOR = 0.3
-#: At the scan's blob width a slice is read at most this many robust noise sigmas of its smoothed image above its
-#: median (``noise_threshold_sigmas``): where anatomy far brighter than the frame fills part of the field of view
-#: (a patient's thighs), Otsu's split falls between tissue and background, above the rods of a fading slab's end;
-#: noise alone passes such a level with odds below 1e-15, so the level adds no candidate of noise.
+#: A slice where the joint pose finds blobs for fewer tubes than it puts in it is read again
+#: (:func:`_with_faint_sections`) at most this many robust noise sigmas of its smoothed image above its median
+#: (``noise_threshold_sigmas``): where anatomy far brighter than the frame fills part of the field of view (a
+#: patient's thighs), Otsu's split falls between tissue and background, above the rods of a fading slab's end; noise
+#: alone passes such a level with odds below 1e-15, so the level adds no candidate of noise.
 SCAN_LEVEL_SIGMAS = 8.0
 #: Slices locked alone to find starting poses, at most (each costs 5-200 ms; the joint fit does the rest).
 MAX_LONE_LOCKS = 5
@@ -271,10 +272,8 @@ def _with_faint_sections(model: TubeModel, best: JointFit, seen, noise, pixel_no
     gate = float(np.max(model.diameter_mm))
     again, changed = list(seen), []
     for j, d in enumerate(seen):
-        if d.xy_mm.shape[0] == 0 and not np.isfinite(d.blobs.noise_sigma):
-            continue
         whole = _interior(model, X @ d.T_scanner_from_image)
-        found = int(np.sum(whole & (best.fit.assignments[j] >= 0))) if j < len(best.fit.assignments) else 0
+        found = int(np.sum(whole & (best.fit.assignments[j] >= 0)))
         if not whole.any() or found >= int(whole.sum()) or not math.isfinite(d.blobs.width_mm):
             continue
         faint = _detect_at_width(d, model, d.blobs.width_mm, detect_options, noise_threshold_sigmas=SCAN_LEVEL_SIGMAS)
@@ -455,6 +454,7 @@ def _joint_start(model: TubeModel, seen, parents, X: np.ndarray) -> tuple[list[n
 
 
 def _gate(model: TubeModel, seen) -> float:
+    """The joint fit's widest blob-to-tube gate (mm) over the slices ``seen``."""
     return match_gate_mm(model, max(d.resolution_mm for d in seen))
 
 
@@ -480,7 +480,7 @@ def _joint_fit(model: TubeModel, seen, noise, pixel_noise, start: tuple[list[np.
         sf = fit_scale(model, _restrict(jf.fit, jf.used), [scaled[j] for j in jf.used])
         if sf is None or not sf.p < STRETCH_P:
             break
-        scaled = [at_scale(d, sf, model) for d in scaled]
+        scaled = [_at_scale(d, sf, model) for d in scaled]
         again = _prune(model, scaled, noise, idx, _fit_on(model, scaled, idx, sf.T_F_from_scanner, keep, excl,
                                                           (gate, 0.6 * gate)), gate)
         if again is None or again.fit.n_matched < jf.fit.n_matched:
@@ -489,7 +489,7 @@ def _joint_fit(model: TubeModel, seen, noise, pixel_noise, start: tuple[list[np.
     return jf if jf is rigid else dataclasses.replace(jf, seen=tuple(seen))
 
 
-def at_scale(d: DetectedSlice, sf, model: TubeModel) -> DetectedSlice:
+def _at_scale(d: DetectedSlice, sf, model: TubeModel) -> DetectedSlice:
     """``d`` as a rigid image of the fiducial at the scale ``sf`` (a :class:`~chic_register.fit.scale.ScaleFit`):
     its centres stretched about the fiducial's centre in the image plane, the slice moved along its normal by the
     through-plane scale times its distance from that centre."""
