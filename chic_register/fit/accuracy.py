@@ -297,6 +297,12 @@ def _template_refine(model: TubeModel, tubes, fit: Fit, assign, xys, Ss, slices,
 MAX_PSF_RADII = 0.5
 #: The passes stop once the point spread's sigma moves by less than this share of a pixel.
 SPREAD_DONE_PX = 0.02
+#: The tubes' own point-spread steps may scatter about the slice's by this many times their noise and the model's
+#: floor (:data:`~chic_register.fit.section.BLUR_FLOOR_PX2`; chi-square per degree of freedom): at most 14 (95 % below
+#: 5.2) over 64 k-space slices of the printed body, noise-free to SNR 10, with or without a scanner's filter; 34 and
+#: 166-208 at two wrong poses of damaged hunt slices (a distractor taken for a section), which a fitted spread made
+#: pass, 110 deg and 0.7 deg off.
+MAX_BLUR_CHI2 = 20.0
 
 
 def section_refine(model: TubeModel, fit: Fit, seen: list[DetectedSlice], opts) -> Fit | None:
@@ -314,7 +320,10 @@ def section_refine(model: TubeModel, fit: Fit, seen: list[DetectedSlice], opts) 
 
     Each slice's point spread is measured on the way (``opts.section_blur``): every exact pass also fits the
     change of its variance the sections' pixels ask for (:func:`~chic_register.fit.section.blur_step`), a
-    Gauss-Newton step from none; the passes go on until neither the pose nor the spread moves.
+    Gauss-Newton step from none; the passes go on until neither the pose nor the spread moves. Where the
+    sections disagree on it at the end (:data:`MAX_BLUR_CHI2`: not one blurred image of the tubes, as at a wrong
+    pose or under tissue) the refinement is done again with sharp sections: a spread fitted to such sections
+    would only make a wrong pose fit its pixels better.
     """
     slices = [d.slice for d in seen]
     xys = [d.xy_mm for d in seen]
@@ -324,6 +333,8 @@ def section_refine(model: TubeModel, fit: Fit, seen: list[DetectedSlice], opts) 
     wins = [None] * len(slices)  # each tube's pixels: chosen at the first pass, kept (the pose barely moves)
     px = min(pixel_mm(sl) for sl in slices)
     spread = [0.0] * len(slices)  # each slice's point-spread variance (mm^2)
+    agree = [0.0] * len(slices)  # each slice's sections' agreement on it (the last exact pass's chi-square)
+    start = fit
     limit = (MAX_PSF_RADII * 0.5 * median(model.diameter_mm)) ** 2
     exact = True
     for it in range(opts.section_iterations):
@@ -345,6 +356,7 @@ def section_refine(model: TubeModel, fit: Fit, seen: list[DetectedSlice], opts) 
                                        measure_blur=opts.section_blur and exact)
             q_before.append(sf.predicted_mm)
             if sf.blur_info > 0:
+                agree[j] = sf.blur_chi2
                 before = math.sqrt(spread[j])
                 spread[j] = min(max(spread[j] + sf.blur_step_mm2, 0.0), limit)
                 spread_moved = max(spread_moved, abs(math.sqrt(spread[j]) - before))
@@ -378,6 +390,8 @@ def section_refine(model: TubeModel, fit: Fit, seen: list[DetectedSlice], opts) 
         if exact and moved < opts.section_done_px * px and spread_moved < SPREAD_DONE_PX * px:
             break
         exact = moved < opts.section_close_px * px
+    if opts.section_blur and max(agree) > MAX_BLUR_CHI2:
+        return section_refine(model, start, seen, dataclasses.replace(opts, section_blur=False))
     return fit
 
 

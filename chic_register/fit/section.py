@@ -69,8 +69,9 @@ class SectionFit:
     """Per tube (K,): ``position_mm`` (K, 2) image mm (NaN where not fitted), ``info`` (K, 2, 2) in mm^-2,
     ``gain`` (fitted fluid signal), ``n_pixels`` in the window, ``fitted`` (bool); ``predicted_mm`` (K, 2):
     the crossings of the pose the model was drawn at. With the point spread measured (``fit_sections``'
-    ``measure_blur``): ``blur_step_mm2``, the change of its variance the sections ask for, and its information
-    ``blur_info`` (mm^-4; 0: not measured)."""
+    ``measure_blur``): ``blur_step_mm2``, the change of its variance the sections ask for, its information
+    ``blur_info`` (mm^-4; 0: not measured) and ``blur_chi2``, the tubes' own steps' scatter about it over their
+    noise (per degree of freedom: about 1 when one blur describes every section)."""
 
     predicted_mm: np.ndarray
     position_mm: np.ndarray
@@ -80,6 +81,7 @@ class SectionFit:
     fitted: np.ndarray
     blur_step_mm2: float = 0.0
     blur_info: float = 0.0
+    blur_chi2: float = 0.0
 
 
 def tube_frames(model, T_F_from_I: np.ndarray, q: np.ndarray, tan_I: np.ndarray):
@@ -137,6 +139,10 @@ JOINT_PASSES = 1
 JOINT_NEIGHBOUR_LEVEL = 0.05
 #: A pixel this many point-spread sigmas beyond a section's edge is drawn as having none of it.
 PSF_REACH_SIGMAS = 5.0
+#: The sections' own point-spread variances differ by about this much (px^2) with no noise at all, on slices
+#: rendered from the printed body through k-space: the section model's own error, beside their noise in
+#: :func:`blur_step`'s agreement test.
+BLUR_FLOOR_PX2 = 0.008
 
 # the products summed per window: (i, j) of [1, S, Sx, Sy] for i <= j, then each with the pixel value y
 _PAIR_I = np.array([0, 0, 0, 0, 1, 1, 1, 2, 2, 3, 0, 1, 2, 3])
@@ -355,8 +361,9 @@ def fit_sections(model, T_F_from_I: np.ndarray, assignment: np.ndarray, pixels: 
         if sel.size == 0:
             return SectionFit(q, out_pos, out_info, out_gain, n_pix, fitted), windows
         at[sel] += shift
-    blur = (0.0, 0.0) if blur_terms is None else blur_step(*blur_terms[:4], y, own, starts, K, blur_terms[4],
-                                                            noise_sigma)
+    px2 = float(pixel_spacing_mm[0]) * float(pixel_spacing_mm[1])
+    blur = (0.0, 0.0, 0.0) if blur_terms is None else blur_step(*blur_terms[:4], y, own, starts, K, blur_terms[4],
+                                                                 noise_sigma, BLUR_FLOOR_PX2 * px2)
     if joint and windows.shared and sel.size >= 2:
         same = reach is not None and np.array_equal(sel, todo)  # the same tubes: the same joint windows
         sel, at, info, a, n_pix = joint_pass(model, T_F_from_I, q, tan, found, pixels, pixel_spacing_mm,
@@ -473,11 +480,14 @@ def model_reusing(model, T_F_from_I, q, tan, win: Windows, shape, pixel_spacing_
     return out
 
 
-def blur_step(S, Sx, Sy, Sv, y, own, starts, K: int, todo, noise_sigma: float) -> tuple[float, float]:
-    """``(dv, information)``: the change of the point spread's variance (mm^2) the windows' pixels ``y`` ask for,
-    and its information (mm^-4), from the per-window least squares ``y = b + a S + (a dx) Sx + (a dy) Sy + (a dv)
-    Sv`` (``Sv``: the model's derivative in the variance) pooled over the tubes ``todo``, each weighted by its
-    information on ``dv``: blur widens every section alike, so one value holds for the slice."""
+def blur_step(S, Sx, Sy, Sv, y, own, starts, K: int, todo, noise_sigma: float,
+              floor_mm2: float = 0.0) -> tuple[float, float, float]:
+    """``(dv, information, chi2)``: the change of the point spread's variance (mm^2) the windows' pixels ``y`` ask
+    for, and its information (mm^-4), from the per-window least squares ``y = b + a S + (a dx) Sx + (a dy) Sy +
+    (a dv) Sv`` (``Sv``: the model's derivative in the variance) pooled over the tubes ``todo``, each weighted by
+    its information on ``dv``: blur widens every section alike, so one value holds for the slice; ``chi2``: the
+    tubes' own values' scatter about it over their noise and ``floor_mm2`` (what the section model's own error puts
+    between them), per degree of freedom."""
     X = np.stack([np.ones_like(S), S, Sx, Sy, Sv, y])
     n = X.shape[0]
     ii, jj = np.triu_indices(n)
@@ -499,8 +509,13 @@ def blur_step(S, Sx, Sy, Sv, y, own, starts, K: int, todo, noise_sigma: float) -
     var_c = Ninv[:, 4, 4] * max(noise_sigma, 1e-12) ** 2
     w = np.where((a > 0) & (var_c > 0), a * a / np.where(var_c > 0, var_c, 1.0), 0.0)
     if not w.sum() > 0:
-        return 0.0, 0.0
-    return float(np.sum(w * c / np.where(a > 0, a, 1.0)) / w.sum()), float(w.sum())
+        return 0.0, 0.0, 0.0
+    own_dv = c / np.where(a > 0, a, 1.0)
+    dv = float(np.sum(w * own_dv) / w.sum())
+    n = int(np.count_nonzero(w))
+    spread = 1.0 / np.where(w > 0, w, np.inf) + floor_mm2 ** 2
+    chi2 = float(np.sum((w > 0) * (own_dv - dv) ** 2 / spread)) / (n - 1) if n > 1 else 0.0
+    return dv, float(w.sum()), chi2
 
 
 def _linear_fit(S, Sx, Sy, y, own, starts, K: int, todo, noise_sigma: float):

@@ -122,3 +122,17 @@ def test_a_pose_that_predicts_sections_the_image_lacks_loses_to_a_rival_of_fewer
     monkeypatch.setattr(rv, "RIVAL_MIN_TUBES", 6)
     out = run_print_case(case, 6, "scale", 0.0, geoms)
     assert out["outcome"] == "false_lock" and out["rot_deg"] > 60, out
+
+
+@pytest.mark.parametrize("seed, case", [(5, 2329), (3, 610)])
+def test_a_point_spread_the_sections_disagree_on_is_not_fitted(monkeypatch, seed, case):
+    """Hunt seeds 5 and 3: a distractor on the tubes' circle taken for a section (case 2329, out of the envelope) and a
+    noisy needle-guide slice at 50 deg (case 610): at their wrong poses the sections' own point-spread estimates
+    scatter 34 and 166-208 times their noise, and a spread fitted to them made the wrong poses fit their pixels well
+    enough to pass (110 deg and 0.7 deg off); with the sections refitted sharp both are refused."""
+    import chic_register.fit.accuracy as acc
+
+    assert run_hunt_case(case, seed=seed)["outcome"] == "no_lock"
+    monkeypatch.setattr(acc, "MAX_BLUR_CHI2", float("inf"))
+    out = run_hunt_case(case, seed=seed)
+    assert out["outcome"] == "false_lock", out
