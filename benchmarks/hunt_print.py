@@ -1,6 +1,7 @@
 """False-lock hunt on what a print and its geometry file get wrong: the fiducial differs from the file, not the image.
 
     .venv/bin/python benchmarks/hunt_print.py --kind KIND [--cases 300] [--seed 5] [--workers 2] [--amount X]
+        [--scale-sd PCT]
 
 Each case is one of ``benchmarks/hunt.py``'s random slices (its ``noisy``
 variant: Rician noise, no other damage), changed by one ``KIND``:
@@ -21,7 +22,9 @@ variant: Rician noise, no other damage), changed by one ``KIND``:
 - ``other_design``: solved with the other design's geometry file (neuro's
   slices with the needle guide's, and the reverse).
 
-The damage is :func:`chic_register.studies.damage.print_damage`'s. Reports
+The damage is :func:`chic_register.studies.damage.print_damage`'s. ``--scale-sd PCT``
+solves as ``chic-register solve --scale-sd PCT`` does: the single slice's
+covariance and trust test then hold an unmeasured scale of that SD. Reports
 ok / false lock (more than 0.5 mm or 0.5 deg from the truth, as hunt.py) /
 no_lock / crash, and lists the false locks. Exit status 1 on a crash.
 """
@@ -79,9 +82,9 @@ def _init(kind: str, amount: float) -> None:
         _WRONG.update(other_design_geometries(hunt._GEOMS))
 
 
-def run_case(index: int, seed: int, kind: str, amount: float) -> dict:
+def run_case(index: int, seed: int, kind: str, amount: float, options: dict) -> dict:
     """One case (:func:`chic_register.studies.damage.run_print_case`): outcome, errors."""
-    return run_print_case(index, seed, kind, amount, hunt._GEOMS, _WRONG)
+    return run_print_case(index, seed, kind, amount, hunt._GEOMS, _WRONG, options)
 
 
 def main(argv=None) -> int:
@@ -91,15 +94,20 @@ def main(argv=None) -> int:
     ap.add_argument("--seed", type=int, default=5)
     ap.add_argument("--workers", type=int, default=2)
     ap.add_argument("--amount", type=float, default=None, help="scale: a fraction; helix_offset: degrees added")
+    ap.add_argument("--scale-sd", type=float, default=None, metavar="PCT",
+                    help="solve as chic-register solve --scale-sd PCT (the in-plane scale known to PCT, 1 SD per axis)")
     args = ap.parse_args(argv)
+    options = {} if args.scale_sd is None else {"scale_sd": args.scale_sd / 100.0}
     amount = DEFAULT_AMOUNT.get(args.kind, 0.0) if args.amount is None else args.amount
     t0, load0 = time.perf_counter(), os.getloadavg()[0]
     n = args.cases
     with ProcessPoolExecutor(max_workers=args.workers, initializer=_init, initargs=(args.kind, amount)) as ex:
-        results = list(ex.map(run_case, range(n), [args.seed] * n, [args.kind] * n, [amount] * n, chunksize=5))
+        results = list(ex.map(run_case, range(n), [args.seed] * n, [args.kind] * n, [amount] * n, [options] * n,
+                              chunksize=5))
     total = collections.Counter(r["outcome"] for r in results)
     inside = collections.Counter(r["outcome"] for r in results if r["in_envelope"])
-    print(f"{args.kind} (amount {amount:g}), cases {n}: ok {total['ok']}, FALSE LOCKS {total['false_lock']}, "
+    told = "" if args.scale_sd is None else f", --scale-sd {args.scale_sd:g}"
+    print(f"{args.kind} (amount {amount:g}{told}), cases {n}: ok {total['ok']}, FALSE LOCKS {total['false_lock']}, "
           f"no_lock {total['no_lock']}, crashes {total['crash']}, setup errors {total['setup_error']}; in the envelope {sum(inside.values())}: "
           f"ok {inside['ok']}, false {inside['false_lock']}")
     for r in results:

@@ -100,7 +100,15 @@ class SolveOptions:
     uncertainty; ``max_scale_error``: a scale in the image plane beyond it
     is refused as a wrong pixel spacing, ``max_slice_scale_error`` one
     across a volume's slices as a wrong slice spacing (the registration
-    reports the scale either way).
+    reports the scale either way). ``scale_sd``: the in-plane scale's
+    standard deviation known beforehand (a print's size against its
+    geometry file, a scanner's gradient calibration: 0.1-0.7 % uncalibrated,
+    a calibrated file's own SD after ``chic-register calibrate``), for a
+    registration that cannot measure it (one slice): its effect on the pose
+    joins the covariance and the trust test. None (the default): a
+    calibrated geometry file's recorded SD, else 0 (the geometry file and
+    the pixel spacing taken as exact; the registration still reports how
+    much an unmeasured scale would move the pose).
     """
 
     max_rms_px: float = 0.5
@@ -137,3 +145,4 @@ class SolveOptions:
     fit_scale: bool = True
     max_scale_error: float = MAX_SCALE_ERROR
     max_slice_scale_error: float = MAX_SLICE_SCALE_ERROR
+    scale_sd: float | None = None

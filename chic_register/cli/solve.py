@@ -76,6 +76,11 @@ def add_parser(subparsers) -> None:
                         "slices (one value: both; default 2 5: gradient calibration is good to 1-2 %%, a print to "
                         "0.1-0.5 %%, and the slice direction, left uncorrected for the gradients' non-linearity, is "
                         "off by several %% 100-150 mm from the isocentre)")
+    s.add_argument("--scale-sd", type=float, default=None, metavar="PCT",
+                   help="the image's in-plane scale is known to PCT (1 SD per axis: an uncalibrated print and "
+                        "scanner, 0.2-0.5; a file from chic-register calibrate, its own SD); one slice cannot "
+                        "measure its scale, so what PCT would move the pose joins its uncertainty and the trust "
+                        "test (default 0: the geometry file and the pixel spacing are exact)")
 
 
 def _report_failures(delivery) -> None:
@@ -115,6 +120,10 @@ def run(args) -> int:
                                     f"across the slices), got {' '.join(f'{v:g}' for v in pcts)}")
         extra["max_scale_error"] = pcts[0] / 100.0
         extra["max_slice_scale_error"] = pcts[-1] / 100.0
+    if args.scale_sd is not None:
+        if not (0 <= args.scale_sd <= 5 and math.isfinite(args.scale_sd)):
+            raise ChicRegisterError(f"--scale-sd takes a per cent in [0, 5], got {args.scale_sd:g}")
+        extra["scale_sd"] = args.scale_sd / 100.0
     early = Delivery()  # a server that cannot listen is an output failure: the pose still comes
     link = None
     try:
@@ -255,6 +264,12 @@ def _print_pose(args, reg, geom) -> None:
                  else "; measured, not fitted: one slice cannot tell a stretch from a tilt (several slices or a "
                       "volume fit it)" if len(reg.slices) == 1
                  else "; not shown by the data: the pose is rigid"))
+        if e.pose_sd_per_pct is not None:
+            rot, tre = e.pose_sd_per_pct
+            held = (f"--scale-sd {100 * e.prior_sd:g} % is in the uncertainty below" if e.prior_sd > 0 else
+                    "not in the uncertainty below: --scale-sd PCT adds it, chic-register calibrate measures it")
+            print(f"  an unmeasured scale of 0.1 % (SD per axis) would add SD {rot / 10:.3f} deg, {tre / 10:.3f} mm at "
+                  f"the frame centre to this pose ({held})")
     u = reg.uncertainty
     if u is not None:
         sd = [math.sqrt(max(0.0, float(u.covariance[i, i]))) for i in range(6)]

@@ -174,6 +174,10 @@ def _worst_steps(C: np.ndarray, lever_mm: np.ndarray) -> list[np.ndarray]:
     return steps
 
 
+#: A covariance's (deg, mm) parameters as a twist's (rad, mm): multiply both sides by ``outer(TO_TWIST, TO_TWIST)``.
+TO_TWIST = np.array([math.radians(1.0)] * 3 + [1.0] * 3)
+
+
 def check_noise_precision(unc, model, opts, sigmas: float = PRECISION_SIGMAS) -> None:
     """:class:`~chic_register.errors.ImprecisePose` unless the pose's covariance from the pixel noise (``unc``, a
     :class:`~chic_register.precision.uncertainty.PoseUncertainty`) keeps ``sigmas`` of its error within the trust limits.
@@ -184,11 +188,12 @@ def check_noise_precision(unc, model, opts, sigmas: float = PRECISION_SIGMAS) ->
     2: a ghosted slice 0.61 deg off, and a thick slab 0.52 deg off, passed on
     residuals at a third of their noise). The pose must pass both.
     """
-    to_rad = np.array([math.radians(1.0)] * 3 + [1.0] * 3)  # the covariance's (deg, mm) as the twist's (rad, mm)
-    tre, rot = worst_errors(unc.covariance * np.outer(to_rad, to_rad), np.array([0.0, 0.0, 0.5 * model.length_mm]))
+    tre, rot = worst_errors(unc.covariance * np.outer(TO_TWIST, TO_TWIST), np.array([0.0, 0.0, 0.5 * model.length_mm]))
     if sigmas * tre > opts.trust_tre_mm or sigmas * rot > opts.trust_rot_deg:
+        source = ("the pixel noise and the image's scale (--scale-sd)" if "a-priori scale" in unc.measurement
+                  else "the pixel noise")
         raise ImprecisePose(f"the pose is not precise enough to trust: {sigmas:g} sigma of its error predicted from "
-                            f"the pixel noise is {sigmas * tre:.2f} mm at the frame centre and {sigmas * rot:.2f} deg "
+                            f"{source} is {sigmas * tre:.2f} mm at the frame centre and {sigmas * rot:.2f} deg "
                             f"(limits {opts.trust_tre_mm:g} mm, {opts.trust_rot_deg:g} deg; a tilted slice or several "
                             f"parallel slices are more precise; --trust MM DEG sets the limits)",
                             {"sigma_tre_mm": round(tre, 4), "sigma_rot_deg": round(rot, 4)})

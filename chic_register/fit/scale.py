@@ -138,6 +138,20 @@ def fit_scale(model: TubeModel, fit: Fit, seen: list[DetectedSlice], sigma_mm: f
     return ScaleFit(X, AXES[:n], s, np.sqrt(np.maximum(np.diag(C)[6:], 0.0)), p, extra)
 
 
+def scale_sensitivity(model: TubeModel, fit: Fit, seen: list[DetectedSlice], sd: float) -> np.ndarray | None:
+    """(6, 6): what an unmeasured in-plane scale of standard deviation ``sd`` per image axis (a print, a scanner's
+    calibration) puts in ``fit``'s rigid pose's covariance, in F's parameters (deg, mm): ``B diag(sd^2) B^T``, ``B``
+    the least-squares pose's move per unit scale. None when the fit has no residuals to linearise."""
+    X = fit.T_F_from_scanner
+    centre = (invert(X) @ np.array([0.0, 0.0, 0.5 * model.length_mm, 1.0]))[:3]
+    rows = _rows(model, fit, seen, X, np.zeros(2), centre, False)
+    if rows is None:
+        return None
+    _, Jp, Js = rows
+    B = np.linalg.lstsq(Jp, Js, rcond=None)[0]  # (6, 2) in the scanner's twist
+    return _to_F_parameters(sd ** 2 * B @ B.T, X)
+
+
 def scaled_fit(model: TubeModel, fit: Fit, seen: list[DetectedSlice], sf: ScaleFit) -> Fit:
     """``fit`` moved to the pose fitted with the scale (``sf``): its residuals at that pose, its assignments and
     measurements kept."""

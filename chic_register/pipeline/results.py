@@ -158,8 +158,8 @@ def build_registration(geom: FiducialGeometry, model: TubeModel, geom_sha: str, 
         else:
             unc = uncertainty if uncertainty is not None else registration_uncertainty(
                 model, best, seen, target, "centroid" if not opts.centroid_model else "template (centroid covariance)")
-            if scale is not None and scale.fitted:
-                unc = unc.widened(scale.pose_covariance, "image scale")
+            if scale is not None and scale.widens:
+                unc = unc.widened(scale.pose_covariance, "image scale" if scale.fitted else "a-priori scale")
             if opts.verify:
                 check_noise_precision(unc, model, opts)
         if unc.predicted_tre_mm > opts.max_tre_mm:

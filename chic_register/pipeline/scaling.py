@@ -9,6 +9,7 @@ refused as not separable from the pose.
 
 from __future__ import annotations
 
+import dataclasses
 import math
 from dataclasses import dataclass
 
@@ -16,9 +17,9 @@ import numpy as np
 
 from chic_register.detect.detected import DetectedSlice
 from chic_register.errors import NoLock
-from chic_register.fit.checks import STRETCH_P
+from chic_register.fit.checks import STRETCH_P, TO_TWIST, worst_errors
 from chic_register.fit.refine import Fit
-from chic_register.fit.scale import ScaleFit, fit_scale, scaled_fit
+from chic_register.fit.scale import ScaleFit, fit_scale, scale_sensitivity, scaled_fit
 from chic_register.model.tube_model import TubeModel, poses_distinct
 from chic_register.options import SolveOptions
 
@@ -27,7 +28,13 @@ from chic_register.options import SolveOptions
 class ImageScale:
     """The image's scale as the registration found it: per axis of ``axes`` (x: the columns, y: the rows, z: the
     slice spacing) its relative value and standard deviation, the F test's ``p`` (NaN: from a pixel fit's own
-    test), whether the pose was fitted with it, and what it adds to the pose's covariance (6, 6, F's parameters)."""
+    test), whether the pose was fitted with it, and what it adds to the pose's covariance (6, 6, F's parameters).
+
+    For one slice (the scale measured, not fitted): ``pose_sd_per_pct``, the
+    pose's standard deviation ``(rotation deg, mm at the frame centre)`` that
+    an unmeasured scale of 1 % SD per axis would add (:func:`~chic_register.fit.scale.scale_sensitivity`),
+    and ``prior_sd``, the scale SD the registration was told (``SolveOptions.scale_sd``), whose share
+    ``pose_covariance`` then holds."""
 
     axes: tuple[str, ...]
     scale: np.ndarray
@@ -35,6 +42,8 @@ class ImageScale:
     p: float
     fitted: bool
     pose_covariance: np.ndarray
+    pose_sd_per_pct: tuple[float, float] | None = None
+    prior_sd: float = 0.0
 
     @classmethod
     def of(cls, sf: ScaleFit, fitted: bool) -> ImageScale:
@@ -50,7 +59,16 @@ class ImageScale:
     def to_dict(self) -> dict:
         return {"axes": list(self.axes), "scale": [round(float(v), 6) for v in self.scale],
                 "sd": [round(float(v), 6) for v in self.scale_sd],
-                **({"p": float(self.p)} if math.isfinite(self.p) else {}), "fitted": self.fitted}
+                **({"p": float(self.p)} if math.isfinite(self.p) else {}), "fitted": self.fitted,
+                **({"pose_sd_per_pct": {"rot_deg": round(self.pose_sd_per_pct[0], 4),
+                                        "tre_mm": round(self.pose_sd_per_pct[1], 4)}}
+                   if self.pose_sd_per_pct is not None else {}),
+                **({"prior_sd": self.prior_sd} if self.prior_sd > 0 else {})}
+
+    @property
+    def widens(self) -> bool:
+        """Whether :attr:`pose_covariance` belongs in the pose's covariance (a fitted scale, or a prior one)."""
+        return self.fitted or self.prior_sd > 0
 
 
 def scale_limit(axis: str, opts: SolveOptions) -> float:
@@ -66,7 +84,9 @@ def scale_stage(model: TubeModel, fit: Fit, seen: list[DetectedSlice], opts: Sol
     sf = fit_scale(model, fit, seen)
     if sf is None:
         return fit, None
-    if not sf.p < STRETCH_P or len(seen) < 2:  # one slice alone reads a stretch as a tilt: reported, not fitted
+    if len(seen) < 2:  # one slice alone reads a stretch as a tilt: measured, not fitted; its effect on the pose told
+        return fit, _one_slice_scale(model, fit, seen, sf, opts)
+    if not sf.p < STRETCH_P:
         return fit, ImageScale.of(sf, False)
     limits = np.array([scale_limit(a, opts) for a in sf.axes])
     worst = int(np.argmax(np.abs(sf.scale) / limits))
@@ -80,3 +100,25 @@ def scale_stage(model: TubeModel, fit: Fit, seen: list[DetectedSlice], opts: Sol
         raise NoLock("the image's scale cannot be told apart from the pose: fitted with it, the pose moves beyond "
                      f"the trust limits ({opts.trust_tre_mm:g} mm, {opts.trust_rot_deg:g} deg)", {"scale": sf.to_dict()})
     return scaled_fit(model, fit, seen, sf), ImageScale.of(sf, True)
+
+
+def _one_slice_scale(model: TubeModel, fit: Fit, seen: list[DetectedSlice], sf: ScaleFit,
+                     opts: SolveOptions) -> ImageScale:
+    """One slice's :class:`ImageScale`: measured, with the pose's sensitivity to an unmeasured scale and, for
+    ``opts.scale_sd`` > 0, that prior's share of the pose's covariance."""
+    out = ImageScale.of(sf, False)
+    per_pct = scale_sensitivity(model, fit, seen, 0.01)
+    if per_pct is None:
+        return out
+    tre, rot = worst_errors(per_pct * np.outer(TO_TWIST, TO_TWIST), np.array([0.0, 0.0, 0.5 * model.length_mm]))
+    sd = opts.scale_sd or 0.0
+    cov = per_pct * (sd / 0.01) ** 2 if sd > 0 else out.pose_covariance
+    return dataclasses.replace(out, pose_covariance=cov, pose_sd_per_pct=(rot, tre), prior_sd=float(sd))
+
+
+def calibrated_scale_sd(geom) -> float:
+    """The in-plane scale SD a geometry file's calibration recorded (``source.calibration.factor_sd``,
+    :mod:`chic_register.studies.scale_calibration`), 0 for an uncalibrated file."""
+    record = (geom.source or {}).get("calibration")
+    sd = record.get("factor_sd") if isinstance(record, dict) else None
+    return float(sd) if isinstance(sd, (int, float)) and math.isfinite(sd) and sd > 0 else 0.0

@@ -243,12 +243,13 @@ def pose_error(T_est, T_true, length_mm: float):
     return tre, rot
 
 
-def solve_and_judge(sl, geom, T_true, ndigits: int | None = None, solve_geom=None) -> dict:
-    """Register one slice (with ``solve_geom``, default ``geom``) and judge it against the truth: ``outcome``
+def solve_and_judge(sl, geom, T_true, ndigits: int | None = None, solve_geom=None, options: dict | None = None) -> dict:
+    """Register one slice (with ``solve_geom``, default ``geom``; ``options``: fields of
+    :class:`~chic_register.options.SolveOptions`) and judge it against the truth: ``outcome``
     (``ok`` / ``false_lock``, beyond FALSE_LOCK_MM or FALSE_LOCK_DEG / ``no_lock`` with its ``reason`` / ``crash``
     with ``error`` and ``trace``) and the errors ``tre_mm``, ``rot_deg`` (rounded to ``ndigits`` when given)."""
     try:
-        reg = register([sl], solve_geom or geom)
+        reg = register([sl], solve_geom or geom, **(options or {}))
     except NoLock as exc:
         return {"outcome": "no_lock", "reason": exc.reason}
     except Exception as exc:  # noqa: BLE001 - every other exception is a crash to report
@@ -499,10 +500,11 @@ def print_scaled(sl: Slice, T_scanner_from_fiducial: np.ndarray, geom, amount: f
                                origin_mm=pivot - (1 + amount) * (pivot - origin))
 
 
-def run_print_case(index: int, seed: int, kind: str, amount: float, geometries: dict, wrong: dict | None = None) -> dict:
+def run_print_case(index: int, seed: int, kind: str, amount: float, geometries: dict, wrong: dict | None = None,
+                   options: dict | None = None) -> dict:
     """One case of the print hunt: case ``index`` of the hunt seeded ``seed`` (its ``noisy`` variant) changed by
     ``kind`` (drawn from ``default_rng([seed, index, 7])``; ``scale``: the pixel spacing declared ``amount`` too
-    large about the fiducial's centre, the image of a print that much larger), solved with ``wrong[geometry]`` when given (``helix_offset``, ``other_design``), judged to 4 digits."""
+    large about the fiducial's centre, the image of a print that much larger), solved with ``wrong[geometry]`` when given (``helix_offset``, ``other_design``) and ``options`` (fields of :class:`~chic_register.options.SolveOptions`), judged to 4 digits."""
     case = noisy_case(index, seed, geometries)
     geom = geometries[case.geometry]
     out = {"index": index, "geometry": case.geometry}
@@ -516,6 +518,7 @@ def run_print_case(index: int, seed: int, kind: str, amount: float, geometries: 
                     slice_thickness_mm=sl.slice_thickness_mm, source=f"case{index}")
     if kind == "scale":
         damaged = print_scaled(damaged, T_true, geom, amount)
-    out.update(solve_and_judge(damaged, geom, T_true, ndigits=4, solve_geom=(wrong or {}).get(case.geometry)))
+    out.update(solve_and_judge(damaged, geom, T_true, ndigits=4, solve_geom=(wrong or {}).get(case.geometry),
+                               options=options))
     out.update(tilt_deg=round(case.tilt_deg, 1), in_envelope=bool(in_env))
     return out

@@ -92,3 +92,64 @@ def test_solve_reports_the_scale_in_json_and_text(tmp_path, neuro_geometry, caps
     assert main(["solve", *map(str, files), "--geometry", str(geo)]) == 0
     assert "image scale: x -0." in capsys.readouterr().out
     assert main(["solve", *map(str, files), "--geometry", str(geo), "--max-scale-error", "0"]) == 2
+
+
+def _delta_F_params(T0, T1):
+    """(6,): ``T1 = T0 @ exp(delta)`` to first order, in F's parameters (deg about F's axes, mm along them)."""
+    D = invert(T0) @ T1
+    A = 0.5 * (D[:3, :3] - D[:3, :3].T)
+    return np.array([np.degrees(A[2, 1]), np.degrees(A[0, 2]), np.degrees(A[1, 0]), *D[:3, 3]])
+
+
+def test_one_slices_sensitivity_to_an_unmeasured_scale_is_the_pose_it_moves(neuro_geometry):
+    """Hand-worked by finite differences: a noise-free slice's pixel spacing declared 0.3 % larger along x, then along
+    y, moves the rigid pose by ``dx``, ``dy``; the registration's a-priori scale covariance for an SD of 0.3 % per axis
+    is ``dx dx^T + dy dy^T`` in its rotation block (a spacing scales about pixel (0, 0), the prior about the
+    fiducial's centre: their translations differ by that shift), and its reported SD per 1 % is that block's worst
+    direction, scaled."""
+    sim = simulate_slice(neuro_geometry, 22.0, 18.0, 40.0, 15.0, noise="none")
+    wide = {"trust_rot_deg": 90.0, "trust_tre_mm": 100.0}  # 0.3 % moves this pose beyond the default limits
+    base = register([sim.slice], neuro_geometry, scale_sd=0.003, **wide)
+    moves = []
+    for axis in (1, 0):  # the columns' spacing (x), then the rows' (y)
+        spacing = list(sim.slice.pixel_spacing_mm)
+        spacing[axis] *= 1.003
+        reg = register([dataclasses.replace(sim.slice, pixel_spacing_mm=tuple(spacing))], neuro_geometry, scale_sd=0,
+                       **wide)
+        moves.append(_delta_F_params(base.T_scanner_from_fiducial, reg.T_scanner_from_fiducial))
+    expected = sum(np.outer(d, d) for d in moves)
+    got = base.scale.pose_covariance
+    assert base.scale.prior_sd == pytest.approx(0.003) and not base.scale.fitted
+    assert np.allclose(got[:3, :3], expected[:3, :3], atol=0.05 * np.abs(expected[:3, :3]).max())
+    rot_per_pct = base.scale.pose_sd_per_pct[0]
+    assert rot_per_pct * 0.3 == pytest.approx(np.sqrt(np.linalg.eigvalsh(expected[:3, :3]).max()), rel=0.1)
+    rigid_only = register([sim.slice], neuro_geometry, scale_sd=0, **wide)
+    # the a-priori scale widens the covariance by exactly its share, and the pose is the rigid one
+    assert np.allclose(base.uncertainty.covariance - rigid_only.uncertainty.covariance, got, atol=1e-9)
+    assert np.allclose(base.T_scanner_from_fiducial, rigid_only.T_scanner_from_fiducial)
+
+
+def test_an_unmeasured_scale_beyond_the_trust_limits_is_refused_and_a_calibrated_file_brings_its_own(
+        tmp_path, neuro_geometry, capsys):
+    """A near-normal slice whose pose an unmeasured 0.2 % scale moves by more than the trust limits allow: ``solve``
+    says so in the text and the JSON and still locks by default; ``--scale-sd 0.2`` refuses it naming the scale;
+    a geometry file calibrated to 0.01 % (``chic-register calibrate``'s record) carries that SD into the registration."""
+    sim = simulate_slice(neuro_geometry, 25.0, 15.0, 30.0, 10.0, noise="rician", snr=20.0, slice_thickness_mm=2.0, rng=3)
+    from chic_register.io.dicom import write_dicom
+
+    path = write_dicom(sim.slice, tmp_path / "s.dcm")
+    geometry = write_geometry(neuro_geometry, tmp_path / "geometry.yaml")
+    assert main(["solve", str(path), "--geometry", str(geometry), "--json"]) == 0
+    out = json.loads(capsys.readouterr().out)
+    per_pct = out["scale"]["pose_sd_per_pct"]
+    assert 3 * 0.2 * per_pct["rot_deg"] > 0.75 and "prior_sd" not in out["scale"]
+    assert main(["solve", str(path), "--geometry", str(geometry)]) == 0
+    assert "an unmeasured scale of 0.1 %" in capsys.readouterr().out
+    assert main(["solve", str(path), "--geometry", str(geometry), "--scale-sd", "0.2"]) != 0
+    assert "the pixel noise and the image's scale (--scale-sd)" in capsys.readouterr().err
+    assert main(["solve", str(path), "--geometry", str(geometry), "--scale-sd", "9"]) == 2
+    assert "--scale-sd takes a per cent in [0, 5], got 9" in capsys.readouterr().err
+    calibrated = dataclasses.replace(neuro_geometry, source={**(neuro_geometry.source or {}),
+                                                             "calibration": {"factor": 1.0, "factor_sd": 0.0001}})
+    reg = register([sim.slice], calibrated)
+    assert reg.scale.prior_sd == pytest.approx(0.0001) and "a-priori scale" in reg.uncertainty.measurement
