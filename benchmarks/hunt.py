@@ -76,20 +76,21 @@ def _init(paths):
     _GEOMS.update(load_geometries(paths))
 
 
-def run_case(case: Case, geometries: dict | None = None) -> dict:
-    """Solve one case (:func:`chic_register.studies.damage.run_case`) with ``geometries``, default the worker's."""
-    return damage.run_case(case, geometries or _GEOMS)
+def run_case(case: Case, geometries: dict | None = None, options: dict | None = None) -> dict:
+    """Solve one case (:func:`chic_register.studies.damage.run_case`) with ``geometries``, default the worker's, and
+    ``options`` (fields of :class:`~chic_register.options.SolveOptions`)."""
+    return damage.run_case(case, geometries or _GEOMS, options)
 
 
 def hunt(n_cases: int, seed: int = 0, workers: int = 2, paths=None, start: int = 0,
-         blob_width=(1.0, 1.0)) -> list[dict]:
+         blob_width=(1.0, 1.0), options: dict | None = None) -> list[dict]:
     """Run cases ``start .. start + n_cases - 1``; one result dict per case, in order."""
     geoms = load_geometries(paths)
     cases = [make_case(i, seed, geoms, blob_width) for i in range(start, start + n_cases)]
     if workers <= 1:
-        return [run_case(c, geoms) for c in cases]
+        return [run_case(c, geoms, options) for c in cases]
     with ProcessPoolExecutor(max_workers=workers, initializer=_init, initargs=(paths,)) as ex:
-        return list(ex.map(run_case, cases, chunksize=8))
+        return list(ex.map(run_case, cases, [None] * len(cases), [options] * len(cases), chunksize=8))
 
 
 def summarise(results: list[dict]) -> dict:
@@ -153,14 +154,17 @@ def main(argv=None) -> int:
     ap.add_argument("--json", metavar="FILE", help="also write every case's result to FILE")
     ap.add_argument("--blob-width", nargs=2, type=float, default=(1.0, 1.0), metavar=("LO", "HI"),
                     help="draw every blob LO-HI x its tube's width, as real images do (default 1 1: as drawn)")
+    ap.add_argument("--scale-sd", type=float, default=None, metavar="PCT",
+                    help="solve as chic-register solve --scale-sd PCT (an unmeasured in-plane scale of that SD)")
     args = ap.parse_args(argv)
+    options = None if args.scale_sd is None else {"scale_sd": args.scale_sd / 100.0}
     if args.case is not None:
         geoms = load_geometries(args.geometry)
         case = make_case(args.case, args.seed, geoms, args.blob_width)
-        print(json.dumps({"case": asdict(case), "result": run_case(case, geoms)}, indent=2))
+        print(json.dumps({"case": asdict(case), "result": run_case(case, geoms, options)}, indent=2))
         return 0
     t0, c0, load0 = time.perf_counter(), time.process_time(), os.getloadavg()[0]
-    results = hunt(args.cases, args.seed, args.workers, args.geometry, args.start, args.blob_width)
+    results = hunt(args.cases, args.seed, args.workers, args.geometry, args.start, args.blob_width, options)
     wall = time.perf_counter() - t0
     s = summarise(results)
     print(format_summary(s))

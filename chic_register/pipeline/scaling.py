@@ -117,8 +117,20 @@ def _one_slice_scale(model: TubeModel, fit: Fit, seen: list[DetectedSlice], sf: 
 
 
 def calibrated_scale_sd(geom) -> float:
-    """The in-plane scale SD a geometry file's calibration recorded (``source.calibration.factor_sd``,
-    :mod:`chic_register.studies.scale_calibration`), 0 for an uncalibrated file."""
+    """The in-plane scale SD left after a geometry file's calibration (``source.calibration``,
+    :mod:`chic_register.studies.scale_calibration`), 0 for an uncalibrated file: the calibration factor's own SD
+    and, in quadrature, how far the calibration scan's columns and rows stood from the one factor it recorded (a
+    scanner's gradients differ per axis; the file can hold only their mean)."""
     record = (geom.source or {}).get("calibration")
-    sd = record.get("factor_sd") if isinstance(record, dict) else None
-    return float(sd) if isinstance(sd, (int, float)) and math.isfinite(sd) and sd > 0 else 0.0
+    if not isinstance(record, dict):
+        return 0.0
+    sd, factor = record.get("factor_sd"), record.get("factor")
+    if not (isinstance(sd, (int, float)) and math.isfinite(sd) and sd > 0):
+        return 0.0
+    spread = 0.0
+    seen = (record.get("image_scale") or {}).get("scale") if isinstance(record.get("image_scale"), dict) else None
+    if isinstance(factor, (int, float)) and factor > 0 and isinstance(seen, list) and len(seen) >= 2 and all(
+            isinstance(v, (int, float)) and math.isfinite(v) for v in seen[:2]):
+        mean = 1.0 / float(factor) - 1.0  # the factor registers a scale correction of this size
+        spread = max(abs(float(v) - mean) for v in seen[:2])
+    return math.hypot(float(sd), spread)

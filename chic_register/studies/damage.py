@@ -261,9 +261,10 @@ def solve_and_judge(sl, geom, T_true, ndigits: int | None = None, solve_geom=Non
     return {"outcome": "false_lock" if false else "ok", "tre_mm": tre, "rot_deg": rot}
 
 
-def run_case(case: Case, geometries: dict) -> dict:
-    """Solve one case; its outcome (``ok`` / ``false_lock`` / ``no_lock`` / ``crash``, or ``setup_error`` when the
-    case itself could not be built), errors and CPU time (``cpu_s``)."""
+def run_case(case: Case, geometries: dict, options: dict | None = None) -> dict:
+    """Solve one case (``options``: fields of :class:`~chic_register.options.SolveOptions`); its outcome (``ok`` /
+    ``false_lock`` / ``no_lock`` / ``crash``, or ``setup_error`` when the case itself could not be built), errors
+    and CPU time (``cpu_s``)."""
     geom = geometries[case.geometry]
     c0 = time.process_time()
     out = {"index": case.index, "geometry": case.geometry, "mutation": case.mutation}
@@ -273,7 +274,7 @@ def run_case(case: Case, geometries: dict) -> dict:
         out.update(outcome="setup_error", error=traceback.format_exc(limit=3))
         return out
     out["in_envelope"] = bool(in_env)
-    out.update(solve_and_judge(sl, geom, T_true))
+    out.update(solve_and_judge(sl, geom, T_true, options=options))
     out["cpu_s"] = time.process_time() - c0
     return out
 

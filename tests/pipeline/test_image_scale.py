@@ -2,6 +2,7 @@
 
 import dataclasses
 import json
+import math
 
 import numpy as np
 import pytest
@@ -12,6 +13,7 @@ from chic_register.imaging.simulate import simulate_slice
 from chic_register.model.geometry import write_geometry
 from chic_register.model.pose import invert, rigid, slice_frame
 from chic_register.pipeline.register import register
+from chic_register.pipeline.scaling import calibrated_scale_sd
 
 T_SF = rigid(slice_frame(0, 20, 30, 40)[:3, :3], (5.0, -3.0, 60.0))
 POSES = [(12, 12, 0, 0), (20, 12, 0, 0), (28, 12, 0, 0), (36, 12, 0, 0)]
@@ -153,3 +155,10 @@ def test_an_unmeasured_scale_beyond_the_trust_limits_is_refused_and_a_calibrated
                                                              "calibration": {"factor": 1.0, "factor_sd": 0.0001}})
     reg = register([sim.slice], calibrated)
     assert reg.scale.prior_sd == pytest.approx(0.0001) and "a-priori scale" in reg.uncertainty.measurement
+    # a calibration scan whose columns read 0.6 % and rows 0.2 % (their mean, 0.4 %, recorded as the factor) leaves
+    # 0.2 % per axis unmeasured
+    record = {"factor": 1 / 1.004, "factor_sd": 0.0001, "image_scale": {"axes": ["x", "y", "z"],
+                                                                       "scale": [0.006, 0.002, 0.01]}}
+    assert calibrated_scale_sd(dataclasses.replace(neuro_geometry, source={"calibration": record})) == \
+        pytest.approx(math.hypot(0.0001, 0.002), rel=1e-6)
+    assert calibrated_scale_sd(neuro_geometry) == 0.0
