@@ -190,12 +190,15 @@ def check_noise_precision(unc, model, opts, sigmas: float = PRECISION_SIGMAS) ->
     """
     tre, rot = worst_errors(unc.covariance * np.outer(TO_TWIST, TO_TWIST), np.array([0.0, 0.0, 0.5 * model.length_mm]))
     if sigmas * tre > opts.trust_tre_mm or sigmas * rot > opts.trust_rot_deg:
-        source = ("the pixel noise and the image's scale (--scale-sd)" if "a-priori scale" in unc.measurement
-                  else "the pixel noise")
+        scaled = "a-priori scale" in unc.measurement
+        source = "the pixel noise and the image's unmeasured scale (--scale-sd)" if scaled else "the pixel noise"
+        advice = ("several slices or a volume measure the scale, and a geometry file calibrated on this scanner "
+                  "(chic-register calibrate) knows it better" if scaled else
+                  "a tilted slice or several parallel slices are more precise")
         raise ImprecisePose(f"the pose is not precise enough to trust: {sigmas:g} sigma of its error predicted from "
                             f"{source} is {sigmas * tre:.2f} mm at the frame centre and {sigmas * rot:.2f} deg "
-                            f"(limits {opts.trust_tre_mm:g} mm, {opts.trust_rot_deg:g} deg; a tilted slice or several "
-                            f"parallel slices are more precise; --trust MM DEG sets the limits)",
+                            f"(limits {opts.trust_tre_mm:g} mm, {opts.trust_rot_deg:g} deg; {advice}; --trust MM DEG "
+                            f"sets the limits)",
                             {"sigma_tre_mm": round(tre, 4), "sigma_rot_deg": round(rot, 4)})
 
 

@@ -148,7 +148,8 @@ def test_an_unmeasured_scale_beyond_the_trust_limits_is_refused_and_a_calibrated
     assert main(["solve", str(path), "--geometry", str(geometry)]) == 0
     assert "an unmeasured scale of 0.1 %" in capsys.readouterr().out
     assert main(["solve", str(path), "--geometry", str(geometry), "--scale-sd", "0.2"]) != 0
-    assert "the pixel noise and the image's scale (--scale-sd)" in capsys.readouterr().err
+    err = capsys.readouterr().err
+    assert "the pixel noise and the image's unmeasured scale (--scale-sd)" in err and "chic-register calibrate" in err
     assert main(["solve", str(path), "--geometry", str(geometry), "--scale-sd", "9"]) == 2
     assert "--scale-sd takes a per cent in [0, 5], got 9" in capsys.readouterr().err
     calibrated = dataclasses.replace(neuro_geometry, source={**(neuro_geometry.source or {}),
