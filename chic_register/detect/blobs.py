@@ -25,6 +25,7 @@ from chic_register.detect.filters import (
     gaussian_smooth,
     maximum_filter,
 )
+from chic_register.detect.watershed import watershed_ift
 from chic_register.model.slices import Slice
 from chic_register.util.quantiles import sorted_span
 
@@ -495,10 +496,10 @@ def _split_levels(blob: np.ndarray, smooth: np.ndarray, threshold: float, min_ar
     split is kept when every region is at most ``max_area_px`` (regions under
     ``min_area_px`` are dropped).
     """
-    from scipy import ndimage as ndi  # rare paths: kept off a plain solve's start-up
     peak = float(smooth[blob].max())
     for frac in (0.3, 0.5, 0.7):
-        seeds, n = ndi.label(blob & (smooth > threshold + frac * (peak - threshold)), ndi.generate_binary_structure(2, 1))
+        above = np.ascontiguousarray(blob & (smooth > threshold + frac * (peak - threshold)))
+        seeds, n = cc3d.connected_components(above, connectivity=4, return_N=True)
         if n < 2:
             continue
         size = np.bincount(seeds.ravel(), minlength=n + 1)
@@ -509,7 +510,9 @@ def _split_levels(blob: np.ndarray, smooth: np.ndarray, threshold: float, min_ar
         markers = np.where(np.isin(seeds, good), seeds, 0).astype(np.int32)
         markers[~blob] = -1
         depth = np.clip((peak - smooth) / max(peak - threshold, 1e-12) * 1000, 0, 65535).astype(np.uint16)
-        ws = ndi.watershed_ift(depth, markers)
+        ws = watershed_ift(depth, markers, blob, max_area_px)
+        if ws is None:  # a region outgrew max_area_px
+            continue
         regions = [(ws == g) & blob for g in good]
         sizes = [int(r.sum()) for r in regions]
         if max(sizes) > max_area_px:

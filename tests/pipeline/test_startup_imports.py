@@ -26,3 +26,18 @@ def test_one_shot_dicom_solve_imports_only_what_a_slice_needs(tmp_path, neuro_ge
     # a sharp slice needs neither the bound's renderer (pose_params holds the covariance's convention) nor the
     # blurred pixel fit (wide_blobs decides it is not needed)
     assert "chic_register.precision.crlb" not in mods and "chic_register.fit.blurred" not in mods
+
+
+def test_one_shot_volume_solve_of_a_real_scan_with_anatomy_does_not_load_scipy(zframe_geometry_file):
+    """The clinical scan's thighs run together into components the detector tries to split (a watershed, scipy's
+    algorithm in :mod:`chic_register.detect.watershed`): scipy.ndimage's import alone would cost a third of a
+    second, as much as the rest of the volume's one-shot start-up."""
+    from tests.conftest import REAL
+
+    code = ("import sys\nfrom chic_register.cli.main import main\n"
+            f"rc = main(['solve', {str(REAL / 'zframe-clinical-3t.nrrd')!r}, '--geometry', "
+            f"{str(zframe_geometry_file)!r}, '--prior', 'RAS', '--json'])\n"
+            "assert rc == 0, rc")
+    mods = modules_after(code)
+    assert "chic_register.detect.watershed" in mods and "chic_register.pipeline.volume" in mods
+    assert not [m for m in mods if m == "scipy" or m.startswith("scipy.")]
