@@ -4,7 +4,9 @@ Where the data show a scale (the F test of :func:`~chic_register.fit.scale.fit_s
 :data:`~chic_register.fit.checks.STRETCH_P`), the pose fitted with it is the answer: a rigid pose would have taken
 part of the scale as a tilt. A scale beyond ``max_scale_error`` in the image plane (``max_slice_scale_error`` across
 the slices) is refused as a wrong pixel (slice) spacing; one whose fit moves the pose beyond the trust limits is
-refused as not separable from the pose.
+refused as not separable from the pose. One slice measures its scale but cannot fit it: the registration says how
+far an unmeasured scale would move the pose, and holds a scale of ``SolveOptions.scale_sd`` (a calibrated geometry
+file's own, by default) in the pose's covariance.
 """
 
 from __future__ import annotations
@@ -20,6 +22,7 @@ from chic_register.errors import NoLock
 from chic_register.fit.checks import STRETCH_P, TO_TWIST, worst_errors
 from chic_register.fit.refine import Fit
 from chic_register.fit.scale import ScaleFit, fit_scale, scale_sensitivity, scaled_fit
+from chic_register.model.geometry import FiducialGeometry
 from chic_register.model.tube_model import TubeModel, poses_distinct
 from chic_register.options import SolveOptions
 
@@ -116,7 +119,7 @@ def _one_slice_scale(model: TubeModel, fit: Fit, seen: list[DetectedSlice], sf: 
     return dataclasses.replace(out, pose_covariance=cov, pose_sd_per_pct=(rot, tre), prior_sd=float(sd))
 
 
-def calibrated_scale_sd(geom) -> float:
+def calibrated_scale_sd(geom: FiducialGeometry) -> float:
     """The in-plane scale SD left after a geometry file's calibration (``source.calibration``,
     :mod:`chic_register.studies.scale_calibration`), 0 for an uncalibrated file: the calibration factor's own SD
     and, in quadrature, how far the calibration scan's columns and rows stood from the one factor it recorded (a
