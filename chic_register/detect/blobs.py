@@ -491,10 +491,13 @@ def _split_levels(blob: np.ndarray, smooth: np.ndarray, threshold: float, min_ar
 
     Raised levels (30, 50, 70 % of the way from the threshold to the peak)
     are tried in turn; at the first where the component breaks into two or
-    more seeds, each of its pixels goes to a seed by a watershed of the
-    smoothed image (the cut runs along the valleys between the blobs). The
-    split is kept when every region is at most ``max_area_px`` (regions under
-    ``min_area_px`` are dropped).
+    more seeds, each of its pixels goes to the seed reached along the path of
+    gentlest steps through the smoothed image (:func:`~chic_register.detect.watershed.watershed_ift`),
+    the pixels around the component competing as background seeds: a region
+    is the part of the component its seed reaches before the background does,
+    often little more than the seed's own plateau. The split is kept when
+    every region is at most ``max_area_px`` (regions under ``min_area_px``
+    are dropped).
     """
     peak = float(smooth[blob].max())
     for frac in (0.3, 0.5, 0.7):
