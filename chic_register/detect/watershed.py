@@ -42,20 +42,22 @@ def watershed_ift(depth: np.ndarray, markers: np.ndarray, mask: np.ndarray | Non
     prv = [-1] * size
     first: dict[int, int] = {0: -1}
     last: dict[int, int] = {0: -1}
+
+    def enqueue(m: int, p: int, back: bool) -> None:
+        """Pixel ``p`` into cost ``m``'s queue: at its back (a background label) or its front (an object's)."""
+        near, far, outward, inward = (last, first, prv, nxt) if back else (first, last, nxt, prv)
+        end = near.get(m, -1)
+        outward[p], inward[p] = end, -1
+        if end != -1:
+            inward[end] = p
+        near[m] = p
+        if far.get(m, -1) == -1:
+            far[m] = p
+
     for j, label in enumerate(out):
-        if label == 0:
-            continue
-        cost[j] = 0
-        if first[0] == -1:
-            first[0] = last[0] = j
-        elif label > 0:
-            nxt[j] = first[0]
-            prv[first[0]] = j
-            first[0] = j
-        else:
-            prv[j] = last[0]
-            nxt[last[0]] = j
-            last[0] = j
+        if label != 0:
+            cost[j] = 0
+            enqueue(0, j, label < 0)
     inside = np.asarray(mask).ravel().tolist() if mask is not None and max_region is not None else None
     counts: dict[int, int] = {}
     offsets = (-W, -1, 1, W)
@@ -99,21 +101,7 @@ def watershed_ift(depth: np.ndarray, markers: np.ndarray, mask: np.ndarray | Non
                         nxt[a] = b
                     if b != -1:
                         prv[b] = a
-                head, tail = first.get(m, -1), last.get(m, -1)
-                if lv < 0:
-                    prv[p], nxt[p] = tail, -1
-                    if tail != -1:
-                        nxt[tail] = p
-                    last[m] = p
-                    if head == -1:
-                        first[m] = p
-                else:
-                    nxt[p], prv[p] = head, -1
-                    if head != -1:
-                        prv[head] = p
-                    first[m] = p
-                    if tail == -1:
-                        last[m] = p
+                enqueue(m, p, lv < 0)
                 if m > level:
                     heapq.heappush(levels, m)
     return np.array(out, dtype=np.asarray(markers).dtype).reshape(H, W)
