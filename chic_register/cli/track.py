@@ -7,6 +7,7 @@ Exit codes as solve: 0, 2 bad input, 4 when an output (OpenIGTLink, a scene) fai
 from __future__ import annotations
 
 import json
+import math
 import sys
 from pathlib import Path
 
@@ -42,6 +43,9 @@ def add_parser(subparsers) -> None:
     t.add_argument("--max-files", type=int, metavar="N", help="stop after N files")
     t.add_argument("--timeout", type=float, metavar="S", help="stop after S seconds")
     t.add_argument("--json", action="store_true", help="print one JSON object per file, then a summary object")
+    t.add_argument("--scale-sd", type=float, default=None, metavar="PCT",
+                   help="as solve --scale-sd: the in-plane scale known to PCT (1 SD per axis), held in each slice's "
+                        "uncertainty and trust test (default: a calibrated geometry file's own SD, else 0)")
 
 
 def run(args) -> int:
@@ -73,6 +77,8 @@ def run(args) -> int:
     if args.max_files is not None and args.max_files < 1:
         raise ChicRegisterError(f"--max-files must be >= 1, got {args.max_files}")
     check_spacing_flag(args)
+    if args.scale_sd is not None and not (0 <= args.scale_sd <= 5 and math.isfinite(args.scale_sd)):
+        raise ChicRegisterError(f"--scale-sd takes a per cent in [0, 5], got {args.scale_sd:g}")
     geom = load_geometry(args.geometry)
     if args.scene and not Path(args.scene).is_dir():
         Path(args.scene).mkdir()  # its parent exists (checked above)
@@ -93,6 +99,8 @@ def run(args) -> int:
         status(text)
 
     common = dict(scene_dir=args.scene, geometry_path=args.geometry, on_event=on_event, on_message=on_message)
+    if args.scale_sd is not None:
+        common["scale_sd"] = args.scale_sd / 100.0
     if images:
         listen = IgtlServer(args.igtl_images_listen) if args.igtl_images_listen is not None else None
         where = f"port {listen.port}" if listen else args.igtl_images

@@ -193,6 +193,25 @@ def test_cli_track_prints_json_lines(tmp_path, neuro_geometry_file, staged, caps
     assert main(["track", str(watch), "--geometry", str(neuro_geometry_file), "--igtl", "host:x"]) == 2
 
 
+def test_cli_track_holds_an_unmeasured_scale_when_told(tmp_path, neuro_geometry_file, staged, capsys):
+    """``track --scale-sd`` registers as ``solve --scale-sd`` does: 1 % of unmeasured scale is more doubt than the
+    trust limits allow one slice, so the slice that locks without it is refused, naming the scale."""
+    from chic_register.cli.main import main
+
+    watch = tmp_path / "w"
+    watch.mkdir()
+    shutil.copy(staged[2][0], watch / "c.dcm")
+    args = ["track", str(watch), "--geometry", str(neuro_geometry_file), "--existing", "--max-files", "1",
+            "--timeout", "30", "--settle", "0", "--json"]
+    assert main(args) == 0
+    assert json.loads(capsys.readouterr().out.splitlines()[0])["status"] == "ok"
+    assert main([*args, "--scale-sd", "1"]) == 0
+    event = json.loads(capsys.readouterr().out.splitlines()[0])
+    assert event["status"] == "no_lock" and "unmeasured scale (--scale-sd)" in event["reason"]
+    assert main([*args, "--scale-sd", "-1"]) == 2
+    assert "--scale-sd takes a per cent in [0, 5], got -1" in capsys.readouterr().err
+
+
 def test_track_folder_serves_poses_to_peers_that_connect(tmp_path, neuro_geometry):
     pytest.importorskip("pyigtl")  # as every OpenIGTLink test
     from chic_register.io.igtl import IgtlServer, read_message
