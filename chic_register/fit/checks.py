@@ -178,7 +178,7 @@ def _worst_steps(C: np.ndarray, lever_mm: np.ndarray) -> list[np.ndarray]:
 TO_TWIST = np.array([math.radians(1.0)] * 3 + [1.0] * 3)
 
 
-def check_noise_precision(unc, model, opts, sigmas: float = PRECISION_SIGMAS) -> None:
+def check_noise_precision(unc, model, opts, sigmas: float = PRECISION_SIGMAS, scale_prior: bool = False) -> None:
     """:class:`~chic_register.errors.ImprecisePose` unless the pose's covariance from the pixel noise (``unc``, a
     :class:`~chic_register.precision.uncertainty.PoseUncertainty`) keeps ``sigmas`` of its error within the trust limits.
 
@@ -187,13 +187,13 @@ def check_noise_precision(unc, model, opts, sigmas: float = PRECISION_SIGMAS) ->
     scatter makes a pose look more precise than its pixels allow (hunt seed
     2: a ghosted slice 0.61 deg off, and a thick slab 0.52 deg off, passed on
     residuals at a third of their noise). The pose must pass both.
+    ``scale_prior``: the covariance holds an unmeasured scale (``SolveOptions.scale_sd``), and the message says so.
     """
     tre, rot = worst_errors(unc.covariance * np.outer(TO_TWIST, TO_TWIST), np.array([0.0, 0.0, 0.5 * model.length_mm]))
     if sigmas * tre > opts.trust_tre_mm or sigmas * rot > opts.trust_rot_deg:
-        scaled = "a-priori scale" in unc.measurement
-        source = "the pixel noise and the image's unmeasured scale (--scale-sd)" if scaled else "the pixel noise"
+        source = "the pixel noise and the image's unmeasured scale (--scale-sd)" if scale_prior else "the pixel noise"
         advice = ("several slices or a volume measure the scale, and a geometry file calibrated on this scanner "
-                  "(chic-register calibrate) knows it better" if scaled else
+                  "(chic-register calibrate) knows it better" if scale_prior else
                   "a tilted slice or several parallel slices are more precise")
         raise ImprecisePose(f"the pose is not precise enough to trust: {sigmas:g} sigma of its error predicted from "
                             f"{source} is {sigmas * tre:.2f} mm at the frame centre and {sigmas * rot:.2f} deg "

@@ -44,7 +44,12 @@ class ScaleFit:
     explains nothing (a small ``p``: the data show a scale);
     ``pose_covariance`` (6, 6): what the scale's uncertainty adds to the
     pose's covariance, in F's parameters (deg, mm: the order of
-    :data:`~chic_register.model.pose_params.PARAMETER_ORDER`).
+    :data:`~chic_register.model.pose_params.PARAMETER_ORDER`);
+    ``unfitted_covariance`` (6, 6): what an unmeasured in-plane scale of
+    unit standard deviation per image axis (a print, a scanner's
+    calibration) puts in the rigid pose's covariance, ``B B^T`` with ``B``
+    the least-squares pose's move per unit scale (times ``sd^2`` for a
+    scale of SD ``sd``).
     """
 
     T_F_from_scanner: np.ndarray
@@ -53,6 +58,7 @@ class ScaleFit:
     scale_sd: np.ndarray
     p: float
     pose_covariance: np.ndarray
+    unfitted_covariance: np.ndarray
 
     def to_dict(self) -> dict:
         return {"axes": list(self.axes), "scale": [round(float(v), 6) for v in self.scale],
@@ -114,6 +120,8 @@ def fit_scale(model: TubeModel, fit: Fit, seen: list[DetectedSlice], sigma_mm: f
     r, Jp, Js = rows
     dof = r.size - 6 - n
     r_rigid = float(r @ r)
+    B = np.linalg.lstsq(Jp, Js[:, :2], rcond=None)[0]  # (6, 2): the rigid pose's move per unit in-plane scale
+    unfitted = _to_F_parameters(B @ B.T, X0)
     for _ in range(ITERATIONS):
         J = np.hstack([Jp, Js])
         step = np.linalg.lstsq(J, r, rcond=None)[0]
@@ -135,21 +143,7 @@ def fit_scale(model: TubeModel, fit: Fit, seen: list[DetectedSlice], sigma_mm: f
     F = ((r_rigid - rss) / n) / (rss / dof) if rss > 0 else math.inf
     p = _f_tail(F, n, dof)
     extra = _to_F_parameters(C[:6, :6] - C_rigid, X)
-    return ScaleFit(X, AXES[:n], s, np.sqrt(np.maximum(np.diag(C)[6:], 0.0)), p, extra)
-
-
-def scale_sensitivity(model: TubeModel, fit: Fit, seen: list[DetectedSlice], sd: float) -> np.ndarray | None:
-    """(6, 6): what an unmeasured in-plane scale of standard deviation ``sd`` per image axis (a print, a scanner's
-    calibration) puts in ``fit``'s rigid pose's covariance, in F's parameters (deg, mm): ``B diag(sd^2) B^T``, ``B``
-    the least-squares pose's move per unit scale. None when the fit has no residuals to linearise."""
-    X = fit.T_F_from_scanner
-    centre = (invert(X) @ np.array([0.0, 0.0, 0.5 * model.length_mm, 1.0]))[:3]
-    rows = _rows(model, fit, seen, X, np.zeros(2), centre, False)
-    if rows is None:
-        return None
-    _, Jp, Js = rows
-    B = np.linalg.lstsq(Jp, Js, rcond=None)[0]  # (6, 2) in the scanner's twist
-    return _to_F_parameters(sd ** 2 * B @ B.T, X)
+    return ScaleFit(X, AXES[:n], s, np.sqrt(np.maximum(np.diag(C)[6:], 0.0)), p, extra, unfitted)
 
 
 def scaled_fit(model: TubeModel, fit: Fit, seen: list[DetectedSlice], sf: ScaleFit) -> Fit:

@@ -53,7 +53,7 @@ from chic_register.pipeline.joint import joint_fit, no_slice_locked
 from chic_register.pipeline.locking import SliceRun, lock_slices
 from chic_register.pipeline.refinement import refine_locked
 from chic_register.pipeline.results import Registration, SkippedSlice, build_registration
-from chic_register.pipeline.scaling import ImageScale, calibrated_scale_sd, scale_stage
+from chic_register.pipeline.scaling import ImageScale, scale_stage, with_calibrated_scale
 from chic_register.pipeline.verification import verify_refined
 from chic_register.verify.rivals import check_rivals
 
@@ -77,8 +77,7 @@ def register(slices: list[Slice], geom: FiducialGeometry, *, options: SolveOptio
     reason when no trustworthy pose exists.
     """
     opts = dataclasses.replace(options or SolveOptions(), **overrides)
-    if opts.scale_sd is None:
-        opts = dataclasses.replace(opts, scale_sd=calibrated_scale_sd(geom))
+    opts = with_calibrated_scale(opts, geom)
     if not slices:
         raise NoLock("no slices given")
     refuse_self_symmetric(geom, opts)

@@ -161,7 +161,8 @@ def build_registration(geom: FiducialGeometry, model: TubeModel, geom_sha: str, 
             if scale is not None and scale.widens:
                 unc = unc.widened(scale.pose_covariance, "image scale" if scale.fitted else "a-priori scale")
             if opts.verify:
-                check_noise_precision(unc, model, opts)
+                check_noise_precision(unc, model, opts,
+                                      scale_prior=scale is not None and scale.widens and not scale.fitted)
         if unc.predicted_tre_mm > opts.max_tre_mm:
             raise NoLock(f"imprecise: predicted TRE {unc.predicted_tre_mm:.3f} mm at "
                          f"({', '.join(f'{v:g}' for v in unc.target_F_mm)}) exceeds {opts.max_tre_mm:g} mm",

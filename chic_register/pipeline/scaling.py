@@ -21,7 +21,7 @@ from chic_register.detect.detected import DetectedSlice
 from chic_register.errors import NoLock
 from chic_register.fit.checks import STRETCH_P, TO_TWIST, worst_errors
 from chic_register.fit.refine import Fit
-from chic_register.fit.scale import ScaleFit, fit_scale, scale_sensitivity, scaled_fit
+from chic_register.fit.scale import ScaleFit, fit_scale, scaled_fit
 from chic_register.model.geometry import FiducialGeometry
 from chic_register.model.tube_model import TubeModel, poses_distinct
 from chic_register.options import SolveOptions
@@ -35,7 +35,7 @@ class ImageScale:
 
     For one slice (the scale measured, not fitted): ``pose_sd_per_pct``, the
     pose's standard deviation ``(rotation deg, mm at the frame centre)`` that
-    an unmeasured scale of 1 % SD per axis would add (:func:`~chic_register.fit.scale.scale_sensitivity`),
+    an unmeasured scale of 1 % SD per axis would add (:attr:`~chic_register.fit.scale.ScaleFit.unfitted_covariance`),
     and ``prior_sd``, the scale SD the registration was told (``SolveOptions.scale_sd``), whose share
     ``pose_covariance`` then holds."""
 
@@ -88,7 +88,7 @@ def scale_stage(model: TubeModel, fit: Fit, seen: list[DetectedSlice], opts: Sol
     if sf is None:
         return fit, None
     if len(seen) < 2:  # one slice alone reads a stretch as a tilt: measured, not fitted; its effect on the pose told
-        return fit, _one_slice_scale(model, fit, seen, sf, opts)
+        return fit, _one_slice_scale(model, sf, opts)
     if not sf.p < STRETCH_P:
         return fit, ImageScale.of(sf, False)
     limits = np.array([scale_limit(a, opts) for a in sf.axes])
@@ -105,18 +105,21 @@ def scale_stage(model: TubeModel, fit: Fit, seen: list[DetectedSlice], opts: Sol
     return scaled_fit(model, fit, seen, sf), ImageScale.of(sf, True)
 
 
-def _one_slice_scale(model: TubeModel, fit: Fit, seen: list[DetectedSlice], sf: ScaleFit,
-                     opts: SolveOptions) -> ImageScale:
+def _one_slice_scale(model: TubeModel, sf: ScaleFit, opts: SolveOptions) -> ImageScale:
     """One slice's :class:`ImageScale`: measured, with the pose's sensitivity to an unmeasured scale and, for
     ``opts.scale_sd`` > 0, that prior's share of the pose's covariance."""
     out = ImageScale.of(sf, False)
-    per_pct = scale_sensitivity(model, fit, seen, 0.01)
-    if per_pct is None:
-        return out
+    per_pct = sf.unfitted_covariance * 0.01 ** 2
     tre, rot = worst_errors(per_pct * np.outer(TO_TWIST, TO_TWIST), np.array([0.0, 0.0, 0.5 * model.length_mm]))
     sd = opts.scale_sd or 0.0
-    cov = per_pct * (sd / 0.01) ** 2 if sd > 0 else out.pose_covariance
+    cov = sf.unfitted_covariance * sd ** 2 if sd > 0 else out.pose_covariance
     return dataclasses.replace(out, pose_covariance=cov, pose_sd_per_pct=(rot, tre), prior_sd=float(sd))
+
+
+def with_calibrated_scale(opts: SolveOptions, geom: FiducialGeometry) -> SolveOptions:
+    """``opts`` with ``scale_sd`` resolved: as given, else the geometry file's calibration's
+    (:func:`calibrated_scale_sd`)."""
+    return opts if opts.scale_sd is not None else dataclasses.replace(opts, scale_sd=calibrated_scale_sd(geom))
 
 
 def calibrated_scale_sd(geom: FiducialGeometry) -> float:

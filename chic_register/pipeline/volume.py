@@ -31,7 +31,7 @@ from chic_register.options import SolveOptions
 from chic_register.pipeline.every_slice import register_every_slice
 from chic_register.pipeline.register import refuse_self_symmetric, register
 from chic_register.pipeline.results import Registration, SkippedSlice, build_registration
-from chic_register.pipeline.scaling import calibrated_scale_sd
+from chic_register.pipeline.scaling import with_calibrated_scale
 from chic_register.verify.pixels import verify_fit
 
 #: A volume whose slices give no pose, with wide blobs: the pixels of this many slices, spread over those that
@@ -84,8 +84,7 @@ def register_volume(volume: Volume, geom: FiducialGeometry, indices=None, **opti
     slices = [volume.native_slice(k) for k in ks]
     opts = dataclasses.replace(options.get("options") or SolveOptions(),
                                **{k: v for k, v in options.items() if k not in _NOT_OPTIONS})
-    if opts.scale_sd is None:
-        opts = dataclasses.replace(opts, scale_sd=calibrated_scale_sd(geom))
+    opts = with_calibrated_scale(opts, geom)
     refuse_self_symmetric(geom, opts)  # before any work: no image can choose between the twins
     if indices is not None:
         return register(slices, geom, **options)

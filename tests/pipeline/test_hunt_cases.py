@@ -95,7 +95,7 @@ def test_the_pose_is_never_more_precise_than_its_pixel_noise_allows(monkeypatch)
 
     out = run_hunt_case(146, 2)
     assert out["outcome"] == "no_lock" and "predicted from the pixel noise" in out["reason"], out
-    monkeypatch.setattr(so, "check_noise_precision", lambda *a: None)
+    monkeypatch.setattr(so, "check_noise_precision", lambda *a, **k: None)
     assert run_hunt_case(146, 2)["outcome"] == "false_lock"
 
 
