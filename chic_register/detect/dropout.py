@@ -33,6 +33,7 @@ import numpy as np
 from numpy.lib.stride_tricks import sliding_window_view
 
 from chic_register.detect.blobs import median
+from chic_register.util.quantiles import nan_median_rows
 
 #: Largest share of exact zeros for which the image still counts as noisy: a noise-free render or a masked slice
 #: is mostly zero (the fiducial's sections cover a few per cent of a slice), a noisy image with dropouts is not.
@@ -141,7 +142,7 @@ def _fill_non_finite(pixels: np.ndarray, lo: float, hi: float) -> tuple[np.ndarr
     has = np.isfinite(hoods).any(axis=1)
     fill = np.full(n, median(out[~bad]))
     if has.any():
-        fill[has] = np.nanmedian(hoods[has], axis=1)
+        fill[has] = nan_median_rows(hoods[has])
     out[bad] = fill
     return out, n
 
@@ -199,7 +200,7 @@ def _fill_specks(pixels: np.ndarray, nonzero: bool = False, lo_hi=None) -> tuple
     bright = np.flatnonzero(height > SPECK_SIGMAS * sigma)
     rows, cols = np.unravel_index(bright, img.shape)
     hoods = _neighbourhoods(img, np.nan)[rows, cols].reshape(bright.size, -1)
-    nb = np.nanmedian(np.delete(hoods, hoods.shape[1] // 2, axis=1), axis=1)
+    nb = nan_median_rows(np.delete(hoods, hoods.shape[1] // 2, axis=1))
     value = img[rows, cols]
     speck = (value - nb > SPECK_ALONE * height[rows, cols]) & (value - nb > SPECK_SIGMAS * sigma)
     n = int(speck.sum())
@@ -227,7 +228,7 @@ def _fill_extreme_specks(img: np.ndarray, spread: np.ndarray, background: float,
         return img, 0
     rows, cols = np.unravel_index(far, img.shape)
     hoods = np.delete(_neighbourhoods(img, np.nan)[rows, cols].reshape(far.size, -1), WINDOW_PX ** 2 // 2, axis=1)
-    nb = np.nanmedian(hoods, axis=1)
+    nb = nan_median_rows(hoods)
     # alone: EXTREME_FACTOR times farther from the background than every one of its neighbours (a section's pixel
     # has a neighbour at its own level, even amid lost pixels)
     dev = np.abs(img[rows, cols] - background)
@@ -260,7 +261,7 @@ def _fill_zeros(pixels: np.ndarray) -> tuple[np.ndarray, int, np.ndarray | None]
     if not candidates.any():
         return pixels, 0, zero
     hoods = _neighbourhoods(np.where(zero, np.nan, img), np.nan)[candidates]  # (n, W, W)
-    fill = np.nanmedian(hoods.reshape(len(hoods), -1), axis=1)
+    fill = nan_median_rows(hoods.reshape(len(hoods), -1))
     lost = fill > level
     if not lost.any():
         return pixels, 0, zero

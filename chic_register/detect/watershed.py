@@ -14,9 +14,16 @@ of it when it moves.
 
 from __future__ import annotations
 
+import hashlib
 import heapq
+from collections import OrderedDict
 
 import numpy as np
+
+#: Floods remembered (:func:`watershed_ift`): a volume's slices are detected up to three times (their own blob width,
+#: the scan's, a noise-bounded level), and a component the same at each asks the same flood again.
+REMEMBERED_FLOODS = 64
+_floods: OrderedDict = OrderedDict()
 
 
 def watershed_ift(depth: np.ndarray, markers: np.ndarray, mask: np.ndarray | None = None,
@@ -26,9 +33,48 @@ def watershed_ift(depth: np.ndarray, markers: np.ndarray, mask: np.ndarray | Non
 
     ``depth`` (H, W): non-negative integers (scipy takes uint8 or uint16); ``markers`` (H, W): integers, positive
     for the objects' seeds, negative for background seeds (flooded after the objects'), 0 elsewhere. With
-    ``mask`` (H, W, bool) and ``max_region``: None as soon as one object's final pixels inside ``mask`` outnumber
-    ``max_region`` (a pixel's label is final once it leaves the queue), for a caller that would refuse such a
-    region anyway."""
+    ``mask`` (H, W, bool) and ``max_region``: None when one object's pixels inside ``mask`` outnumber
+    ``max_region`` (the flood stops as soon as they do), for a caller that would refuse such a region anyway.
+
+    The last :data:`REMEMBERED_FLOODS` floods are remembered by their inputs: a flood finished answers any
+    ``max_region``, one stopped answers a smaller one.
+    """
+    depth, markers = np.asarray(depth), np.asarray(markers)
+    limited = mask is not None and max_region is not None
+    h = hashlib.blake2b(digest_size=16)
+    for a in (depth, markers, np.asarray(mask, bool) if mask is not None else np.zeros(0, bool)):
+        h.update(repr((a.shape, a.dtype.str)).encode())
+        h.update(np.ascontiguousarray(a).tobytes())
+    key = h.digest()
+    known = _floods.get(key)
+    if known is not None:
+        _floods.move_to_end(key)
+        labels, stopped_at, largest = known
+        if labels is None and limited and max_region <= stopped_at:
+            return None
+        if labels is not None:
+            return None if limited and largest > max_region else labels.copy()
+    labels = _flood(depth, markers, mask, max_region)
+    if labels is None:
+        _floods[key] = (None, max_region, None)
+    else:
+        largest = 0
+        if mask is not None:
+            inside = labels[np.asarray(mask, bool)]
+            largest = int(np.bincount(inside[inside > 0]).max(initial=0))
+        _floods[key] = (labels.copy(), None, largest)
+    while len(_floods) > REMEMBERED_FLOODS:
+        _floods.popitem(last=False)
+    return labels
+
+
+def forget_floods() -> None:
+    """Empty :func:`watershed_ift`'s memory (a benchmark timing floods, a test of the memory)."""
+    _floods.clear()
+
+
+def _flood(depth: np.ndarray, markers: np.ndarray, mask: np.ndarray | None, max_region: float | None):
+    """:func:`watershed_ift`'s flood, step for step as scipy's."""
     H, W = depth.shape
     size = H * W
     val = np.asarray(depth).ravel().astype(np.int64).tolist()
@@ -40,24 +86,36 @@ def watershed_ift(depth: np.ndarray, markers: np.ndarray, mask: np.ndarray | Non
     done = [False] * size
     nxt = [-1] * size
     prv = [-1] * size
-    first: dict[int, int] = {0: -1}
-    last: dict[int, int] = {0: -1}
+    first = [-1] * (maxval + 2)  # each cost's queue: its first and last pixel, linked through nxt and prv
+    last = [-1] * (maxval + 2)
 
     def enqueue(m: int, p: int, back: bool) -> None:
         """Pixel ``p`` into cost ``m``'s queue: at its back (a background label) or its front (an object's)."""
         near, far, outward, inward = (last, first, prv, nxt) if back else (first, last, nxt, prv)
-        end = near.get(m, -1)
+        end = near[m]
         outward[p], inward[p] = end, -1
         if end != -1:
             inward[end] = p
         near[m] = p
-        if far.get(m, -1) == -1:
+        if far[m] == -1:
             far[m] = p
 
-    for j, label in enumerate(out):
-        if label != 0:
-            cost[j] = 0
-            enqueue(0, j, label < 0)
+    marked = np.asarray(markers).ravel() != 0
+    # a background seed whose neighbours are all seeds changes nothing when it leaves the queue (every neighbour
+    # already costs 0): it keeps its label without ever being queued, which leaves the others' order as it was
+    quiet = marked.copy()
+    for off in (-W, -1, 1, W):
+        shifted = np.ones(size, bool)
+        if off > 0:
+            shifted[:size - off] = marked[off:]
+        else:
+            shifted[-off:] = marked[:size + off]
+        quiet &= shifted
+    queued = np.flatnonzero(marked & ~(quiet & (np.asarray(markers).ravel() < 0))).tolist()
+    for j in np.flatnonzero(marked).tolist():
+        cost[j] = 0
+    for j in queued:
+        enqueue(0, j, out[j] < 0)
     inside = np.asarray(mask).ravel().tolist() if mask is not None and max_region is not None else None
     counts: dict[int, int] = {}
     offsets = (-W, -1, 1, W)
@@ -68,7 +126,7 @@ def watershed_ift(depth: np.ndarray, markers: np.ndarray, mask: np.ndarray | Non
         if nxt_level <= level:
             continue
         level = nxt_level
-        while first.get(level, -1) != -1:
+        while first[level] != -1:
             v = first[level]
             first[level] = nxt[v]
             if nxt[v] != -1:
@@ -93,15 +151,30 @@ def watershed_ift(depth: np.ndarray, markers: np.ndarray, mask: np.ndarray | Non
                 out[p] = lv
                 if nxt[p] != -1 or prv[p] != -1:  # out of the queue it was in
                     a, b = prv[p], nxt[p]
-                    if first.get(pc, -1) == p:
+                    if first[pc] == p:
                         first[pc] = b
-                    if last.get(pc, -1) == p:
+                    if last[pc] == p:
                         last[pc] = a
                     if a != -1:
                         nxt[a] = b
                     if b != -1:
                         prv[b] = a
-                enqueue(m, p, lv < 0)
+                if lv < 0:  # enqueue(m, p, back=True), inlined: the flood's innermost step
+                    e = last[m]
+                    prv[p], nxt[p] = e, -1
+                    if e != -1:
+                        nxt[e] = p
+                    last[m] = p
+                    if first[m] == -1:
+                        first[m] = p
+                else:
+                    e = first[m]
+                    nxt[p], prv[p] = e, -1
+                    if e != -1:
+                        prv[e] = p
+                    first[m] = p
+                    if last[m] == -1:
+                        last[m] = p
                 if m > level:
                     heapq.heappush(levels, m)
     return np.array(out, dtype=np.asarray(markers).dtype).reshape(H, W)

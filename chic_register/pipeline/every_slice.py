@@ -113,20 +113,32 @@ class Scatter:
     @classmethod
     def of(cls, r2_mm2: np.ndarray, noise_mm: np.ndarray) -> Scatter:
         """From squared residual lengths ``r2_mm2`` (M,) and centre noise ``noise_mm`` (M,): the model error whose
-        total scatter puts the median of ``r2 / sigma^2`` at the chi-square (2 dof) median, 2 ln 2."""
+        total scatter puts the median of ``r2 / sigma^2`` at the chi-square (2 dof) median, 2 ln 2.
+
+        Blob ``i``'s ratio exceeds the target exactly while ``m^2 < c_i = r2_i / target - noise_i^2``, so the median
+        crosses it at the median of ``c`` (an odd count), or between the two middle ``c`` (an even count: the mean of
+        two ratios, found by bisection inside that bracket)."""
         if r2_mm2.size == 0:
             return cls(noise_mm, 0.0)
         target = 2.0 * math.log(2.0)
+        r2, n2 = np.asarray(r2_mm2, float), np.asarray(noise_mm, float) ** 2
+        M = r2.size
+        c = np.sort(r2 / target - n2)
+        if M % 2:
+            return cls(noise_mm, math.sqrt(max(float(c[M // 2]), 0.0)))
 
-        def median_ratio(m):
-            return float(np.median(r2_mm2 / np.maximum(noise_mm ** 2 + m * m, 1e-300)))
+        def above(m: float) -> bool:  # the median ratio exceeds the target at model error m
+            ratio = np.partition(r2 / np.maximum(n2 + m * m, 1e-300), (M // 2 - 1, M // 2))
+            return 0.5 * (float(ratio[M // 2 - 1]) + float(ratio[M // 2])) > target
 
-        if median_ratio(0.0) <= target:
-            return cls(noise_mm, 0.0)
-        lo, hi = 0.0, math.sqrt(float(np.max(r2_mm2)))
+        lo, hi = math.sqrt(max(float(c[M // 2 - 1]), 0.0)), math.sqrt(max(float(c[M // 2]), 0.0))
+        if not above(lo):
+            return cls(noise_mm, lo)
         for _ in range(60):
             mid = 0.5 * (lo + hi)
-            lo, hi = (mid, hi) if median_ratio(mid) > target else (lo, mid)
+            if mid in (lo, hi):
+                break
+            lo, hi = (mid, hi) if above(mid) else (lo, mid)
         return cls(noise_mm, hi)
 
 

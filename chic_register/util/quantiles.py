@@ -113,3 +113,16 @@ def percentiles(values: np.ndarray, q) -> np.ndarray:
     if np.isnan(x).any():
         out[:] = np.nan
     return out
+
+
+def nan_median_rows(values: np.ndarray) -> np.ndarray:
+    """``np.nanmedian(values, axis=1)`` of a 2-D float array, the same numbers, from one sort: NaN for a row of NaNs
+    only (without numpy's warning). ``np.nanmedian`` of small rows goes through ``numpy.ma``, whose import costs a
+    one-shot solve 15 ms."""
+    a = np.sort(np.asarray(values, dtype=float), axis=1)  # (NaN sorts last)
+    n = np.count_nonzero(~np.isnan(a), axis=1)
+    rows = np.arange(a.shape[0])
+    lo, hi = a[rows, np.maximum((n - 1) // 2, 0)], a[rows, np.maximum(n // 2, 0)]
+    out = np.where(n % 2 == 1, lo, (lo + hi) / 2.0)
+    out[n == 0] = np.nan
+    return out

@@ -50,3 +50,30 @@ def test_a_region_outgrowing_its_limit_stops_the_flood_exactly_when_the_full_flo
         assert (stopped is None) == (largest > limit)
         if stopped is not None:
             np.testing.assert_array_equal(stopped, full)
+
+
+def test_a_remembered_flood_answers_as_a_fresh_one_for_any_region_limit():
+    from chic_register.detect.watershed import forget_floods
+
+    rng = np.random.default_rng(11)
+    for _ in range(200):
+        H, W = (int(v) for v in rng.integers(3, 25, 2))
+        depth = rng.integers(0, int(rng.choice([3, 200, 2000])), (H, W)).astype(np.uint16)
+        mask = rng.random((H, W)) < 0.7
+        markers = np.where(mask, 0, -1).astype(np.int32)
+        markers.flat[rng.choice(H * W, 3, replace=False)] = [1, 2, 3]
+        limits = [int(v) for v in rng.integers(1, H * W, 3)]
+        forget_floods()
+        fresh = []
+        for limit in limits:
+            forget_floods()
+            fresh.append(watershed_ift(depth, markers, mask, limit))
+        forget_floods()
+        for limit, want in zip(limits, fresh):  # each asked in turn of the memory the earlier ones left
+            got = watershed_ift(depth, markers, mask, limit)
+            assert (got is None) == (want is None)
+            if want is not None:
+                np.testing.assert_array_equal(got, want)
+                got[:] = 0  # a caller's change to its answer does not reach the memory
+        full = watershed_ift(depth, markers)
+        np.testing.assert_array_equal(full, ndi.watershed_ift(depth, markers))

@@ -117,3 +117,16 @@ def test_normal_quantile_matches_the_standard_library():
     for bad in (0.0, 1.0, -0.1, float("nan")):
         with pytest.raises(ValueError):
             normal_quantile(bad)
+
+
+def test_the_rician_variance_table_is_its_quadrature_and_meets_the_known_limits():
+    from chic_register.precision.uncertainty import (
+        RICIAN_SIGNAL,
+        RICIAN_VARIANCE,
+        rician_variance_by_quadrature,
+        rician_variance_factor,
+    )
+
+    np.testing.assert_allclose(RICIAN_VARIANCE, rician_variance_by_quadrature(RICIAN_SIGNAL), rtol=1e-13, atol=0)
+    assert RICIAN_VARIANCE[0] == pytest.approx(2 - np.pi / 2, abs=1e-5)  # Rayleigh at no signal (the quadrature: 7e-6 low)
+    assert rician_variance_factor(50.0) == 1.0 and abs(RICIAN_VARIANCE[-1] - 1) < 1e-2  # Gaussian at high signal

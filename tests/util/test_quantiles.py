@@ -1,5 +1,7 @@
 """chic_register.util.quantiles: np.percentile's values, bit for bit, from a partition of the values near them."""
 
+import warnings
+
 import numpy as np
 import pytest
 
@@ -54,3 +56,19 @@ def test_sorted_span_is_the_sorted_values_or_a_miss():
     skewed = rng.normal(size=32000)
     skewed[::16] += 1000.0  # the sample far above the rest: a miss, never a wrong value
     assert sorted_span(skewed, 16000, 16001) is None
+
+
+def test_nan_median_rows_is_numpys_nanmedian_bit_for_bit():
+    from chic_register.util.quantiles import nan_median_rows
+
+    rng = np.random.default_rng(1)
+    for t in range(500):
+        r, c = int(rng.integers(1, 40)), int(rng.integers(1, 12))
+        a = rng.normal(size=(r, c)) * 10 ** rng.uniform(-3, 3)
+        a[rng.random((r, c)) < rng.uniform(0, 1)] = np.nan
+        if t % 5 == 0:
+            a = np.round(a)  # ties
+        with np.errstate(all="ignore"), warnings.catch_warnings():
+            warnings.simplefilter("ignore", RuntimeWarning)  # (numpy warns of a row of NaNs)
+            want = np.nanmedian(a, axis=1)
+        np.testing.assert_array_equal(nan_median_rows(a), want)
