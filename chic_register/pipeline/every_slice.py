@@ -91,6 +91,10 @@ OUTSIDE_SHARE = 0.1
 #: A distinct pose matching at least as many blobs with a scatter within this factor of the best's is a rival the
 #: data cannot rule out.
 RIVAL_SCATTER_RATIO = 1.5
+#: :func:`_robust_pose`: rounds of reweighting, and the Cauchy weight's scale in robust sigmas (95 % efficiency
+#: for Gaussian errors).
+ROBUST_ROUNDS = 5
+CAUCHY_C = 2.385
 
 
 @dataclass(frozen=True)
@@ -189,13 +193,18 @@ def register_every_slice(slices: list[Slice], geom: FiducialGeometry, opts: Solv
         if jf is None:
             led.append((X, None))
             continue
-        same = [g for g in groups if not poses_distinct(jf.fit.T_F_from_scanner, g[0].fit.T_F_from_scanner, model)]
+        same = [n for n, g in enumerate(groups)
+                if not poses_distinct(jf.fit.T_F_from_scanner, g[0].fit.T_F_from_scanner, model)]
         if not same:
             groups.append((jf, set(js)))
             led.append((X, groups[-1]))
             continue
-        led.append((X, same[0]))
-        same[0][1].update(js)
+        n = same[0]
+        if _explains_better(jf, groups[n][0]):  # the same pose, reached through better-fitting slices: kept instead
+            groups[n] = (jf, groups[n][1])
+            led = [(T, groups[n] if g is not None and g[1] is groups[n][1] else g) for T, g in led]
+        led.append((X, groups[n]))
+        groups[n][1].update(js)
     fits = [g for g in groups if near_prior(g[0].fit.T_F_from_scanner, opts)]
     outside = [g[0] for g in groups if not near_prior(g[0].fit.T_F_from_scanner, opts)]
     if not fits and outside:
@@ -303,8 +312,8 @@ def _with_faint_sections(model: TubeModel, best: JointFit, seen, noise, pixel_no
         pixel_noise[j] = slice_noise(d.slice, d.blobs.footprints) if len(d.blobs.footprints) else None
         noise[j], parents[j] = _centre_noise(d, pixel_noise[j]), enclosing_blobs(d.blobs)
     jf = _joint_fit(model, again, noise, pixel_noise, _joint_start(model, again, parents, X))
-    if (jf is None or jf.fit.n_matched <= best.fit.n_matched
-            or poses_distinct(jf.fit.T_F_from_scanner, X, model)):
+    if (jf is None or poses_distinct(jf.fit.T_F_from_scanner, X, model)
+            or not (jf.fit.n_matched > best.fit.n_matched or _explains_better(jf, best))):
         return best
     return jf
 
@@ -435,6 +444,13 @@ def _distinct_starts(model: TubeModel, starts) -> list[tuple[np.ndarray, set]]:
     return [(X, js) for X, js, best in reps if best[0] >= top - 1]
 
 
+def _explains_better(a: JointFit, b: JointFit) -> bool:
+    """Whether joint fit ``a`` matches at least as many blob centres as ``b`` with a smaller scatter. Two fits within
+    a millimetre and a degree of each other are one pose; the slices each kept can differ (a start among a scan's
+    biased end slices, its tubes part-filled, keeps them and fits them all loosely), and the closer fit is the pose's."""
+    return a.fit.n_matched >= b.fit.n_matched and _scatter_mm(a) < _scatter_mm(b)
+
+
 def _scatter_mm(jf: JointFit) -> float:
     return float(np.median(jf.scatter.sigma_mm)) if jf.scatter.sigma_mm.size else math.inf
 
@@ -484,7 +500,11 @@ def _joint_fit(model: TubeModel, seen, noise, pixel_noise, start: tuple[list[np.
     keep = list(range(len(seen)))
     excl = [np.zeros(len(model.ids), bool) for _ in seen]
     seen, noise, fit = _better_centres(model, seen, noise, pixel_noise, idx, fit, keep, excl, gate)
-    jf = _prune(model, seen, noise, idx, fit, gate)
+    screened = _screen_slices(model, seen, noise, fit)
+    kept = [j for j in keep if j not in {j for j, _, _ in screened}]
+    if screened:
+        fit = _fit_on(model, seen, idx, fit.T_F_from_scanner, kept, excl, (0.6 * gate,))
+    jf = _prune(model, seen, noise, idx, fit, gate, kept, screened)
     if jf is None:
         return None
     scaled, rigid = list(seen), jf
@@ -495,8 +515,9 @@ def _joint_fit(model: TubeModel, seen, noise, pixel_noise, start: tuple[list[np.
         scaled = [_at_scale(d, sf, model) for d in scaled]
         again = _prune(model, scaled, noise, idx, _fit_on(model, scaled, idx, sf.T_F_from_scanner, keep, excl,
                                                           (gate, 0.6 * gate)), gate)
-        if again is None or again.fit.n_matched < jf.fit.n_matched:
-            break
+        if (again is None or again.fit.n_matched < jf.fit.n_matched
+                or _scatter_mm(again) > RIVAL_SCATTER_RATIO * _scatter_mm(jf)):
+            break  # (a scale that takes in more slices only by fitting them all loosely is not the image's)
         jf = again
     return jf if jf is rigid else dataclasses.replace(jf, seen=tuple(seen))
 
@@ -516,14 +537,75 @@ def _at_scale(d: DetectedSlice, sf, model: TubeModel) -> DetectedSlice:
     return dataclasses.replace(d, xy_mm=xy, T_scanner_from_image=S @ shift)
 
 
-def _prune(model: TubeModel, seen, noise, idx, fit: Fit, gate: float) -> JointFit | None:
-    """From ``fit`` on every slice: blobs, then slices, whose residuals the scatter cannot explain left out in turn
-    (:data:`OUTLIER_P`), the pose refitted after each; None when fewer than two slices keep :data:`MIN_SLICE_TUBES`
-    tubes."""
+def _robust_pose(model: TubeModel, seen, fit: Fit, rounds: int = ROBUST_ROUNDS) -> Fit:
+    """``fit``'s pose refitted to its own blob assignments with Cauchy weights (iteratively reweighted least squares):
+    a blob ``r`` from its crossing counts ``1 / (1 + (r / (c sigma))^2)``, ``sigma`` the residuals' robust scale per
+    coordinate and ``c`` :data:`CAUCHY_C`. A group of slices whose centres are biased the same way (channels part
+    filled at one end of a frame, a slab's fading edge) then pulls the pose much less than in plain least squares."""
+    js = [j for j, a in enumerate(fit.assignments) if np.count_nonzero(a >= 0) >= MIN_SLICE_TUBES]
+    if len(js) < 3:
+        return fit
+    xy = [seen[j].xy_mm for j in js]
+    S = [seen[j].T_scanner_from_image for j in js]
+    assign = [fit.assignments[j] for j in js]
+    res = [fit.residuals[j] for j in js]
+    X = fit.T_F_from_scanner
+    for _ in range(rounds):
+        r2 = np.concatenate([r[(a >= 0) & np.isfinite(r)] ** 2 for a, r in zip(assign, res)])
+        sigma2 = float(np.median(r2)) / (2.0 * math.log(2.0)) if r2.size else 0.0
+        if not sigma2 > 0:
+            return fit
+        W = []
+        for a, r in zip(assign, res):
+            w = np.where((a >= 0) & np.isfinite(r), 1.0 / (1.0 + np.nan_to_num(r) ** 2 / (CAUCHY_C ** 2 * sigma2)), 0.0)
+            W.append(np.sqrt(w)[:, None, None] * np.eye(2))
+        sub = refine(model, xy, S, X, gates_mm=(), assign0=assign, final_iters=3, weights=W)
+        X, assign, res = sub.T_F_from_scanner, sub.assignments, sub.residuals
+    K = len(model.ids)
+    a_all = [np.full(K, -1) for _ in seen]
+    r_all = [np.full(K, math.nan) for _ in seen]
+    for n, j in enumerate(js):
+        a_all[j], r_all[j] = assign[n], res[n]
+    return Fit(X, a_all, r_all, fit.inside, fit.n_matched, fit.rms_mm, None)
+
+
+def _screen_slices(model: TubeModel, seen, noise, fit: Fit) -> list[tuple[int, str, float]]:
+    """Slices left out before the joint fit's pruning: those whose residuals under :func:`_robust_pose` the scatter
+    of the others cannot explain (a chi-square tail below :data:`OUTLIER_P`, shared over the slices), as
+    :func:`_prune` reasons them. Plain least squares over every slice can spread a biased group's error over all of
+    them until none stands out; the robust pose leaves it where it is. Nothing is left out when that would leave
+    fewer than half the slices (the robust pose is then no majority's)."""
+    robust = _robust_pose(model, seen, fit)
+    if robust is fit:
+        return []
+    ok = [(j, row) for j, row in zip(range(len(seen)), _residual_rows(robust, noise, range(len(seen))))
+          if row[0].size >= MIN_SLICE_TUBES]
+    if len(ok) < 3:
+        return []
+    r2 = np.concatenate([row[1] for _, row in ok])
+    sig2 = Scatter.of(r2, np.concatenate([row[2] for _, row in ok])).sigma_mm ** 2
+    out, pos = [], 0
+    for j, (k, r2j, _) in ok:
+        z = float(np.sum(r2j / sig2[pos:pos + k.size]))
+        p = 1.0 - gamma_p(float(k.size), 0.5 * z)
+        pos += k.size
+        if p < OUTLIER_P / len(ok):
+            rms = float(np.sqrt(np.mean(r2j)))
+            out.append((j, f"disagrees with the other slices: its {k.size} tubes sit {rms:.3f} mm RMS from the "
+                           f"pose the others agree on, where they scatter by "
+                           f"{math.sqrt(2.0 * float(np.median(sig2))):.3f} mm (chi-square tail {p:.1e})", rms))
+    return out if 2 * len(out) <= len(ok) else []
+
+
+def _prune(model: TubeModel, seen, noise, idx, fit: Fit, gate: float, keep: list[int] | None = None,
+           dropped: list | None = None) -> JointFit | None:
+    """From ``fit`` on the slices ``keep`` (default every slice; ``dropped``: those already left out, with their
+    reasons): blobs, then slices, whose residuals the scatter cannot explain left out in turn (:data:`OUTLIER_P`),
+    the pose refitted after each; None when fewer than two slices keep :data:`MIN_SLICE_TUBES` tubes."""
     K = len(model.ids)
     excl = [np.zeros(K, bool) for _ in seen]
-    keep = list(range(len(seen)))
-    dropped = []
+    keep = list(range(len(seen))) if keep is None else list(keep)
+    dropped = list(dropped or [])
     for _ in range(2 * len(seen) + 4 * K):
         rows = _residual_rows(fit, noise, keep)
         ok = [(j, row) for j, row in zip(keep, rows) if row[0].size >= MIN_SLICE_TUBES]

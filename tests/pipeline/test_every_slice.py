@@ -83,6 +83,21 @@ def test_the_clinical_scan_is_registered_from_every_slice_that_shows_its_rods(zf
     assert reg.scale.fitted and -0.05 < z < -0.01 and abs(z) > 2 * reg.scale.scale_sd[2]
 
 
+def test_the_clinical_scan_registers_the_same_with_its_intensities_scaled_and_offset(zframe_geometry):
+    """Intensities x 10 + 500 (a reconstruction's rescale, a DC offset: no exact zeros, a background far from 0) change
+    each blob centre's noise estimate, and least squares over every slice then drags the start towards the three
+    crescent slices; the pose the other slices agree on (a Cauchy-weighted fit) leaves
+    them out as before, and the registration is the plain scan's."""
+    vol = read_volume(REAL / "zframe-clinical-3t.nrrd")
+    plain = register_volume(vol, zframe_geometry, prior=load_prior("RAS"))
+    shifted = dataclasses.replace(vol, voxels=vol.voxels.astype(np.float32) * 10 + 500)
+    reg = register_volume(shifted, zframe_geometry, prior=load_prior("RAS"))
+    assert sorted(s.source for s in reg.slices) == sorted(s.source for s in plain.slices)
+    assert tre_mm(reg.T_scanner_from_fiducial, plain.T_scanner_from_fiducial, ZF_CENTRE) < 0.02
+    assert pose_difference(reg.T_scanner_from_fiducial, plain.T_scanner_from_fiducial)[1] < 0.02
+    assert abs(reg.scale.scale[2] - plain.scale.scale[2]) < 0.005
+
+
 @pytest.mark.parametrize("stretch, ok", [(1.03, True), (1.06, False), (1.12, False)])
 def test_a_slice_spacing_off_by_a_few_per_cent_is_fitted_and_a_wrong_one_refused(z001, cut_volume, stretch, ok):
     """The volume's slice spacing declared 3 % too large (what the gradients' non-linearity does across the slices
