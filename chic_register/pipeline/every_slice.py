@@ -213,8 +213,9 @@ def register_every_slice(slices: list[Slice], geom: FiducialGeometry, opts: Solv
         raise NoLock(f"the slices show the frame turned {turn:.0f} deg from the prior ({o.fit.n_matched} blob centres "
                      f"fit that pose), beyond --prior-max-deg {opts.prior_max_deg:g}: no pose near the prior explains "
                      f"them; check how the frame is mounted", {"stage": "joint", "n_outside": o.fit.n_matched})
-    # a pose is the volume's when the slices locked alone lead to it from at least two of them, and to no other
-    supported = [g for g in fits if len(g[1]) >= 2]
+    # a pose is the volume's when two or more slices would lock at it alone (they did, and led to it, or the joint fit
+    # matches every tube it puts wholly inside them), and no other pose has such support
+    supported = [g for g in fits if len(g[1] | _complete_slices(model, g[0], opts)) >= 2]
     if len(supported) != 1:
         raise NoLock(f"the slices locked alone lead to {len(supported)} distinct poses that two or more of them agree "
                      f"on (of {len(fits)} poses fitted to the volume's blob centres); one is needed",
@@ -312,10 +313,15 @@ def _with_faint_sections(model: TubeModel, best: JointFit, seen, noise, pixel_no
         pixel_noise[j] = slice_noise(d.slice, d.blobs.footprints) if len(d.blobs.footprints) else None
         noise[j], parents[j] = _centre_noise(d, pixel_noise[j]), enclosing_blobs(d.blobs)
     jf = _joint_fit(model, again, noise, pixel_noise, _joint_start(model, again, parents, X))
-    if (jf is None or poses_distinct(jf.fit.T_F_from_scanner, X, model)
-            or not (jf.fit.n_matched > best.fit.n_matched or _explains_better(jf, best))):
+    if jf is None:
         return best
-    return jf
+    if not poses_distinct(jf.fit.T_F_from_scanner, X, model):
+        return jf if jf.fit.n_matched > best.fit.n_matched or _explains_better(jf, best) else best
+    # a distinct pose: taken only where it matches as many centres RIVAL_SCATTER_RATIO times closer (``best`` then
+    # fitted a biased group of slices with the others, which the faint sections outvote)
+    if jf.fit.n_matched >= best.fit.n_matched and RIVAL_SCATTER_RATIO * _scatter_mm(jf) <= _scatter_mm(best):
+        return jf
+    return best
 
 
 def median_diameter_mm(model: TubeModel) -> float:
@@ -465,9 +471,9 @@ def _residual_rows(fit: Fit, noise, js):
     return rows
 
 
-def _joint_start(model: TubeModel, seen, parents, X: np.ndarray) -> tuple[list[np.ndarray], Fit]:
-    """``(idx, fit)``: per slice the blobs that are candidates for tubes (:func:`_candidates`), and the pose near
-    ``X`` fitted to them on every slice (the start of :func:`_joint_fit`)."""
+def _joint_start(model: TubeModel, seen, parents, X: np.ndarray) -> tuple[list[np.ndarray], Fit, np.ndarray]:
+    """``(idx, fit, X)``: per slice the blobs that are candidates for tubes (:func:`_candidates`), the pose near
+    ``X`` fitted to them on every slice, and ``X`` itself (the start of :func:`_joint_fit`)."""
     gate = match_gate_mm(model, max(d.resolution_mm for d in seen))
     K = len(model.ids)
     excl = [np.zeros(K, bool) for _ in seen]
@@ -478,7 +484,7 @@ def _joint_start(model: TubeModel, seen, parents, X: np.ndarray) -> tuple[list[n
     if any(a.size != b.size or np.any(a != b) for a, b in zip(again, idx)):  # touching tubes: their parts instead
         idx = again
         fit = _fit_on(model, seen, idx, fit.T_F_from_scanner, keep, excl, (0.6 * gate,))
-    return idx, fit
+    return idx, fit, X
 
 
 def _gate(model: TubeModel, seen) -> float:
@@ -486,7 +492,8 @@ def _gate(model: TubeModel, seen) -> float:
     return match_gate_mm(model, max(d.resolution_mm for d in seen))
 
 
-def _joint_fit(model: TubeModel, seen, noise, pixel_noise, start: tuple[list[np.ndarray], Fit]) -> JointFit | None:
+def _joint_fit(model: TubeModel, seen, noise, pixel_noise, start: tuple[list[np.ndarray], Fit, np.ndarray]
+               ) -> JointFit | None:
     """The pose fitted to every slice from ``start`` (:func:`_joint_start`), blobs and then slices the scatter
     cannot explain left out; None when fewer than two slices keep :data:`MIN_SLICE_TUBES` tubes.
 
@@ -496,11 +503,11 @@ def _joint_fit(model: TubeModel, seen, noise, pixel_noise, start: tuple[list[np.
     pose, which would otherwise leave them out. The fit is then the scaled data's; ``JointFit.seen`` stays the
     image's own (the registration fits the scale again on it, :func:`~chic_register.pipeline.scaling.scale_stage`)."""
     gate = _gate(model, seen)
-    idx, fit = start
+    idx, fit, X0 = start
     keep = list(range(len(seen)))
     excl = [np.zeros(len(model.ids), bool) for _ in seen]
     seen, noise, fit = _better_centres(model, seen, noise, pixel_noise, idx, fit, keep, excl, gate)
-    screened = _screen_slices(model, seen, noise, fit)
+    screened = _screen_slices(model, seen, noise, fit, X0)
     kept = [j for j in keep if j not in {j for j, _, _ in screened}]
     if screened:
         fit = _fit_on(model, seen, idx, fit.T_F_from_scanner, kept, excl, (0.6 * gate,))
@@ -537,19 +544,20 @@ def _at_scale(d: DetectedSlice, sf, model: TubeModel) -> DetectedSlice:
     return dataclasses.replace(d, xy_mm=xy, T_scanner_from_image=S @ shift)
 
 
-def _robust_pose(model: TubeModel, seen, fit: Fit, rounds: int = ROBUST_ROUNDS) -> Fit:
-    """``fit``'s pose refitted to its own blob assignments with Cauchy weights (iteratively reweighted least squares):
-    a blob ``r`` from its crossing counts ``1 / (1 + (r / (c sigma))^2)``, ``sigma`` the residuals' robust scale per
-    coordinate and ``c`` :data:`CAUCHY_C`. A group of slices whose centres are biased the same way (channels part
-    filled at one end of a frame, a slab's fading edge) then pulls the pose much less than in plain least squares."""
+def _robust_pose(model: TubeModel, seen, fit: Fit, X0: np.ndarray, rounds: int = ROBUST_ROUNDS) -> Fit:
+    """A pose fitted to ``fit``'s blob assignments with Cauchy weights (iteratively reweighted least squares from
+    ``X0``, the start a slice locked alone gave): a blob ``r`` from its crossing counts ``1 / (1 + (r / (c sigma))^2)``,
+    ``sigma`` the residuals' robust scale per coordinate and ``c`` :data:`CAUCHY_C`. A group of slices whose centres
+    are biased the same way (channels part filled at one end of a frame, a slab's fading edge) then pulls the pose
+    much less than in plain least squares, which ``fit`` is."""
     js = [j for j, a in enumerate(fit.assignments) if np.count_nonzero(a >= 0) >= MIN_SLICE_TUBES]
     if len(js) < 3:
         return fit
     xy = [seen[j].xy_mm for j in js]
     S = [seen[j].T_scanner_from_image for j in js]
     assign = [fit.assignments[j] for j in js]
-    res = [fit.residuals[j] for j in js]
-    X = fit.T_F_from_scanner
+    start = refine(model, xy, S, X0, gates_mm=(), assign0=assign, final_iters=0)  # (the residuals at X0)
+    X, res = X0, start.residuals
     for _ in range(rounds):
         r2 = np.concatenate([r[(a >= 0) & np.isfinite(r)] ** 2 for a, r in zip(assign, res)])
         sigma2 = float(np.median(r2)) / (2.0 * math.log(2.0)) if r2.size else 0.0
@@ -569,13 +577,13 @@ def _robust_pose(model: TubeModel, seen, fit: Fit, rounds: int = ROBUST_ROUNDS) 
     return Fit(X, a_all, r_all, fit.inside, fit.n_matched, fit.rms_mm, None)
 
 
-def _screen_slices(model: TubeModel, seen, noise, fit: Fit) -> list[tuple[int, str, float]]:
+def _screen_slices(model: TubeModel, seen, noise, fit: Fit, X0: np.ndarray) -> list[tuple[int, str, float]]:
     """Slices left out before the joint fit's pruning: those whose residuals under :func:`_robust_pose` the scatter
     of the others cannot explain (a chi-square tail below :data:`OUTLIER_P`, shared over the slices), as
     :func:`_prune` reasons them. Plain least squares over every slice can spread a biased group's error over all of
     them until none stands out; the robust pose leaves it where it is. Nothing is left out when that would leave
     fewer than half the slices (the robust pose is then no majority's)."""
-    robust = _robust_pose(model, seen, fit)
+    robust = _robust_pose(model, seen, fit, X0)
     if robust is fit:
         return []
     ok = [(j, row) for j, row in zip(range(len(seen)), _residual_rows(robust, noise, range(len(seen))))
@@ -751,6 +759,22 @@ def _check_explained(model: TubeModel, best: JointFit) -> None:
     if inner and matched < EXPLAINED_SHARE * inner:
         raise NoLock(f"the pose fitted to the volume's blob centres finds blobs for only {matched} of the {inner} "
                      f"tube crossings it puts wholly inside its {len(best.used)} slices", {"explained": matched})
+
+
+def _complete_slices(model: TubeModel, jf: JointFit, opts: SolveOptions) -> set[int]:
+    """The slices of ``jf`` that would lock alone at its pose: at least ``opts.min_tubes`` tubes matched, among them
+    every tube whose section the pose puts wholly inside the slice (:func:`_interior`). A noisy scan's slices may
+    fail to lock alone while the joint fit finds their whole pattern; a slice that shows only the tubes every
+    slice shows alike (a Z-frame's parallel rods) is no such evidence."""
+    X = jf.fit.T_F_from_scanner
+    out = set()
+    for j in jf.used:
+        a = jf.fit.assignments[j]
+        matched = a >= 0
+        if int(matched.sum()) >= opts.min_tubes and not np.any(_interior(model, X @ jf.seen[j].T_scanner_from_image)
+                                                               & ~matched):
+            out.add(j)
+    return out
 
 
 def _interior(model: TubeModel, T_F_from_I: np.ndarray) -> np.ndarray:
