@@ -239,6 +239,14 @@ SECTIONS: tuple[Section, ...] = (
              "--geometry {geometry:zframe}",),
             (f"OMP_NUM_THREADS=1 PYTHONPATH=. {PY} benchmarks/stress_zframe_volume.py --cases 2 --seed 0 "
              "--geometry {geometry:zframe}",)),
+    Section("real_variants", "The real Z-frame scans, changed as scanners and exports change them",
+            "The two real Z-frame volumes of tests/data/real, each registered as it is and then stored otherwise "
+            "(slice order, flipped or swapped axes, an oblique or moved frame: the pose must follow exactly), "
+            "cropped or padded, with their intensities rescaled, offset, clipped or quantised to 8 bits, thinned to "
+            "every second slice, binned 2 x 2, noisier, or shaded across the field of view. An ok more than 0.5 mm "
+            "or 0.5 deg from the plain scan's pose is marked FAR.",
+            (f"PYTHONPATH=. {PY} benchmarks/bench_real_variants.py",),
+            (f"PYTHONPATH=. {PY} benchmarks/bench_real_variants.py --scan tests/data/real/zframe-masked-b.nrrd",)),
     Section("zframe_peer", "Z-frame volumes against 3D Slicer's ZFrameRegistration",
             "40 simulated z001 volumes drawn as real scans (0.6-0.8 mm pixels, 2-3 mm slices, SNR 10-30, blobs "
             "1.5-2.5x, tilts 0-5 deg, rod ends 0.1-0.3 mm off, a scanner's scale of 0.2-1 % in-plane and 1-3 % across "

@@ -35,14 +35,22 @@ def test_the_watershed_is_scipys_on_two_blurred_blobs_run_together():
     assert ours[12, 13] == 1 and ours[11, 26] == 2 and (ours == 1).sum() > 1 and (ours == 2).sum() > 1
 
 
+def _component_with_seeds(rng):
+    """``(depth, markers, mask)``: a random component (``mask``) with three object seeds, the rest background seeds,
+    as the blob splitter floods one."""
+    H, W = (int(v) for v in rng.integers(3, 25, 2))
+    depth = rng.integers(0, int(rng.choice([3, 200, 2000])), (H, W)).astype(np.uint16)
+    mask = rng.random((H, W)) < 0.7
+    markers = np.where(mask, 0, -1).astype(np.int32)
+    markers.flat[rng.choice(H * W, 3, replace=False)] = [1, 2, 3]
+    return depth, markers, mask
+
+
 def test_a_region_outgrowing_its_limit_stops_the_flood_exactly_when_the_full_flood_would_show_it():
     rng = np.random.default_rng(7)
     for _ in range(300):
-        H, W = (int(v) for v in rng.integers(3, 25, 2))
-        depth = rng.integers(0, int(rng.choice([3, 200, 2000])), (H, W)).astype(np.uint16)
-        mask = rng.random((H, W)) < 0.7
-        markers = np.where(mask, 0, -1).astype(np.int32)
-        markers.flat[rng.choice(H * W, 3, replace=False)] = [1, 2, 3]
+        depth, markers, mask = _component_with_seeds(rng)
+        H, W = depth.shape
         full = watershed_ift(depth, markers)
         largest = max(int(((full == g) & mask).sum()) for g in (1, 2, 3))
         limit = int(rng.integers(1, H * W))
@@ -57,12 +65,8 @@ def test_a_remembered_flood_answers_as_a_fresh_one_for_any_region_limit():
 
     rng = np.random.default_rng(11)
     for _ in range(200):
-        H, W = (int(v) for v in rng.integers(3, 25, 2))
-        depth = rng.integers(0, int(rng.choice([3, 200, 2000])), (H, W)).astype(np.uint16)
-        mask = rng.random((H, W)) < 0.7
-        markers = np.where(mask, 0, -1).astype(np.int32)
-        markers.flat[rng.choice(H * W, 3, replace=False)] = [1, 2, 3]
-        limits = [int(v) for v in rng.integers(1, H * W, 3)]
+        depth, markers, mask = _component_with_seeds(rng)
+        limits = [int(v) for v in rng.integers(1, depth.size, 3)]
         forget_floods()
         fresh = []
         for limit in limits:
