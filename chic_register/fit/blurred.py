@@ -34,7 +34,7 @@ import numpy as np
 from chic_register.detect.blobs import median
 from chic_register.detect.detected import DetectedSlice
 from chic_register.errors import NoLock
-from chic_register.fit.checks import STRETCH_MIN, STRETCH_P, worst_errors
+from chic_register.fit.checks import STRETCH_MIN, worst_errors
 from chic_register.fit.refine import refine
 from chic_register.fit.section import section_model
 from chic_register.fit.windows import Windows
@@ -370,14 +370,6 @@ def blurred_stage(model: TubeModel, fit, seen: list[DetectedSlice], max_slices: 
         raise NoLock(f"the pixels fit best with the image stretched {100 * stretch[worst]:+.1f} % along its {axis} "
                      f"({abs(stretch[worst]) / max(sd[worst], 1e-12):.1f} sigma): the pixel spacing looks wrong; "
                      f"check --pixel-spacing or the file's PixelSpacing",
-                     {"stretch": [round(float(v), 4) for v in stretch], "residual_sigma": round(blurred.noise_sigma, 6)})
-    z = float(np.sum((stretch / np.maximum(sd, 1e-12)) ** 2))
-    if len(seen) == 1 and math.exp(-0.5 * z) < STRETCH_P:  # chi-square, 2 dof
-        axis = ("columns (x)", "rows (y)")[worst]
-        raise NoLock(f"the pixels fit best with the image stretched {100 * stretch[worst]:+.1f} % along its {axis} "
-                     f"({abs(stretch[worst]) / max(sd[worst], 1e-12):.1f} sigma), within what a scanner's "
-                     f"calibration explains, but this slice alone cannot tell that stretch from a tilt: register "
-                     f"several slices or a volume (fitted together, they measure it)",
                      {"stretch": [round(float(v), 4) for v in stretch], "residual_sigma": round(blurred.noise_sigma, 6)})
     if poses_distinct(blurred.T_F_from_scanner, fit.T_F_from_scanner, model):
         return fit, None, blurred
