@@ -89,17 +89,6 @@ def _flood(depth: np.ndarray, markers: np.ndarray, mask: np.ndarray | None, max_
     first = [-1] * (maxval + 2)  # each cost's queue: its first and last pixel, linked through nxt and prv
     last = [-1] * (maxval + 2)
 
-    def enqueue(m: int, p: int, back: bool) -> None:
-        """Pixel ``p`` into cost ``m``'s queue: at its back (a background label) or its front (an object's)."""
-        near, far, outward, inward = (last, first, prv, nxt) if back else (first, last, nxt, prv)
-        end = near[m]
-        outward[p], inward[p] = end, -1
-        if end != -1:
-            inward[end] = p
-        near[m] = p
-        if far[m] == -1:
-            far[m] = p
-
     marked = np.asarray(markers).ravel() != 0
     # a background seed whose neighbours are all seeds changes nothing when it leaves the queue (every neighbour
     # already costs 0): it keeps its label without ever being queued, which leaves the others' order as it was
@@ -114,8 +103,12 @@ def _flood(depth: np.ndarray, markers: np.ndarray, mask: np.ndarray | None, max_
     queued = np.flatnonzero(marked & ~(quiet & (np.asarray(markers).ravel() < 0))).tolist()
     for j in np.flatnonzero(marked).tolist():
         cost[j] = 0
-    for j in queued:
-        enqueue(0, j, out[j] < 0)
+    # the seeds' queue (cost 0) as scipy builds it: each object seed joins its front, each background seed its back
+    seeds = [j for j in reversed(queued) if out[j] > 0] + [j for j in queued if out[j] < 0]
+    for a, b in zip(seeds, seeds[1:]):
+        nxt[a], prv[b] = b, a
+    if seeds:
+        first[0], last[0] = seeds[0], seeds[-1]
     inside = np.asarray(mask).ravel().tolist() if mask is not None and max_region is not None else None
     counts: dict[int, int] = {}
     offsets = (-W, -1, 1, W)
@@ -159,22 +152,15 @@ def _flood(depth: np.ndarray, markers: np.ndarray, mask: np.ndarray | None, max_
                         nxt[a] = b
                     if b != -1:
                         prv[b] = a
-                if lv < 0:  # enqueue(m, p, back=True), inlined: the flood's innermost step
-                    e = last[m]
-                    prv[p], nxt[p] = e, -1
-                    if e != -1:
-                        nxt[e] = p
-                    last[m] = p
-                    if first[m] == -1:
-                        first[m] = p
-                else:
-                    e = first[m]
-                    nxt[p], prv[p] = e, -1
-                    if e != -1:
-                        prv[e] = p
-                    first[m] = p
-                    if last[m] == -1:
-                        last[m] = p
+                # into cost m's queue: a background label at its back, an object's at its front
+                near, far, outward, inward = (last, first, prv, nxt) if lv < 0 else (first, last, nxt, prv)
+                e = near[m]
+                outward[p], inward[p] = e, -1
+                if e != -1:
+                    inward[e] = p
+                near[m] = p
+                if far[m] == -1:
+                    far[m] = p
                 if m > level:
                     heapq.heappush(levels, m)
     return np.array(out, dtype=np.asarray(markers).dtype).reshape(H, W)
