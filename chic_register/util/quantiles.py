@@ -123,6 +123,7 @@ def nan_median_rows(values: np.ndarray) -> np.ndarray:
     n = np.count_nonzero(~np.isnan(a), axis=1)
     rows = np.arange(a.shape[0])
     lo, hi = a[rows, np.maximum((n - 1) // 2, 0)], a[rows, np.maximum(n // 2, 0)]
-    out = np.where(n % 2 == 1, lo, (lo + hi) / 2.0)
+    with np.errstate(over="ignore", invalid="ignore"):  # (two values near the float limit: inf, as numpy's mean)
+        out = np.where(n % 2 == 1, lo, (lo + hi) / 2.0)
     out[n == 0] = np.nan
     return out
