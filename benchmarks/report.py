@@ -239,6 +239,14 @@ SECTIONS: tuple[Section, ...] = (
              "--geometry {geometry:zframe}",),
             (f"OMP_NUM_THREADS=1 PYTHONPATH=. {PY} benchmarks/stress_zframe_volume.py --cases 2 --seed 0 "
              "--geometry {geometry:zframe}",)),
+    Section("blurred_calibration", "Single slices with wide blobs: is their covariance calibrated?",
+            "Single simulated slices with blobs 1.5-2.5x the channels' width (Rician SNR 15-30, tilts 10-30 deg), "
+            "registered with the defaults: per kind of measurement, the squared Mahalanobis length of the pose "
+            "error under the reported covariance (6 when calibrated) and the rotation error.",
+            (f"OMP_NUM_THREADS=1 {PY} benchmarks/bench_blurred_calibration.py --design zframe --cases 80",
+             f"OMP_NUM_THREADS=1 {PY} benchmarks/bench_blurred_calibration.py --design needle-guide --cases 80",
+             f"OMP_NUM_THREADS=1 {PY} benchmarks/bench_blurred_calibration.py --design neuro --cases 80"),
+            (f"OMP_NUM_THREADS=1 {PY} benchmarks/bench_blurred_calibration.py --design zframe --cases 4",)),
     Section("real_variants", "The real Z-frame scans, changed as scanners and exports change them",
             "The two real Z-frame volumes of tests/data/real, each registered as it is and then stored otherwise "
             "(slice order, flipped or swapped axes, an oblique or moved frame: the pose must follow exactly), "
