@@ -175,8 +175,8 @@ def register_every_slice(slices: list[Slice], geom: FiducialGeometry, opts: Solv
     starts, lone_refusals = starting_poses(model, seen, opts, symmetry_twins(geom, model, opts))
     if not starts:
         raise NoLock(no_slice_locked(lone_refusals), {"n_skipped": len(lone_refusals)})
-    groups: list[tuple[JointFit, set]] = []  # each distinct joint pose and the lone-locked slices that lead to it
-    led: list[tuple[np.ndarray, tuple | None]] = []  # each start's pose on all slices' blobs, and where it led
+    groups: list[list] = []  # each distinct joint pose [its closest JointFit, the lone-locked slices that lead to it]
+    led: list[tuple[np.ndarray, list | None]] = []  # each start's pose on all slices' blobs, and where it led
     begun = [(_joint_start(model, seen, parents, X), js) for X, js in _distinct_starts(model, starts)]
     begun.sort(key=lambda b: -b[0][1].n_matched)  # the start that explains most of the volume first
     for start, js in begun:
@@ -193,18 +193,15 @@ def register_every_slice(slices: list[Slice], geom: FiducialGeometry, opts: Solv
         if jf is None:
             led.append((X, None))
             continue
-        same = [n for n, g in enumerate(groups)
-                if not poses_distinct(jf.fit.T_F_from_scanner, g[0].fit.T_F_from_scanner, model)]
+        same = [g for g in groups if not poses_distinct(jf.fit.T_F_from_scanner, g[0].fit.T_F_from_scanner, model)]
         if not same:
-            groups.append((jf, set(js)))
+            groups.append([jf, set(js)])
             led.append((X, groups[-1]))
             continue
-        n = same[0]
-        if _explains_better(jf, groups[n][0]):  # the same pose, reached through better-fitting slices: kept instead
-            groups[n] = (jf, groups[n][1])
-            led = [(T, groups[n] if g is not None and g[1] is groups[n][1] else g) for T, g in led]
-        led.append((X, groups[n]))
-        groups[n][1].update(js)
+        if _explains_better(jf, same[0][0]):  # the same pose, reached through better-fitting slices: kept instead
+            same[0][0] = jf
+        led.append((X, same[0]))
+        same[0][1].update(js)
     fits = [g for g in groups if near_prior(g[0].fit.T_F_from_scanner, opts)]
     outside = [g[0] for g in groups if not near_prior(g[0].fit.T_F_from_scanner, opts)]
     if not fits and outside:
@@ -556,8 +553,8 @@ def _robust_pose(model: TubeModel, seen, fit: Fit, X0: np.ndarray, rounds: int =
     xy = [seen[j].xy_mm for j in js]
     S = [seen[j].T_scanner_from_image for j in js]
     assign = [fit.assignments[j] for j in js]
-    start = refine(model, xy, S, X0, gates_mm=(), assign0=assign, final_iters=0)  # (the residuals at X0)
-    X, res = X0, start.residuals
+    sub = refine(model, xy, S, X0, gates_mm=(), assign0=assign, final_iters=0)  # (the residuals at X0)
+    X, res = X0, sub.residuals
     for _ in range(rounds):
         r2 = np.concatenate([r[(a >= 0) & np.isfinite(r)] ** 2 for a, r in zip(assign, res)])
         sigma2 = float(np.median(r2)) / (2.0 * math.log(2.0)) if r2.size else 0.0
@@ -574,7 +571,7 @@ def _robust_pose(model: TubeModel, seen, fit: Fit, X0: np.ndarray, rounds: int =
     r_all = [np.full(K, math.nan) for _ in seen]
     for n, j in enumerate(js):
         a_all[j], r_all[j] = assign[n], res[n]
-    return Fit(X, a_all, r_all, fit.inside, fit.n_matched, fit.rms_mm, None)
+    return Fit(X, a_all, r_all, fit.inside, sub.n_matched, sub.rms_mm, None)  # (over the slices it weighed)
 
 
 def _screen_slices(model: TubeModel, seen, noise, fit: Fit, X0: np.ndarray) -> list[tuple[int, str, float]]:
@@ -592,17 +589,27 @@ def _screen_slices(model: TubeModel, seen, noise, fit: Fit, X0: np.ndarray) -> l
         return []
     r2 = np.concatenate([row[1] for _, row in ok])
     sig2 = Scatter.of(r2, np.concatenate([row[2] for _, row in ok])).sigma_mm ** 2
-    out, pos = [], 0
-    for j, (k, r2j, _) in ok:
-        z = float(np.sum(r2j / sig2[pos:pos + k.size]))
-        p = 1.0 - gamma_p(float(k.size), 0.5 * z)
-        pos += k.size
-        if p < OUTLIER_P / len(ok):
-            rms = float(np.sqrt(np.mean(r2j)))
-            out.append((j, f"disagrees with the other slices: its {k.size} tubes sit {rms:.3f} mm RMS from the "
-                           f"pose the others agree on, where they scatter by "
-                           f"{math.sqrt(2.0 * float(np.median(sig2))):.3f} mm (chi-square tail {p:.1e})", rms))
+    out = [(j, *_disagreement(r2j, sig2, p, "pose the others agree on, where they"))
+           for (j, (_, r2j, _)), p in zip(ok, _slice_tails(ok, sig2)) if p < OUTLIER_P / len(ok)]
     return out if 2 * len(out) <= len(ok) else []
+
+
+def _slice_tails(ok, sig2: np.ndarray) -> list[float]:
+    """Per slice of ``ok`` (``(slice, (tubes, squared residuals, noise))``, as :func:`_residual_rows`), the tail
+    probability of its residuals under the blobs' scatter ``sig2`` (M,): chi-square with 2 degrees of freedom a tube."""
+    out, pos = [], 0
+    for _, (k, r2j, _) in ok:
+        out.append(1.0 - gamma_p(float(k.size), 0.5 * float(np.sum(r2j / sig2[pos:pos + k.size]))))
+        pos += k.size
+    return out
+
+
+def _disagreement(r2j: np.ndarray, sig2: np.ndarray, p: float, against: str) -> tuple[str, float]:
+    """``(reason, RMS mm)`` of a slice left out with squared residuals ``r2j`` and tail ``p`` (:func:`_slice_tails`),
+    ``against`` naming the pose and the slices it is measured against."""
+    rms = float(np.sqrt(np.mean(r2j)))
+    return (f"disagrees with the other slices: its {r2j.size} tubes sit {rms:.3f} mm RMS from the {against} "
+            f"scatter by {math.sqrt(2.0 * float(np.median(sig2))):.3f} mm (chi-square tail {p:.1e})", rms)
 
 
 def _prune(model: TubeModel, seen, noise, idx, fit: Fit, gate: float, keep: list[int] | None = None,
@@ -631,19 +638,11 @@ def _prune(model: TubeModel, seen, noise, idx, fit: Fit, gate: float, keep: list
             excl[j][k[worst - offs[s]]] = True
             fit = _fit_on(model, seen, idx, fit.T_F_from_scanner, keep, excl, (0.6 * gate,))
             continue
-        p_slice, pos = [], 0
-        for _, (k, r2j, _) in ok:
-            z = float(np.sum(r2j / sig2[pos:pos + k.size]))
-            p_slice.append(1.0 - gamma_p(float(k.size), 0.5 * z))  # chi-square with 2 k degrees of freedom
-            pos += k.size
+        p_slice = _slice_tails(ok, sig2)
         s = int(np.argmin(p_slice))
         if p_slice[s] < OUTLIER_P / len(ok) and len(ok) > 2:
-            j, (k, r2j, _) = ok[s]
-            rms = float(np.sqrt(np.mean(r2j)))
-            dropped.append((j, f"disagrees with the other slices: its {k.size} tubes sit {rms:.3f} mm RMS from the "
-                               f"joint pose's crossings, where the others scatter by "
-                               f"{math.sqrt(2.0 * float(np.median(sig2))):.3f} mm (chi-square tail {p_slice[s]:.1e})",
-                            rms))
+            j, (_, r2j, _) = ok[s]
+            dropped.append((j, *_disagreement(r2j, sig2, p_slice[s], "joint pose's crossings, where the others")))
             keep = [i for i in keep if i != j]
             fit = _fit_on(model, seen, idx, fit.T_F_from_scanner, keep, excl, (0.6 * gate,))
             continue
