@@ -213,11 +213,17 @@ def register_every_slice(slices: list[Slice], geom: FiducialGeometry, opts: Solv
     # a pose is the volume's when two or more slices would lock at it alone (they did, and led to it, or the joint fit
     # matches every tube it puts wholly inside them), and no other pose has such support
     supported = [g for g in fits if len(g[1] | _complete_slices(model, g[0], opts)) >= 2]
+    faint = len(supported) > 1
+    if faint:  # each read again with its faint sections: a biased slice among few can split one pose's fits in two
+        merged = _merge_with_faint_sections(model, supported, seen, noise, pixel_noise, parents, detect_options)
+        fits = merged + [g for g in fits if not any(g is h for h in supported)]
+        supported = [g for g in merged if len(g[1] | _complete_slices(model, g[0], opts)) >= 2]
     if len(supported) != 1:
         raise NoLock(f"the slices locked alone lead to {len(supported)} distinct poses that two or more of them agree "
                      f"on (of {len(fits)} poses fitted to the volume's blob centres); one is needed",
                      {"n_poses": len(supported)})
-    best = _with_faint_sections(model, supported[0][0], seen, noise, pixel_noise, parents, detect_options)
+    best = supported[0][0] if faint else _with_faint_sections(model, supported[0][0], seen, noise, pixel_noise,
+                                                               parents, detect_options)
     others = sorted((g[0] for g in fits if g is not supported[0]), key=lambda f: (-f.fit.n_matched, _scatter_mm(f)))
     # centres that fit no rigid pose well, or two poses nearly as well: the sections' pixels may still tell
     _check_model_error(model, best)
@@ -319,6 +325,25 @@ def _with_faint_sections(model: TubeModel, best: JointFit, seen, noise, pixel_no
     if jf.fit.n_matched >= best.fit.n_matched and RIVAL_SCATTER_RATIO * _scatter_mm(jf) <= _scatter_mm(best):
         return jf
     return best
+
+
+def _merge_with_faint_sections(model: TubeModel, groups: list[list], seen, noise, pixel_noise, parents,
+                               detect_options: dict | None) -> list[list]:
+    """``groups`` (``[JointFit, lone-locked slices]``) with each pose fitted again with its faint sections
+    (:func:`_with_faint_sections`), those that then reach one pose merged: the closer fit kept, their slices pooled.
+    Among a few slices one of a slab's biased end slices can hold two fits of one pose apart, each with a part of
+    the others; the sections the faint slices hold outvote it."""
+    out: list[list] = []
+    for jf, js in groups:
+        jf = _with_faint_sections(model, jf, seen, noise, pixel_noise, parents, detect_options)
+        same = [h for h in out if not poses_distinct(jf.fit.T_F_from_scanner, h[0].fit.T_F_from_scanner, model)]
+        if not same:
+            out.append([jf, set(js)])
+            continue
+        if _explains_better(jf, same[0][0]):
+            same[0][0] = jf
+        same[0][1].update(js)
+    return out
 
 
 def median_diameter_mm(model: TubeModel) -> float:

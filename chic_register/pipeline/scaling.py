@@ -3,7 +3,7 @@
 Where the data show a scale (the F test of :func:`~chic_register.fit.scale.fit_scale` below
 :data:`~chic_register.fit.checks.STRETCH_P`), the pose fitted with it is the answer: a rigid pose would have taken
 part of the scale as a tilt. A scale beyond ``max_scale_error`` in the image plane (``max_slice_scale_error`` across
-the slices) is refused as a wrong pixel (slice) spacing; one whose fit moves the pose beyond the trust limits is
+the slices) by more than its noise explains (:data:`SCALE_LIMIT_SIGMAS`) is refused as a wrong pixel (slice) spacing; one whose fit moves the pose beyond the trust limits is
 refused as not separable from the pose. One slice measures its scale but cannot fit it: the registration says how
 far an unmeasured scale would move the pose, and holds a scale of ``SolveOptions.scale_sd`` (a calibrated geometry
 file's own, by default) in the pose's covariance.
@@ -25,6 +25,12 @@ from chic_register.fit.scale import ScaleFit, fit_scale, scaled_fit
 from chic_register.model.geometry import FiducialGeometry
 from chic_register.model.tube_model import TubeModel, poses_distinct
 from chic_register.options import SolveOptions
+
+#: A scale is refused as a wrong spacing when it lies beyond its axis' limit by more than this many of its own
+#: standard deviations (one-sided 1 %): few or thin-sliced volumes measure the slice direction's scale to 1-3 %, and
+#: an estimate that only its noise puts past the limit is a scanner's, fitted with the pose. A wrong spacing (10-50 %
+#: across the slices, several per cent in the plane) still lies far beyond.
+SCALE_LIMIT_SIGMAS = 2.326
 
 
 @dataclass(frozen=True)
@@ -92,8 +98,9 @@ def scale_stage(model: TubeModel, fit: Fit, seen: list[DetectedSlice], opts: Sol
     if not sf.p < STRETCH_P:
         return fit, ImageScale.of(sf, False)
     limits = np.array([scale_limit(a, opts) for a in sf.axes])
-    worst = int(np.argmax(np.abs(sf.scale) / limits))
-    if abs(sf.scale[worst]) > limits[worst]:
+    beyond = (np.abs(sf.scale) - limits) / np.maximum(np.asarray(sf.scale_sd, float), 1e-12)
+    worst = int(np.argmax(beyond))
+    if beyond[worst] > SCALE_LIMIT_SIGMAS:
         spacing, cause = (("slice spacing", "the gradients' non-linearity across the slices")
                           if sf.axes[worst] == "z" else ("pixel spacing", "a scanner's calibration or a print"))
         raise NoLock(f"the image's scale along {sf.axes[worst]} is {100 * sf.scale[worst]:+.2f} % "
