@@ -17,10 +17,12 @@ parameters (the model's pose derivatives by forward differences; the
 levels and offset solved jointly each step), after choosing the blur that
 explains the pixels best, and a stretch of the image along its rows and
 columns (a wrong pixel spacing would otherwise be absorbed by a tilt: the
-solver refuses a significant one). The pose's covariance follows from the same
+solver refuses a significant one beyond 2 %). The pose's covariance follows from the same
 normal equations with the noise from the residuals, over thousands of
 pixels (the sandwich estimate, each pixel's squared residual its variance),
-so a model that does not fit widens it.
+so a model that does not fit widens it; a smaller stretch the pixels show
+(a scanner's 0.5 % along one axis) is not fitted, and how far it pulls the
+pose is added to the covariance.
 """
 
 from __future__ import annotations
@@ -62,6 +64,10 @@ STEP_RAD, STEP_MM, STEP_PX, STEP_STRETCH = 2e-4, 2e-3, 1e-2, 1e-3
 MAX_STRETCH = 0.3
 #: A fitted stretch this many of its standard deviations from zero (and above fit_checks.STRETCH_MIN) is refused.
 STRETCH_SIGMAS = 3.0
+#: The (x, y) stretch is shown by the pixels when its chi-square (2 degrees of freedom, under its covariance) passes
+#: the two-sided tail of STRETCH_SIGMAS (2.7e-3): the chi-square's tail with 2 dof is exp(-x / 2). Both axes count
+#: together: a real slice 0.4 % long along x and 0.5 % short along y (2.5 and 2.8 sigma) pulls its pose 1 deg.
+STRETCH_SHOWN_CHI2 = -2.0 * math.log(math.erfc(STRETCH_SIGMAS / math.sqrt(2.0)))
 #: The pixel fit uses at most this many slices, spread over a longer series (its cost grows with them: a wide
 #: 26-slice Z-frame volume took 4.5 s CPU instead of 0.75 s). Dozens of slices do not make the blob pose precise:
 #: merged neighbours pull the centres the same way in every slice (a 1.3x needle-guide volume: 0.29 mm off at a
@@ -75,7 +81,7 @@ THICKNESS_SAMPLES = 3
 class BlurredFit:
     """The outcome: ``T_F_from_scanner`` (4x4), the point spread (``psf_px``, sigma in pixels of the first slice),
     the pose's 6x6 covariance (``covariance``, twist (rad, mm) about ``centre_scanner`` in the scanner frame; from
-    the fit with the pixel spacing as given), the image's ``stretch`` fitted with the pose in the first pass (x =
+    the fit with the pixel spacing as given, and the pull of a stretch the pixels show, :data:`STRETCH_SHOWN_CHI2`), the image's ``stretch`` fitted with the pose in the first pass (x =
     columns, y = rows: the share by which the pixel spacing looks too small) and its standard deviation, the
     residual noise sigma and the pixel count."""
 
@@ -282,7 +288,8 @@ def blurred_fit(model: TubeModel, T_F_from_scanner: np.ndarray, slices, Ss, blob
     q0 = plane_crossings(model, X @ Ss[0], margin_mm=1e-9)[0][prob.tubes]
     centre = (Ss[0] @ np.array([*q0.mean(axis=0), 0.0, 1.0]))[:3]
     # first with the image's stretch free (the test of the pixel spacing), then with the spacing as given: the pose
-    # and its covariance (a stretch below the refusal threshold is the scanner's calibration, not the pose's)
+    # and its covariance (a stretch below the refusal threshold is the scanner's calibration: it is not fitted, but
+    # where the pixels show it, how far it pulls the pose widens the covariance)
     X, stretch_fit = _gauss_newton(prob, X, centre, sigma, n_free=9)
     if stretch_fit is None:
         return None
@@ -292,7 +299,15 @@ def blurred_fit(model: TubeModel, T_F_from_scanner: np.ndarray, slices, Ss, blob
     if fitted is None:
         return None
     cov, _, noise = fitted
-    return BlurredFit(X, float(prob.sigma_px), cov[:6, :6], centre, noise, int(prob.y.size),
+    pose_cov = cov[:6, :6]
+    C = stretch_fit[0]
+    shown = np.linalg.inv(C[7:9, 7:9])
+    if float(stretch @ shown @ stretch) > STRETCH_SHOWN_CHI2:
+        # a stretch the pixels show, left out of the pose: its pull on the pose (the pose's regression on the
+        # stretch in the free fit, times the stretch) is part of the pose's error, not a calibration to ignore
+        pull = C[:6, 7:9] @ shown @ stretch
+        pose_cov = pose_cov + np.outer(pull, pull)
+    return BlurredFit(X, float(prob.sigma_px), pose_cov, centre, noise, int(prob.y.size),
                       tuple(float(v) for v in stretch), tuple(float(v) for v in stretch_sd))
 
 
