@@ -104,6 +104,17 @@ def pose_precision(model, fit, Ss, pixel_mm: float, exclude=None):
     return tre, rot
 
 
+def position_precision(model, fit, Ss, sigma_mm: float, exclude=None) -> tuple[float, float]:
+    """1-sigma bounds ``(TRE at the frame centre (mm), rotation (deg))`` of a pose whose matched sections each lie
+    ``sigma_mm`` (per coordinate) from where it puts them: the worst directions of ``sigma^2 (J^T J)^-1``, ``J`` the
+    crossings' Jacobian (:func:`_crossings_jacobian`). ``(inf, inf)`` when not determined."""
+    J = _crossings_jacobian(model, fit, Ss, fit.T_F_from_scanner, exclude)
+    C = None if J is None else _covariance(J, sigma_mm)
+    if C is None:
+        return math.inf, math.inf
+    return worst_errors(C, _frame_centre_scanner(model, fit))
+
+
 def twist_covariance(model, fit, Ss, pixel_mm: float, exclude=None) -> np.ndarray | None:
     """The covariance (6, 6) of a fit's twist (scanner frame) at its pose, to first order (:func:`_twist_terms`);
     None when not determined."""

@@ -44,6 +44,7 @@ from chic_register.fit.checks import STRETCH_P, gamma_p
 from chic_register.fit.lock import lock_slice
 from chic_register.fit.refine import Fit, assign_blobs, match_gate_mm, refine
 from chic_register.fit.scale import fit_scale
+from chic_register.fit.scatter import Scatter
 from chic_register.model.geometry import FiducialGeometry
 from chic_register.model.pose import invert, near_prior, rotation_deg, slice_angles
 from chic_register.model.slices import Slice
@@ -95,55 +96,6 @@ RIVAL_SCATTER_RATIO = 1.5
 #: for Gaussian errors).
 ROBUST_ROUNDS = 5
 CAUCHY_C = 2.385
-
-
-@dataclass(frozen=True)
-class Scatter:
-    """What the joint fit's residuals say of the blob centres' errors.
-
-    ``noise_mm`` (M,): each matched blob centre's 1-sigma error per coordinate
-    from the image noise alone; ``model_error_mm``: the scatter beyond it that
-    the residuals show (the same for every blob, robust: from the median
-    residual); ``sigma_mm`` (M,): both together.
-    """
-
-    noise_mm: np.ndarray
-    model_error_mm: float
-
-    @property
-    def sigma_mm(self) -> np.ndarray:
-        return np.sqrt(self.noise_mm ** 2 + self.model_error_mm ** 2)
-
-    @classmethod
-    def of(cls, r2_mm2: np.ndarray, noise_mm: np.ndarray) -> Scatter:
-        """From squared residual lengths ``r2_mm2`` (M,) and centre noise ``noise_mm`` (M,): the model error whose
-        total scatter puts the median of ``r2 / sigma^2`` at the chi-square (2 dof) median, 2 ln 2.
-
-        Blob ``i``'s ratio exceeds the target exactly while ``m^2 < c_i = r2_i / target - noise_i^2``, so the median
-        crosses it at the median of ``c`` (an odd count), or between the two middle ``c`` (an even count: the mean of
-        two ratios, found by bisection inside that bracket)."""
-        if r2_mm2.size == 0:
-            return cls(noise_mm, 0.0)
-        target = 2.0 * math.log(2.0)
-        r2, n2 = np.asarray(r2_mm2, float), np.asarray(noise_mm, float) ** 2
-        M = r2.size
-        c = np.sort(r2 / target - n2)
-        if M % 2:
-            return cls(noise_mm, math.sqrt(max(float(c[M // 2]), 0.0)))
-
-        def above(m: float) -> bool:  # the median ratio exceeds the target at model error m
-            ratio = np.partition(r2 / np.maximum(n2 + m * m, 1e-300), (M // 2 - 1, M // 2))
-            return 0.5 * (float(ratio[M // 2 - 1]) + float(ratio[M // 2])) > target
-
-        lo, hi = math.sqrt(max(float(c[M // 2 - 1]), 0.0)), math.sqrt(max(float(c[M // 2]), 0.0))
-        if not above(lo):
-            return cls(noise_mm, lo)
-        for _ in range(60):
-            mid = 0.5 * (lo + hi)
-            if mid in (lo, hi):
-                break
-            lo, hi = (mid, hi) if above(mid) else (lo, mid)
-        return cls(noise_mm, hi)
 
 
 @dataclass(frozen=True)

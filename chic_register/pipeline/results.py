@@ -21,7 +21,13 @@ from chic_register.model.geometry import FiducialGeometry
 from chic_register.model.pose import invert, slice_angles
 from chic_register.model.tube_model import TubeModel, plane_crossings
 from chic_register.options import SolveOptions
-from chic_register.precision.uncertainty import pixel_fit_uncertainty, registration_uncertainty, target_point
+from chic_register.precision.uncertainty import (
+    pixel_fit_uncertainty,
+    position_covariance,
+    registration_uncertainty,
+    target_point,
+)
+from chic_register.verify.pixels import section_model_error_mm
 
 
 @dataclass(frozen=True)
@@ -155,6 +161,9 @@ def build_registration(geom: FiducialGeometry, model: TubeModel, geom_sha: str, 
         target = target_point(geom, target_F_mm)
         if pixel_fit is not None:
             unc = pixel_fit_uncertainty(pixel_fit, seen, target)
+            m = section_model_error_mm(checks) if checks else 0.0
+            if m > 0:  # where the sections really lie, beyond the pixels' noise (a real scan: 0.1-0.5 mm)
+                unc = unc.widened(position_covariance(model, best, seen, m), "sections' model error")
         else:
             unc = uncertainty if uncertainty is not None else registration_uncertainty(
                 model, best, seen, target, "centroid" if not opts.centroid_model else "template (centroid covariance)")

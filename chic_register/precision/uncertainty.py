@@ -447,24 +447,43 @@ def registration_uncertainty(model, fit, seen: list[DetectedSlice], target_F_mm,
                             "section fit" if meas is not None else measurement)
 
 
+def _matched_rows(model, fit, seen: list[DetectedSlice]):
+    """Per slice with matched tubes: ``(j, k, J)``: the slice, its matched tubes inside it, and their crossings'
+    Jacobian (2 rows per tube, 6 columns: d(predicted position)/d(delta) in (rad, mm) of F's parameters)."""
+    X = fit.T_F_from_scanner
+    Ad_sf = adjoint(invert(X))
+    rows = []
+    for j, d in enumerate(seen):
+        a = fit.assignments[j]
+        q, tan, _, inside = plane_crossings(model, X @ d.T_scanner_from_image, margin_mm=1e-9)
+        k = np.flatnonzero((a >= 0) & inside)
+        if k.size:
+            J_s = scanner_crossing_jacobian(q[k], tan[k], d.T_scanner_from_image)
+            rows.append((j, k, q[k], (-J_s @ Ad_sf).reshape(-1, 6)))
+    return rows
+
+
 def scatter_uncertainty(model, fit, seen: list[DetectedSlice], sigma_mm: list[np.ndarray], target_F_mm,
                         measurement: str = "centroid + model error") -> PoseUncertainty:
     """The covariance of an unweighted centroid fit whose matched centres scatter by ``sigma_mm`` (per slice, (K,)
     per tube, per coordinate, mm; NaN where unmatched): each centre's image noise and the model error the
-    residuals show (:class:`chic_register.pipeline.every_slice.Scatter`), rather than the noise alone."""
-    X = fit.T_F_from_scanner
-    Ad_sf = adjoint(invert(X))
-    Js, rs, var, noises = [], [], [], []
-    for j, d in enumerate(seen):
-        noises.append(slice_noise(d.slice, d.blobs.footprints))
-        a = fit.assignments[j]
-        q, tan, _, inside = plane_crossings(model, X @ d.T_scanner_from_image, margin_mm=1e-9)
-        k = np.flatnonzero((a >= 0) & inside)
-        if k.size == 0:
-            continue
-        J_s = scanner_crossing_jacobian(q[k], tan[k], d.T_scanner_from_image)
-        Js.append((-J_s @ Ad_sf).reshape(-1, 6))
-        rs.append((q[k] - d.xy_mm[a[k]]).ravel())
+    residuals show (:class:`chic_register.fit.scatter.Scatter`), rather than the noise alone."""
+    noises = [slice_noise(d.slice, d.blobs.footprints) for d in seen]
+    Js, rs, var = [], [], []
+    for j, k, q, J in _matched_rows(model, fit, seen):
+        Js.append(J)
+        rs.append((q - seen[j].xy_mm[fit.assignments[j][k]]).ravel())
         var.append(np.repeat(np.asarray(sigma_mm[j], float)[k] ** 2, 2))
     J = np.concatenate(Js)
     return pose_uncertainty(J, np.diag(np.concatenate(var)), np.concatenate(rs), noises, target_F_mm, measurement)
+
+
+def position_covariance(model, fit, seen: list[DetectedSlice], sigma_mm: float) -> np.ndarray:
+    """(6, 6) in F's parameters (deg, mm): the pose's covariance when each matched section lies ``sigma_mm`` (per
+    coordinate) from where the pose puts it, whatever else the fit measured (a pose fitted to the pixels: its
+    sections' model error, :func:`chic_register.verify.pixels.section_model_error_mm`)."""
+    rows = _matched_rows(model, fit, seen)
+    J = np.concatenate([J for *_, J in rows])
+    s = np.array([math.degrees(1.0)] * 3 + [1.0] * 3)
+    C = sigma_mm * sigma_mm * np.linalg.inv(J.T @ J) * np.outer(s, s)
+    return 0.5 * (C + C.T)

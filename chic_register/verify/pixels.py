@@ -84,10 +84,12 @@ from chic_register.fit.checks import (
     STRETCH_P,
     anisotropic_stretch,
     pose_precision,
+    position_precision,
     stretch_test,
     twist_covariance,
     weakest_rotation_text,
 )
+from chic_register.fit.scatter import Scatter
 from chic_register.imaging.psf import blurred_windows, fit_psf
 from chic_register.model.envelope import plane_status
 from chic_register.model.pose import invert, slice_angles
@@ -162,6 +164,7 @@ class SliceCheck:
     psf_px: float = 0.0  # Gaussian point spread (sigma, pixels: the mean of rows' and columns') the model was blurred by
     strays: tuple[int, ...] = ()  # detected blobs on the tubes' circle inside the body that the pose leaves unexplained
     psf_rc_px: tuple = (0.0, 0.0)  # the point spread's sigma along rows and along columns (pixels that are not square)
+    offsets_mm: tuple = ()  # per present tube alone in its window: (its section's distance from the pose's, that distance's SE)
 
 
 def shape_tolerance(radius_px: float) -> float:
@@ -217,7 +220,7 @@ def verify_slice(geom, model, T_F_from_I: np.ndarray, pixels: np.ndarray, spacin
             raise NoLock(f"{source}: the rendered model at the pose ({where}) does not match the pixels of the "
                          f"tubes it was fitted to", {"n_tubes": len(matched)})
         level = median(gains)
-        present, missing, cut_missing = [], [], []
+        present, missing, cut_missing, offsets = [], [], [], []
         scales, aspect_se = [], []
         for k, (w, coef, y, fit) in fits.items():
             own = w.own.ravel()
@@ -245,6 +248,8 @@ def verify_slice(geom, model, T_F_from_I: np.ndarray, pixels: np.ndarray, spacin
                 raise NoLock(f"{source}: tube {tid}'s section lies {shift:.1f} px from where the pose ({where}) "
                              f"predicts it", {"tube": tid, "shift_px": round(shift, 3)})
             present.append(tid)
+            if tid not in merged and w.others.max() < 0.05:  # (a neighbour's overlap would bias its place)
+                offsets.append((shift * px, shift_se * px))
             # second moments of the section seen vs predicted (pixels), tubes with no neighbour in the window
             if w.others.max() < 0.05:
                 obs = np.clip((y - coef[0]), 0.0, None).reshape(hh, ww) * sup.reshape(hh, ww)
@@ -284,7 +289,8 @@ def verify_slice(geom, model, T_F_from_I: np.ndarray, pixels: np.ndarray, spacin
                          {"blob_rc": [round(float(r), 1), round(float(c), 1)]})
         psf_rc = (float(psf_px), float(psf_px)) if np.ndim(psf_px) == 0 else tuple(float(v) for v in psf_px)
         return SliceCheck(tuple(present), tuple(missing), scale, envelope, merged, canvas, level, sigma,
-                          0.5 * (psf_rc[0] + psf_rc[1]), strays=tuple(strays), psf_rc_px=psf_rc)
+                          0.5 * (psf_rc[0] + psf_rc[1]), strays=tuple(strays), psf_rc_px=psf_rc,
+                          offsets_mm=tuple(offsets))
 
     wins, canvas = tube_windows(geom, model, T_F_from_I, shape, (rs, cs), float(thickness_mm))
     try:
@@ -432,6 +438,17 @@ def _check_stretch(model, fit, xys, Ss, opts, slices, scale_fitted: bool) -> Non
                  f"together, they measure it)", detail)
 
 
+def section_model_error_mm(checks: list[SliceCheck]) -> float:
+    """The model error (mm per coordinate) of the verified sections' places: the scatter of their offsets from the
+    pose's crossings (:attr:`SliceCheck.offsets_mm`) beyond their pixel noise, robust (:class:`~chic_register.fit.scatter.Scatter`);
+    0 with fewer than three sections. A simulation puts them within their noise; a real scan 0.1-0.5 mm off."""
+    rows = [o for c in checks for o in c.offsets_mm if math.isfinite(o[1])]
+    if len(rows) < 3:
+        return 0.0
+    d, se = np.array(rows).T
+    return Scatter.of(d * d, se).model_error_mm
+
+
 def verify_fit(geom, model, fit, rivals, seen: list[DetectedSlice], opts, precision=None,
                name_slice: bool = False, psf_px: float | None = None,
                precision_sigmas: float = PRECISION_SIGMAS) -> list[SliceCheck]:
@@ -498,6 +515,11 @@ def verify_fit(geom, model, fit, rivals, seen: list[DetectedSlice], opts, precis
     _check_stretch(model, fit, xys, Ss, opts, slices, scale_fitted)
     px = min(max(sl.pixel_spacing_mm) for sl in slices)
     tre, rot = precision or pose_precision(model, fit, Ss, px, exclude=[c.merged for c in out])
+    if precision is not None:  # the pixel fit's covariance holds its pixels' noise, not where the sections really lie
+        m = section_model_error_mm(out)
+        if m > 0:
+            tre_m, rot_m = position_precision(model, fit, Ss, m, exclude=[c.merged for c in out])
+            tre, rot = math.hypot(tre, tre_m), math.hypot(rot, rot_m)
     # noise shared between neighbouring pixels (an interpolated or smoothed image) makes every estimate that takes
     # them as independent too optimistic: widened by the worst slice's correlation factor
     f = max(correlation_inflation(noise_correlation_axes(np.asarray(sl.pixels), b.footprints))

@@ -9,10 +9,11 @@ import pytest
 from chic_register.cli.inputs import load_prior
 from chic_register.detect.blobs import Blobs
 from chic_register.errors import NoLock
+from chic_register.fit.scatter import Scatter
 from chic_register.imaging.simulate import simulate_volume
 from chic_register.io.volumes import read_volume
 from chic_register.model.pose import rigid, rot_y, rot_z
-from chic_register.pipeline.every_slice import MIN_SLICE_TUBES, Scatter, enclosing_blobs
+from chic_register.pipeline.every_slice import MIN_SLICE_TUBES, enclosing_blobs
 from chic_register.pipeline.volume import register_volume
 from tests.conftest import REAL
 from tests.helpers import ZF_CENTRE, pose_difference, tre_mm

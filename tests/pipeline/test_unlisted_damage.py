@@ -9,6 +9,7 @@ import math
 import numpy as np
 import pytest
 
+import chic_register.fit.blurred as fb
 import chic_register.verify.pixels as vp
 from chic_register.errors import NoLock
 from chic_register.pipeline.register import register
@@ -59,12 +60,33 @@ def test_correlated_noise_widens_the_precision_in_two_dimensions(monkeypatch, se
 
     assert refused_or_right(outcome(seed, index, kind))
 
-    def old_inflation(rho):
-        r = float(np.mean(rho))
-        return math.sqrt((1 + r) / (1 - r)) if r >= 0.45 else 1.0
-
-    monkeypatch.setattr(vp, "correlation_inflation", old_inflation)
+    monkeypatch.setattr(vp, "correlation_inflation", _old_inflation)
+    _without_the_pixel_fits_other_nets(monkeypatch)
     assert false_lock(outcome(seed, index, kind))
+
+
+def _without_the_pixel_fits_other_nets(monkeypatch) -> None:
+    """The blurred fit's other refusals of a zoomed slice off: the stretch its pixels show and its sections' model error."""
+    monkeypatch.setattr(fb, "STRETCH_SHOWN_CHI2", math.inf)
+    monkeypatch.setattr(vp, "section_model_error_mm", lambda checks: 0.0)
+
+
+def _old_inflation(rho):
+    r = float(np.mean(rho))
+    return math.sqrt((1 + r) / (1 - r)) if r >= 0.45 else 1.0
+
+
+@pytest.mark.parametrize("net", ["stretch shown", "model error"])
+def test_a_zoomed_slices_pixel_fit_is_refused_by_its_stretch_or_its_sections_places(monkeypatch, net):
+    """Seed 7 case 425 again, with the correlation factor of old (the pose then 0.45 mm / 0.53 deg off): its pixel
+    fit shows a stretch, whose pull on the pose joins the covariance, and its sections lie off the pose's crossings
+    beyond their noise, a model error that joins it too. Each alone refuses the pose."""
+    monkeypatch.setattr(vp, "correlation_inflation", _old_inflation)
+    if net == "stretch shown":
+        monkeypatch.setattr(vp, "section_model_error_mm", lambda checks: 0.0)
+    else:
+        monkeypatch.setattr(fb, "STRETCH_SHOWN_CHI2", math.inf)
+    assert outcome(7, 425, "zoom2") == "no_lock"
 
 
 def test_a_small_stretch_that_turns_the_pose_is_refused(monkeypatch):
@@ -73,6 +95,7 @@ def test_a_small_stretch_that_turns_the_pose_is_refused(monkeypatch):
     significant (p 1e-4) though under 2 %, and fitting it moves the pose by 0.52 deg: refused."""
     assert refused_or_right(outcome(1, 1825, "zoom2"))
     monkeypatch.setattr(vp, "STRETCH_MOVE_SHARE", np.inf)
+    _without_the_pixel_fits_other_nets(monkeypatch)
     assert false_lock(outcome(1, 1825, "zoom2"))
 
 

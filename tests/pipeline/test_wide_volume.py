@@ -62,7 +62,7 @@ def test_wide_volume_pose_carries_the_pixel_fits_covariance(needle_geometry):
     tre, rot = tre_and_rotation(reg.T_scanner_from_fiducial, T, L)
     assert tre < 0.15 and rot < 0.3
     unc = reg.uncertainty
-    assert unc.measurement == "blurred fit (pixels)"
+    assert unc.measurement.startswith("blurred fit (pixels)")  # (+ the sections' model error, where they show one)
     D = invert(T) @ reg.T_scanner_from_fiducial  # the error as a motion in F
     delta = np.array([math.degrees(v) for v in (D[2, 1], D[0, 2], D[1, 0])] + list(D[:3, 3]))
     assert mahalanobis2(delta, unc.covariance) < 22.5  # chi-square, 6 dof: p = 0.001
