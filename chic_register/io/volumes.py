@@ -27,6 +27,7 @@ from chic_register.errors import ChicRegisterError, ImageReadError, InputFileErr
 from chic_register.io.images import VOLUME_SUFFIXES as FILE_SUFFIXES
 from chic_register.io.images import file_suffix
 from chic_register.io.limits import MAX_SPACING_MM, MIN_SPACING_MM, check_voxels, last_line
+from chic_register.io.nrrd import read_nrrd
 from chic_register.model.slices import Slice
 from chic_register.util.atomic import atomic_path
 from chic_register.util.safeload import open_regular_file
@@ -130,22 +131,22 @@ def volume_from_sitk(img: sitk.Image, source: str = "<sitk>", slice_thickness_mm
         raise ImageReadError(source, f"expected a 3-D volume, got {img.GetDimension()}-D")
     if img.GetNumberOfComponentsPerPixel() != 1:
         raise ImageReadError(source, f"expected scalar voxels, got {img.GetNumberOfComponentsPerPixel()} components")
+    return checked_volume(sitk.GetArrayFromImage(img), img.GetSpacing(), np.array(img.GetOrigin()),
+                          np.array(img.GetDirection()).reshape(3, 3), source, slice_thickness_mm)
 
-    spacing, origin = np.array(img.GetSpacing()), np.array(img.GetOrigin())
+
+def checked_volume(voxels: np.ndarray, spacing_mm, origin_mm: np.ndarray, direction: np.ndarray, source: str,
+                   slice_thickness_mm: float | None = None) -> Volume:
+    """A :class:`Volume` of voxels (nk, nj, ni) at a spacing (si, sj, sk) within the readable range, a finite origin
+    and an orthonormal direction (3, 3); :class:`ImageReadError` naming ``source`` otherwise."""
+    spacing, origin = np.asarray(spacing_mm, float), np.asarray(origin_mm, float)
     if not np.all(np.isfinite(spacing) & (spacing >= MIN_SPACING_MM) & (spacing <= MAX_SPACING_MM)):
         raise ImageReadError(source, f"voxel spacing must be three numbers in {MIN_SPACING_MM:g}..{MAX_SPACING_MM:g} "
                                      f"mm, got {spacing.tolist()}")
-    direction = np.array(img.GetDirection()).reshape(3, 3)
     if not (np.all(np.isfinite(origin)) and np.allclose(direction.T @ direction, np.eye(3), atol=1e-3)):
         raise ImageReadError(source, "volume origin/direction are not a finite position and an orthonormal frame")
-    return Volume(
-        voxels=sitk.GetArrayFromImage(img),
-        spacing_mm=img.GetSpacing(),
-        origin_mm=np.array(img.GetOrigin()),
-        direction=np.array(img.GetDirection()).reshape(3, 3),
-        source=source,
-        slice_thickness_mm=slice_thickness_mm,
-    )
+    return Volume(voxels=voxels, spacing_mm=tuple(float(s) for s in spacing), origin_mm=origin, direction=direction,
+                  source=source, slice_thickness_mm=slice_thickness_mm)
 
 
 def read_volume(path, series_id: str | None = None) -> Volume:
@@ -156,11 +157,19 @@ def read_volume(path, series_id: str | None = None) -> Volume:
     ``series_id``, a SeriesInstanceUID or a SeriesNumber, to pick one; the
     message lists them).
     """
-    import SimpleITK as sitk  # deferred: loads SimpleITK only when used (one-shot start-up)
-
     path = Path(path)
     if not path.exists():
         raise ImageReadError(path, "no such file or folder")
+    if not path.is_dir() and series_id is None and file_suffix(path) in (".nrrd", ".nhdr"):
+        try:
+            open_regular_file(path, "volume file").close()  # a FIFO or device is refused, not waited on
+        except InputFileError as exc:
+            raise ImageReadError(path, exc.detail) from None
+        plain = read_nrrd(path)
+        if plain is not None:
+            return checked_volume(*plain, source=str(path))
+    import SimpleITK as sitk  # deferred: loads SimpleITK only when used (one-shot start-up)
+
     if path.is_dir():
         from chic_register.io.dicom import read_dicom_series  # deferred: loads pydicom only for a DICOM folder
 
