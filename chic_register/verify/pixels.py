@@ -515,6 +515,7 @@ def verify_fit(geom, model, fit, rivals, seen: list[DetectedSlice], opts, precis
     _check_stretch(model, fit, xys, Ss, opts, slices, scale_fitted)
     px = min(max(sl.pixel_spacing_mm) for sl in slices)
     tre, rot = precision or pose_precision(model, fit, Ss, px, exclude=[c.merged for c in out])
+    noise_only, m = (tre, rot), 0.0
     if precision is not None:  # the pixel fit's covariance holds its pixels' noise, not where the sections really lie
         m = section_model_error_mm(out)
         if m > 0:
@@ -528,13 +529,17 @@ def verify_fit(geom, model, fit, rivals, seen: list[DetectedSlice], opts, precis
     k = precision_sigmas
     tre_tol, rot_tol = opts.trust_tre_mm, opts.trust_rot_deg
     if k * tre > tre_tol or k * rot > rot_tol:
+        why = "a tilted slice or several parallel slices are more precise"
+        if m > 0 and k * f * noise_only[0] <= tre_tol and k * f * noise_only[1] <= rot_tol:  # the model error decides
+            why = (f"its sections lie {m:.2f} mm (per coordinate) from where the pose puts them, beyond their noise: "
+                   f"the scanner's distortion or the print, which several slices or a volume average out")
         C = None if precision is not None else twist_covariance(model, fit, Ss, px, exclude=[c.merged for c in out])
         weakest = f"; {weakest_rotation_text(C * f * f, fit)}" if C is not None and k * rot > rot_tol else ""
         raise ImprecisePose(f"the pose is not precise enough to trust: {k:g} sigma of its predicted error is "
                             f"{k * tre:.2f} mm at the frame centre and {k * rot:.2f} deg (limits {tre_tol:g} mm, "
-                            f"{rot_tol:g} deg{weakest}; a tilted slice or several parallel slices are more precise; "
-                            f"--trust MM DEG sets the limits)",
+                            f"{rot_tol:g} deg{weakest}; {why}; --trust MM DEG sets the limits)",
                             {"sigma_tre_mm": round(tre, 4), "sigma_rot_deg": round(rot, 4),
+                             **({"sections_model_error_mm": round(m, 4)} if m > 0 else {}),
                              "refused_T_scanner_from_fiducial": invert(fit.T_F_from_scanner).tolist()})
     return out
 
