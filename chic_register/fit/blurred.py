@@ -81,9 +81,9 @@ THICKNESS_SAMPLES = 3
 class BlurredFit:
     """The outcome: ``T_F_from_scanner`` (4x4), the point spread (``psf_px``, sigma in pixels of the first slice),
     the pose's 6x6 covariance (``covariance``, twist (rad, mm) about ``centre_scanner`` in the scanner frame; from
-    the fit with the pixel spacing as given, and the pull of a stretch the pixels show, :data:`STRETCH_SHOWN_CHI2`), the image's ``stretch`` fitted with the pose in the first pass (x =
-    columns, y = rows: the share by which the pixel spacing looks too small) and its standard deviation, the
-    residual noise sigma and the pixel count."""
+    the fit with the pixel spacing as given, plus the pull of a stretch the pixels show, :data:`STRETCH_SHOWN_CHI2`),
+    the image's ``stretch`` fitted with the pose in the first pass (x = columns, y = rows: the share by which the
+    pixel spacing looks too small) and its standard deviation, the residual noise sigma and the pixel count."""
 
     T_F_from_scanner: np.ndarray
     psf_px: float
