@@ -57,6 +57,14 @@ def test_a_big_endian_raw_nrrd_in_ras_reads_as_simpleitk_reads_it(tmp_path):
     _assert_same(fast, _as_simpleitk_reads(tmp_path / "b.nrrd"))
 
 
+def test_a_detached_header_reads_as_simpleitk_reads_it(tmp_path):
+    data = np.arange(3 * 4 * 5, dtype=np.float32).reshape(3, 4, 5)  # pynrrd: index [i, j, k]
+    nrrd.write(str(tmp_path / "d.nhdr"), data, {"space": "left-posterior-superior", "space directions": np.diag(
+        [0.7, 0.7, 2.4]), "space origin": np.array([-90.0, -90.0, 10.0]), "encoding": "gzip"}, detached_header=True)
+    assert read_nrrd(tmp_path / "d.nhdr") is not None
+    _assert_same(read_volume(tmp_path / "d.nhdr"), _as_simpleitk_reads(tmp_path / "d.nhdr"))
+
+
 def test_other_headers_are_left_to_simpleitk(tmp_path):
     data = np.zeros((4, 5, 3), np.float32)
     skew = np.array([[1.0, 0.0, 0.0], [0.5, 1.0, 0.0], [0.0, 0.0, 2.0]])  # not orthogonal
