@@ -42,6 +42,7 @@ from chic_register.fit.section import section_model
 from chic_register.fit.windows import Windows
 from chic_register.imaging.psf import gaussian_blur
 from chic_register.model.pose import invert
+from chic_register.model.pose_params import deg_mm_scale
 from chic_register.model.tube_model import (
     TubeModel,
     exp_se3,
@@ -109,7 +110,7 @@ class BlurredFit:
                 r = 0.5 * np.array([D[2, 1] - D[1, 2], D[0, 2] - D[2, 0], D[1, 0] - D[0, 1]])
                 d.append(np.concatenate([r, D[:3, 3]]))
             M[:, i] = (d[0] - d[1]) / (2.0 * h[i])
-        s = np.array([math.degrees(1.0)] * 3 + [1.0] * 3)
+        s = deg_mm_scale()
         C = (M @ self.covariance @ M.T) * np.outer(s, s)
         return 0.5 * (C + C.T)
 

@@ -23,6 +23,7 @@ from chic_register.detect.detected import DetectedSlice
 from chic_register.fit.checks import gamma_p
 from chic_register.fit.refine import Fit, refine, scanner_crossing_jacobian
 from chic_register.model.pose import invert
+from chic_register.model.pose_params import deg_mm_scale
 from chic_register.model.tube_model import TubeModel, adjoint, exp_se3, plane_crossings
 
 #: Axis names of :attr:`ScaleFit.scale`.
@@ -158,7 +159,7 @@ def scaled_fit(model: TubeModel, fit: Fit, seen: list[DetectedSlice], sf: ScaleF
 def _to_F_parameters(C_scanner: np.ndarray, X: np.ndarray) -> np.ndarray:
     """A (6, 6) covariance of a scanner twist of ``T_F_from_scanner`` in F's parameters (deg, mm)."""
     A = -adjoint(X)  # the same motion as a delta in F: xi = -Ad(T_sf) delta, so delta = -Ad(T_fs) xi
-    s = np.array([math.degrees(1.0)] * 3 + [1.0] * 3)
+    s = deg_mm_scale()
     C = A @ C_scanner @ A.T * np.outer(s, s)
     return 0.5 * (C + C.T)
 

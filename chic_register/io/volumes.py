@@ -160,12 +160,16 @@ def read_volume(path, series_id: str | None = None) -> Volume:
     path = Path(path)
     if not path.exists():
         raise ImageReadError(path, "no such file or folder")
-    if not path.is_dir() and series_id is None and file_suffix(path) in (".nrrd", ".nhdr"):
+    if not path.is_dir():
+        if series_id is not None:
+            raise ImageReadError(path, "--series applies to a folder of DICOM files, not a volume file")
+        if file_suffix(path) not in FILE_SUFFIXES:
+            raise ImageReadError(path, f"not a volume file; allowed: {', '.join(FILE_SUFFIXES)} or a DICOM series folder")
         try:
             open_regular_file(path, "volume file").close()  # a FIFO or device is refused, not waited on
         except InputFileError as exc:
             raise ImageReadError(path, exc.detail) from None
-        plain = read_nrrd(path)
+        plain = read_nrrd(path) if file_suffix(path) in (".nrrd", ".nhdr") else None
         if plain is not None:
             return checked_volume(*plain, source=str(path))
     import SimpleITK as sitk  # deferred: loads SimpleITK only when used (one-shot start-up)
@@ -177,15 +181,6 @@ def read_volume(path, series_id: str | None = None) -> Volume:
         if img.GetDimension() == 3:
             return volume_from_sitk(img, source=str(path), slice_thickness_mm=thickness_mm)
     else:
-        if series_id is not None:
-            raise ImageReadError(path, "--series applies to a folder of DICOM files, not a volume file")
-        if file_suffix(path) not in FILE_SUFFIXES:
-            raise ImageReadError(path, f"not a volume file; allowed: {', '.join(FILE_SUFFIXES)} or a DICOM series folder")
-
-        try:
-            open_regular_file(path, "volume file").close()  # a FIFO or device is refused, not waited on
-        except InputFileError as exc:
-            raise ImageReadError(path, exc.detail) from None
         try:
             reader = sitk.ImageFileReader()
             reader.SetFileName(str(path))

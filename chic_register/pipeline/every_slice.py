@@ -145,15 +145,7 @@ def register_every_slice(slices: list[Slice], geom: FiducialGeometry, opts: Solv
         if jf is None:
             led.append((X, None))
             continue
-        same = [g for g in groups if not poses_distinct(jf.fit.T_F_from_scanner, g[0].fit.T_F_from_scanner, model)]
-        if not same:
-            groups.append([jf, set(js)])
-            led.append((X, groups[-1]))
-            continue
-        if _explains_better(jf, same[0][0]):  # the same pose, reached through better-fitting slices: kept instead
-            same[0][0] = jf
-        led.append((X, same[0]))
-        same[0][1].update(js)
+        led.append((X, _join(model, groups, jf, js)))
     fits = [g for g in groups if near_prior(g[0].fit.T_F_from_scanner, opts)]
     outside = [g[0] for g in groups if not near_prior(g[0].fit.T_F_from_scanner, opts)]
     if not fits and outside:
@@ -162,14 +154,13 @@ def register_every_slice(slices: list[Slice], geom: FiducialGeometry, opts: Solv
         raise NoLock(f"the slices show the frame turned {turn:.0f} deg from the prior ({o.fit.n_matched} blob centres "
                      f"fit that pose), beyond --prior-max-deg {opts.prior_max_deg:g}: no pose near the prior explains "
                      f"them; check how the frame is mounted", {"stage": "joint", "n_outside": o.fit.n_matched})
-    # a pose is the volume's when two or more slices would lock at it alone (they did, and led to it, or the joint fit
-    # matches every tube it puts wholly inside them), and no other pose has such support
-    supported = [g for g in fits if len(g[1] | _complete_slices(model, g[0], opts)) >= 2]
+    # a pose is the volume's when two or more slices would lock at it alone, and no other pose has such support
+    supported = _supported(model, fits, opts)
     faint = len(supported) > 1
     if faint:  # each read again with its faint sections: a biased slice among few can split one pose's fits in two
         merged = _merge_with_faint_sections(model, supported, seen, noise, pixel_noise, parents, detect_options)
         fits = merged + [g for g in fits if not any(g is h for h in supported)]
-        supported = [g for g in merged if len(g[1] | _complete_slices(model, g[0], opts)) >= 2]
+        supported = _supported(model, merged, opts)
     if len(supported) != 1:
         raise NoLock(f"the slices locked alone lead to {len(supported)} distinct poses that two or more of them agree "
                      f"on (of {len(fits)} poses fitted to the volume's blob centres); one is needed",
@@ -287,15 +278,27 @@ def _merge_with_faint_sections(model: TubeModel, groups: list[list], seen, noise
     the others; the sections the faint slices hold outvote it."""
     out: list[list] = []
     for jf, js in groups:
-        jf = _with_faint_sections(model, jf, seen, noise, pixel_noise, parents, detect_options)
-        same = [h for h in out if not poses_distinct(jf.fit.T_F_from_scanner, h[0].fit.T_F_from_scanner, model)]
-        if not same:
-            out.append([jf, set(js)])
-            continue
-        if _explains_better(jf, same[0][0]):
-            same[0][0] = jf
-        same[0][1].update(js)
+        _join(model, out, _with_faint_sections(model, jf, seen, noise, pixel_noise, parents, detect_options), js)
     return out
+
+
+def _join(model: TubeModel, groups: list[list], jf: JointFit, js) -> list:
+    """The group of ``groups`` (``[JointFit, lone-locked slices]``) that ``jf`` joins, with its slices ``js``: the
+    one whose pose is ``jf``'s (the closer fit kept, :func:`_explains_better`), else a new one appended."""
+    same = [g for g in groups if not poses_distinct(jf.fit.T_F_from_scanner, g[0].fit.T_F_from_scanner, model)]
+    if not same:
+        groups.append([jf, set(js)])
+        return groups[-1]
+    if _explains_better(jf, same[0][0]):  # the same pose, reached through better-fitting slices: kept instead
+        same[0][0] = jf
+    same[0][1].update(js)
+    return same[0]
+
+
+def _supported(model: TubeModel, groups: list[list], opts: SolveOptions) -> list[list]:
+    """The groups whose pose two or more slices would lock at alone: they did, and led to it, or the joint fit
+    matches every tube it puts wholly inside them (:func:`_complete_slices`)."""
+    return [g for g in groups if len(g[1] | _complete_slices(model, g[0], opts)) >= 2]
 
 
 def median_diameter_mm(model: TubeModel) -> float:

@@ -3,8 +3,8 @@
 Where the data show a scale (the F test of :func:`~chic_register.fit.scale.fit_scale` below
 :data:`~chic_register.fit.checks.STRETCH_P`), the pose fitted with it is the answer: a rigid pose would have taken
 part of the scale as a tilt. A scale beyond ``max_scale_error`` in the image plane (``max_slice_scale_error`` across
-the slices) by more than its noise explains (:data:`SCALE_LIMIT_SIGMAS`) is refused as a wrong pixel (slice) spacing; one whose fit moves the pose beyond the trust limits is
-refused as not separable from the pose. One slice measures its scale but cannot fit it: the registration says how
+the slices) by more than its noise explains (:data:`SCALE_LIMIT_SIGMAS`) is refused as a wrong pixel (slice) spacing;
+one whose fit moves the pose beyond the trust limits is refused as not separable from the pose. One slice measures its scale but cannot fit it: the registration says how
 far an unmeasured scale would move the pose, and holds a scale of ``SolveOptions.scale_sd`` (a calibrated geometry
 file's own, by default) in the pose's covariance.
 """

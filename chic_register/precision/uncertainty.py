@@ -49,6 +49,7 @@ from chic_register.model.pose_params import (
     PARAMETER_FRAME,
     PARAMETER_ORDER,
     default_target,
+    deg_mm_scale,
     tre_rms_mm,
 )
 from chic_register.model.tube_model import adjoint, plane_crossings
@@ -358,8 +359,7 @@ def pose_uncertainty(J_F: np.ndarray, S: np.ndarray, residuals: np.ndarray, nois
     C = sandwich(J_F, S)
     chi, dof = residual_chi2(residuals, S, J_F)
     k = inflation_factor(chi, dof)
-    s = np.array([math.degrees(1.0)] * 3 + [1.0] * 3)
-    cov = k * C * np.outer(s, s)
+    cov = k * C * np.outer(deg_mm_scale(), deg_mm_scale())
     cov = 0.5 * (cov + cov.T)
     target = tuple(float(v) for v in target_F_mm)
     return PoseUncertainty(cov, tuple(noise), chi, dof, k, target, tre_rms_mm(cov, target), measurement)
@@ -448,7 +448,8 @@ def registration_uncertainty(model, fit, seen: list[DetectedSlice], target_F_mm,
 
 
 def _matched_rows(model, fit, seen: list[DetectedSlice]):
-    """Per slice with matched tubes: ``(j, k, J)``: the slice, its matched tubes inside it, and their crossings'
+    """Per slice with matched tubes: ``(j, k, q, J)``: the slice, its matched tubes inside it, their crossings (K_j,
+    2; image mm), and the crossings'
     Jacobian (2 rows per tube, 6 columns: d(predicted position)/d(delta) in (rad, mm) of F's parameters)."""
     X = fit.T_F_from_scanner
     Ad_sf = adjoint(invert(X))
@@ -482,8 +483,6 @@ def position_covariance(model, fit, seen: list[DetectedSlice], sigma_mm: float) 
     """(6, 6) in F's parameters (deg, mm): the pose's covariance when each matched section lies ``sigma_mm`` (per
     coordinate) from where the pose puts it, whatever else the fit measured (a pose fitted to the pixels: its
     sections' model error, :func:`chic_register.verify.pixels.section_model_error_mm`)."""
-    rows = _matched_rows(model, fit, seen)
-    J = np.concatenate([J for *_, J in rows])
-    s = np.array([math.degrees(1.0)] * 3 + [1.0] * 3)
-    C = sigma_mm * sigma_mm * np.linalg.inv(J.T @ J) * np.outer(s, s)
+    J = np.concatenate([J for *_, J in _matched_rows(model, fit, seen)])
+    C = sigma_mm * sigma_mm * np.linalg.inv(J.T @ J) * np.outer(deg_mm_scale(), deg_mm_scale())
     return 0.5 * (C + C.T)
